@@ -1,0 +1,48 @@
+"""diffgyro: gyroscope and IMU calibration with differentiable, composable error models.
+
+Calibration needs float64. diffgyro does not flip JAX's global switch on
+import; call :func:`enable_x64` once (the command line does) or set
+``JAX_ENABLE_X64=1`` before importing JAX.
+"""
+
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+
+try:
+    __version__ = version("diffgyro")
+except PackageNotFoundError:  # running from a source tree
+    __version__ = "0.0.0+unknown"
+
+
+def enable_x64() -> None:
+    """Turn on JAX float64 (a process-wide setting; calibration needs it)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def enable_compilation_cache(path: str | None = None) -> None:
+    """Keep compiled functions on disk between processes (on for the CLI and tests)."""
+    import os
+
+    import jax
+
+    path = path or os.environ.get("DIFFGYRO_CACHE_DIR") or os.path.join(
+        os.path.expanduser("~"), ".cache", "diffgyro", "jax")
+    try:
+        os.makedirs(path, exist_ok=True)
+        jax.config.update("jax_compilation_cache_dir", path)
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except Exception:  # a read-only home must not stop a calibration
+        pass
+
+
+from . import effects  # noqa: E402,F401
+from .data import Batch, Recording  # noqa: E402
+from .errors import DataError, SpecError  # noqa: E402
+from .model import ErrorModel, Params  # noqa: E402
+
+__all__ = ["Batch", "DataError", "ErrorModel", "Params", "Recording", "SpecError",
+           "__version__", "effects", "enable_compilation_cache", "enable_x64"]

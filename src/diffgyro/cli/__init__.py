@@ -1,0 +1,71 @@
+"""The ``diffgyro`` command line (DESIGN.md §4 is its contract).
+
+Each command lives in its own module of this package and registers itself on
+``app`` when imported; every module here is imported by :func:`main`.
+Bad input raises :class:`~diffgyro.errors.DataError`: its one-line message
+goes to stderr and the exit code is 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import pkgutil
+import sys
+
+import typer
+
+app = typer.Typer(
+    name="diffgyro",
+    help="Gyroscope calibration with differentiable error models.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+
+_loaded = False
+
+
+@app.callback()
+def _root() -> None:
+    """Gyroscope calibration with differentiable error models (rates in rad/s)."""
+
+
+def load_commands() -> typer.Typer:
+    """Import every command module so that each registers on ``app``."""
+    global _loaded
+    if not _loaded:
+        for mod in sorted(pkgutil.iter_modules(__path__), key=lambda m: m.name):
+            if not mod.name.startswith("_"):
+                importlib.import_module(f"{__name__}.{mod.name}")
+        _loaded = True
+    return app
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: float64 and the compilation cache on, clean errors out."""
+    import diffgyro
+    from diffgyro.errors import DataError
+
+    diffgyro.enable_x64()
+    diffgyro.enable_compilation_cache()
+    load_commands()
+    try:
+        app(args=argv, standalone_mode=False)
+    except DataError as err:
+        print(f"diffgyro: error: {err}", file=sys.stderr)
+        return 2
+    except typer.Exit as err:
+        return err.exit_code
+    except typer.Abort:
+        print("diffgyro: aborted", file=sys.stderr)
+        return 130
+    except Exception as err:  # usage errors (click's, vendored by typer) carry their own message
+        if hasattr(err, "show") and hasattr(err, "exit_code"):
+            err.show()
+            return err.exit_code
+        raise
+    return 0
+
+
+def run() -> None:  # console script
+    sys.exit(main())

@@ -1,0 +1,214 @@
+"""Recordings of one device and batches of many, as pytrees.
+
+A :class:`Recording` holds one device's samples in the standard schema of
+DESIGN.md §3 (SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
+recordings along a leading device axis, padded to a bucket length with a
+sample mask, so that batches of slightly different lengths reuse one compiled
+function. Arrays are host numpy arrays here; fits move them to JAX.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import equinox as eqx
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+from .errors import DataError
+
+# Signal name -> standard column names (DESIGN.md §3, contract).
+SIGNALS: dict[str, tuple[str, ...]] = {
+    "gyro": ("gx", "gy", "gz"),
+    "temp": ("temp",),
+    "temp_ext": ("temp_ext",),
+    "accel": ("ax", "ay", "az"),
+    "mag": ("mx", "my", "mz"),
+    "rate": ("rx", "ry", "rz"),
+    "quat": ("qw", "qx", "qy", "qz"),
+}
+OPTIONAL_SIGNALS = ("temp", "temp_ext", "accel", "mag", "rate", "quat")
+COLUMN_TO_SIGNAL = {c: s for s, cols in SIGNALS.items() for c in cols}
+STANDARD_COLUMNS = ("device", "t", *[c for cols in SIGNALS.values() for c in cols])
+
+
+class Recording(eqx.Module):
+    """One device's samples; optional signals are ``None`` when not recorded."""
+
+    t: Float[np.ndarray, " n"]
+    gyro: Float[np.ndarray, "n 3"]
+    temp: Float[np.ndarray, " n"] | None = None
+    temp_ext: Float[np.ndarray, " n"] | None = None
+    accel: Float[np.ndarray, "n 3"] | None = None
+    mag: Float[np.ndarray, "n 3"] | None = None
+    rate: Float[np.ndarray, "n 3"] | None = None
+    quat: Float[np.ndarray, "n 4"] | None = None
+    device: str = eqx.field(static=True, default="device")
+    source: str | None = eqx.field(static=True, default=None)
+
+    @property
+    def n(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def signals(self) -> tuple[str, ...]:
+        """Names of the signals present (always includes ``t`` and ``gyro``)."""
+        return ("t", "gyro") + tuple(s for s in OPTIONAL_SIGNALS if getattr(self, s) is not None)
+
+    def to_frame(self):
+        """This recording as a pandas DataFrame in the standard schema."""
+        import pandas as pd
+
+        cols: dict[str, np.ndarray | str] = {"device": self.device, "t": self.t}
+        for sig, names in SIGNALS.items():
+            arr = getattr(self, sig)
+            if arr is None:
+                continue
+            arr = np.asarray(arr).reshape(self.n, len(names))
+            for k, name in enumerate(names):
+                cols[name] = arr[:, k]
+        return pd.DataFrame(cols)
+
+    def slice(self, start: int, stop: int) -> Recording:
+        """Samples ``start:stop`` as a new recording of the same device."""
+        kw = {s: (None if getattr(self, s) is None else getattr(self, s)[start:stop])
+              for s in ("t", "gyro", *OPTIONAL_SIGNALS)}
+        return Recording(**kw, device=self.device, source=self.source)
+
+
+def bucket_length(n: int, minimum: int = 64) -> int:
+    """Smallest bucket length ≥ ``n``: ``m·2^k`` with m in 4..7 (≤ 25 % padding).
+
+    A handful of bucket lengths per decade keeps recompilation rare when
+    devices have slightly different numbers of samples.
+    """
+    n = max(int(n), minimum)
+    k = max(0, math.floor(math.log2(n)) - 2)
+    while True:
+        for m in (4, 5, 6, 7):
+            if m * 2**k >= n:
+                return m * 2**k
+        k += 1
+
+
+def _pad(arr: np.ndarray, length: int, mode: str) -> np.ndarray:
+    extra = length - arr.shape[0]
+    if extra <= 0:
+        return arr
+    if mode == "zero":
+        fill = np.zeros((extra, *arr.shape[1:]), arr.dtype)
+    else:  # hold the last value (keeps temperatures and times in a sane range)
+        fill = np.repeat(arr[-1:], extra, axis=0)
+    return np.concatenate([arr, fill], axis=0)
+
+
+class Batch(eqx.Module):
+    """Many devices stacked on a leading axis, padded with a sample mask.
+
+    Padded samples have ``mask == False``; their time continues at the last
+    sampling interval and other signals hold their last value so derived
+    signals (dT/dt, lags) stay finite.
+    """
+
+    t: Float[np.ndarray, "d n"]
+    gyro: Float[np.ndarray, "d n 3"]
+    mask: Bool[np.ndarray, "d n"]
+    n_valid: Int[np.ndarray, " d"]
+    temp: Float[np.ndarray, "d n"] | None = None
+    temp_ext: Float[np.ndarray, "d n"] | None = None
+    accel: Float[np.ndarray, "d n 3"] | None = None
+    mag: Float[np.ndarray, "d n 3"] | None = None
+    rate: Float[np.ndarray, "d n 3"] | None = None
+    quat: Float[np.ndarray, "d n 4"] | None = None
+    devices: tuple[str, ...] = eqx.field(static=True, default=())
+    sources: tuple[str | None, ...] = eqx.field(static=True, default=())
+
+    @property
+    def n_devices(self) -> int:
+        return int(self.t.shape[0])
+
+    @property
+    def length(self) -> int:
+        return int(self.t.shape[1])
+
+    @property
+    def signals(self) -> tuple[str, ...]:
+        return ("t", "gyro") + tuple(s for s in OPTIONAL_SIGNALS if getattr(self, s) is not None)
+
+    @classmethod
+    def from_recordings(
+        cls,
+        recordings: Sequence[Recording],
+        length: int | None = None,
+        bucket: bool = True,
+        dtype=np.float64,
+    ) -> Batch:
+        """Stack recordings, padding each to a common (bucketed) length.
+
+        A signal is kept only if every recording has it. Device ids must be
+        unique within the batch.
+        """
+        recordings = list(recordings)
+        if not recordings:
+            raise DataError("no devices to batch")
+        seen: dict[str, str | None] = {}
+        for r in recordings:
+            if r.device in seen:
+                raise DataError(
+                    "device id appears more than once",
+                    file=r.source, device=r.device,
+                    hint=f"also in {seen[r.device]}" if seen[r.device] else None,
+                )
+            seen[r.device] = r.source
+        n_max = max(r.n for r in recordings)
+        if length is None:
+            length = bucket_length(n_max) if bucket else n_max
+        if length < n_max:
+            raise DataError(f"batch length {length} is shorter than a device's {n_max} samples")
+        fields: dict[str, np.ndarray | None] = {}
+        dts = []
+        for r in recordings:
+            dt = float(r.t[-1] - r.t[-2]) if r.n >= 2 else 1.0
+            dts.append(dt if dt > 0 else 1.0)
+        t = np.stack([
+            np.concatenate([r.t, r.t[-1] + dt * np.arange(1, length - r.n + 1)]).astype(dtype)
+            for r, dt in zip(recordings, dts)
+        ])
+        fields["t"] = t
+        fields["gyro"] = np.stack([_pad(np.asarray(r.gyro, dtype), length, "zero") for r in recordings])
+        for s in OPTIONAL_SIGNALS:
+            if all(getattr(r, s) is not None for r in recordings):
+                fields[s] = np.stack([_pad(np.asarray(getattr(r, s), dtype), length, "hold")
+                                      for r in recordings])
+            else:
+                fields[s] = None
+        n_valid = np.array([r.n for r in recordings], dtype=np.int64)
+        mask = np.arange(length)[None, :] < n_valid[:, None]
+        return cls(**fields, mask=mask, n_valid=n_valid,
+                   devices=tuple(r.device for r in recordings),
+                   sources=tuple(r.source for r in recordings))
+
+    def recording(self, i: int) -> Recording:
+        """Device ``i`` as an unpadded :class:`Recording`."""
+        n = int(self.n_valid[i])
+        kw = {s: (None if getattr(self, s) is None else np.asarray(getattr(self, s)[i, :n]))
+              for s in ("t", "gyro", *OPTIONAL_SIGNALS)}
+        return Recording(**kw, device=self.devices[i],
+                         source=self.sources[i] if self.sources else None)
+
+    def recordings(self) -> list[Recording]:
+        return [self.recording(i) for i in range(self.n_devices)]
+
+    def select(self, index: Sequence[int] | slice) -> Batch:
+        """A sub-batch of the given device indices (same padded length)."""
+        idx = np.arange(self.n_devices)[index]
+        kw = {s: (None if getattr(self, s) is None else np.asarray(getattr(self, s))[idx])
+              for s in ("t", "gyro", "mask", "n_valid", *OPTIONAL_SIGNALS)}
+        return Batch(**kw, devices=tuple(self.devices[i] for i in idx),
+                     sources=tuple(self.sources[i] for i in idx) if self.sources else ())
+
+    def to_frame(self):
+        import pandas as pd
+
+        return pd.concat([r.to_frame() for r in self.recordings()], ignore_index=True)

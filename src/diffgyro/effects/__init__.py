@@ -1,0 +1,33 @@
+"""Effect terms: one small module per physical effect, a registry and the spec grammar."""
+
+from . import (  # noqa: F401  (importing registers the built-in terms)
+    bias_poly,
+    g_sens,
+    gradient,
+    hysteresis,
+    misalignment,
+    scale_asym,
+    scale_nonlin,
+    scale_poly,
+    temp_diff,
+    thermal_lag,
+    warmup,
+)
+from .base import AXES, AbstractEffect, format_spec, parse_spec, parse_term, register, registry
+from .bias_poly import BiasPoly
+from .g_sens import GSens
+from .gradient import Gradient
+from .hysteresis import Hysteresis
+from .misalignment import Misalignment
+from .scale_asym import ScaleAsym
+from .scale_nonlin import ScaleNonlin
+from .scale_poly import ScalePoly
+from .temp_diff import TempDiff
+from .thermal_lag import ThermalLag, first_order_lag
+from .warmup import Warmup
+
+__all__ = [
+    "AXES", "AbstractEffect", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment",
+    "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
+    "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
+]

@@ -1,0 +1,174 @@
+"""The abstract effect term, the registry of terms and the model-spec grammar.
+
+Every physical effect adds, per gyro axis ``i``, a contribution that is
+linear in the term's per-axis coefficients ``beta[i]`` once its few shared
+nonlinear parameters (time constants) are fixed::
+
+    contribution[:, i] = columns(signals, theta)[:, i, :] @ beta[i]
+
+Terms linear in all parameters have no ``theta``. This one shape covers
+bias, scale factor (columns ∝ true rate), misalignment (columns = the other
+axes' rates), g-sensitivity (columns = specific force) and the separable
+nonlinear terms (thermal lag, warm-up), and it is what lets the fits use
+closed-form least squares and variable projection.
+"""
+
+from __future__ import annotations
+
+import abc
+import re
+from typing import ClassVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from ..errors import SpecError
+from ..signals import Signals
+
+AXES = ("x", "y", "z")
+
+
+class AbstractEffect(eqx.Module):
+    """One physical error term. Subclasses are small final modules.
+
+    Class attributes describe the term for the registry and the command line:
+    ``name`` (the spec name), ``description`` (one line of physics),
+    ``needs`` (data signals it reads: ``temp``, ``temp_ext``, ``accel``,
+    ``rate``, ``t``), ``unit`` (unit of its per-axis coefficients) and
+    ``order_arg`` (whether the spec takes an integer, e.g. ``bias_poly(2)``).
+    """
+
+    name: ClassVar[str]
+    description: ClassVar[str]
+    needs: ClassVar[frozenset[str]] = frozenset()
+    unit: ClassVar[str] = ""
+    order_arg: ClassVar[bool] = False
+    default_order: ClassVar[int | None] = None
+    #: True if the contribution depends on the true rate (inverted by ``compensate``).
+    rate_dependent: ClassVar[bool] = False
+    #: True for terms handled by a state-space smoother rather than by regression.
+    stochastic: ClassVar[bool] = False
+
+    @property
+    def spec(self) -> str:
+        """This term as it is written in a model spec."""
+        return self.name
+
+    @abc.abstractmethod
+    def param_names(self) -> tuple[str, ...]:
+        """Names of the per-axis linear coefficients (one column each)."""
+
+    def labels(self, axis: int) -> tuple[str, ...]:
+        """Names of the coefficients of gyro axis ``axis`` as a user reads them."""
+        return self.param_names()
+
+    def requires(self) -> frozenset[str]:
+        """Data signals this term reads (may depend on its order)."""
+        return frozenset(self.needs)
+
+    def nonlinear_names(self) -> tuple[str, ...]:
+        """Names of the shared nonlinear parameters (time constants, in seconds)."""
+        return ()
+
+    def nonlinear_init(self, sig: Signals) -> Float[Array, " q"]:
+        """Starting values of the nonlinear parameters in their solver space (log τ)."""
+        return jnp.zeros((0,))
+
+    def nonlinear_grid(self, sig: Signals) -> Float[Array, "g q"]:
+        """Candidate starting values (solver space) searched before the local solve."""
+        return self.nonlinear_init(sig)[None]
+
+    def nonlinear_values(self, theta: Float[Array, " q"]) -> Float[Array, " q"]:
+        """Physical values (seconds) of the nonlinear parameters from solver space."""
+        return jnp.exp(theta)
+
+    @abc.abstractmethod
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
+        """Regressor columns per axis; ``theta`` holds this term's nonlinear parameters."""
+
+    def range_problem(self, sig: Signals) -> Float[Array, ""]:
+        """A positive number when the data cannot support this term (e.g. too small a
+        temperature span for the order); zero otherwise. Traceable."""
+        return jnp.zeros(())
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_names())
+
+    @property
+    def n_nonlinear(self) -> int:
+        return len(self.nonlinear_names())
+
+
+_REGISTRY: dict[str, type[AbstractEffect]] = {}
+
+
+def register(cls: type[AbstractEffect]) -> type[AbstractEffect]:
+    """Class decorator: make an effect usable by name in model specs everywhere.
+
+    Registering a name twice replaces the earlier class (so a notebook can be
+    re-run); built-in names cannot be replaced by a different class.
+    """
+    if not (isinstance(cls, type) and issubclass(cls, AbstractEffect)):
+        raise TypeError("register() takes a subclass of AbstractEffect")
+    name = getattr(cls, "name", None)
+    if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]*", name):
+        raise TypeError(f"effect name {name!r} must be lower_snake_case")
+    old = _REGISTRY.get(name)
+    if old is not None and old.__module__.startswith("diffgyro.") and old is not cls:
+        raise ValueError(f"{name!r} is a built-in effect and cannot be replaced")
+    _REGISTRY[name] = cls
+    return cls
+
+
+def registry() -> dict[str, type[AbstractEffect]]:
+    """All registered effect classes by name (built-ins first, then user terms)."""
+    return dict(_REGISTRY)
+
+
+_TERM = re.compile(r"^\s*([a-z][a-z0-9_]*)\s*(?:\(\s*([0-9]+)\s*\))?\s*$")
+MAX_ORDER = 9
+MAX_SPEC_LENGTH = 1000
+
+
+def parse_term(text: str) -> AbstractEffect:
+    """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``; clear errors for bad text."""
+    m = _TERM.match(text)
+    valid = ", ".join(sorted(_REGISTRY))
+    if m is None:
+        raise SpecError(f"cannot read model term {text.strip()!r}",
+                        hint=f"write name or name(k) joined by '+'; valid names: {valid}")
+    name, arg = m.group(1), m.group(2)
+    cls = _REGISTRY.get(name)
+    if cls is None:
+        raise SpecError(f"unknown effect {name!r}", hint=f"valid names: {valid}")
+    if arg is not None and not cls.order_arg:
+        raise SpecError(f"effect {name!r} takes no argument", hint=f"write {name}")
+    if cls.order_arg:
+        order = cls.default_order if arg is None else int(arg)
+        if order is None:
+            raise SpecError(f"effect {name!r} needs an order", hint=f"write {name}(k), e.g. {name}(2)")
+        if order > MAX_ORDER:
+            raise SpecError(f"order {order} of {name!r} is above the maximum {MAX_ORDER}")
+        return cls(order=order)
+    return cls()
+
+
+def parse_spec(spec: str) -> tuple[AbstractEffect, ...]:
+    """Split a spec on ``+`` and parse every term; a name may appear only once."""
+    if not isinstance(spec, str) or not spec.strip():
+        raise SpecError("empty model spec", hint="e.g. bias_poly(2)+gradient")
+    if len(spec) > MAX_SPEC_LENGTH:
+        raise SpecError(f"model spec is longer than {MAX_SPEC_LENGTH} characters")
+    terms = tuple(parse_term(part) for part in spec.split("+"))
+    names = [t.name for t in terms]
+    for n in names:
+        if names.count(n) > 1:
+            raise SpecError(f"effect {n!r} appears more than once in {spec!r}")
+    return terms
+
+
+def format_spec(terms) -> str:
+    """Canonical spec text of a sequence of terms."""
+    return "+".join(t.spec for t in terms)

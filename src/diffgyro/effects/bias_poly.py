@@ -1,0 +1,38 @@
+"""bias_poly(k): per-axis bias as a polynomial of (centred, scaled) temperature."""
+
+from __future__ import annotations
+
+import equinox as eqx
+
+from ._common import per_axis, powers, span_problem
+from .base import AbstractEffect, register
+
+
+@register
+class BiasPoly(AbstractEffect):
+    """``b_i(T) = Σ_j c_ij · T_s^j``, ``T_s = (T - centre) / half_range``; k = 0 is a constant."""
+
+    order: int = eqx.field(static=True, default=0)
+    name = "bias_poly"
+    description = "per-axis bias, polynomial of temperature (k = 0: constant)"
+    unit = "rad/s per T_s^j"
+    order_arg = True
+
+    @property
+    def spec(self):
+        return f"{self.name}({self.order})"
+
+    def requires(self):
+        return frozenset({"temp"}) if self.order >= 1 else frozenset()
+
+    def param_names(self):
+        return tuple(f"c{j}" for j in range(self.order + 1))
+
+    def columns(self, sig, theta):
+        if self.order == 0:
+            return per_axis(sig.t * 0 + 1.0)
+        p = powers(sig.temp_s, 0, self.order)
+        return p[:, None, :].repeat(3, axis=1)
+
+    def range_problem(self, sig):
+        return span_problem(sig, self.order)

@@ -1,0 +1,26 @@
+"""scale_nonlin: scale-factor error growing with the square of the rate."""
+
+from __future__ import annotations
+
+from ._common import rate_problem
+from .base import AbstractEffect, register
+
+
+@register
+class ScaleNonlin(AbstractEffect):
+    """``Δω_i = n_i · Ω_i³``: the scale factor grows by ``n_i·Ω_i²`` at high rates."""
+
+    name = "scale_nonlin"
+    description = "scale-factor error growing with rate² (output term ∝ Ω³)"
+    needs = frozenset({"rate"})
+    unit = "(rad/s)^-2"
+    rate_dependent = True
+
+    def param_names(self):
+        return ("n",)
+
+    def columns(self, sig, theta):
+        return (sig.rate**3)[:, :, None]
+
+    def range_problem(self, sig):
+        return rate_problem(sig)

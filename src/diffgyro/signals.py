@@ -1,0 +1,169 @@
+"""Derived signals, computed once per recording and shared by every effect term.
+
+Temperature is centred and scaled to about [-1, 1] (a cubic's design then has
+a condition number near 10 instead of 1e5); dT/dt is a centred local-linear
+slope over a time window, so 1 °C read-out steps give a smooth rate rather
+than spikes; the heating/cooling state is latched through soaks.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float
+
+# |dT/dt| above which the sensor counts as heating or cooling (0.05 °C/min).
+HEATING_THRESHOLD = 0.05 / 60.0
+
+
+class TempNorm(eqx.Module):
+    """Centre and half-range of temperature: ``temp_s = (temp - centre) / scale``."""
+
+    centre: Float[Array, ""]
+    scale: Float[Array, ""]
+
+
+class Signals(eqx.Module):
+    """Everything an effect term may read for one device (leading axes allowed).
+
+    ``rate`` is the reference (true) angular rate, zero where none was given
+    (a static device: Earth rate is then part of the bias).
+    """
+
+    t: Float[Array, " n"]
+    gyro: Float[Array, "n 3"]
+    mask: Bool[Array, " n"]
+    rate: Float[Array, "n 3"]
+    temp: Float[Array, " n"] | None
+    temp_s: Float[Array, " n"] | None
+    dtemp: Float[Array, " n"] | None
+    heating: Float[Array, " n"] | None
+    temp_ext: Float[Array, " n"] | None
+    accel: Float[Array, "n 3"] | None
+    norm: TempNorm | None
+    has_rate: bool = eqx.field(static=True, default=False)
+
+    @property
+    def available(self) -> frozenset[str]:
+        """Names of the data signals present, as effect terms declare them in ``needs``."""
+        have = {"t", "gyro"}
+        for name in ("temp", "temp_ext", "accel"):
+            if getattr(self, name) is not None:
+                have.add(name)
+        if self.has_rate:
+            have.add("rate")
+        return frozenset(have)
+
+    def with_rate(self, rate: Float[Array, "n 3"]) -> Signals:
+        """The same signals seen at another true rate (used to invert the model)."""
+        return eqx.tree_at(lambda s: s.rate, self, rate)
+
+    def with_temp(self, temp: Float[Array, " n"]) -> Signals:
+        """The same signals with the temperature replaced (e.g. clamped to a range)."""
+        temp_s = (temp - self.norm.centre) / self.norm.scale
+        return eqx.tree_at(lambda s: (s.temp, s.temp_s), self, (temp, temp_s))
+
+
+def local_slope(
+    t: Float[Array, " n"], y: Float[Array, " n"], mask: Bool[Array, " n"], half_width
+) -> Float[Array, " n"]:
+    """Least-squares slope of ``y`` against ``t`` over samples ``i-h .. i+h`` (masked).
+
+    Computed with cumulative sums in O(n); near the ends the window is clipped.
+    """
+    w = mask.astype(y.dtype)
+    n = t.shape[0]
+    tc = t - jnp.sum(t * w) / jnp.maximum(jnp.sum(w), 1.0)
+    yc = y - jnp.sum(y * w) / jnp.maximum(jnp.sum(w), 1.0)
+
+    def csum(x):
+        return jnp.concatenate([jnp.zeros((1,), x.dtype), jnp.cumsum(x)])
+
+    c1, ct, cy, ctt, cty = (csum(w), csum(w * tc), csum(w * yc), csum(w * tc * tc), csum(w * tc * yc))
+    i = jnp.arange(n)
+    lo = jnp.clip(i - half_width, 0, n)
+    hi = jnp.clip(i + half_width + 1, 0, n)
+
+    def win(c):
+        return c[hi] - c[lo]
+
+    s1, st, sy, stt, sty = win(c1), win(ct), win(cy), win(ctt), win(cty)
+    s1 = jnp.maximum(s1, 1.0)
+    var = stt - st * st / s1
+    cov = sty - st * sy / s1
+    return jnp.where(var > 0, cov / jnp.where(var > 0, var, 1.0), 0.0)
+
+
+def moving_average_difference(y: Float[Array, " n"], n_avg: int) -> Float[Array, " n"]:
+    """S2's dT: mean of the last ``n_avg`` samples minus the mean of the ``n_avg`` before.
+
+    Defined from sample ``2·n_avg - 1`` on (earlier samples get 0), in units of
+    ``y`` per ``n_avg`` samples, exactly as the published method uses it.
+    """
+    c = jnp.concatenate([jnp.zeros((1,), y.dtype), jnp.cumsum(y)])
+    i = jnp.arange(y.shape[0])
+    recent = (c[i + 1] - c[jnp.clip(i + 1 - n_avg, 0)]) / n_avg
+    before = (c[jnp.clip(i + 1 - n_avg, 0)] - c[jnp.clip(i + 1 - 2 * n_avg, 0)]) / n_avg
+    return jnp.where(i >= 2 * n_avg - 1, recent - before, 0.0)
+
+
+def latched_heating(dtemp: Float[Array, " n"], mask: Bool[Array, " n"], threshold: float) -> Float[Array, " n"]:
+    """+1 while (last) heating, -1 while (last) cooling; the state is kept through soaks.
+
+    Samples before the first heating or cooling take the first state seen.
+    A device that never heats or cools gets 0 everywhere.
+    """
+    active = mask & (jnp.abs(dtemp) > threshold)
+    idx = jnp.where(active, jnp.arange(dtemp.shape[0]), -1)
+    last = jax.lax.cummax(idx)
+    first = jnp.argmax(active)
+    state = jnp.sign(dtemp[jnp.where(last >= 0, last, first)])
+    return jnp.where(jnp.any(active), state, 0.0)
+
+
+def temp_norm_from(temp: Float[Array, " n"], mask: Bool[Array, " n"]) -> TempNorm:
+    """Centre and half-range of the masked temperature (half-range at least 0.5 °C)."""
+    lo = jnp.min(jnp.where(mask, temp, jnp.inf))
+    hi = jnp.max(jnp.where(mask, temp, -jnp.inf))
+    return TempNorm(centre=0.5 * (lo + hi), scale=jnp.maximum(0.5 * (hi - lo), 0.5))
+
+
+def make_signals(
+    t: Float[Array, " n"],
+    gyro: Float[Array, "n 3"],
+    mask: Bool[Array, " n"],
+    rate: Float[Array, "n 3"] | None = None,
+    temp: Float[Array, " n"] | None = None,
+    temp_ext: Float[Array, " n"] | None = None,
+    accel: Float[Array, "n 3"] | None = None,
+    norm: TempNorm | None = None,
+    dtemp_window: float = 60.0,
+    dt: Float[Array, ""] | None = None,
+) -> Signals:
+    """Derived signals for one device; pure, so it vmaps over a batch.
+
+    ``dtemp_window`` (seconds) is the span of the centred slope that gives
+    dT/dt; widen it when the temperature read-out is coarsely quantised.
+    ``dt`` is the nominal sampling interval (default: median spacing of the
+    valid samples).
+    """
+    t = jnp.asarray(t)
+    t = t - t[0]
+    has_rate = rate is not None
+    rate = jnp.zeros_like(gyro) if rate is None else rate
+    temp_s = dtemp = heating = None
+    if temp is not None:
+        if norm is None:
+            norm = temp_norm_from(temp, mask)
+        temp_s = (temp - norm.centre) / norm.scale
+        if dt is None:
+            gaps = jnp.diff(t)
+            dt = jnp.nanmedian(jnp.where(mask[1:], gaps, jnp.nan))
+        half = jnp.maximum(1, jnp.round(0.5 * dtemp_window / dt)).astype(jnp.int32)
+        dtemp = local_slope(t, temp, mask, half)
+        heating = latched_heating(dtemp, mask, HEATING_THRESHOLD)
+    return Signals(
+        t=t, gyro=gyro, mask=mask, rate=rate, temp=temp, temp_s=temp_s, dtemp=dtemp,
+        heating=heating, temp_ext=temp_ext, accel=accel, norm=norm, has_rate=has_rate,
+    )
