@@ -6,6 +6,7 @@ from . import (  # noqa: F401  (importing registers the built-in terms)
     gradient,
     hysteresis,
     misalignment,
+    random_walk,
     scale_asym,
     scale_nonlin,
     scale_poly,
@@ -19,6 +20,7 @@ from .g_sens import GSens
 from .gradient import Gradient
 from .hysteresis import Hysteresis
 from .misalignment import Misalignment
+from .random_walk import RandomWalk
 from .scale_asym import ScaleAsym
 from .scale_nonlin import ScaleNonlin
 from .scale_poly import ScalePoly
@@ -27,7 +29,7 @@ from .thermal_lag import ThermalLag, first_order_lag
 from .warmup import Warmup
 
 __all__ = [
-    "AXES", "AbstractEffect", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment",
+    "AXES", "AbstractEffect", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
     "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
     "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
 ]

@@ -1,0 +1,30 @@
+"""random_walk: stochastic bias random walk (rate random walk), Kalman-smoothed.
+
+It adds no regressor columns: the deterministic terms of a model are fitted by
+regression, while this term is a state ``b_k = b_{k−1} + w_k``,
+``w_k ~ N(0, q·Δt)``, estimated by the Kalman filter and RTS smoother of
+:mod:`diffgyro.kalman`, with ``q`` ((rad/s)²/s; √q is the rate random walk in
+rad/s²/√Hz) and the white measurement variance learned by maximum likelihood.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from .base import AbstractEffect, register
+
+
+@register
+class RandomWalk(AbstractEffect):
+    """``b_i(t)``: a per-axis random walk starting at 0 at the first sample; variance learned."""
+
+    name = "random_walk"
+    description = "stochastic bias random walk, Kalman-smoothed, variance by maximum likelihood"
+    unit = "(rad/s)²/s"
+    stochastic = True
+
+    def param_names(self):
+        return ()
+
+    def columns(self, sig, theta):
+        return jnp.zeros((sig.t.shape[0], 3, 0), sig.gyro.dtype)
