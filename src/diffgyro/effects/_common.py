@@ -50,3 +50,13 @@ def duration(sig: Signals) -> Float[Array, ""]:
 def log_grid(lo, hi, n: int) -> Float[Array, "n 1"]:
     """``n`` log-spaced values between ``lo`` and ``hi`` as solver-space (log) starts."""
     return jnp.linspace(jnp.log(lo), jnp.log(hi), n)[:, None]
+
+
+#: Time constants live in log space, clipped to [1 ms, ~116 days] so that a wild
+#: solver step gives a finite design (and a finite derivative) instead of NaN.
+LOG_TAU_RANGE = (-6.9, 16.1)
+
+
+def time_constant(log_tau: Float[Array, ""]) -> Float[Array, ""]:
+    """τ (s) from its solver-space value."""
+    return jnp.exp(jnp.clip(log_tau, *LOG_TAU_RANGE))

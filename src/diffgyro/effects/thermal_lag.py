@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._common import duration, log_grid, powers, span_problem
+from ._common import duration, log_grid, powers, span_problem, time_constant
 from .base import AbstractEffect, register
 
 
@@ -60,10 +60,13 @@ class ThermalLag(AbstractEffect):
         return log_grid(5.0 * (sig.t[1] - sig.t[0]) + 1.0, jnp.maximum(duration(sig) / 3.0, 60.0), 12)
 
     def columns(self, sig, theta):
-        lag = first_order_lag(sig.t, sig.temp, jnp.exp(theta[0]))
+        lag = first_order_lag(sig.t, sig.temp, time_constant(theta[0]))
         lag_s = (lag - sig.norm.centre) / sig.norm.scale
         d = powers(lag_s, 1, self.order) - powers(sig.temp_s, 1, self.order)
         return d[:, None, :].repeat(3, axis=1)
 
     def range_problem(self, sig):
         return span_problem(sig, 1)
+
+    def nonlinear_values(self, theta):
+        return time_constant(theta)

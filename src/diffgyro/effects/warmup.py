@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._common import duration, log_grid, per_axis
+from ._common import duration, log_grid, per_axis, time_constant
 from .base import AbstractEffect, register
 
 
@@ -30,4 +30,7 @@ class Warmup(AbstractEffect):
         return log_grid(3.0 * (sig.t[1] - sig.t[0]) + 1.0, jnp.maximum(duration(sig) / 4.0, 30.0), 12)
 
     def columns(self, sig, theta):
-        return per_axis(jnp.exp(-sig.t / jnp.exp(theta[0])))
+        return per_axis(jnp.exp(-sig.t / time_constant(theta[0])))
+
+    def nonlinear_values(self, theta):
+        return time_constant(theta)

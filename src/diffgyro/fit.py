@@ -1,0 +1,489 @@
+"""fit(model, batch): calibrate every device of a batch at once.
+
+Linear models take the closed-form path: weighted normal equations of the
+per-axis design, columns scaled to unit norm, a rank check on the scaled
+Gram matrix (never silent truncation) and a Cholesky solve through lineax.
+Models with time constants (thermal lag, warm-up) use variable projection:
+the linear coefficients are solved in closed form for given time constants
+and optimistix's Levenberg–Marquardt moves the time constants alone,
+started from the best point of a coarse grid. Held-out error refits every
+fold of interleaved time blocks. Each device gets its own status, so one bad
+device never sinks the batch.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from .data import Batch, Recording
+from .errors import DataError
+from .model import ErrorModel, Params
+from .signals import Signals, TempNorm, make_signals
+
+STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
+                "insufficient_data", "failed")
+OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED = range(6)
+
+
+class FitOptions(eqx.Module):
+    """Solver settings. Integers are static; tolerances are arrays so changing them
+    does not compile again."""
+
+    n_blocks: int = eqx.field(static=True, default=20)
+    n_folds: int = eqx.field(static=True, default=5)
+    max_steps: int = eqx.field(static=True, default=100)
+    chunk: int = eqx.field(static=True, default=64)
+    rtol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-10))
+    atol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-14))
+    rank_tol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-10))
+    dtemp_window: float = eqx.field(static=True, default=60.0)
+
+
+# --------------------------------------------------------------------------- signals
+
+
+def _as_batch(data: Batch | Recording | list[Recording]) -> Batch:
+    if isinstance(data, Batch):
+        return data
+    if isinstance(data, Recording):
+        return Batch.from_recordings([data])
+    return Batch.from_recordings(list(data))
+
+
+def sampling_intervals(batch: Batch) -> np.ndarray:
+    """Median sampling interval of each device's valid samples (s)."""
+    out = np.ones(batch.n_devices)
+    for i in range(batch.n_devices):
+        n = int(batch.n_valid[i])
+        if n >= 2:
+            out[i] = float(np.median(np.diff(np.asarray(batch.t[i, :n]))))
+    return out
+
+
+def batch_signals(
+    batch: Batch,
+    norm: TempNorm | None = None,
+    dtemp_window: float = 60.0,
+    dtype=jnp.float64,
+) -> Signals:
+    """Derived signals of every device, stacked on the device axis (JAX arrays).
+
+    ``norm`` fixes the temperature centring (scalars, or one per device, as a
+    calibration stores them); by default each device uses its own range.
+    """
+
+    def arr(x):
+        return None if x is None else jnp.asarray(x, dtype)
+
+    dt = jnp.asarray(sampling_intervals(batch), dtype)
+    if norm is not None:
+        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
+                        scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
+
+    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt):
+        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
+                            norm=norm, dtemp_window=dtemp_window, dt=dt)
+
+    return jax.vmap(one)(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
+                         arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt)
+
+
+# --------------------------------------------------------------------------- linear algebra
+
+
+def normal_equations(x: Float[Array, "n 3 p"], y: Float[Array, "n 3"], w: Float[Array, " n"]):
+    """Per-axis weighted Gram matrix and right-hand side."""
+    xw = x * w[:, None, None]
+    return jnp.einsum("nip,niq->ipq", xw, x), jnp.einsum("nip,ni->ip", xw, y)
+
+
+def _scaled(a: Float[Array, "3 p p"]):
+    diag = jnp.diagonal(a, axis1=-2, axis2=-1)
+    d = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))  # where before sqrt: finite derivative at 0
+    return a / (d[..., :, None] * d[..., None, :]), d
+
+
+def solve_normal(a: Float[Array, "3 p p"], c: Float[Array, "3 p"], ridge: float = 0.0):
+    """Cholesky solve (lineax) of the column-scaled normal equations, per axis."""
+    g, d = _scaled(a)
+    b = c / d
+    eye = jnp.eye(g.shape[-1], dtype=g.dtype)
+    if ridge:
+        g = g + ridge * eye
+    # A non-finite system (a degenerate device) is replaced by a harmless one and its
+    # answer set to NaN: lineax stops the whole batch on non-finite input otherwise.
+    bad = ~(jnp.all(jnp.isfinite(g), axis=(-2, -1)) & jnp.all(jnp.isfinite(b), axis=-1))
+    g = jnp.where(bad[:, None, None], eye, g)
+    b = jnp.where(bad[:, None], 0.0, b)
+
+    def one(gi, bi):
+        op = lx.MatrixLinearOperator(gi, lx.positive_semidefinite_tag)
+        return lx.linear_solve(op, bi, solver=lx.Cholesky(), throw=False).value
+
+    return jnp.where(bad[:, None], jnp.nan, jax.vmap(one)(g, b) / d)
+
+
+def solve_normal_inner(a: Float[Array, "3 p p"], c: Float[Array, "3 p"], ridge: float = 1e-13):
+    """Cholesky solve for the inner loop of variable projection.
+
+    Plain ``jax.scipy`` Cholesky: differentiable in forward and reverse mode
+    inside optimistix's Jacobian and adjoint, and it returns NaN rather than
+    raising when a trial step of the time constants makes the system singular.
+    """
+    g, d = _scaled(a)
+    g = g + ridge * jnp.eye(g.shape[-1], dtype=g.dtype)
+    factor = jax.scipy.linalg.cho_factor(g)
+    return jax.scipy.linalg.cho_solve(factor, (c / d)[..., None])[..., 0] / d
+
+
+def rank_check(a: Float[Array, "3 p p"], rank_tol):
+    """Smallest/largest eigenvalue of the scaled Gram matrix per axis, and the
+    direction of the smallest (which columns are collinear)."""
+    g, _ = _scaled(a)
+    evals, evecs = jnp.linalg.eigh(g)
+    ratio = evals[:, 0] / jnp.maximum(evals[:, -1], 1e-300)
+    return ratio, evecs[:, :, 0], ratio > rank_tol
+
+
+# --------------------------------------------------------------------------- one device
+
+
+def _fold_ids(mask: Bool[Array, " n"], n_blocks: int, n_folds: int) -> Int[Array, " n"]:
+    """Fold of every valid sample: contiguous time blocks dealt round-robin to folds."""
+    k = jnp.cumsum(mask) - 1
+    n_valid = jnp.maximum(jnp.sum(mask), 1)
+    block = (k * n_blocks) // n_valid
+    return jnp.where(mask, block % n_folds, -1)
+
+
+def _projected(model: ErrorModel, sig: Signals, y, w, theta):
+    """Linear coefficients for given nonlinear parameters, and the design."""
+    x = model.design(sig, theta)
+    a, c = normal_equations(x, y, w)
+    return solve_normal_inner(a, c), x
+
+
+def _varpro(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions, max_steps: int):
+    """Levenberg–Marquardt over the time constants with the linear part projected out."""
+    sw = jnp.sqrt(w)[:, None]
+
+    def residual(theta, _):
+        beta, x = _projected(model, sig, y, w, theta)
+        return (y - jnp.einsum("nip,ip->ni", x, beta)) * sw
+
+    solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
+    sol = optx.least_squares(residual, solver, theta0, max_steps=max_steps, throw=False)
+    return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
+def _grid_start(model: ErrorModel, sig: Signals, y, w):
+    grid = model.nonlinear_grid(sig)
+
+    def cost(theta):
+        beta, x = _projected(model, sig, y, w, theta)
+        r = y - jnp.einsum("nip,ip->ni", x, beta)
+        return jnp.sum(w[:, None] * r * r)
+
+    costs = jax.vmap(cost)(grid)
+    costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+    return grid[jnp.argmin(costs)]
+
+
+def _noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
+    """Robust white-noise σ per axis from successive differences (model-free)."""
+    dy = jnp.diff(y, axis=0)
+    pair = mask[1:] & mask[:-1]
+    dy = jnp.where(pair[:, None], dy, jnp.nan)
+    med = jnp.nanmedian(dy, axis=0)
+    return 1.4826 * jnp.nanmedian(jnp.abs(dy - med), axis=0) / jnp.sqrt(2.0)
+
+
+def _covariance(model: ErrorModel, sig: Signals, params: Params, w, resid, n_eff):
+    """Gauss–Newton covariance of (beta per axis, theta), each axis weighted by its σ²."""
+    p, q = model.n_params, model.n_nonlinear
+    x = model.design(sig, params.theta)
+    dof = jnp.maximum(n_eff - p - q, 1.0)
+    sigma2 = jnp.sum(w[:, None] * resid**2, axis=0) / dof
+    sigma2 = jnp.maximum(sigma2, 1e-300)
+    xw = x * (w[:, None] / sigma2[None, :])[:, :, None]
+    i_bb = jnp.einsum("nip,niq->ipq", xw, x)
+    k = 3 * p + q
+    info = jnp.zeros((k, k), x.dtype)
+    for i in range(3):
+        info = info.at[i * p:(i + 1) * p, i * p:(i + 1) * p].set(i_bb[i])
+    if q:
+        gth = jax.jacfwd(lambda th: jnp.einsum("nip,ip->ni", model.design(sig, th), params.beta))(
+            params.theta)  # (n, 3, q)
+        i_bt = jnp.einsum("nip,niq->ipq", xw, gth)
+        i_tt = jnp.einsum("niq,nir->qr", gth * (w[:, None] / sigma2[None, :])[:, :, None], gth)
+        for i in range(3):
+            info = info.at[i * p:(i + 1) * p, 3 * p:].set(i_bt[i])
+            info = info.at[3 * p:, i * p:(i + 1) * p].set(i_bt[i].T)
+        info = info.at[3 * p:, 3 * p:].set(i_tt)
+    d = jnp.sqrt(jnp.diagonal(info))
+    d = jnp.where(d > 0, d, 1.0)
+    cov = jnp.linalg.inv(info / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
+    return cov, jnp.sqrt(sigma2)
+
+
+def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
+                 theta0: Float[Array, " q"] | None = None) -> dict:
+    """Fit one device: a pure JAX function (vmap it, or differentiate through it).
+
+    Returns a dict of arrays: ``beta`` (3, p), ``theta`` (q,), ``cov``,
+    ``rms``, ``heldout_rms``, ``fold_mse`` (n_folds,), ``noise_floor`` (3,),
+    ``sigma`` (3,), ``steps``, ``status`` and per-term flags ``range_flags``
+    and ``collinear``.
+    """
+    p, q = model.n_params, model.n_nonlinear
+    terms = model.deterministic
+    y = sig.gyro - sig.rate
+    w = sig.mask.astype(y.dtype)
+    n_valid = jnp.sum(w)
+
+    # full fit
+    if q:
+        start = _grid_start(model, sig, y, w) if theta0 is None else theta0
+        theta, converged, steps = _varpro(model, sig, y, w, start, opts, opts.max_steps)
+    else:
+        theta = jnp.zeros((0,), y.dtype)
+        converged, steps = jnp.asarray(True), jnp.asarray(1)
+    x = model.design(sig, theta)
+    a, c = normal_equations(x, y, w)
+    beta = solve_normal(a, c)
+    ratio, direction, rank_ok = rank_check(a, opts.rank_tol)
+    params = Params(beta=beta, theta=theta)
+    resid = (y - jnp.einsum("nip,ip->ni", x, beta)) * w[:, None]
+    rms = jnp.sqrt(jnp.sum(resid**2) / jnp.maximum(3 * n_valid, 1.0))
+
+    # held-out error over folds of interleaved time blocks
+    fold = _fold_ids(sig.mask, opts.n_blocks, opts.n_folds)
+
+    def fold_fit(f):
+        wf = w * (fold != f)
+        if q:
+            th, _, _ = _varpro(model, sig, y, wf, theta, opts, max(8, opts.max_steps // 4))
+            xf = model.design(sig, th)
+        else:
+            xf = x
+        af, cf = normal_equations(xf, y, wf)
+        bf = solve_normal(af, cf)
+        rf = y - jnp.einsum("nip,ip->ni", xf, bf)
+        held = (fold == f).astype(y.dtype)
+        return jnp.sum(held[:, None] * rf**2), jnp.sum(held)
+
+    sse, cnt = jax.vmap(fold_fit)(jnp.arange(opts.n_folds))
+    heldout_rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * jnp.sum(cnt), 1.0))
+    fold_mse = sse / jnp.maximum(3 * cnt, 1.0)
+
+    noise_axes = _noise_floor(y, sig.mask)
+    cov, sigma = _covariance(model, sig, params, w, resid, n_valid)
+
+    # status, most basic problem first
+    range_flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
+    owner = jnp.asarray([terms.index(t) for t in model.column_terms()], jnp.int32)
+    weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])  # (3, p)
+    collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
+        jnp.zeros((len(terms),), bool)
+    finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
+    status = jnp.where(
+        n_valid < max(2 * (p + q), p + q + 4), INSUFFICIENT_DATA,
+        jnp.where(jnp.any(range_flags), INSUFFICIENT_RANGE,
+                  jnp.where(~jnp.all(rank_ok), RANK_DEFICIENT,
+                            jnp.where(~converged, NOT_CONVERGED,
+                                      jnp.where(finite, OK, FAILED)))))
+    return dict(beta=beta, theta=theta, cov=cov, rms=rms, heldout_rms=heldout_rms,
+                fold_mse=fold_mse, noise_floor=jnp.sqrt(jnp.mean(noise_axes**2)),
+                noise_axes=noise_axes, sigma=sigma, steps=jnp.asarray(steps, jnp.int32),
+                status=jnp.asarray(status, jnp.int32), range_flags=range_flags,
+                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
+
+
+@eqx.filter_jit
+def _solve_batch(model: ErrorModel, sig: Signals, opts: FitOptions, theta0):
+    def one(args):
+        s, th = args
+        return solve_device(model, s, opts, th)
+
+    if theta0 is None:
+        return jax.lax.map(lambda s: solve_device(model, s, opts, None), sig, batch_size=opts.chunk)
+    return jax.lax.map(one, (sig, theta0), batch_size=opts.chunk)
+
+
+# --------------------------------------------------------------------------- results
+
+
+class FitResult(eqx.Module):
+    """Per-device calibration results (leading device axis on every array)."""
+
+    model: ErrorModel = eqx.field(static=True)
+    devices: tuple[str, ...] = eqx.field(static=True)
+    params: Params
+    norm: TempNorm
+    temp_range: Float[Array, "d 2"] | None
+    cov: Float[Array, "d k k"]
+    rms: Float[Array, " d"]
+    heldout_rms: Float[Array, " d"]
+    fold_mse: Float[Array, "d f"]
+    noise_floor: Float[Array, " d"]
+    noise_axes: Float[Array, "d 3"]
+    sigma: Float[Array, "d 3"]
+    steps: Int[Array, " d"]
+    status: Int[Array, " d"]
+    range_flags: Bool[Array, "d t"]
+    collinear: Bool[Array, "d t"]
+    n_samples: Float[Array, " d"]
+    options: FitOptions
+
+    @property
+    def n_devices(self) -> int:
+        return len(self.devices)
+
+    def status_name(self, i: int) -> str:
+        return STATUS_NAMES[int(self.status[i])]
+
+    def status_detail(self, i: int) -> str:
+        """Status with the terms it concerns, e.g. ``rank_deficient: temp_diff, bias_poly(1)``."""
+        name = self.status_name(i)
+        terms = self.model.deterministic
+        if name == "insufficient_range":
+            bad = [t.spec for t, f in zip(terms, np.asarray(self.range_flags[i])) if f]
+            return f"{name}: {', '.join(bad)}"
+        if name == "rank_deficient":
+            bad = [t.spec for t, f in zip(terms, np.asarray(self.collinear[i])) if f]
+            return f"{name}: collinear {', '.join(bad) or 'terms'}"
+        return name
+
+    def device_params(self, i: int) -> Params:
+        return jax.tree.map(lambda a: a[i], self.params)
+
+    def stderr(self, i: int) -> Params:
+        """Standard errors of device ``i``'s parameters, shaped like its Params."""
+        p, q = self.model.n_params, self.model.n_nonlinear
+        sd = jnp.sqrt(jnp.diagonal(self.cov[i]))
+        return Params(beta=sd[:3 * p].reshape(3, p), theta=sd[3 * p:3 * p + q])
+
+    def param_dict(self, i: int) -> dict:
+        """Device ``i``'s parameters by label (``term.coefficient`` per axis; time constants in s)."""
+        pr = self.device_params(i)
+        out: dict = {}
+        labels = self.model.param_labels()
+        for ax, name in enumerate("xyz"):
+            out[name] = {lab: float(v) for lab, v in zip(labels[ax], np.asarray(pr.beta[ax]))}
+        taus = [t for t in self.model.deterministic if t.n_nonlinear]
+        if taus:
+            out["shared"] = {}
+            for (t, _, qs) in self.model.slices():
+                if t.n_nonlinear:
+                    vals = np.asarray(t.nonlinear_values(pr.theta[qs]))
+                    for n, v in zip(t.nonlinear_names(), vals):
+                        out["shared"][f"{t.spec}.{n}"] = float(v)
+        return out
+
+    def summary(self, i: int) -> dict:
+        """One device as plain JSON-ready values (the ``fit --json`` record)."""
+        return {
+            "device": self.devices[i],
+            "status": self.status_name(i),
+            "status_detail": self.status_detail(i),
+            "rms": _num(self.rms[i]),
+            "heldout_rms": _num(self.heldout_rms[i]),
+            "noise_floor": _num(self.noise_floor[i]),
+            "steps": int(self.steps[i]),
+            "n_samples": int(self.n_samples[i]),
+            "params": self.param_dict(i),
+        }
+
+    def records(self) -> list[dict]:
+        return [self.summary(i) for i in range(self.n_devices)]
+
+    def signals(self, batch: Batch) -> Signals:
+        """Derived signals of ``batch`` with this calibration's temperature centring."""
+        return batch_signals(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
+                             dtemp_window=self.options.dtemp_window)
+
+    def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
+        """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
+        sig = self.signals(batch)
+        pred = jax.vmap(self.model.predict)(self.params, sig)
+        return (sig.gyro - pred) * sig.mask[..., None]
+
+
+def _num(x) -> float | None:
+    v = float(x)
+    return v if math.isfinite(v) else None
+
+
+def fit(
+    model: ErrorModel | str,
+    data: Batch | Recording | list[Recording],
+    *,
+    norm: TempNorm | None = None,
+    options: FitOptions | None = None,
+    theta0: Float[Array, "d q"] | None = None,
+    **option_overrides,
+) -> FitResult:
+    """Calibrate every device of ``data`` with ``model`` (a spec string or ErrorModel).
+
+    ``norm`` fixes the temperature centring (default: each device's own
+    range); ``theta0`` (devices × nonlinear parameters, solver space = log τ)
+    replaces the grid start of the nonlinear solve. Keyword overrides set
+    fields of :class:`FitOptions` (``n_folds=5``, ``max_steps=100``, ...).
+    """
+    if isinstance(model, str):
+        model = ErrorModel.from_spec(model)
+    batch = _as_batch(data)
+    if not jax.config.read("jax_enable_x64"):
+        warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
+                      "call diffgyro.enable_x64() first", stacklevel=2)
+    missing = model.requires() - set(batch.signals) - {"t"}
+    if missing:
+        col = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az",
+               "rate": "rx, ry, rz"}
+        name = sorted(missing)[0]
+        raise DataError(f"model {model.spec!r} needs column(s) {col.get(name, name)}, not in the data",
+                        file=batch.sources[0] if batch.sources else None, column=col.get(name, name))
+    if any(t.stochastic for t in model.terms):
+        from .kalman import fit_random_walk  # the state-space path (random_walk)
+
+        return fit_random_walk(model, batch, norm=norm, options=options, **option_overrides)
+    opts = options or FitOptions()
+    if option_overrides:
+        opts = _replace(opts, **option_overrides)
+    sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
+    if theta0 is not None:
+        theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype),
+                                  (batch.n_devices, model.n_nonlinear))
+    out = _solve_batch(model, sig, opts, theta0)
+    temp_range = None
+    if batch.temp is not None:
+        tmask = np.where(batch.mask, batch.temp, np.nan)
+        temp_range = jnp.stack([jnp.asarray(np.nanmin(tmask, axis=1)),
+                                jnp.asarray(np.nanmax(tmask, axis=1))], axis=1)
+    norm_out = sig.norm if sig.norm is not None else TempNorm(
+        centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
+    return FitResult(
+        model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
+        norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
+        heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
+        noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
+        status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
+        n_samples=out["n_samples"], options=opts)
+
+
+def _replace(opts: FitOptions, **kw) -> FitOptions:
+    fields = {f: getattr(opts, f) for f in opts.__dataclass_fields__}
+    for k, v in kw.items():
+        if k not in fields:
+            raise TypeError(f"unknown fit option {k!r}; options: {', '.join(fields)}")
+        fields[k] = jnp.asarray(v) if k in ("rtol", "atol", "rank_tol") else v
+    return FitOptions(**fields)
