@@ -155,3 +155,38 @@ def test_batch_json_and_figure(tmp_path):
     fig = plot_allan(r, device=0)
     fig.savefig(tmp_path / "allan.png")
     assert (tmp_path / "allan.png").stat().st_size > 10_000
+
+
+def test_cli_json_and_report(tmp_path, capsys):
+    import pandas as pd
+
+    from diffgyro.cli import main
+
+    rng = np.random.default_rng(8)
+    frames = []
+    truth = {}
+    for dev, arw in [("u1", 2e-4), ("u2", 6e-4)]:
+        n, dt = 12_000, 0.02
+        g = _white_plus_walk(rng, (3,), n, dt, arw, 0.0).T
+        truth[dev] = g
+        frames.append(pd.DataFrame({"device": dev, "t": np.arange(n) * dt,
+                                    "gx": g[:, 0], "gy": g[:, 1], "gz": g[:, 2]}))
+    path = tmp_path / "static.csv"
+    pd.concat(frames).to_csv(path, index=False)
+    assert main(["allan", str(path), "--json", "--report", str(tmp_path / "rep")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [d["device"] for d in doc["devices"]] == ["u1", "u2"]
+    for d, arw in zip(doc["devices"], [2e-4, 6e-4]):
+        assert set(d["axes"]) == {"gx", "gy", "gz"}
+        for ax in d["axes"].values():
+            assert ax["arw"] == pytest.approx(arw, rel=0.03)
+            assert ax["rrw"] is None  # white noise only: no +1/2 region, reported as null
+        g = truth[d["device"]][:, 2]
+        ref = allantools.oadev(g, rate=50.0, data_type="freq", taus=np.array(d["axes"]["gz"]["tau"]))[1]
+        assert np.max(np.abs(np.array(d["axes"]["gz"]["adev"]) / ref - 1)) < 1e-10
+    rep = tmp_path / "rep"
+    assert (rep / "index.html").read_text().count("<img") == 2
+    assert len(list(rep.glob("*.png"))) == 2
+    # bad input: one line on stderr, exit code 2
+    assert main(["allan", str(tmp_path / "missing.csv")]) == 2
+    assert "missing.csv" in capsys.readouterr().err

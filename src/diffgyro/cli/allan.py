@@ -1,0 +1,145 @@
+"""``diffgyro allan``: overlapping Allan deviation of every device and axis, with read-outs."""
+
+from __future__ import annotations
+
+import html
+import json
+import math
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DataFiles,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+    load_from_cli,
+)
+
+AXES = ("gx", "gy", "gz")
+#: Fewest samples per device for a curve with a few τ (m = 1 needs 4 samples per cluster ratio).
+MIN_SAMPLES = 16
+
+
+@app.command("allan")
+def allan_command(
+    data: DataFiles,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the curves and read-outs as JSON.")] = False,
+    report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
+    per_decade: Annotated[int, typer.Option("--per-decade", min=1, max=100,
+                                            help="Cluster sizes per decade of τ.")] = 10,
+    columns: Columns = None,
+    gyro_unit: GyroUnit = None,
+    acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None,
+    time_unit: TimeUnit = None,
+    sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Overlapping Allan deviation per device and gyro axis (rates in rad/s).
+
+    Read-outs: ARW (rad/s/√Hz) at τ = 1 s on the −1/2 line, bias instability
+    (rad/s) = flat minimum / 0.664, RRW (rad/s²/√Hz) at τ = 3 s on the +1/2
+    line; a read-out the curve does not show is null. Record the device
+    static: moving data measure the motion, not the noise.
+    """
+    from diffgyro.allan import allan_batch, to_json
+
+    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid, min_samples=MIN_SAMPLES)
+    _warn_uneven(batch)
+    result = allan_batch(batch, per_decade=per_decade)
+    doc = to_json(result, batch.devices, AXES)
+    if report is not None:
+        _write_report(result, batch, doc, report)
+    if json_out:
+        typer.echo(json.dumps(doc, allow_nan=False))
+    else:
+        _print_table(doc, report)
+
+
+def _warn_uneven(batch) -> None:
+    import numpy as np
+
+    for i, dev in enumerate(batch.devices):
+        n = int(batch.n_valid[i])
+        gaps = np.diff(np.asarray(batch.t[i, :n]))
+        med = float(np.median(gaps))
+        worst = float(np.max(gaps))
+        if med > 0 and worst > 1.5 * med:
+            print(f"diffgyro: warning: device {dev}: uneven sampling (largest gap {worst:.4g} s, "
+                  f"median {med:.4g} s); the Allan deviation assumes evenly spaced samples",
+                  file=sys.stderr)
+
+
+def _fmt(x) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{x:.4g}"
+
+
+def _print_table(doc: dict, report: Path | None) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title="Allan deviation read-outs")
+    for col in ("device", "axis", "ARW (rad/s/√Hz)", "bias instability (rad/s)",
+                "RRW (rad/s²/√Hz)", "τ range (s)"):
+        table.add_column(col)
+    for dev in doc["devices"]:
+        for name, ax in dev["axes"].items():
+            span = f"{ax['tau'][0]:.3g} – {ax['tau'][-1]:.3g}" if ax["tau"] else "—"
+            table.add_row(str(dev["device"]), name, _fmt(ax["arw"]), _fmt(ax["bias_instability"]),
+                          _fmt(ax["rrw"]), span)
+    Console(width=120).print(table)
+    if report is not None:
+        Console(width=120).print(f"report: {report / 'index.html'}")
+
+
+def _write_report(result, batch, doc: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffgyro.allan import plot_allan
+
+    out.mkdir(parents=True, exist_ok=True)
+    rows, figs = [], []
+    for i, dev in enumerate(batch.devices):
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(dev)) or f"device{i}"
+        name = f"allan_{i:03d}_{safe}.png"
+        fig = plot_allan(result, device=i, axes=AXES, title=f"{dev}: overlapping Allan deviation")
+        fig.savefig(out / name, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        figs.append((dev, name))
+        for axname, ax in doc["devices"][i]["axes"].items():
+            rows.append(f"<tr><td>{html.escape(str(dev))}</td><td>{axname}</td>"
+                        f"<td>{_fmt(ax['arw'])}</td><td>{_fmt(ax['bias_instability'])}</td>"
+                        f"<td>{_fmt(ax['rrw'])}</td></tr>")
+    imgs = "\n".join(f"<h2>{html.escape(str(d))}</h2><img src=\"{n}\" alt=\"Allan deviation of "
+                     f"{html.escape(str(d))}\">" for d, n in figs)
+    page = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>diffgyro allan</title>
+<style>body{{font-family:sans-serif;max-width:60em;margin:2em auto}}
+table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:.2em .6em;text-align:right}}
+img{{max-width:100%}}</style></head><body>
+<h1>Overlapping Allan deviation</h1>
+<p>Rates in rad/s. ARW: the −1/2 line read at τ = 1 s (rad/s/√Hz). Bias instability: the flat
+minimum divided by 0.664 (rad/s). RRW: the +1/2 line read at τ = 3 s (rad/s²/√Hz). Shaded bands:
+one-sigma chi-square intervals. A dash means the curve shows no such region.</p>
+<table><tr><th>device</th><th>axis</th><th>ARW (rad/s/√Hz)</th><th>bias instability (rad/s)</th>
+<th>RRW (rad/s²/√Hz)</th></tr>
+{chr(10).join(rows)}
+</table>
+{imgs}
+</body></html>
+"""
+    (out / "index.html").write_text(page, encoding="utf-8")
+    (out / "allan.json").write_text(json.dumps(doc, allow_nan=False), encoding="utf-8")
