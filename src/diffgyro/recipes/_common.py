@@ -1,0 +1,107 @@
+"""Pieces every recipe shares: the result base class, signals from plain arrays,
+least squares on a toolkit model's design, and JSON conversion."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import ClassVar
+
+import jax.numpy as jnp
+import numpy as np
+
+from ..data import Recording
+from ..errors import DataError
+from ..model import ErrorModel
+from ..signals import Signals, make_signals
+
+
+@dataclasses.dataclass(frozen=True)
+class RecipeResult:
+    """Base of every recipe's result: plain numpy fields, JSON via :meth:`to_dict`."""
+
+    name: ClassVar[str] = "recipe"
+
+    def to_dict(self) -> dict:
+        """All fields as JSON-ready values (arrays become lists, NaN becomes null)."""
+        return {f.name: jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
+
+
+def jsonable(x):
+    """numpy / JAX values -> plain Python (lists, floats, None for non-finite)."""
+    if isinstance(x, RecipeResult):
+        return x.to_dict()
+    if isinstance(x, dict):
+        return {str(k): jsonable(v) for k, v in x.items()}
+    if isinstance(x, list | tuple):
+        return [jsonable(v) for v in x]
+    if hasattr(x, "shape") and hasattr(x, "dtype"):
+        arr = np.asarray(x)
+        if arr.dtype == bool:
+            return arr.tolist()
+        if np.issubdtype(arr.dtype, np.integer):
+            return arr.tolist()
+        return jsonable(arr.astype(float).tolist()) if arr.ndim else jsonable(float(arr))
+    if isinstance(x, bool | int | str) or x is None:
+        return x
+    if isinstance(x, float):
+        return x if math.isfinite(x) else None
+    return x
+
+
+def signals_for(
+    gyro: np.ndarray,
+    *,
+    t: np.ndarray | None = None,
+    rate: np.ndarray | None = None,
+    temp: np.ndarray | None = None,
+    temp_ext: np.ndarray | None = None,
+    accel: np.ndarray | None = None,
+    dtemp_window: float = 60.0,
+) -> Signals:
+    """Toolkit signals for plain arrays (every sample valid; ``t`` defaults to the index)."""
+    gyro = jnp.asarray(gyro, jnp.float64)
+    n = gyro.shape[0]
+    t = jnp.arange(n, dtype=gyro.dtype) if t is None else jnp.asarray(t, gyro.dtype)
+
+    def arr(x):
+        return None if x is None else jnp.asarray(x, gyro.dtype)
+
+    return make_signals(t, gyro, jnp.ones(n, bool), rate=arr(rate), temp=arr(temp),
+                        temp_ext=arr(temp_ext), accel=arr(accel), dtemp_window=dtemp_window)
+
+
+def least_squares_params(model: ErrorModel, sig: Signals, y: np.ndarray,
+                         weights: np.ndarray | None = None) -> np.ndarray:
+    """Per-axis least-squares coefficients ``beta (3, p)`` of a linear model's design.
+
+    ``y`` is what the terms must explain (measured minus true rate). Columns are
+    scaled to unit norm before the solve; a rank-deficient design raises.
+    """
+    if not model.is_linear:
+        raise ValueError(f"{model.spec} has time constants; use diffgyro.fit.fit")
+    x = np.asarray(model.design(sig, jnp.zeros((0,))))  # (n, 3, p)
+    y = np.asarray(y, float)
+    w = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float)
+    sw = np.sqrt(w)
+    beta = np.zeros((3, x.shape[2]))
+    for i in range(3):
+        a = x[:, i, :] * sw[:, None]
+        scale = np.linalg.norm(a, axis=0)
+        scale[scale == 0] = 1.0
+        coef, _, rank, _ = np.linalg.lstsq(a / scale, y[:, i] * sw, rcond=None)
+        if rank < a.shape[1]:
+            raise DataError(f"the data cannot separate the terms of {model.spec!r} (axis {'xyz'[i]})",
+                            hint="the recipe's positions or motions do not excite every term")
+        beta[i] = coef / scale
+    return beta
+
+
+def require(rec: Recording, *signals: str, recipe: str) -> None:
+    """Raise a clear DataError when a recording lacks a signal a recipe reads."""
+    cols = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az", "mag": "mx, my, mz",
+            "rate": "rx, ry, rz", "quat": "qw, qx, qy, qz"}
+    for s in signals:
+        if getattr(rec, s) is None:
+            raise DataError(f"recipe {recipe} needs column(s) {cols.get(s, s)}, not in the data",
+                            file=rec.source, device=rec.device, column=cols.get(s, s))
