@@ -1,0 +1,180 @@
+"""Apply a calibration with numpy alone: the reference for firmware and other languages.
+
+This file depends on numpy and the standard library only, so it can be
+copied next to a data pipeline or read as the specification of the formula.
+For one device with calibration record ``dev`` (an entry of the file's
+``devices`` list) and model spec ``spec``:
+
+1. Clamp temperature to ``dev["temp_range"]`` (PX4 does the same) and
+   centre it: ``Ts = (T - temp_centre) / temp_scale``.
+2. dT/dt is the least-squares slope of the *measured* temperature over a
+   centred window of ``dtemp_window`` seconds (half-width
+   ``round(dtemp_window / 2 / dt)`` samples, clipped at the ends).
+3. Every term gives per-axis regressor columns; ``beta[i]`` (axis i) holds
+   their coefficients in spec order; time constants are ``exp(theta)``:
+
+   ======================  ===============================================
+   ``bias_poly(k)``        ``Ts**0 .. Ts**k``
+   ``scale_poly(k)``       ``Ω_i · Ts**0 .. Ω_i · Ts**k``
+   ``scale_asym``          ``|Ω_i|``
+   ``scale_nonlin``        ``Ω_i**3``
+   ``misalignment``        the other two axes' ``Ω_j`` (x: y, z; y: x, z; z: x, y)
+   ``g_sens``              ``a_x, a_y, a_z`` (specific force, m/s²)
+   ``gradient``            ``dT/dt`` (°C/s)
+   ``temp_diff``           ``T − T_ext`` (°C, T clamped as in step 1)
+   ``hysteresis``          +1 after heating, −1 after cooling (|dT/dt| > 0.05 °C/min), latched
+   ``thermal_lag(k)``      ``Tlag_s**j − Ts**j``, j = 1..k; Tlag = T through a first-order lag τ
+   ``warmup``              ``exp(−t/τ)``, t from the first sample
+   ======================  ===============================================
+
+4. ``gyro_i = Ω_i + columns_i · beta_i``; compensation solves this for Ω
+   with Newton steps (one step is exact when no term is nonlinear in Ω).
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+
+HEATING_THRESHOLD = 0.05 / 60.0
+_OTHERS = ((1, 2), (0, 2), (0, 1))
+_TERM = re.compile(r"^([a-z][a-z0-9_]*)(?:\((\d+)\))?$")
+
+
+def _terms(spec: str):
+    out = []
+    for part in spec.replace(" ", "").split("+"):
+        m = _TERM.match(part)
+        if m is None:
+            raise ValueError(f"bad term {part!r}")
+        out.append((m.group(1), None if m.group(2) is None else int(m.group(2))))
+    return out
+
+
+def local_slope(t: np.ndarray, y: np.ndarray, half: int) -> np.ndarray:
+    """Centred least-squares slope of y(t) over samples i-half .. i+half."""
+    n = len(t)
+    tc, yc = t - t.mean(), y - y.mean()
+
+    def csum(x):
+        return np.concatenate([[0.0], np.cumsum(x)])
+
+    c1, ct, cy, ctt, cty = csum(np.ones(n)), csum(tc), csum(yc), csum(tc * tc), csum(tc * yc)
+    i = np.arange(n)
+    lo, hi = np.clip(i - half, 0, n), np.clip(i + half + 1, 0, n)
+    s1, st, sy = c1[hi] - c1[lo], ct[hi] - ct[lo], cy[hi] - cy[lo]
+    stt, sty = ctt[hi] - ctt[lo], cty[hi] - cty[lo]
+    var = stt - st * st / s1
+    cov = sty - st * sy / s1
+    return np.where(var > 0, cov / np.where(var > 0, var, 1.0), 0.0)
+
+
+def latched_heating(dtemp: np.ndarray) -> np.ndarray:
+    active = np.abs(dtemp) > HEATING_THRESHOLD
+    if not active.any():
+        return np.zeros_like(dtemp)
+    state = np.sign(dtemp[np.argmax(active)])
+    out = np.empty_like(dtemp)
+    for k, (a, d) in enumerate(zip(active, dtemp)):
+        if a:
+            state = np.sign(d)
+        out[k] = state
+    return out
+
+
+def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
+    y = np.empty_like(x)
+    y[0] = x[0]
+    alpha = -np.expm1(-np.diff(t) / tau)
+    for k in range(1, len(x)):
+        y[k] = y[k - 1] + alpha[k - 1] * (x[k] - y[k - 1])
+    return y
+
+
+def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
+    """Regressor columns (n, 3, p) of every term at true rate ``rate`` (n, 3)."""
+    n = rate.shape[0]
+    cols, q = [], 0
+    theta = np.asarray(dev["theta"], float)
+    ts = env.get("temp_s")
+    for name, k in _terms(spec):
+        if name == "bias_poly":
+            c = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
+            cols.append(np.repeat(c[:, None, :], 3, axis=1))
+        elif name == "scale_poly":
+            p = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
+            cols.append(rate[:, :, None] * p[:, None, :])
+        elif name == "scale_asym":
+            cols.append(np.abs(rate)[:, :, None])
+        elif name == "scale_nonlin":
+            cols.append((rate**3)[:, :, None])
+        elif name == "misalignment":
+            cols.append(np.stack([rate[:, list(o)] for o in _OTHERS], axis=1))
+        elif name == "g_sens":
+            cols.append(np.repeat(env["accel"][:, None, :], 3, axis=1))
+        elif name == "gradient":
+            cols.append(np.repeat(env["dtemp"][:, None, None], 3, axis=1))
+        elif name == "temp_diff":
+            d = env["temp"] - env["temp_ext"]
+            cols.append(np.repeat(d[:, None, None], 3, axis=1))
+        elif name == "hysteresis":
+            cols.append(np.repeat(env["heating"][:, None, None], 3, axis=1))
+        elif name == "thermal_lag":
+            k = 1 if k is None else k
+            tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
+            q += 1
+            lag = first_order_lag(env["t"], env["temp"], tau)
+            lag_s = (lag - dev["temp_centre"]) / dev["temp_scale"]
+            c = np.stack([lag_s**j - ts**j for j in range(1, k + 1)], -1)
+            cols.append(np.repeat(c[:, None, :], 3, axis=1))
+        elif name == "warmup":
+            tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
+            q += 1
+            cols.append(np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1))
+        else:
+            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}")
+    return np.concatenate(cols, axis=-1)
+
+
+def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0) -> dict:
+    """Derived signals of one device, as the calibration defines them."""
+    t = np.asarray(t, float) - float(t[0])
+    env = {"t": t, "accel": None if accel is None else np.asarray(accel, float)}
+    if temp is not None:
+        raw = np.asarray(temp, float)
+        lo, hi = dev.get("temp_range") or (-np.inf, np.inf)
+        clamped = np.clip(raw, lo, hi)
+        dt = float(np.median(np.diff(t))) if len(t) > 1 else 1.0
+        half = max(1, int(np.round(0.5 * dtemp_window / dt)))
+        dtemp = local_slope(t, raw, half)
+        env.update(temp=clamped, temp_raw=raw, temp_ext=None if temp_ext is None else
+                   np.asarray(temp_ext, float),
+                   temp_s=(clamped - dev["temp_centre"]) / dev["temp_scale"],
+                   dtemp=dtemp, heating=latched_heating(dtemp))
+    return env
+
+
+def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None, accel=None,
+               iterations: int = 4) -> np.ndarray:
+    """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file."""
+    dev = next(d for d in calibration["devices"] if d["device"] == device)
+    spec = calibration["model"]
+    beta = np.asarray(dev["beta"], float)
+    env = environment(dev, t, temp, temp_ext, accel, calibration.get("dtemp_window", 60.0))
+    gyro = np.asarray(gyro, float)
+
+    def err(omega):
+        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env), beta)
+
+    omega = gyro - err(np.zeros_like(gyro))
+    eps = 1e-7
+    for _ in range(iterations):
+        f = omega + err(omega) - gyro
+        jac = np.empty(gyro.shape + (3,))
+        for k in range(3):  # finite-difference Jacobian per sample (terms act sample-wise)
+            step = np.zeros_like(omega)
+            step[:, k] = eps * np.maximum(1.0, np.abs(omega[:, k]))
+            jac[:, :, k] = (omega + step + err(omega + step) - gyro - f) / step[:, k:k + 1]
+        omega = omega - np.linalg.solve(jac, f[..., None])[..., 0]
+    return omega

@@ -1,0 +1,344 @@
+"""Calibration files: versioned, strictly validated JSON; and compensation with them.
+
+A calibration file holds, per device, everything needed to turn measured
+rates into true rates: the model spec, the temperature centring, the
+calibrated temperature range, the per-axis coefficients (in model order, and
+labelled with units for people), the shared time constants, the fit quality
+and status. It never holds code: loading it parses plain JSON against a
+fixed schema (no pickle, no eval), so a file from elsewhere is safe to read.
+
+The formula (also in :mod:`diffgyro.apply`, numpy only)::
+
+    T_s   = (clip(T, T_lo, T_hi) - centre) / scale
+    gyro  = Ω + Σ_terms columns(Ω, T_s, dT/dt, ...) @ beta      (per axis)
+
+and compensation solves it for Ω.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import math
+import os
+import tempfile
+import warnings
+from dataclasses import dataclass, field
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .data import Batch, Recording
+from .effects import parse_spec
+from .errors import SpecError
+from .fit import STATUS_NAMES, FitResult, batch_signals
+from .model import ErrorModel, Params
+from .signals import TempNorm
+
+FORMAT = "diffgyro-calibration"
+FORMAT_VERSION = 1
+MAX_FILE_BYTES = 256 * 1024 * 1024
+
+
+@dataclass
+class DeviceCalibration:
+    """One device's calibration (plain Python values, JSON-ready)."""
+
+    device: str
+    status: str
+    beta: list[list[float]]            # 3 axes × p, model order
+    theta: list[float]                 # shared nonlinear parameters, solver space (log τ)
+    temp_centre: float = 0.0
+    temp_scale: float = 1.0
+    temp_range: list[float] | None = None
+    quality: dict = field(default_factory=dict)
+    params: dict = field(default_factory=dict)   # labelled copy for people (units in `units`)
+    status_detail: str = ""
+
+
+@dataclass
+class Calibration:
+    """A calibration of one or many devices with one error model."""
+
+    model: str
+    devices: list[DeviceCalibration]
+    dtemp_window: float = 60.0
+    created: str = ""
+    diffgyro_version: str = ""
+    input_hash: str | None = None
+    units: dict = field(default_factory=dict)
+    format: str = FORMAT
+    format_version: int = FORMAT_VERSION
+
+    @property
+    def error_model(self) -> ErrorModel:
+        return ErrorModel.from_spec(self.model)
+
+    def device(self, name: str) -> DeviceCalibration:
+        for d in self.devices:
+            if d.device == name:
+                return d
+        raise SpecError(f"device {name!r} is not in the calibration",
+                        hint=f"it has {', '.join(d.device for d in self.devices[:10])}")
+
+    def to_json(self) -> dict:
+        return {
+            "format": self.format, "format_version": self.format_version,
+            "model": self.model, "dtemp_window": self.dtemp_window,
+            "created": self.created, "diffgyro_version": self.diffgyro_version,
+            "input_hash": self.input_hash, "units": self.units,
+            "devices": [_clean(d.__dict__) for d in self.devices],
+        }
+
+
+def _clean(obj):
+    """JSON-safe copy: non-finite floats become null."""
+    if isinstance(obj, dict):
+        return {k: _clean(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_clean(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, (np.floating, np.integer)):
+        return _clean(obj.item())
+    return obj
+
+
+def data_hash(batch: Batch) -> str:
+    """SHA-256 of the valid samples of every device (order of devices included)."""
+    h = hashlib.sha256()
+    for i in range(batch.n_devices):
+        n = int(batch.n_valid[i])
+        h.update(batch.devices[i].encode())
+        for s in batch.signals:
+            arr = getattr(batch, s)
+            h.update(s.encode())
+            h.update(np.ascontiguousarray(np.asarray(arr[i, :n], np.float64)).tobytes())
+    return "sha256:" + h.hexdigest()
+
+
+def units_of(model: ErrorModel) -> dict:
+    return {t.spec: t.unit for t in model.deterministic} | {"tau": "s", "rates": "rad/s",
+                                                           "temperature": "°C"}
+
+
+def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
+    """A calibration file's content from a fit (``batch`` adds the input hash)."""
+    from . import __version__
+
+    devices = []
+    for i in range(result.n_devices):
+        s = result.summary(i)
+        devices.append(DeviceCalibration(
+            device=result.devices[i], status=s["status"], status_detail=s["status_detail"],
+            beta=np.asarray(result.params.beta[i], float).tolist(),
+            theta=np.asarray(result.params.theta[i], float).tolist(),
+            temp_centre=float(result.norm.centre[i]), temp_scale=float(result.norm.scale[i]),
+            temp_range=None if result.temp_range is None else
+            np.asarray(result.temp_range[i], float).tolist(),
+            quality={k: s[k] for k in ("rms", "heldout_rms", "noise_floor", "n_samples", "steps")},
+            params=s["params"]))
+    return Calibration(
+        model=result.model.spec, devices=devices, dtemp_window=float(result.options.dtemp_window),
+        created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        diffgyro_version=__version__, input_hash=None if batch is None else data_hash(batch),
+        units=units_of(result.model))
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> None:
+    """Write a file so that readers see the old or the new content, never half."""
+    path = os.fspath(path)
+    d = os.path.dirname(os.path.abspath(path))
+    os.makedirs(d, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=d)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+
+
+def save(cal: Calibration, path: str | os.PathLike) -> None:
+    atomic_write_text(path, json.dumps(cal.to_json(), indent=1, allow_nan=False) + "\n")
+
+
+# --------------------------------------------------------------------------- strict loading
+
+
+def _req(obj: dict, key: str, kind, where: str):
+    if not isinstance(obj, dict) or key not in obj:
+        raise SpecError(f"calibration file: missing {key!r} in {where}")
+    val = obj[key]
+    if kind is float:
+        if isinstance(val, bool) or not isinstance(val, (int, float)):
+            raise SpecError(f"calibration file: {where}.{key} must be a number")
+        return float(val)
+    if not isinstance(val, kind) or isinstance(val, bool) and kind is not bool:
+        raise SpecError(f"calibration file: {where}.{key} must be {kind.__name__}")
+    return val
+
+
+def _floats(val, shape: tuple[int, ...], where: str, allow_null: bool = False) -> list:
+    arr = val
+    try:
+        a = np.array([[np.nan if (x is None and allow_null) else x for x in row] for row in arr]
+                     if len(shape) == 2 else [np.nan if (x is None and allow_null) else x
+                                              for x in arr], dtype=object)
+    except TypeError:
+        raise SpecError(f"calibration file: {where} must be a list of numbers") from None
+    if a.shape != shape or any(isinstance(x, bool) or not isinstance(x, (int, float))
+                               for x in a.ravel()):
+        raise SpecError(f"calibration file: {where} must be numbers of shape {list(shape)}")
+    return a.astype(float).tolist()
+
+
+def from_json(obj) -> Calibration:
+    """Validate a parsed calibration file against the schema; SpecError on anything odd."""
+    if not isinstance(obj, dict):
+        raise SpecError("calibration file: top level must be a JSON object")
+    if obj.get("format") != FORMAT:
+        raise SpecError(f"calibration file: 'format' must be {FORMAT!r}")
+    version = _req(obj, "format_version", int, "file")
+    if version > FORMAT_VERSION or version < 1:
+        raise SpecError(f"calibration file: format_version {version} is not supported "
+                        f"(this diffgyro reads 1..{FORMAT_VERSION})")
+    spec = _req(obj, "model", str, "file")
+    model = ErrorModel(parse_spec(spec))
+    p, q = model.n_params, model.n_nonlinear
+    devs = _req(obj, "devices", list, "file")
+    if not devs:
+        raise SpecError("calibration file: no devices")
+    out, seen = [], set()
+    for k, d in enumerate(devs):
+        where = f"devices[{k}]"
+        name = _req(d, "device", str, where)
+        if name in seen:
+            raise SpecError(f"calibration file: device {name!r} appears twice")
+        seen.add(name)
+        status = _req(d, "status", str, where)
+        if status not in STATUS_NAMES:
+            raise SpecError(f"calibration file: {where}.status {status!r} is not one of {STATUS_NAMES}")
+        ok = status == "ok"
+        beta = _floats(_req(d, "beta", list, where), (3, p), f"{where}.beta", allow_null=not ok)
+        theta = _floats(_req(d, "theta", list, where), (q,), f"{where}.theta", allow_null=not ok)
+        centre = _req(d, "temp_centre", float, where)
+        scale = _req(d, "temp_scale", float, where)
+        if not (math.isfinite(centre) and math.isfinite(scale) and scale > 0):
+            raise SpecError(f"calibration file: {where} temperature centring is invalid")
+        tr = d.get("temp_range")
+        if tr is not None:
+            tr = _floats(tr, (2,), f"{where}.temp_range")
+            if not tr[0] <= tr[1]:
+                raise SpecError(f"calibration file: {where}.temp_range is reversed")
+        if ok and not (np.all(np.isfinite(beta)) and np.all(np.isfinite(theta))):
+            raise SpecError(f"calibration file: {where} has status ok but non-finite coefficients")
+        quality = d.get("quality", {})
+        params = d.get("params", {})
+        if not isinstance(quality, dict) or not isinstance(params, dict):
+            raise SpecError(f"calibration file: {where}.quality/params must be objects")
+        out.append(DeviceCalibration(device=name, status=status, beta=beta, theta=theta,
+                                     temp_centre=centre, temp_scale=scale, temp_range=tr,
+                                     quality=quality, params=params,
+                                     status_detail=str(d.get("status_detail", ""))))
+    window = _req(obj, "dtemp_window", float, "file")
+    if not (math.isfinite(window) and window > 0):
+        raise SpecError("calibration file: dtemp_window must be a positive number")
+    ih = obj.get("input_hash")
+    return Calibration(model=model.spec, devices=out, dtemp_window=window,
+                       created=str(obj.get("created", "")),
+                       diffgyro_version=str(obj.get("diffgyro_version", "")),
+                       input_hash=ih if isinstance(ih, str) else None,
+                       units=obj.get("units") if isinstance(obj.get("units"), dict) else {})
+
+
+def load(path: str | os.PathLike) -> Calibration:
+    """Read and validate a calibration file (SpecError naming the file on any problem)."""
+    path = os.fspath(path)
+    try:
+        if os.path.getsize(path) > MAX_FILE_BYTES:
+            raise SpecError("calibration file is too large", file=path)
+        with open(path, encoding="utf-8") as f:
+            obj = json.load(f, parse_constant=_reject_constant)
+    except SpecError as err:
+        raise SpecError(err.problem, file=path, hint=err.hint) from None
+    except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
+        raise SpecError(f"cannot read calibration file: {err}".splitlines()[0], file=path) from None
+    try:
+        return from_json(obj)
+    except SpecError as err:
+        raise SpecError(err.problem, file=path, hint=err.hint) from None
+
+
+def _reject_constant(name):
+    raise ValueError(f"{name} is not valid JSON")
+
+
+# --------------------------------------------------------------------------- compensation
+
+
+def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> tuple[Batch, dict]:
+    """Corrected rates for every device of ``data`` that the calibration knows.
+
+    Temperatures outside a device's calibrated range are clamped to it (as
+    PX4 does) and counted; the counts come back in the second value, keyed
+    by device. A device whose calibration is not ``ok`` is an error.
+    """
+    batch = data if isinstance(data, Batch) else Batch.from_recordings(
+        [data] if isinstance(data, Recording) else list(data))
+    model = cal.error_model
+    devs = [cal.device(name) for name in batch.devices]
+    for d in devs:
+        if d.status != "ok":
+            raise SpecError(f"calibration of device {d.device!r} has status {d.status}; "
+                            "refusing to apply it", device=d.device)
+    params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
+                    theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))
+    clamped: dict[str, int] = {}
+    if batch.temp is not None and "temp" in model.requires():
+        temp = np.array(batch.temp, dtype=np.float64)
+        for i, d in enumerate(devs):
+            if d.temp_range is None:
+                continue
+            lo, hi = d.temp_range
+            n = int(batch.n_valid[i])
+            outside = (temp[i, :n] < lo) | (temp[i, :n] > hi)
+            if outside.any():
+                clamped[d.device] = int(outside.sum())
+            temp[i] = np.clip(temp[i], lo, hi)
+        batch_for_model = Batch(**{**{s: getattr(batch, s) for s in
+                                      ("t", "gyro", "mask", "n_valid", "temp_ext", "accel", "mag",
+                                       "rate", "quat")}, "temp": temp},
+                                devices=batch.devices, sources=batch.sources)
+        # dT/dt is taken from the measured temperature, not the clamped one
+        sig = batch_signals(batch_for_model, norm=_norm(devs), dtemp_window=cal.dtemp_window)
+        sig_raw = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
+        sig = eqx.tree_at(lambda s: (s.dtemp, s.heating), sig, (sig_raw.dtemp, sig_raw.heating))
+    else:
+        sig = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
+    if clamped:
+        warnings.warn("temperature outside the calibrated range was clamped for "
+                      + ", ".join(f"{k} ({v} samples)" for k, v in clamped.items()), stacklevel=2)
+    omega = _compensate_batch(model, params, sig)
+    omega = np.where(np.asarray(batch.mask)[..., None], np.asarray(omega), 0.0)
+    out = Batch(**{**{s: getattr(batch, s) for s in ("t", "mask", "n_valid", "temp", "temp_ext",
+                                                      "accel", "mag", "rate", "quat")},
+                   "gyro": omega}, devices=batch.devices, sources=batch.sources)
+    return out, clamped
+
+
+def _norm(devs) -> TempNorm:
+    return TempNorm(centre=jnp.asarray([d.temp_centre for d in devs]),
+                    scale=jnp.asarray([d.temp_scale for d in devs]))
+
+
+@eqx.filter_jit
+def _compensate_batch(model: ErrorModel, params: Params, sig):
+    return jax.vmap(model.compensate)(params, sig)

@@ -1,0 +1,53 @@
+"""``diffgyro compensate``: apply a calibration file to recordings."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+    load_from_cli,
+)
+
+
+@app.command("compensate")
+def compensate_command(
+    data: Annotated[Path, typer.Argument(help="Recordings to correct (standard schema).")],
+    cal: Annotated[Path, typer.Option("--cal", help="Calibration file from 'diffgyro fit --out'.")],
+    out: Annotated[Path, typer.Option("--out", "-o", help="File to write (CSV, Parquet or NPZ).")],
+    columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
+    calibrated range are clamped to it, with a warning."""
+    import warnings
+
+    from diffgyro import calibration, io
+
+    calib = calibration.load(cal)
+    batch = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        corrected, clamped = calibration.compensate(calib, batch)
+    for dev, n in clamped.items():
+        print(f"diffgyro: warning: device {dev}: {n} samples outside the calibrated temperature "
+              f"range were clamped to it", file=sys.stderr)
+    if Path(out).resolve() == Path(data).resolve():
+        from diffgyro.errors import DataError
+
+        raise DataError("refusing to overwrite the input file", file=str(out),
+                        hint="choose another --out")
+    io.save(corrected, out)

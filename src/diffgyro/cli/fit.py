@@ -1,0 +1,93 @@
+"""``diffgyro fit``: calibrate devices with an error model; write a calibration file."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DataFiles,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+    load_from_cli,
+)
+
+Model = Annotated[str, typer.Option("--model", "-m", help="Model spec, e.g. 'bias_poly(2)+gradient' "
+                                                         "(see 'diffgyro effects').")]
+DtempWindow = Annotated[float, typer.Option(
+    "--dtemp-window", help="Seconds of the centred slope that gives dT/dt (widen for coarse "
+                           "temperature read-outs).")]
+
+
+def samples_needed(model) -> int:
+    """The fewest samples a device needs for ``model`` (as fit's status uses)."""
+    k = model.n_params + model.n_nonlinear
+    return max(2 * k, k + 4)
+
+
+def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                   sampling_rate, drop_invalid):
+    """Load data for ``model``: a DataError if every device is too short for it."""
+    from diffgyro.io import check_min_samples
+
+    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid)
+    need = samples_needed(model)
+    recs = batch.recordings()
+    if all(r.n < need for r in recs):
+        check_min_samples(recs[0], need, f"model {model.spec!r}")
+    return batch
+
+
+@app.command("fit")
+def fit_command(
+    data: DataFiles,
+    model: Model,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Calibration file to write (JSON).")] = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    dtemp_window: DtempWindow = 60.0,
+    columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS."""
+    from diffgyro import calibration
+    from diffgyro.fit import fit
+    from diffgyro.model import ErrorModel
+
+    em = ErrorModel.from_spec(model)
+    batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                           sampling_rate, drop_invalid)
+    result = fit(em, batch, dtemp_window=dtemp_window)
+    if out is not None:
+        calibration.save(calibration.from_fit(result, batch), out)
+    records = result.records()
+    if as_json:
+        print(json.dumps({"model": em.spec, "devices": records}, allow_nan=False))
+        return
+    from rich.console import Console
+    from rich.table import Table
+
+    table = Table(title=f"fit {em.spec}  (rates in rad/s)")
+    for col in ("device", "status", "rms", "held-out rms", "noise floor", "samples"):
+        table.add_column(col)
+    for r in records:
+        table.add_row(r["device"], r["status_detail"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
+                      _fmt(r["noise_floor"]), str(r["n_samples"]))
+    Console().print(table)
+    if out is not None:
+        print(f"calibration written to {out}", file=sys.stderr)
+
+
+def _fmt(x) -> str:
+    return "—" if x is None else f"{x:.3e}"
