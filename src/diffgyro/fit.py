@@ -46,6 +46,9 @@ class FitOptions(eqx.Module):
     atol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-14))
     rank_tol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-10))
     dtemp_window: float = eqx.field(static=True, default=60.0)
+    #: "closed": closed form (linear part) + variable projection (time constants);
+    #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
+    solver: str = eqx.field(static=True, default="closed")
 
 
 # --------------------------------------------------------------------------- signals
@@ -185,6 +188,25 @@ def _varpro(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions, max
     return sol.value, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
 
 
+def _full_lm(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions):
+    """Levenberg–Marquardt over every parameter at once (no projection).
+
+    The reference path: for linear models it must agree with the closed form.
+    """
+    sw = jnp.sqrt(w)[:, None]
+
+    def residual(params, _):
+        beta, theta = params
+        return (y - jnp.einsum("nip,ip->ni", model.design(sig, theta), beta)) * sw
+
+    beta0 = jnp.zeros((3, model.n_params), y.dtype)
+    solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
+    sol = optx.least_squares(residual, solver, (beta0, theta0), max_steps=opts.max_steps,
+                             throw=False)
+    beta, theta = sol.value
+    return beta, theta, sol.result == optx.RESULTS.successful, sol.stats["num_steps"]
+
+
 def _grid_start(model: ErrorModel, sig: Signals, y, w):
     grid = model.nonlinear_grid(sig)
 
@@ -253,13 +275,19 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     # full fit
     if q:
         start = _grid_start(model, sig, y, w) if theta0 is None else theta0
+    else:
+        start = jnp.zeros((0,), y.dtype)
+    if opts.solver == "lm":
+        beta, theta, converged, steps = _full_lm(model, sig, y, w, start, opts)
+    elif q:
         theta, converged, steps = _varpro(model, sig, y, w, start, opts, opts.max_steps)
     else:
-        theta = jnp.zeros((0,), y.dtype)
+        theta = start
         converged, steps = jnp.asarray(True), jnp.asarray(1)
     x = model.design(sig, theta)
     a, c = normal_equations(x, y, w)
-    beta = solve_normal(a, c)
+    if opts.solver != "lm":
+        beta = solve_normal(a, c)
     ratio, direction, rank_ok = rank_check(a, opts.rank_tol)
     params = Params(beta=beta, theta=theta)
     resid = (y - jnp.einsum("nip,ip->ni", x, beta)) * w[:, None]
