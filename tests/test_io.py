@@ -155,6 +155,8 @@ def test_semicolon_separator_and_whitespace(tmp_path):
     path = write(tmp_path / "eu.csv", " t ; gx ;gy;gz\n0; 1.5 ;2;3\n1;4;5;6\n")
     rec = load(path)[0]
     np.testing.assert_array_equal(rec.gyro, [[1.5, 2, 3], [4, 5, 6]])
+    path.write_bytes(b"\xef\xbb\xbft,gx,gy,gz\r\n0,1,2,3\r\n1,4,5,6\r\n")  # BOM, CRLF
+    np.testing.assert_array_equal(load(path)[0].gyro, [[1, 2, 3], [4, 5, 6]])
 
 
 def test_blank_lines_are_not_rows(tmp_path):
@@ -289,6 +291,13 @@ def test_missing_and_partial_columns(tmp_path):
     err = error_of(write(tmp_path / "p.csv", "t,gx,gy,gz,ax,ay\n0,1,2,3,4,5\n"))
     assert_names(err, column="az")
     assert "incomplete accel group" in str(err)
+    swapped = load(write(tmp_path / "s.csv", "t,gx,gy,gz\n0,1,2,3\n1,4,5,6\n"),
+                   columns={"gx": "gy", "gy": "gx"})[0]
+    np.testing.assert_array_equal(swapped.gyro, [[2, 1, 3], [5, 4, 6]])
+    err = error_of(tmp_path / "s.csv", columns={"gx": "gy"})  # gy is taken by gx now
+    assert_names(err, column="gy")
+    with pytest.raises(DataError, match="to both temp and temp_ext"):
+        load(tmp_path / "s.csv", columns={"temp": "gx", "temp_ext": "gx"})
     err = error_of(tmp_path / "m.csv", columns={"gy": "gyr_y"})
     assert "'gyr_y' (given for gy) is not in the file" in str(err)
     err = error_of(write(tmp_path / "semi.csv", "t;gx;gy;gz\n0;1;2;3\n"),
@@ -373,6 +382,41 @@ def test_missing_file_and_npz_problems(tmp_path):
 def test_missing_device_id(tmp_path):
     err = error_of(write(tmp_path / "d.csv", "device,t,gx,gy,gz\nA,0,0,0,0\n ,1,0,0,0\n"))
     assert_names(err, column="device", row=2)
+
+
+def test_parquet_nulls_and_text_cells(tmp_path):
+    import pandas as pd
+
+    frame = pd.DataFrame({"device": ["A", "A", "A", "B", "B"], "t": [0.0, 1.0, 2.0, 0.0, 1.0],
+                          "gx": [0.1, None, 0.3, 0.4, 0.5], "gy": [1.0] * 5, "gz": [2.0] * 5})
+    frame.to_parquet(tmp_path / "n.parquet")
+    assert_names(error_of(tmp_path / "n.parquet"), device="A", column="gx", row=2)
+    report = LoadReport()
+    recs = load(tmp_path / "n.parquet", drop_invalid=True, report=report)
+    np.testing.assert_array_equal(recs[0].gyro[:, 0], [0.1, 0.3])
+    assert report.n_dropped == 1
+    frame["gy"] = ["1", "2", "3", "four", "5"]
+    frame.to_parquet(tmp_path / "s.parquet")
+    err = error_of(tmp_path / "s.parquet", drop_invalid=True)
+    assert_names(err, device="B", column="gy", row=4)
+    assert "'four'" in str(err)
+
+
+def test_bad_cell_far_down_a_large_file(tmp_path):
+    # pandas infers types in chunks; the row reported must still be the file row
+    n = 70_000
+    lines = ["t,gx,gy,gz"] + [f"{i},0.5,{i % 7},1" for i in range(n)]
+    lines[60_001] = "60000,0.5,x7,1"
+    lines[50_001] = "50000,0.5,,1"
+    err = error_of(write(tmp_path / "long.csv", "\n".join(lines)), drop_invalid=True)
+    assert_names(err, column="gy", row=60_001)
+    lines[60_001] = "60000,0.5,nan,1"
+    report = LoadReport()
+    rec = load(write(tmp_path / "long.csv", "\n".join(lines)), drop_invalid=True,
+               report=report)[0]
+    assert rec.n == n - 2 and [d.first_row for d in report.dropped] == [50_001]
+    np.testing.assert_array_equal(rec.gyro[:, 1], [i % 7 for i in range(n)
+                                                   if i not in (50_000, 60_000)])
 
 
 # ---------------------------------------------------------------- drop_invalid
@@ -480,13 +524,15 @@ def csv_text(draw):
     return (end or "\n").join(lines).encode("utf-8", "surrogatepass") + end.encode()
 
 
-_PROP_DIR = Path(tempfile.mkdtemp(prefix="diffgyro-io-"))
+@pytest.fixture(scope="module")
+def fuzz_dir(tmp_path_factory):
+    return tmp_path_factory.mktemp("fuzz")
 
 
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(csv_text(), st.booleans())
-def test_malformed_csv_gives_data_error_or_valid_recording(content, drop_invalid):
-    path = _PROP_DIR / "fuzz.csv"
+@given(content=csv_text(), drop_invalid=st.booleans())
+def test_malformed_csv_gives_data_error_or_valid_recording(fuzz_dir, content, drop_invalid):
+    path = fuzz_dir / "fuzz.csv"
     path.write_bytes(content)
     try:
         recs = load(path, drop_invalid=drop_invalid)

@@ -170,10 +170,15 @@ def _check_mapping_pair(std: str, name: str) -> None:
 
 
 def _check_columns(columns: Mapping[str, str] | None) -> dict[str, str]:
-    columns = dict(columns or {})
-    for std, name in columns.items():
-        _check_mapping_pair(std, str(name).strip())
-    return {std: str(name).strip() for std, name in columns.items()}
+    out: dict[str, str] = {}
+    for std, name in dict(columns or {}).items():
+        name = str(name).strip()
+        _check_mapping_pair(std, name)
+        other = next((s for s, n in out.items() if n == name), None)
+        if other is not None:
+            raise DataError(f"column mapping gives file column {name!r} to both {other} and {std}")
+        out[std] = name
+    return out
 
 
 # ---------------------------------------------------------------------------
@@ -408,7 +413,10 @@ class _ReadFailure(Exception):
 
 
 def _label(std: str, name: str) -> str:
-    return name if name == std else f"{name} ({std})"
+    """How a column is named in messages: the file's name, with the standard one if mapped."""
+    if not name or name == std:
+        return std
+    return f"{name} ({std})"
 
 
 def _to_float(series: pd.Series, file: str, column: str, devices: np.ndarray) -> np.ndarray:
@@ -587,12 +595,14 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
         return f"columns in the file: {found}; map others with --columns std=name"
 
     # which standard columns are in the file, under which name
-    where = {std: columns.get(std, std) for std in STANDARD_COLUMNS}
+    # (a file column mapped to one standard name does not also serve under its own name)
+    claimed = set(columns.values())
+    where = {std: columns.get(std, std if std not in claimed else "") for std in STANDARD_COLUMNS}
     for std, name in columns.items():
         if name not in names:
             raise DataError(f"column {name!r} (given for {std}) is not in the file",
                             file=file, column=name, hint=hint_for_missing())
-    present = {std: name for std, name in where.items() if name in names}
+    present = {std: name for std, name in where.items() if name and name in names}
     stem = path.name
     if path.suffix.lower() in _COMPRESSION:
         stem = stem[: -len(path.suffix)]
