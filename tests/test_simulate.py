@@ -429,3 +429,26 @@ def test_demo_batch_has_a_visible_hidden_effect():
     peak = np.abs(g[:, :, None] * truth.env["dtemp"][:, None, :]).max(axis=-1)
     white = truth.noise.arw * math.sqrt(1.0)
     assert np.all(peak.max(axis=1) > 3 * white.max(axis=1))
+
+
+def test_six_face_feeds_the_six_position_recipe_exactly():
+    """At the pole Earth rate is vertical: the Ferraris recipe on noise-free six-face data
+    returns the true accelerometer and gyro calibration, and g-sensitivity off by exactly
+    (I + S + M)·Ω/g (Earth rate flips with the face, like gravity)."""
+    from diffgyro.recipes.six_position import six_position
+
+    batch, truth = simulate("six_face", 1, seed=0, latitude=90.0, tilt=0.0, noise="none", dwell=10.0)
+    rec = batch.recording(0)
+    res = six_position(rec.gyro, rec.accel, truth.info["sections"], t=rec.t,
+                       rotation_angle=-2 * math.pi, gravity=G0).to_dict()
+    beta = truth.params.beta[0]  # bias_poly(0), g_sens (3), scale_poly(0), misalignment (2)
+    sm = np.diag(beta[:, 4])
+    for i, others in enumerate(((1, 2), (0, 2), (0, 1))):
+        sm[i, others[0]], sm[i, others[1]] = beta[i, 5], beta[i, 6]
+    np.testing.assert_allclose(res["accel_bias"], truth.accel["bias"][0], atol=1e-12)
+    np.testing.assert_allclose(res["accel_matrix"], truth.accel["matrix"][0], atol=1e-12)
+    np.testing.assert_allclose(res["gyro_bias"], beta[:, 0], atol=1e-14)
+    np.testing.assert_allclose(res["gyro_matrix"], np.linalg.inv(np.eye(3) + sm), atol=1e-12)
+    # the measured Earth rate goes through scale factor and misalignment too
+    np.testing.assert_allclose(res["g_sens"], beta[:, 1:4] + (np.eye(3) + sm) * EARTH_RATE / G0,
+                               atol=1e-14)
