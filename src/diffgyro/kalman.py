@@ -1,0 +1,599 @@
+"""Bias random walk: Kalman filter, RTS smoother, likelihood and learned noise levels.
+
+Per gyro axis the measured rate minus the reference rate is modelled as::
+
+    y_k = X_k·β + b_k + v_k,     v_k ~ N(0, r)            (measured where obs_k)
+    b_k = b_{k−1} + w_k,         w_k ~ N(0, q·(t_k − t_{k−1})),   b_0 ~ N(0, p0)
+
+``X·β`` is any deterministic error model (``ErrorModel.design(sig, θ)``),
+``b`` the random walk. ``q`` is the random-walk intensity in (rad/s)²/s, so
+√q is the rate random walk in rad/s²/√Hz (what the Allan +1/2 line reads);
+``r`` the white-noise variance per sample, (rad/s)², so √(r·dt) is the angle
+random walk in rad/s/√Hz. Samples with ``obs = False`` (moving with no
+reference rate, gaps, padding) get no measurement update.
+
+**β is profiled out in closed form.** The filter's gains do not depend on the
+data, so running it on ``y`` and on every column of ``X`` at once gives
+innovations ``e_y``, ``E_X`` and variances ``F`` with which the likelihood of
+any β is ``−½ Σ [log 2πF + (e_y − E_X β)²/F]``: generalised least squares in
+whitened form. ``β̂ = (Σ E_Xᵀ E_X / F)⁻¹ Σ E_Xᵀ e_y / F`` exactly, and the
+profile likelihood (or, with ``reml=True``, the restricted likelihood) is a
+smooth function of (log q, log r, θ) alone, which optimistix's BFGS maximises
+per device (vmapped, ``throw=False``, per-device status).
+
+With a constant bias among the deterministic terms (``bias_poly``), the walk
+starts at 0 (``p0 = 0``) so the constant and the walk are not confounded;
+without one the walk gets a wide prior instead.
+
+Also here: the S1 seed's scalar offset filter (:func:`s1_offset_filter`) and
+a causal filter run (:func:`causal_bias`) for real-time compensation.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optimistix as optx
+from jaxtyping import Array, Bool, Float, Int
+
+from .model import ErrorModel, Params
+
+LOG_2PI = math.log(2.0 * math.pi)
+#: Prior variance of the walk's start when no constant bias is modelled, (rad/s)².
+WIDE_PRIOR = 1.0
+
+
+# --------------------------------------------------------------------------- one axis
+
+
+class FilterPass(eqx.Module):
+    """Per-sample output of the augmented filter (one axis).
+
+    ``e_y``/``e_x`` innovations of the data and of each design column,
+    ``f`` innovation variance, ``a_y``/``a_x`` filtered means (after the
+    update), ``p`` filtered variance, ``p_pred`` predicted variance.
+    """
+
+    e_y: Float[Array, " n"]
+    e_x: Float[Array, "n p"]
+    f: Float[Array, " n"]
+    a_y: Float[Array, " n"]
+    a_x: Float[Array, "n p"]
+    p: Float[Array, " n"]
+    p_pred: Float[Array, " n"]
+
+
+def rw_filter(
+    y: Float[Array, " n"],
+    x: Float[Array, "n p"],
+    obs: Bool[Array, " n"],
+    t: Float[Array, " n"],
+    q: Float[Array, ""],
+    r: Float[Array, ""],
+    p0: Float[Array, ""] = 0.0,
+) -> FilterPass:
+    """Kalman filter of the random walk run on ``y`` and on each column of ``x`` (lax.scan).
+
+    (An associative-scan version compiled for minutes and ran slower on CPU.)
+    """
+    dtype = y.dtype
+    p_cols = x.shape[1]
+
+    def step(carry, inp):
+        a_y, a_x, p, t_prev = carry
+        yk, xk, ok, tk = inp
+        pp = p + q * (tk - t_prev)
+        f = pp + r
+        k = jnp.where(ok, pp / f, 0.0)
+        ey = yk - a_y
+        ex = xk - a_x
+        a_y = a_y + k * ey
+        a_x = a_x + k * ex
+        p = jnp.where(ok, pp * r / f, pp)
+        return (a_y, a_x, p, tk), (ey, ex, f, a_y, a_x, p, pp)
+
+    init = (jnp.zeros((), dtype), jnp.zeros((p_cols,), dtype), jnp.asarray(p0, dtype), t[0])
+    _, out = jax.lax.scan(step, init, (y, x, obs, t))
+    return FilterPass(*out)
+
+
+def profile(fp: FilterPass, obs: Bool[Array, " n"], reml: bool = False):
+    """Log-likelihood with β profiled out (GLS), and β̂, from one filter pass.
+
+    Returns (loglik, beta, gram) where gram = Σ E_Xᵀ E_X / F is Xᵀ Σ⁻¹ X.
+    """
+    w = jnp.where(obs, 1.0 / fp.f, 0.0)
+    quad = jnp.sum(w * fp.e_y**2)
+    logdet = jnp.sum(jnp.where(obs, jnp.log(fp.f), 0.0))
+    n_obs = jnp.sum(obs)
+    ll = -0.5 * (n_obs * LOG_2PI + logdet + quad)
+    p_cols = fp.e_x.shape[1]
+    if p_cols == 0:
+        return ll, jnp.zeros((0,), fp.e_y.dtype), jnp.zeros((0, 0), fp.e_y.dtype)
+    a = jnp.einsum("n,ni,nj->ij", w, fp.e_x, fp.e_x)
+    c = jnp.einsum("n,ni,n->i", w, fp.e_x, fp.e_y)
+    d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), 1e-300))
+    a_s = a / (d[:, None] * d[None, :]) + 1e-14 * jnp.eye(p_cols, dtype=a.dtype)
+    chol = jnp.linalg.cholesky(a_s)
+    z = jax.scipy.linalg.cho_solve((chol, True), c / d)
+    beta = z / d
+    ll = ll + 0.5 * jnp.dot(c, beta)
+    if reml:
+        logdet_a = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol))) + 2.0 * jnp.sum(jnp.log(d))
+        ll = ll + 0.5 * p_cols * LOG_2PI - 0.5 * logdet_a
+    return ll, beta, a
+
+
+def loglik(y, x, obs, t, q, r, p0=0.0, reml: bool = False):
+    """Marginal log-likelihood of one axis (β profiled out) and β̂."""
+    fp = rw_filter(y, x, obs, t, q, r, p0)
+    ll, beta, _ = profile(fp, obs, reml)
+    return ll, beta
+
+
+def rts_smoother(fp: FilterPass, beta: Float[Array, " p"]):
+    """Rauch–Tung–Striebel smoother of the walk for the residual ``y − Xβ``.
+
+    Returns (mean, variance) of ``b_k`` given all observations, every sample:
+    ``G_k = P_k|k / P_{k+1|k}``, ``m_k = m_k|k + G_k (m_{k+1} − m_k|k)``,
+    ``P_k = P_k|k + G_k² (P_{k+1} − P_{k+1|k})`` (G = 1 where nothing moves).
+    """
+    mf = fp.a_y - fp.a_x @ beta
+    pf = fp.p
+
+    def back(carry, inp):
+        ms_next, ps_next = carry
+        m_k, p_k, pp_next = inp
+        g = jnp.where(pp_next > 0, p_k / jnp.where(pp_next > 0, pp_next, 1.0), 1.0)
+        ms = m_k + g * (ms_next - m_k)
+        ps = p_k + g * g * (ps_next - pp_next)
+        return (ms, ps), (ms, ps)
+
+    init = (mf[-1], pf[-1])
+    _, (ms, ps) = jax.lax.scan(back, init, (mf[:-1], pf[:-1], fp.p_pred[1:]), reverse=True)
+    return jnp.concatenate([ms, mf[-1:]]), jnp.concatenate([ps, pf[-1:]])
+
+
+class SmoothedBias(eqx.Module):
+    """Smoothed bias of one device (or a batch, leading axes added).
+
+    ``bias`` = deterministic part ``X·β`` + ``walk`` (rad/s); ``walk_sd`` the
+    walk's posterior standard deviation given β̂; ``loglik`` per axis.
+    """
+
+    beta: Float[Array, "3 p"]
+    bias: Float[Array, "n 3"]
+    walk: Float[Array, "n 3"]
+    walk_sd: Float[Array, "n 3"]
+    loglik: Float[Array, " 3"]
+
+
+def smooth_bias(
+    y: Float[Array, "n 3"],
+    x: Float[Array, "n 3 p"],
+    obs: Bool[Array, " n"],
+    t: Float[Array, " n"],
+    q: Float[Array, " 3"],
+    r: Float[Array, " 3"],
+    p0: float | Float[Array, ""] = 0.0,
+    reml: bool = False,
+) -> SmoothedBias:
+    """GLS β and RTS-smoothed random walk of all three axes of one device.
+
+    ``y`` is the measured minus the reference rate, ``x`` the deterministic
+    design (``model.design(sig, θ)``), ``obs`` where the bias is observed.
+    """
+    p0 = jnp.asarray(p0, y.dtype)
+
+    def axis(yi, xi, qi, ri):
+        fp = rw_filter(yi, xi, obs, t, qi, ri, p0)
+        ll, beta, _ = profile(fp, obs, reml)
+        ms, ps = rts_smoother(fp, beta)
+        return beta, xi @ beta + ms, ms, jnp.sqrt(jnp.maximum(ps, 0.0)), ll
+
+    beta, bias, walk, sd, ll = jax.vmap(axis, in_axes=(1, 1, 0, 0), out_axes=(0, 1, 1, 1, 0))(
+        y, x, jnp.asarray(q, y.dtype), jnp.asarray(r, y.dtype))
+    return SmoothedBias(beta=beta, bias=bias, walk=walk, walk_sd=sd, loglik=ll)
+
+
+def causal_bias(y, obs, t, q, r, m0, p0):
+    """Real-time bias estimate of one axis: the filter's prediction from samples before k.
+
+    Starts from ``b ~ N(m0, p0)`` at ``t[0]``; returns (mean, variance) per sample
+    (what a device would subtract at sample k, knowing only the past).
+    """
+    fp = rw_filter(y - m0, jnp.zeros((y.shape[0], 0), y.dtype), obs, t, q, r, p0)
+    pred = jnp.concatenate([jnp.zeros((1,), y.dtype), fp.a_y[:-1]]) + m0
+    return pred, fp.p_pred
+
+
+# --------------------------------------------------------------------------- learning
+
+
+def initial_noise(y: Float[Array, "n 3"], obs: Bool[Array, " n"], t: Float[Array, " n"]):
+    """Starting (q, r) per axis: r from successive differences (robust), q from long lags."""
+    dy = jnp.diff(y, axis=0)
+    pair = obs[1:] & obs[:-1]
+    d = jnp.where(pair[:, None], dy, jnp.nan)
+    med = jnp.nanmedian(d, axis=0)
+    sd = 1.4826 * jnp.nanmedian(jnp.abs(d - med), axis=0) / jnp.sqrt(2.0)
+    r = jnp.maximum(sd**2, 1e-30)
+    dt = jnp.nanmedian(jnp.where(pair, jnp.diff(t), jnp.nan))
+    dt = jnp.where(jnp.isfinite(dt) & (dt > 0), dt, 1.0)
+    return r, dt
+
+
+class NoiseFit(eqx.Module):
+    """Learned noise levels of one device: q, r per axis, θ, β, likelihood and solver status."""
+
+    q: Float[Array, " 3"]
+    r: Float[Array, " 3"]
+    theta: Float[Array, " k"]
+    beta: Float[Array, "3 p"]
+    loglik: Float[Array, ""]
+    steps: Int[Array, ""]
+    converged: Bool[Array, ""]
+
+
+def _nll_fn(model, sig, y, obs, p0, reml, scale):
+    t = sig.t
+
+    def nll(params):
+        lq, lr, theta = params[:3], params[3:6], params[6:]
+        x = model.design(sig, theta) if model.n_params else jnp.zeros((t.shape[0], 3, 0), y.dtype)
+
+        def axis(yi, xi, qi, ri):
+            return loglik(yi, xi, obs, t, qi, ri, p0, reml)[0]
+
+        ll = jax.vmap(axis, in_axes=(1, 1, 0, 0))(y, x, jnp.exp(lq), jnp.exp(lr))
+        return -jnp.sum(ll) / scale
+
+    return nll
+
+
+def learn_noise(
+    model: ErrorModel,
+    sig,
+    obs: Bool[Array, " n"],
+    p0: Float[Array, ""],
+    *,
+    reml: bool = False,
+    max_steps: int = 200,
+    rtol: float = 1e-9,
+    atol: float = 1e-9,
+    n_grid: int = 13,
+) -> NoiseFit:
+    """Maximum-likelihood q, r (per axis) and θ of one device (vmap over devices).
+
+    Start: r from successive differences; log q from the best of a grid
+    (q·dt from 1e-9·r to 10·r) at that r; then BFGS on the scaled negative
+    log-likelihood in (log q, log r, θ). β follows in closed form.
+    """
+    y = sig.gyro - sig.rate
+    obs = obs & sig.mask
+    y = jnp.where(obs[:, None], y, 0.0)
+    n_obs = jnp.maximum(jnp.sum(obs), 1)
+    r0, dt = initial_noise(y, obs, sig.t)
+    theta0 = model.nonlinear_init(sig)
+    nll = _nll_fn(model, sig, y, obs, p0, reml, n_obs.astype(y.dtype))
+    grid = jnp.linspace(jnp.log(1e-9), jnp.log(10.0), n_grid)
+
+    def at(g):
+        lq = jnp.log(r0 / dt) + g
+        return nll(jnp.concatenate([lq, jnp.log(r0), theta0]))
+
+    vals = jax.vmap(at)(grid)
+    vals = jnp.where(jnp.isfinite(vals), vals, jnp.inf)
+    lq0 = jnp.log(r0 / dt) + grid[jnp.argmin(vals)]
+    x0 = jnp.concatenate([lq0, jnp.log(r0), theta0])
+    solver = optx.BFGS(rtol=rtol, atol=atol)
+    sol = optx.minimise(lambda p, _: nll(p), solver, x0, max_steps=max_steps, throw=False)
+    p = sol.value
+    theta = p[6:]
+    x = model.design(sig, theta) if model.n_params else jnp.zeros((y.shape[0], 3, 0), y.dtype)
+    sb = smooth_bias(y, x, obs, sig.t, jnp.exp(p[:3]), jnp.exp(p[3:6]), p0, reml)
+    return NoiseFit(q=jnp.exp(p[:3]), r=jnp.exp(p[3:6]), theta=theta, beta=sb.beta,
+                    loglik=jnp.sum(sb.loglik), steps=sol.stats["num_steps"],
+                    converged=sol.result == optx.RESULTS.successful)
+
+
+# --------------------------------------------------------------------------- the batch fit
+
+
+class RandomWalkFit(eqx.Module):
+    """Deterministic model + random walk fitted to every device of a batch.
+
+    Per device (leading axis d): ``params`` (beta (3, p), theta), ``q`` and
+    ``r`` per axis ((rad/s)²/s and (rad/s)²), ``loglik``, the smoothed total
+    ``bias`` (n, 3) and its ``walk`` part, the ``residual`` after smoothing
+    (zero where not observed), ``rms`` (observed samples), ``heldout_rms``
+    (held-out time blocks predicted by the smoother from the rest, with q, r
+    and θ from the full fit), ``noise_floor`` and ``status``.
+    """
+
+    model: ErrorModel = eqx.field(static=True)
+    devices: tuple[str, ...] = eqx.field(static=True)
+    params: Params
+    norm: object
+    q: Float[Array, "d 3"]
+    r: Float[Array, "d 3"]
+    loglik: Float[Array, " d"]
+    bias: Float[Array, "d n 3"]
+    walk: Float[Array, "d n 3"]
+    walk_sd: Float[Array, "d n 3"]
+    residual: Float[Array, "d n 3"]
+    observed: Bool[Array, "d n"]
+    rms: Float[Array, " d"]
+    heldout_rms: Float[Array, " d"]
+    fold_mse: Float[Array, "d f"]
+    noise_floor: Float[Array, " d"]
+    noise_axes: Float[Array, "d 3"]
+    steps: Int[Array, " d"]
+    status: Int[Array, " d"]
+    n_samples: Float[Array, " d"]
+
+    @property
+    def n_devices(self) -> int:
+        return len(self.devices)
+
+    @property
+    def rrw(self) -> Float[Array, "d 3"]:
+        """Rate random walk √q, rad/s²/√Hz."""
+        return jnp.sqrt(self.q)
+
+    def status_name(self, i: int) -> str:
+        from .fit import STATUS_NAMES
+
+        return STATUS_NAMES[int(self.status[i])]
+
+    def status_detail(self, i: int) -> str:
+        return self.status_name(i)
+
+    def device_params(self, i: int) -> Params:
+        return jax.tree.map(lambda a: a[i], self.params)
+
+    def param_dict(self, i: int) -> dict:
+        """Device ``i``'s coefficients by label, plus the learned noise levels per axis."""
+        pr = self.device_params(i)
+        labels = self.model.param_labels()
+        out: dict = {}
+        for ax, name in enumerate("xyz"):
+            out[name] = {lab: float(v) for lab, v in zip(labels[ax], np.asarray(pr.beta[ax]))}
+            out[name]["random_walk.q"] = float(self.q[i, ax])
+            out[name]["random_walk.r"] = float(self.r[i, ax])
+        if self.model.n_nonlinear:
+            out["shared"] = {}
+            for t, _, qs in self.model.slices():
+                if t.n_nonlinear:
+                    vals = np.asarray(t.nonlinear_values(pr.theta[qs]))
+                    for n, v in zip(t.nonlinear_names(), vals):
+                        out["shared"][f"{t.spec}.{n}"] = float(v)
+        return out
+
+    def summary(self, i: int) -> dict:
+        def num(v):
+            v = float(v)
+            return v if math.isfinite(v) else None
+
+        return {
+            "device": self.devices[i], "status": self.status_name(i),
+            "status_detail": self.status_detail(i), "rms": num(self.rms[i]),
+            "heldout_rms": num(self.heldout_rms[i]), "noise_floor": num(self.noise_floor[i]),
+            "loglik": num(self.loglik[i]), "steps": int(self.steps[i]),
+            "n_samples": int(self.n_samples[i]), "params": self.param_dict(i),
+        }
+
+    def records(self) -> list[dict]:
+        return [self.summary(i) for i in range(self.n_devices)]
+
+
+def _fit_device(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds):
+    from .fit import (  # shared definitions keep held-out numbers comparable with fit()
+        FAILED,
+        INSUFFICIENT_DATA,
+        NOT_CONVERGED,
+        OK,
+        _fold_ids,
+        _noise_floor,
+    )
+
+    nf = learn_noise(model, sig, obs, p0, reml=reml, max_steps=max_steps)
+    obs = obs & sig.mask
+    y = jnp.where(obs[:, None], sig.gyro - sig.rate, 0.0)
+    x = model.design(sig, nf.theta) if model.n_params else jnp.zeros((y.shape[0], 3, 0), y.dtype)
+    sb = smooth_bias(y, x, obs, sig.t, nf.q, nf.r, p0, reml)
+    w = obs.astype(y.dtype)
+    resid = (y - sb.bias) * w[:, None]
+    n_obs = jnp.sum(w)
+    rms = jnp.sqrt(jnp.sum(resid**2) / jnp.maximum(3 * n_obs, 1.0))
+    fold = jnp.where(obs, _fold_ids(obs, n_blocks, n_folds), -1)
+
+    def fold_fit(f):
+        of = obs & (fold != f)
+        sf = smooth_bias(y, x, of, sig.t, nf.q, nf.r, p0, reml)
+        held = (fold == f).astype(y.dtype)
+        return jnp.sum(held[:, None] * (y - sf.bias) ** 2), jnp.sum(held)
+
+    sse, cnt = jax.vmap(fold_fit)(jnp.arange(n_folds))
+    heldout = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * jnp.sum(cnt), 1.0))
+    noise_axes = _noise_floor(sig.gyro - sig.rate, obs)
+    finite = jnp.all(jnp.isfinite(sb.bias)) & jnp.isfinite(nf.loglik) & jnp.all(jnp.isfinite(nf.q))
+    p = model.n_params + model.n_nonlinear
+    status = jnp.where(n_obs < max(20, 4 * (p + 2)), INSUFFICIENT_DATA,
+                       jnp.where(~finite, FAILED, jnp.where(nf.converged, OK, NOT_CONVERGED)))
+    return dict(beta=sb.beta, theta=nf.theta, q=nf.q, r=nf.r, loglik=jnp.sum(sb.loglik),
+                bias=sb.bias, walk=sb.walk, walk_sd=sb.walk_sd, residual=resid, rms=rms,
+                heldout_rms=heldout, fold_mse=sse / jnp.maximum(3 * cnt, 1.0),
+                noise_axes=noise_axes, noise_floor=jnp.sqrt(jnp.mean(noise_axes**2)),
+                steps=jnp.asarray(nf.steps, jnp.int32), status=jnp.asarray(status, jnp.int32),
+                n_samples=n_obs)
+
+
+@eqx.filter_jit
+def _fit_batch(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds, chunk):
+    def one(args):
+        s, o = args
+        return _fit_device(model, s, o, p0, reml, max_steps, n_blocks, n_folds)
+
+    return jax.lax.map(one, (sig, obs), batch_size=chunk)
+
+
+def fit_random_walk(
+    model: ErrorModel | str,
+    batch,
+    *,
+    static: Bool[np.ndarray, "d n"] | None = None,
+    norm=None,
+    options=None,
+    reml: bool = False,
+    p0: float | None = None,
+    **option_overrides,
+) -> RandomWalkFit:
+    """Fit the deterministic part of ``model`` plus a bias random walk to every device.
+
+    The bias is observed where the reference rate is known (the data's
+    ``rx, ry, rz``) or, without one, where the device is static: ``static``
+    (devices × samples, e.g. from :mod:`diffgyro.detect`) or, if not given,
+    every sample (a static recording). q, r per axis and any time constants
+    are learned by maximum likelihood (``reml=True``: restricted likelihood),
+    β by GLS. ``options``/overrides: fields of ``fit.FitOptions`` (``n_blocks``,
+    ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
+    """
+    from .fit import FitOptions, _as_batch, _replace, batch_signals
+    from .signals import TempNorm
+
+    if isinstance(model, str):
+        model = ErrorModel.from_spec(model)
+    batch = _as_batch(batch)
+    opts = options or FitOptions()
+    if option_overrides:
+        opts = _replace(opts, **option_overrides)
+    sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
+    obs = np.asarray(batch.mask, bool)
+    if static is not None:
+        obs = obs & np.asarray(static, bool).reshape(obs.shape)
+    if p0 is None:
+        p0 = 0.0 if any(t.name == "bias_poly" for t in model.deterministic) else WIDE_PRIOR
+    out = _fit_batch(model, sig, jnp.asarray(obs), jnp.asarray(p0, sig.gyro.dtype), reml,
+                     opts.max_steps, opts.n_blocks, opts.n_folds, opts.chunk)
+    norm_out = sig.norm if sig.norm is not None else TempNorm(
+        centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
+    return RandomWalkFit(
+        model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
+        norm=norm_out, q=out["q"], r=out["r"], loglik=out["loglik"], bias=out["bias"],
+        walk=out["walk"], walk_sd=out["walk_sd"], residual=out["residual"],
+        observed=jnp.asarray(obs), rms=out["rms"], heldout_rms=out["heldout_rms"],
+        fold_mse=out["fold_mse"], noise_floor=out["noise_floor"], noise_axes=out["noise_axes"],
+        steps=out["steps"], status=out["status"], n_samples=out["n_samples"])
+
+
+# --------------------------------------------------------------------------- S1's filter
+
+
+class S1Offset(eqx.Module):
+    """S1's offset track: per window ``x`` (offset after the update) and ``p``; per sample
+    ``offset`` (the offset in force while that sample is read: the last update before it)."""
+
+    x: Float[Array, " k"]
+    p: Float[Array, " k"]
+    offset: Float[Array, " n"]
+
+
+def s1_offset_filter(
+    rz: Float[Array, " n"],
+    static: Bool[Array, " k"],
+    window: int,
+    init: int = 1000,
+    q: float = 1e-4,
+) -> S1Offset:
+    """The S1 seed's scalar Kalman filter of the z-rate offset (faithful to the patent).
+
+    Initial window (the first ``init`` samples, 5 s static at the factory):
+    ``X(0|0) = E(0) = mean``, ``P(0|0) = COV(0) = var``. After it, windows of
+    ``window`` samples; window j (``static[j]``, e.g. from
+    :func:`diffgyro.detect.s1_range_detector`) updates with ``E = mean``,
+    ``R = COV = var`` of its samples, ``P ← P + Q``, ``Kg = P/(P+R)``;
+    a non-static window leaves the filter unchanged. ``q`` is S1's fixed
+    ``Q = 1e-4`` in the units of ``rz``. The per-sample offset is causal:
+    the samples of window j are corrected with the offset after window j−1.
+    """
+    rz = jnp.asarray(rz)
+    n = rz.shape[0]
+    k = (n - init) // window
+    win = rz[init:init + k * window].reshape(k, window)
+    e = jnp.mean(win, axis=1)
+    cov = jnp.var(win, axis=1)
+    x0 = jnp.mean(rz[:init])
+    p0 = jnp.var(rz[:init])
+    st = jnp.asarray(static)[:k]
+
+    def step(carry, inp):
+        x, p = carry
+        ek, rk, ok = inp
+        pp = p + q
+        kg = pp / (pp + rk)
+        xn = jnp.where(ok, x + kg * (ek - x), x)
+        pn = jnp.where(ok, (1.0 - kg) * pp, p)
+        return (xn, pn), (xn, pn)
+
+    _, (xs, ps) = jax.lax.scan(step, (x0, p0), (e, cov, st))
+    before = jnp.concatenate([x0[None], xs[:-1]]) if k > 0 else jnp.zeros((0,), rz.dtype)
+    per_window = jnp.repeat(before, window)
+    tail = jnp.full((n - init - k * window,), xs[-1] if k > 0 else x0, rz.dtype)
+    offset = jnp.concatenate([jnp.full((init,), x0, rz.dtype), per_window, tail])
+    return S1Offset(x=xs, p=ps, offset=offset)
+
+
+# --------------------------------------------------------------------------- S1 compared
+
+
+def heading_errors(
+    t: Float[Array, " n"],
+    gz: Float[Array, " n"],
+    rz: Float[Array, " n"],
+    static: Bool[Array, " n"],
+    q: float,
+    r: float,
+    *,
+    window: int,
+    init: int = 1000,
+    q_s1: float = 1e-4,
+) -> dict[str, Float[Array, " n"]]:
+    """Heading (yaw) error over time of one z gyro under five bias treatments.
+
+    ``none``: raw rate integrated; ``fixed``: the factory offset E(0) of the
+    first ``init`` samples held for ever; ``s1``: S1's tracked offset with its
+    fixed ``Q`` (windows of ``window`` samples, static where every sample of
+    the window is); ``learned``: the causal Kalman filter with the learned
+    ``q``, ``r`` (what a device could run live); ``smoothed``: the RTS
+    smoother with the same q, r (post-processing, uses the future too).
+    Heading error = ∫ (corrected rate − true rate) dt, trapezoidal, rad.
+    """
+    t = jnp.asarray(t)
+    gz = jnp.asarray(gz)
+    rz = jnp.asarray(rz)
+    static = jnp.asarray(static, bool)
+    n = gz.shape[0]
+    k = (n - init) // window
+    win_static = jnp.all(static[init:init + k * window].reshape(k, window), axis=1)
+    s1 = s1_offset_filter(gz, win_static, window, init, q_s1)
+    e0 = jnp.mean(gz[:init])
+    pred, _ = causal_bias(gz, static, t, q, r, e0, jnp.var(gz[:init]) / init)
+    sb = smooth_bias(jnp.repeat(gz[:, None], 3, axis=1), jnp.ones((n, 3, 1), gz.dtype), static, t,
+                     jnp.full((3,), q), jnp.full((3,), r), 0.0)
+
+    def integrate(err):
+        inc = 0.5 * (err[1:] + err[:-1]) * jnp.diff(t)
+        return jnp.concatenate([jnp.zeros((1,), err.dtype), jnp.cumsum(inc)])
+
+    return {
+        "none": integrate(gz - rz),
+        "fixed": integrate(gz - e0 - rz),
+        "s1": integrate(gz - s1.offset - rz),
+        "learned": integrate(gz - pred - rz),
+        "smoothed": integrate(gz - sb.bias[:, 0] - rz),
+    }
