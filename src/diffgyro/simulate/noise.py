@@ -7,7 +7,7 @@
 * Bias instability ``B`` (rad/s): flicker rate noise with IEEE 952's
   two-sided PSD ``B²/(2π|f|)`` (one-sided ``B²/(π f)``), approximated by a
   sum of first-order Gauss–Markov processes with correlation times two per
-  decade (ratio ``r = √10``) between two samples and the record length, each
+  decade (ratio ``r = √10``) between half a sample and the record length, each
   of variance ``B²·ln r/π`` (the sum of their one-sided Lorentzian spectra
   ``4σ²τ/(1 + (2πfτ)²)`` is then ``B²/(π f)`` between the ends). The Allan
   deviation is flat at ``√(2 ln 2/π)·B ≈ 0.664·B`` there.
@@ -127,11 +127,31 @@ def noise_levels(preset: Preset, n_devices: int, seed: int, noise=None,
 
 
 def gauss_markov_times(dt: float, duration: float) -> np.ndarray:
-    """Correlation times of the flicker approximation: 2·dt .. duration, two per decade."""
-    lo = 2.0 * dt
+    """Correlation times of the flicker approximation: dt/2 .. duration, two per decade."""
+    lo = 0.5 * dt
     hi = max(duration, 10.0 * lo)
     k = int(math.ceil(math.log(hi / lo) / math.log(GM_RATIO)))
     return lo * GM_RATIO ** np.arange(k + 1)
+
+
+def _gauss_markov(n: int, dt: float, tau: float, var: float, shape, rng) -> np.ndarray:
+    """Stationary first-order Gauss–Markov process (variance ``var``, correlation time
+    ``tau``) on ``n`` samples; slow ones (τ ≥ 128·dt) are drawn on a grid of τ/32
+    and interpolated linearly (their spectrum above 1/(2π·τ/32) is negligible)."""
+    m = max(1, int(tau / (32.0 * dt)))
+    if m < 4:
+        m = 1
+    k = (n - 1) // m + 2 if m > 1 else n
+    h = m * dt
+    a = math.exp(-h / tau)
+    b = math.sqrt(var * (1.0 - a * a))
+    x0 = rng.standard_normal((*shape, 1)) * math.sqrt(var)
+    y = lfilter([b], [1.0, -a], rng.standard_normal((*shape, k)), axis=-1, zi=a * x0)[0]
+    if m == 1:
+        return y
+    frac = np.arange(m) / m
+    fine = y[..., :-1, None] + (y[..., 1:, None] - y[..., :-1, None]) * frac
+    return fine.reshape(*shape, -1)[..., :n]
 
 
 def flicker(n: int, dt: float, shape: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
@@ -140,10 +160,7 @@ def flicker(n: int, dt: float, shape: tuple[int, ...], rng: np.random.Generator)
     var = math.log(GM_RATIO) / math.pi
     out = np.zeros((*shape, n))
     for tau in gauss_markov_times(dt, n * dt):
-        a = math.exp(-dt / tau)
-        b = math.sqrt(var * (1.0 - a * a))
-        x0 = rng.standard_normal((*shape, 1)) * math.sqrt(var)
-        out += lfilter([b], [1.0, -a], rng.standard_normal((*shape, n)), axis=-1, zi=a * x0)[0]
+        out += _gauss_markov(n, dt, float(tau), var, shape, rng)
     return out
 
 

@@ -237,7 +237,7 @@ class S2(Plan):
     default_effects = "bias_poly(1)+scale_poly(2)+temp_diff+gradient"
     default_preset = "fog"
     defaults = {"sample_rate": 1.0, "start_temp": 20.0, "t_min": -40.0, "t_max": 70.0, "step": 10.0,
-                "ramp": 1.5, "settle": 20.0, "turn_rate": 10.0, "turn_time": 60.0, "accel": 10.0}
+                "ramp": 1.5, "settle": 30.0, "turn_rate": 10.0, "turn_time": 60.0, "accel": 10.0}
 
     def build(self, n_devices, seed):
         o = self.options
