@@ -97,6 +97,38 @@ def least_squares_params(model: ErrorModel, sig: Signals, y: np.ndarray,
     return beta
 
 
+def toolkit_compensate(spec: str, fit_on: Recording, apply_to: Recording | None = None, **options):
+    """Fit the toolkit model ``spec`` to ``fit_on`` and compensate ``apply_to``.
+
+    The comparison every recipe offers: the same data, a richer model.
+    Returns ``(fit_result, compensated_rate (n, 3), error (n, 3))`` where
+    ``error`` is the model's whole error (bias, scale, ...) on ``apply_to``
+    at its compensated rate (default: ``fit_on`` itself).
+    """
+    import jax
+
+    from ..data import Batch
+    from ..fit import fit
+
+    apply_to = fit_on if apply_to is None else apply_to
+    out = fit(spec, fit_on, **options)
+    batch = Batch.from_recordings([apply_to])
+    sig = out.signals(batch)
+    comp = jax.vmap(out.model.compensate)(out.params, sig)
+    comp = np.asarray(comp)[0, : apply_to.n]
+    return out, comp, np.asarray(apply_to.gyro) - comp
+
+
+def single_axis(rec: Recording, axis: int) -> Recording:
+    """One gyro axis copied onto all three (the toolkit fits three axes; a single-axis
+    rate table only excites one). Read the result from axis 0."""
+    def rep(a):
+        return None if a is None else np.repeat(np.asarray(a)[:, axis:axis + 1], 3, axis=1)
+
+    return Recording(t=rec.t, gyro=rep(rec.gyro), temp=rec.temp, temp_ext=rec.temp_ext,
+                     rate=rep(rec.rate), device=rec.device, source=rec.source)
+
+
 def require(rec: Recording, *signals: str, recipe: str) -> None:
     """Raise a clear DataError when a recording lacks a signal a recipe reads."""
     cols = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az", "mag": "mx, my, mz",
