@@ -452,3 +452,27 @@ def test_six_face_feeds_the_six_position_recipe_exactly():
     # the measured Earth rate goes through scale factor and misalignment too
     np.testing.assert_allclose(res["g_sens"], beta[:, 1:4] + (np.eye(3) + sm) * EARTH_RATE / G0,
                                atol=1e-14)
+
+
+def test_population_spreads_match_the_presets():
+    """Coefficients are drawn in the model basis with the stated physical spreads:
+    bias 0.5 °/s and slope 0.01 °/s/°C (MEMS), 1 °/h and 0.02 °/h/°C (FOG), whatever
+    the normalisation's half-range."""
+    from diffgyro.simulate.population import FOG, MEMS, draw_params
+
+    model = ErrorModel.from_spec("bias_poly(1)+misalignment+g_sens+thermal_lag+warmup")
+    d = 2000
+    for preset, c0, slope in ((MEMS, 0.5 * DEG, 0.01 * DEG), (FOG, DEG / 3600, 0.02 * DEG / 3600)):
+        for scale in (50.0, 30.0):
+            p = draw_params(model, preset, d, seed=1, temp_scale=scale)
+            tol = rel_tol(3 * d)
+            assert abs(p.beta[..., 0].std() / c0 - 1) < tol
+            assert abs((p.beta[..., 1] / scale).std() / slope - 1) < tol
+            assert abs(p.beta[..., 2:4].std() / preset.misalignment - 1) < tol
+            assert abs(p.beta[..., 4:7].std() / preset.g_sens - 1) < tol
+            # the bias polynomial sees the lagged temperature: l1 = c1
+            np.testing.assert_array_equal(p.beta[..., 7], p.beta[..., 1])
+            taus = np.exp(p.theta)
+            assert taus[:, 0].min() >= preset.lag_tau[0] and taus[:, 0].max() <= preset.lag_tau[1]
+            assert taus[:, 1].min() >= preset.warmup_tau[0] and taus[:, 1].max() <= preset.warmup_tau[1]
+    assert FOG.arw < MEMS.arw / 100 and FOG.bias_instability < MEMS.bias_instability / 100
