@@ -21,6 +21,7 @@ from ._options import (
     TimeUnit,
     load_from_cli,
 )
+from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec, e.g. 'bias_poly(2)+gradient' "
                                                          "(see 'diffgyro effects').")]
@@ -59,12 +60,25 @@ def fit_command(
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
+    chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
+    dask: DaskOpt = None, results: ResultsOpt = None,
 ) -> None:
-    """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS."""
+    """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
+
+    A directory of Parquet files, --chunk-devices or --dask streams the data in
+    chunks of devices with resumable state in --work-dir (see docs/dask.md).
+    """
     from diffgyro import calibration
     from diffgyro.fit import fit
     from diffgyro.model import ErrorModel
 
+    if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
+        from ._stream import stream_fit
+
+        stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit,
+                   temp_unit, time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir,
+                   resume, dask, results)
+        return
     em = ErrorModel.from_spec(model)
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                            sampling_rate, drop_invalid)

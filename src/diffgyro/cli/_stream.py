@@ -1,0 +1,66 @@
+"""Options and dispatch for streaming runs (``--chunk-devices``, ``--work-dir``,
+``--resume/--no-resume``, ``--dask``, ``--results``); see :mod:`diffgyro.pipeline`.
+
+This module starts with ``_`` so it is not imported as a command.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from ._options import units_from_cli
+
+ChunkDevices = Annotated[
+    int | None,
+    typer.Option("--chunk-devices", min=1,
+                 help="Stream the data in chunks of this many devices (default 256 when DATA "
+                      "is a directory); peak memory follows the chunk size."),
+]
+WorkDirOpt = Annotated[
+    Path | None,
+    typer.Option("--work-dir", help="Resumable state of a streaming run (default: OUT.work, "
+                                    "beside --out)."),
+]
+Resume = Annotated[
+    bool,
+    typer.Option("--resume/--no-resume", help="Skip the chunks an earlier run of the same "
+                                              "command finished (--no-resume starts again)."),
+]
+DaskOpt = Annotated[
+    str | None,
+    typer.Option("--dask", metavar="ADDRESS|local:N",
+                 help="Run the chunks on a Dask cluster (scheduler address), or on N local "
+                      "worker processes; needs pip install 'diffgyro[dask]'."),
+]
+ResultsOpt = Annotated[
+    Path | None,
+    typer.Option("--results", help="Per-device results table of a streaming run (.jsonl or "
+                                   ".parquet; default OUT.devices.jsonl beside --out)."),
+]
+
+
+def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit, temp_unit,
+               time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir, resume, dask,
+               results) -> None:
+    """``diffgyro fit`` over a dataset in chunks; same ``--json`` object as the plain fit."""
+    from diffgyro.io import parse_columns
+    from diffgyro.pipeline import DEFAULT_CHUNK_DEVICES, fit_dataset
+
+    summary = fit_dataset(
+        data, model, out=out, results=results, work_dir=work_dir,
+        chunk_devices=chunk_devices or DEFAULT_CHUNK_DEVICES, resume=resume, dask=dask,
+        columns=parse_columns(columns),
+        units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
+        drop_invalid=drop_invalid, sampling_rate=sampling_rate,
+        fit_options={"dtemp_window": dtemp_window}, progress=True,
+        json_stream=sys.stdout if as_json else None)
+    bad = ", ".join(f"{n} {s}" for s, n in sorted(summary.statuses.items()) if s != "ok")
+    print(f"diffgyro fit: {summary.n_ok} of {summary.n_devices} devices ok"
+          + (f" ({bad})" if bad else "") + f"; {summary.chunks_run} of {summary.chunks_total} "
+          f"chunks run, {summary.devices_per_second:.1f} devices/s", file=sys.stderr)
+    for name, path in summary.outputs.items():
+        print(f"diffgyro fit: {name} written to {path}", file=sys.stderr)

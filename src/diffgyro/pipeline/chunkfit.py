@@ -1,0 +1,140 @@
+"""Fit one chunk of devices with a compiled function reused across chunks, sharded
+over the local JAX devices.
+
+Each chunk is padded on the device axis to a fixed size (copies of its last
+device, whose results are dropped) and on the sample axis to a bucket length,
+so every chunk of a run reuses one compiled function. With several local JAX
+devices (GPUs, or CPU devices forced with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the device axis is
+split over a one-axis mesh with :func:`jax.shard_map`: each JAX device fits its
+own slice with :func:`diffgyro.fit.solve_device`, with no collective
+communication at all (the per-device fits are independent), so there is
+nothing to deadlock on and the numbers are those of the single-device run.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ..data import Batch
+from ..errors import SpecError
+from ..fit import FitOptions, FitResult, sampling_intervals, solve_device
+from ..model import ErrorModel, Params
+from ..signals import TempNorm, make_signals
+
+AXIS = "devices"
+
+
+@eqx.filter_jit
+def _signals(t, gyro, mask, rate, temp, temp_ext, accel, dt, dtemp_window: float):
+    """Derived signals of every device, as :func:`diffgyro.fit.batch_signals` makes them
+    (each device centres its own temperature), compiled once per shape."""
+
+    def one(t, gyro, mask, rate, temp, temp_ext, accel, dt):
+        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
+                            norm=None, dtemp_window=dtemp_window, dt=dt)
+
+    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, dt)
+
+
+def _solve_local(model: ErrorModel, sig, opts: FitOptions, block: int):
+    """Fit every device of ``sig`` in blocks of ``block`` devices (vmapped), one block
+    after another (``lax.map``): bounded memory for the per-device design matrices."""
+    n = sig.t.shape[0]
+    k = n // block
+    xs = jax.tree.map(lambda a: a.reshape((k, block) + a.shape[1:]), sig)
+    out = jax.lax.map(jax.vmap(lambda s: solve_device(model, s, opts, None)), xs)
+    return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
+
+
+@eqx.filter_jit
+def _solve(model: ErrorModel, sig, opts: FitOptions, block: int, mesh: Mesh | None):
+    if mesh is None:
+        return _solve_local(model, sig, opts, block)
+    spec = PartitionSpec(AXIS)
+    fn = jax.shard_map(lambda s: _solve_local(model, s, opts, block), mesh=mesh,
+                       in_specs=spec, out_specs=spec, check_vma=False)
+    return fn(sig)
+
+
+def local_mesh(shard: bool | None = None) -> Mesh | None:
+    """A one-axis mesh over the local JAX devices, or None for one device / ``shard=False``."""
+    devices = jax.local_devices()
+    if shard is False or len(devices) < 2:
+        return None
+    return Mesh(np.asarray(devices), (AXIS,))
+
+
+class ChunkFitter:
+    """Fits chunks of up to ``chunk_devices`` devices with ``spec``.
+
+    ``options`` are :class:`~diffgyro.fit.FitOptions` fields (``dtemp_window``,
+    ``n_folds``, ...). Results are :class:`~diffgyro.fit.FitResult` of the real
+    devices only, with host (numpy) arrays.
+    """
+
+    def __init__(self, spec: str, chunk_devices: int, options: dict | None = None,
+                 shard: bool | None = None):
+        self.model = ErrorModel.from_spec(spec)
+        if any(t.stochastic for t in self.model.terms):
+            raise SpecError("streaming fits do not support random_walk models yet",
+                            hint="fit them without --chunk-devices/--dask")
+        options = dict(options or {})
+        tol = {k: jnp.asarray(options.pop(k)) for k in ("rtol", "atol", "rank_tol") if k in options}
+        try:
+            self.opts = FitOptions(**options, **tol)
+        except TypeError as err:
+            raise SpecError(f"unknown fit option: {err}") from None
+        self.mesh = local_mesh(shard)
+        n_shards = 1 if self.mesh is None else self.mesh.size
+        per_shard = math.ceil(max(int(chunk_devices), 1) / n_shards)
+        self.block = max(1, min(self.opts.chunk, per_shard))
+        per_shard = math.ceil(per_shard / self.block) * self.block
+        self.padded = per_shard * n_shards
+
+    @property
+    def n_shards(self) -> int:
+        return 1 if self.mesh is None else self.mesh.size
+
+    def fit(self, batch: Batch) -> FitResult:
+        """Fit a batch of at most ``padded`` devices; FitResult of exactly these devices."""
+        n = batch.n_devices
+        if n > self.padded:
+            raise ValueError(f"chunk of {n} devices is larger than the planned {self.padded}")
+        idx = np.minimum(np.arange(self.padded), n - 1)   # pad with copies of the last device
+        full = batch.select(idx)
+        dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
+
+        def arr(x):
+            return None if x is None else jnp.asarray(x, dtype)
+
+        sig = _signals(arr(full.t), arr(full.gyro), jnp.asarray(full.mask), arr(full.rate),
+                       arr(full.temp), arr(full.temp_ext), arr(full.accel),
+                       jnp.asarray(sampling_intervals(full), dtype), self.opts.dtemp_window)
+        if self.mesh is not None:
+            sig = jax.device_put(sig, NamedSharding(self.mesh, PartitionSpec(AXIS)))
+        out = _solve(self.model, sig, self.opts, self.block, self.mesh)
+        out = jax.tree.map(lambda a: np.asarray(a)[:n], out)
+        norm = sig.norm
+        if norm is None:
+            norm = TempNorm(centre=np.zeros(n), scale=np.ones(n))
+        else:
+            norm = TempNorm(centre=np.asarray(norm.centre)[:n], scale=np.asarray(norm.scale)[:n])
+        temp_range = None
+        if batch.temp is not None:
+            tmask = np.where(batch.mask, batch.temp, np.nan)
+            temp_range = np.stack([np.nanmin(tmask, axis=1), np.nanmax(tmask, axis=1)], axis=1)
+        return FitResult(
+            model=self.model, devices=batch.devices,
+            params=Params(beta=out["beta"], theta=out["theta"]), norm=norm,
+            temp_range=temp_range, cov=out["cov"], rms=out["rms"],
+            heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"],
+            noise_floor=out["noise_floor"], noise_axes=out["noise_axes"], sigma=out["sigma"],
+            steps=out["steps"], status=out["status"], range_flags=out["range_flags"],
+            collinear=out["collinear"], n_samples=out["n_samples"], options=self.opts)

@@ -1,0 +1,532 @@
+"""Streaming fits: plan chunks, run the missing ones (here or on Dask), merge the results.
+
+:func:`fit_dataset` is what ``diffgyro fit`` runs for a directory of Parquet
+files or with ``--chunk-devices`` / ``--dask``:
+
+1. index the inputs (device column only) and plan chunks of ``chunk_devices``
+   devices in dataset order, or reuse the plan of an earlier run of the same
+   command in the work directory;
+2. run every chunk without a result file: read its rows, validate each device,
+   fit (sharded over local JAX devices), write the chunk's results atomically;
+3. merge the chunk files in plan order into the calibration file and the
+   per-device results table (streamed, each written atomically).
+
+A device whose data is bad, or whose fit is not ``ok``, is recorded with its
+status and reason; it never stops the run. The output depends only on the
+inputs, the model, the options and the chunk size, so a run killed at any
+moment and started again gives exactly the output of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import os
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import IO
+
+import numpy as np
+
+from ..data import Batch, Recording
+from ..errors import DataError
+from .dataset import ReadConfig, expand_inputs, fingerprint, index_dataset, read_devices
+from .workdir import FORMAT, FORMAT_VERSION, WorkDir, atomic_write_bytes, file_mode
+
+DEFAULT_CHUNK_DEVICES = 256
+INVALID = "invalid_data"   # status of a device whose data could not be read or validated
+
+
+@dataclass
+class RunSummary:
+    """What a streaming run did (also returned when every chunk was already done)."""
+
+    n_devices: int
+    n_ok: int
+    n_failed: int
+    statuses: dict[str, int]
+    chunks_total: int
+    chunks_run: int
+    seconds: float
+    devices_per_second: float
+    work_dir: str
+    outputs: dict[str, str] = field(default_factory=dict)
+
+
+# --------------------------------------------------------------------------- one chunk
+
+_FITTERS: dict[str, object] = {}
+
+
+def _fitter(setup: dict):
+    """The chunk fitter of this process for ``setup`` (kept warm: compiled once per process)."""
+    from .chunkfit import ChunkFitter
+
+    key = json.dumps([setup["model"], setup["fit_options"], setup["chunk_devices"],
+                      setup.get("shard")], sort_keys=True)
+    fitter = _FITTERS.get(key)
+    if fitter is None:
+        fitter = ChunkFitter(setup["model"], setup["chunk_devices"], setup["fit_options"],
+                             shard=setup.get("shard"))
+        _FITTERS[key] = fitter
+    return fitter
+
+
+def read_chunk(job: dict, setup: dict) -> tuple[dict[str, Recording], dict[str, str]]:
+    """Recordings of a chunk's devices and the reasons of those that cannot be fitted."""
+    cfg = ReadConfig.from_json(setup["read"])
+    failed: dict[str, str] = dict(job.get("excluded", {}))
+    devices = [d for d in job["devices"] if d not in failed]
+    sources = [(int(k), None if rgs is None else list(rgs)) for k, rgs in job["sources"]]
+    recs, errors = read_devices(setup["files"], sources, devices, cfg)
+    for dev, err in errors.items():
+        failed[dev] = str(err)
+    for dev in devices:
+        if dev not in recs and dev not in failed:
+            failed[dev] = "device not found in its file (was the file changed?)"
+    return recs, failed
+
+
+def _device_hash(h, rec: Recording) -> None:
+    h.update(rec.device.encode())
+    for s in rec.signals:
+        h.update(s.encode())
+        h.update(np.ascontiguousarray(np.asarray(getattr(rec, s), np.float64)).tobytes())
+
+
+def _invalid_record(device: str, reason: str) -> dict:
+    return {"device": device, "status": INVALID, "status_detail": f"{INVALID}: {reason}",
+            "rms": None, "heldout_rms": None, "noise_floor": None, "steps": 0, "n_samples": 0,
+            "params": None, "reason": reason}
+
+
+def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
+    """Fit one chunk; its JSON-ready result (records and calibration entries, in plan order)."""
+    from .. import calibration
+
+    recs, failed = prepared if prepared is not None else read_chunk(job, setup)
+    fitter = _fitter(setup)
+    records: dict[str, dict] = {}
+    cal: dict[str, dict] = {}
+    # devices recording different signal sets are fitted apart: a device's result never
+    # depends on which other devices share its chunk
+    groups: dict[tuple, list[Recording]] = {}
+    for dev in job["devices"]:
+        if dev in recs:
+            groups.setdefault(recs[dev].signals, []).append(recs[dev])
+    for group in groups.values():
+        result = fitter.fit(Batch.from_recordings(group))
+        for d in calibration.from_fit(result).devices:
+            entry = calibration._clean(dict(d.__dict__))
+            cal[d.device] = entry
+            q = entry["quality"]
+            records[d.device] = {"device": d.device, "status": entry["status"],
+                                 "status_detail": entry["status_detail"], "rms": q["rms"],
+                                 "heldout_rms": q["heldout_rms"], "noise_floor": q["noise_floor"],
+                                 "steps": q["steps"], "n_samples": q["n_samples"],
+                                 "params": entry["params"]}
+    for dev, reason in failed.items():
+        records[dev] = _invalid_record(dev, reason)
+    h = hashlib.sha256()
+    for dev in job["devices"]:
+        if dev in recs:
+            _device_hash(h, recs[dev])
+    return {"chunk": job["chunk"], "devices": list(job["devices"]),
+            "records": [records[d] for d in job["devices"]],
+            "calibration": [cal.get(d) for d in job["devices"]],
+            "input_hash": h.hexdigest()}
+
+
+def run_chunk(job: dict, setup: dict) -> dict:
+    """Read and fit one chunk (the unit of work a Dask worker runs)."""
+    import diffgyro
+
+    diffgyro.enable_x64()
+    return fit_chunk(job, setup)
+
+
+# --------------------------------------------------------------------------- planning
+
+
+def plan_chunks(index, chunk_devices: int) -> list[dict]:
+    """Chunks of ``chunk_devices`` devices in dataset order, with what to read for each."""
+    plan = []
+    devs = index.devices
+    for c, lo in enumerate(range(0, len(devs), chunk_devices)):
+        chunk = devs[lo:lo + chunk_devices]
+        excluded = {}
+        sources: dict[int, set[int] | None] = {}
+        for d in chunk:
+            if d in index.duplicates:
+                names = ", ".join(index.files[k] for k in index.duplicates[d])
+                excluded[d] = (f"device id appears in several files: {names} "
+                               "(give each device a unique id)")
+                continue
+            if d in index.missing_signal:
+                s = index.missing_signal[d]
+                excluded[d] = (f"file {index.files[index.locations[d][0]]} has no {s!r} "
+                               f"column(s), which the model needs")
+                continue
+            k, rgs = index.locations[d]
+            if rgs is None:
+                sources[k] = None
+            else:
+                sources.setdefault(k, set()).update(rgs)
+        plan.append({"chunk": c, "devices": chunk, "excluded": excluded,
+                     "sources": [[k, None if v is None else sorted(v)]
+                                 for k, v in sorted(sources.items())]})
+    return plan
+
+
+def _needed_signals(model) -> tuple[str, ...]:
+    return tuple(s for s in ("temp", "temp_ext", "accel", "rate") if s in model.requires())
+
+
+def default_work_dir(out: Path | None, results: Path | None, key: dict) -> Path:
+    """Beside the output (``CAL.json.work``); else ``.diffgyro-work/<hash>`` here."""
+    if out is not None:
+        return Path(str(out) + ".work")
+    if results is not None:
+        return Path(str(results) + ".work")
+    digest = hashlib.sha256(json.dumps(key, sort_keys=True).encode()).hexdigest()[:12]
+    return Path(".diffgyro-work") / digest
+
+
+# --------------------------------------------------------------------------- merging
+
+
+_RESULT_COLUMNS = ("device", "status", "status_detail", "reason", "rms", "heldout_rms",
+                   "noise_floor", "steps", "n_samples", "params")
+
+
+class _ResultsWriter:
+    """The per-device results table, JSON lines or Parquet (by the file suffix)."""
+
+    def __init__(self, path: Path):
+        import tempfile
+
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+        os.fchmod(fd, file_mode())
+        os.close(fd)
+        self.parquet = path.suffix.lower() in (".parquet", ".pq")
+        self._fh = None if self.parquet else open(self.tmp, "w", encoding="utf-8")
+        self._pq = None
+
+    def write(self, records: list[dict]) -> None:
+        if not self.parquet:
+            for r in records:
+                self._fh.write(json.dumps(r, allow_nan=False) + "\n")
+            return
+        import pyarrow as pa
+        import pyarrow.parquet as pq
+
+        cols = {c: [r.get(c) for r in records] for c in _RESULT_COLUMNS}
+        cols["params"] = [None if p is None else json.dumps(p) for p in cols["params"]]
+        schema = pa.schema([("device", pa.string()), ("status", pa.string()),
+                            ("status_detail", pa.string()), ("reason", pa.string()),
+                            ("rms", pa.float64()), ("heldout_rms", pa.float64()),
+                            ("noise_floor", pa.float64()), ("steps", pa.int64()),
+                            ("n_samples", pa.int64()), ("params", pa.string())])
+        table = pa.table(cols, schema=schema)
+        if self._pq is None:
+            self._pq = pq.ParquetWriter(self.tmp, schema)
+        self._pq.write_table(table)
+
+    def commit(self) -> None:
+        if self._fh is not None:
+            self._fh.flush()
+            os.fsync(self._fh.fileno())
+            self._fh.close()
+        if self._pq is not None:
+            self._pq.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+        if self._pq is not None:
+            self._pq.close()
+        if os.path.exists(self.tmp):
+            os.unlink(self.tmp)
+
+
+class _CalibrationWriter:
+    """A calibration file streamed device by device (the format of :mod:`diffgyro.calibration`)."""
+
+    def __init__(self, path: Path, header: dict):
+        import tempfile
+
+        self.path = path
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, self.tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
+        os.fchmod(fd, file_mode())
+        self._fh = os.fdopen(fd, "w", encoding="utf-8")
+        head = json.dumps({**header, "devices": []}, indent=1, allow_nan=False)
+        assert head.endswith('"devices": []\n}')
+        self._fh.write(head[: -len("[]\n}")] + "[")
+        self.n = 0
+
+    def write(self, entry: dict) -> None:
+        self._fh.write(("\n" if self.n == 0 else ",\n") + json.dumps(entry, allow_nan=False))
+        self.n += 1
+
+    def commit(self) -> None:
+        self._fh.write("\n]\n}\n")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self._fh.close()
+        os.replace(self.tmp, self.path)
+
+    def abort(self) -> None:
+        self._fh.close()
+        if os.path.exists(self.tmp):
+            os.unlink(self.tmp)
+
+
+def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
+          json_stream: IO[str] | None = None) -> dict[str, int]:
+    """Write the outputs from the chunk files in plan order; counts of each status."""
+    from .. import __version__
+    from ..calibration import units_of
+    from ..model import ErrorModel
+
+    spec = manifest["key"]["model"]
+    plan = manifest["chunks"]
+    counts: dict[str, int] = {}
+    writers = []
+    cal_w = res_w = None
+    try:
+        if results is not None:
+            res_w = _ResultsWriter(results)
+            writers.append(res_w)
+        if out is not None:
+            header = {"format": "diffgyro-calibration", "format_version": 1, "model": spec,
+                      "dtemp_window": float(manifest["key"]["options"]["fit"].get(
+                          "dtemp_window", 60.0)),
+                      "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+                      "diffgyro_version": __version__, "input_hash": None,
+                      "units": units_of(ErrorModel.from_spec(spec))}
+            # the input hash (of every chunk's data) is known only at the end: a second
+            # pass would cost a re-read, so it goes into the header from the manifest
+            header["input_hash"] = manifest.get("input_hash")
+            cal_w = _CalibrationWriter(out, header)
+            writers.append(cal_w)
+        if json_stream is not None:
+            json_stream.write(json.dumps({"model": spec})[:-1] + ', "devices": [')
+        first = True
+        for c in plan:
+            obj = work.read_chunk(c["chunk"], c["devices"])
+            if obj is None:
+                raise DataError(f"chunk {c['chunk']} has no result file", file=str(work.path),
+                                hint="run the command again to finish it")
+            for rec, entry in zip(obj["records"], obj["calibration"]):
+                counts[rec["status"]] = counts.get(rec["status"], 0) + 1
+                if cal_w is not None and entry is not None:
+                    cal_w.write(entry)
+                if json_stream is not None:
+                    json_stream.write(("" if first else ",") + "\n" + json.dumps(rec, allow_nan=False))
+                    first = False
+            if res_w is not None:
+                res_w.write(obj["records"])
+        if json_stream is not None:
+            json_stream.write("\n]}\n")
+            json_stream.flush()
+        if cal_w is not None:
+            if cal_w.n == 0:
+                cal_w.abort()
+                writers.remove(cal_w)
+                print("diffgyro: no device could be fitted; no calibration file written",
+                      file=sys.stderr)
+            else:
+                cal_w.commit()
+                writers.remove(cal_w)
+        if res_w is not None:
+            res_w.commit()
+            writers.remove(res_w)
+    finally:
+        for w in writers:
+            w.abort()
+    return counts
+
+
+def combined_hash(chunk_hashes: Sequence[str]) -> str:
+    """Input hash of a streamed run: SHA-256 over the chunks' SHA-256 of their devices' data."""
+    h = hashlib.sha256()
+    for x in chunk_hashes:
+        h.update(bytes.fromhex(x))
+    return "sha256-chunks:" + h.hexdigest()
+
+
+# --------------------------------------------------------------------------- the run
+
+
+def fit_dataset(
+    paths: Sequence[str | os.PathLike],
+    model: str,
+    *,
+    out: str | os.PathLike | None = None,
+    results: str | os.PathLike | None = None,
+    work_dir: str | os.PathLike | None = None,
+    chunk_devices: int = DEFAULT_CHUNK_DEVICES,
+    resume: bool = True,
+    dask: str | None = None,
+    columns: dict[str, str] | None = None,
+    units: dict[str, str] | None = None,
+    drop_invalid: bool = False,
+    sampling_rate: float | None = None,
+    fit_options: dict | None = None,
+    shard: bool | None = None,
+    progress: bool = True,
+    json_stream: IO[str] | None = None,
+    on_chunk: Callable[[dict], None] | None = None,
+) -> RunSummary:
+    """Fit ``model`` to every device of a Parquet dataset, chunk by chunk, resumably.
+
+    ``out`` is the calibration file; ``results`` the per-device table
+    (``.jsonl`` or ``.parquet``; default beside ``out`` as ``NAME.devices.jsonl``,
+    else in the work directory). ``work_dir`` holds the resumable state
+    (default ``OUT.work``); ``resume=False`` discards it first. ``dask`` is a
+    scheduler address, or ``local:N`` for a local cluster of N worker
+    processes. ``fit_options`` are :class:`~diffgyro.fit.FitOptions` fields.
+    ``json_stream`` receives the ``fit --json`` object, device by device.
+    """
+    from ..effects import parse_spec
+    from ..io import parse_columns, resolve_units
+    from ..model import ErrorModel
+
+    t_start = time.monotonic()
+    em = ErrorModel(parse_spec(model))
+    spec = em.spec
+    if isinstance(chunk_devices, bool) or int(chunk_devices) < 1:
+        raise DataError(f"--chunk-devices must be a positive integer, not {chunk_devices!r}")
+    chunk_devices = int(chunk_devices)
+    if isinstance(columns, str):
+        columns = parse_columns(columns)
+    resolve_units(units)  # unknown units fail here, before any work
+    if sampling_rate is not None and not (np.isfinite(sampling_rate) and sampling_rate > 0):
+        raise DataError(f"sampling rate must be a positive number of Hz, got {sampling_rate}")
+    fit_options = dict(fit_options or {})
+    fit_options.setdefault("dtemp_window", 60.0)
+    files = expand_inputs(paths)
+    cfg = ReadConfig(columns=dict(columns or {}), units=dict(units or {}),
+                     drop_invalid=bool(drop_invalid), sampling_rate=sampling_rate,
+                     wanted=tuple(sorted({"rate", *_needed_signals(em)})))
+    key = {"command": "fit", "model": spec, "chunk_devices": chunk_devices,
+           "options": {"fit": fit_options, "read": cfg.to_json()},
+           "inputs": [fingerprint(f) for f in files]}
+    out = None if out is None else Path(out)
+    if results is None and out is not None:
+        results = out.with_name(out.name.removesuffix(".json") + ".devices.jsonl")
+    results = None if results is None else Path(results)
+    work = WorkDir(work_dir if work_dir is not None else default_work_dir(out, results, key))
+    if results is None:
+        results = work.path / "results.jsonl"
+
+    work.lock()
+    try:
+        manifest = work.read_manifest()
+        if manifest is not None and resume and manifest.get("key") != key:
+            raise DataError(
+                "the work directory holds a different run (other command, model, options, "
+                "chunk size or changed input files)", file=str(work.path),
+                hint="use --no-resume to discard it, or another --work-dir")
+        if manifest is None or not resume:
+            work.clear()
+            index = index_dataset(files, cfg, needed=[s for s in _needed_signals(em)
+                                                      if s != "rate"])
+            manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, "key": key,
+                        "files": index.files, "n_devices": len(index.devices),
+                        "chunks": plan_chunks(index, chunk_devices), "complete": False,
+                        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
+            del index
+            work.write_manifest(manifest)
+        work.remove_temporaries()
+        plan = manifest["chunks"]
+        setup = {"model": spec, "fit_options": fit_options, "chunk_devices": chunk_devices,
+                 "shard": shard, "read": key["options"]["read"], "files": manifest["files"]}
+        done: set[int] = set()
+        skipped_failed = 0
+        for c in plan:
+            obj = work.read_chunk(c["chunk"], c["devices"])
+            if obj is not None:
+                done.add(c["chunk"])
+                skipped_failed += sum(r["status"] != "ok" for r in obj["records"])
+            del obj
+        pending = [c for c in plan if c["chunk"] not in done]
+        bar = _progress(progress, manifest["n_devices"],
+                        sum(len(c["devices"]) for c in plan if c["chunk"] in done), skipped_failed)
+        last_manifest = [time.monotonic()]
+
+        def finished(res: dict) -> None:
+            work.write_chunk(res["chunk"], res)
+            plan[res["chunk"]]["status"] = "done"
+            bar.update(len(res["devices"]), sum(r["status"] != "ok" for r in res["records"]))
+            if time.monotonic() - last_manifest[0] > 2.0:
+                work.write_manifest(manifest)
+                last_manifest[0] = time.monotonic()
+            if on_chunk is not None:
+                on_chunk(res)
+
+        try:
+            if pending:
+                if dask:
+                    from .cluster import run_on_dask
+
+                    run_on_dask(dask, pending, setup, finished)
+                else:
+                    _run_local(pending, setup, finished)
+        finally:
+            bar.close()
+        hashes = []
+        for c in plan:
+            obj = work.read_chunk(c["chunk"], c["devices"])
+            if obj is None:
+                raise DataError(f"chunk {c['chunk']} has no result file", file=str(work.path))
+            c["status"] = "done"
+            hashes.append(obj["input_hash"])
+        manifest["input_hash"] = combined_hash(hashes)
+        work.write_manifest(manifest)
+        counts = merge(work, manifest, out, results, json_stream)
+        manifest["complete"] = True
+        manifest["outputs"] = {"calibration": None if out is None else str(out),
+                               "results": str(results)}
+        work.write_manifest(manifest)
+    finally:
+        work.unlock()
+    n_dev = manifest["n_devices"]
+    n_ok = counts.get("ok", 0)
+    seconds = time.monotonic() - t_start
+    return RunSummary(n_devices=n_dev, n_ok=n_ok, n_failed=n_dev - n_ok, statuses=counts,
+                      chunks_total=len(plan), chunks_run=len(pending), seconds=seconds,
+                      devices_per_second=bar.rate, work_dir=str(work.path),
+                      outputs={k: v for k, v in manifest["outputs"].items() if v})
+
+
+def _progress(enabled: bool, total: int, skipped: int, skipped_failed: int):
+    from .progress import RunProgress
+
+    return RunProgress(total, skipped, skipped_failed, enabled=enabled)
+
+
+def _run_local(pending: list[dict], setup: dict, finished: Callable[[dict], None]) -> None:
+    """Chunks one after another in this process; the next chunk is read while one is fitted."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=1, thread_name_prefix="diffgyro-read") as pool:
+        nxt = pool.submit(read_chunk, pending[0], setup)
+        for k, job in enumerate(pending):
+            prepared = nxt.result()
+            if k + 1 < len(pending):
+                nxt = pool.submit(read_chunk, pending[k + 1], setup)
+            finished(fit_chunk(job, setup, prepared))
+            del prepared
+
+
+__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "atomic_write_bytes", "fit_dataset",
+           "fit_chunk", "merge", "plan_chunks", "read_chunk", "run_chunk"]
