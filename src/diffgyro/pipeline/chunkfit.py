@@ -43,24 +43,25 @@ def _signals(t, gyro, mask, rate, temp, temp_ext, accel, dt, dtemp_window: float
     return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, dt)
 
 
-def _solve_local(model: ErrorModel, sig, opts: FitOptions, block: int):
-    """Fit every device of ``sig`` in blocks of ``block`` devices (vmapped), one block
-    after another (``lax.map``): bounded memory for the per-device design matrices."""
-    n = sig.t.shape[0]
-    k = n // block
-    xs = jax.tree.map(lambda a: a.reshape((k, block) + a.shape[1:]), sig)
-    out = jax.lax.map(jax.vmap(lambda s: solve_device(model, s, opts, None)), xs)
-    return jax.tree.map(lambda a: a.reshape((n,) + a.shape[2:]), out)
+def _solve_one(model: ErrorModel, opts: FitOptions):
+    return lambda s: solve_device(model, s, opts, None)
 
 
 @eqx.filter_jit
 def _solve(model: ErrorModel, sig, opts: FitOptions, block: int, mesh: Mesh | None):
-    if mesh is None:
-        return _solve_local(model, sig, opts, block)
-    spec = PartitionSpec(AXIS)
-    fn = jax.shard_map(lambda s: _solve_local(model, s, opts, block), mesh=mesh,
-                       in_specs=spec, out_specs=spec, check_vma=False)
-    return fn(sig)
+    """Fit every device of ``sig``: split the device axis into (shards, blocks, block),
+    vmap over the shards (sharded over ``mesh``), ``lax.map`` over the blocks (bounded
+    memory for the per-device design matrices), vmap within a block."""
+    n = sig.t.shape[0]
+    shards = 1 if mesh is None else mesh.size
+    k = n // (shards * block)
+    xs = jax.tree.map(lambda a: a.reshape((shards, k, block) + a.shape[1:]), sig)
+    if mesh is not None:
+        xs = jax.lax.with_sharding_constraint(xs, NamedSharding(mesh, PartitionSpec(AXIS)))
+    out = jax.vmap(lambda x: jax.lax.map(jax.vmap(_solve_one(model, opts)), x))(xs)
+    if mesh is not None:
+        out = jax.lax.with_sharding_constraint(out, NamedSharding(mesh, PartitionSpec(AXIS)))
+    return jax.tree.map(lambda a: a.reshape((n,) + a.shape[3:]), out)
 
 
 def local_mesh(shard: bool | None = None) -> Mesh | None:

@@ -1,0 +1,133 @@
+"""The device axis of each chunk sharded over several JAX devices (CPU devices forced with
+XLA_FLAGS in a subprocess): same results as one device, no collectives, no hang."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import pytest
+from pipeline_data import CHUNK, MODEL, load_outputs, make_dataset
+
+TESTS = Path(__file__).parent
+PRELUDE = f"""
+import json, re, sys
+sys.path.insert(0, {str(TESTS)!r})
+import diffgyro
+diffgyro.enable_x64()
+diffgyro.enable_compilation_cache()
+import jax
+import numpy as np
+assert jax.local_device_count() == 2, jax.devices()
+"""
+
+
+def run_forced(script: str, timeout: float) -> dict:
+    """Run ``script`` with two forced host devices; a hang fails the test at ``timeout``."""
+    env = dict(os.environ)
+    env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count=2").strip()
+    env["JAX_PLATFORMS"] = "cpu"
+    try:
+        proc = subprocess.run([sys.executable, "-c", PRELUDE + textwrap.dedent(script)], env=env,
+                              capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"sharded run did not finish in {timeout} s (hang?)")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+def assert_close(a, b, rel=1e-12, path="") -> None:
+    """Same structure and text; numbers equal to ``rel`` (summation order may differ)."""
+    if isinstance(a, dict):
+        assert isinstance(b, dict) and set(a) == set(b), path
+        for k in a:
+            assert_close(a[k], b[k], rel, f"{path}.{k}")
+    elif isinstance(a, list):
+        assert isinstance(b, list) and len(a) == len(b), path
+        for i, (x, y) in enumerate(zip(a, b)):
+            assert_close(x, y, rel, f"{path}[{i}]")
+    elif isinstance(a, float) and isinstance(b, float):
+        assert math.isclose(a, b, rel_tol=rel, abs_tol=1e-300), (path, a, b)
+    else:
+        assert a == b, (path, a, b)
+
+
+def test_sharded_stream_equals_single_device(tmp_path):
+    data = tmp_path / "data"
+    make_dataset(data, files=(4, 3), seed=11)
+    script = f"""
+    from diffgyro.pipeline import fit_dataset
+    from diffgyro.pipeline import chunkfit
+    outs = {{}}
+    for name, shard in (("sharded", None), ("single", False)):
+        fit_dataset([{str(data)!r}], {MODEL!r}, out={str(tmp_path)!r} + f"/{{name}}/cal.json",
+                    chunk_devices={CHUNK}, shard=shard, progress=False)
+    # the compiled chunk fit of the sharded run: split over both devices, no collectives
+    fitter = chunkfit.ChunkFitter({MODEL!r}, {CHUNK})
+    from diffgyro.io import load
+    from diffgyro.data import Batch
+    batch = Batch.from_recordings(load({str(data)!r} + "/part-00.parquet")[:{CHUNK}])
+    full = batch.select(np.minimum(np.arange(fitter.padded), batch.n_devices - 1))
+    f = lambda x: None if x is None else jax.numpy.asarray(x)
+    from diffgyro.fit import sampling_intervals
+    sig = chunkfit._signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
+                            f(full.temp_ext), f(full.accel), f(sampling_intervals(full)), 60.0)
+    sig = jax.device_put(sig, jax.sharding.NamedSharding(fitter.mesh,
+                                                         jax.sharding.PartitionSpec("devices")))
+    compiled = chunkfit._solve.lower(fitter.model, sig, fitter.opts, fitter.block,
+                                     fitter.mesh).compile()
+    hlo = compiled.compiled.as_text()
+    out = chunkfit._solve(fitter.model, sig, fitter.opts, fitter.block, fitter.mesh)
+    print(json.dumps({{"n_shards": fitter.n_shards, "padded": fitter.padded,
+                      "collectives": len(re.findall(r"(all-reduce|all-gather|all-to-all|"
+                                                    r"collective-permute|reduce-scatter)", hlo)),
+                      "out_devices": len(out["rms"].sharding.device_set)}}))
+    """
+    info = run_forced(script, timeout=150)
+    assert info["n_shards"] == 2 and info["padded"] % 2 == 0
+    assert info["out_devices"] == 2
+    assert info["collectives"] == 0   # independent fits: nothing to wait on, nothing to hang
+    sharded = load_outputs(tmp_path / "sharded" / "cal.json")
+    single = load_outputs(tmp_path / "single" / "cal.json")
+    assert_close(sharded, single)
+    assert [r["device"] for r in sharded[1]] == [f"f0-{i:03d}" for i in range(4)] + \
+        [f"f1-{i:03d}" for i in range(3)]
+
+
+@pytest.mark.slow
+def test_sharded_variable_projection_does_not_hang(tmp_path):
+    """The nonlinear path (optimistix LM in a while loop: one all-reduce per step across
+    the shards to agree on stopping) under sharding, against the single-device run."""
+    script = """
+    from pipeline_data import simulated
+    from diffgyro.pipeline.chunkfit import ChunkFitter
+    batch, _ = simulated(5, 3, "w-")
+    out = {}
+    for name, shard in (("sharded", None), ("single", False)):
+        fitter = ChunkFitter("bias_poly(0)+warmup", 5, {"n_folds": 2, "max_steps": 30},
+                             shard=shard)
+        r = fitter.fit(batch)
+        out[name] = {"n_shards": fitter.n_shards, "beta": r.params.beta.tolist(),
+                     "theta": r.params.theta.tolist(), "rms": r.rms.tolist(),
+                     "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist(),
+                     "steps": r.steps.tolist()}
+    print(json.dumps(out))
+    """
+    out = run_forced(script, timeout=400)
+    assert out["sharded"].pop("n_shards") == 2 and out["single"].pop("n_shards") == 1
+    assert_close(out["sharded"], out["single"], rel=1e-10)
+
+
+def test_one_device_means_no_mesh():
+    import jax
+
+    from diffgyro.pipeline.chunkfit import local_mesh
+
+    if jax.local_device_count() == 1:
+        assert local_mesh() is None
+    assert local_mesh(shard=False) is None
