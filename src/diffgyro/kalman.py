@@ -239,20 +239,22 @@ class NoiseFit(eqx.Module):
     converged: Bool[Array, ""]
 
 
-def _nll_fn(model, sig, y, obs, p0, reml, scale):
-    t = sig.t
+def _design(model: ErrorModel, sig, theta, dtype):
+    if model.n_params:
+        return model.design(sig, theta)
+    return jnp.zeros((sig.t.shape[0], 3, 0), dtype)
 
-    def nll(params):
-        lq, lr, theta = params[:3], params[3:6], params[6:]
-        x = model.design(sig, theta) if model.n_params else jnp.zeros((t.shape[0], 3, 0), y.dtype)
 
-        def axis(yi, xi, qi, ri):
-            return loglik(yi, xi, obs, t, qi, ri, p0, reml)[0]
+def _floor_penalty(lq, floor):
+    """Near zero above ``floor``, quadratic below (smoothly): keeps log q finite for an unseen walk.
 
-        ll = jax.vmap(axis, in_axes=(1, 1, 0, 0))(y, x, jnp.exp(lq), jnp.exp(lr))
-        return -jnp.sum(ll) / scale
-
-    return nll
+    Such a walk has its likelihood maximum at q → 0, where the likelihood is
+    flat; the penalty turns that into an optimum at the floor that the solver
+    converges to, and changes nothing above it. The floor, q = 0.01·r/(dt·n²)
+    for n observations, is a walk whose spread over the whole record is a
+    tenth of the noise of the record's mean: invisible in these data.
+    """
+    return 0.5 * jnp.sum(jax.nn.softplus(floor - lq) ** 2)
 
 
 def learn_noise(
@@ -260,45 +262,78 @@ def learn_noise(
     sig,
     obs: Bool[Array, " n"],
     p0: Float[Array, ""],
+    keep: tuple[Int[Array, " m"], Bool[Array, " m"]] | None = None,
     *,
     reml: bool = False,
     max_steps: int = 200,
-    rtol: float = 1e-9,
+    rtol: float = 1e-6,
     atol: float = 1e-9,
     n_grid: int = 13,
 ) -> NoiseFit:
     """Maximum-likelihood q, r (per axis) and θ of one device (vmap over devices).
 
+    ``keep`` = (indices, valid) restricts the likelihood to those samples:
+    passing the observed ones is exact (between observations the walk only
+    accumulates q·Δt) and saves the scan steps of long unobserved stretches.
     Start: r from successive differences; log q from the best of a grid
-    (q·dt from 1e-9·r to 10·r) at that r; then BFGS on the scaled negative
-    log-likelihood in (log q, log r, θ). β follows in closed form.
+    (q·dt from 1e-9·r to 10·r) at that r; then BFGS on the negative
+    log-likelihood per observation in (log q, log r, θ). β follows in closed form.
     """
-    y = sig.gyro - sig.rate
+    dtype = sig.gyro.dtype
     obs = obs & sig.mask
-    y = jnp.where(obs[:, None], y, 0.0)
-    n_obs = jnp.maximum(jnp.sum(obs), 1)
-    r0, dt = initial_noise(y, obs, sig.t)
+    y_all = jnp.where(obs[:, None], sig.gyro - sig.rate, 0.0)
+    if keep is None:
+        idx, ok = jnp.arange(obs.shape[0]), jnp.ones(obs.shape, bool)
+    else:
+        idx, ok = keep
+    y, t, o = y_all[idx], sig.t[idx], obs[idx] & ok
+    n_obs = jnp.maximum(jnp.sum(o), 1).astype(dtype)
+    r0, dt = initial_noise(y, o, t)
+    floor = jnp.log(1e-2 * r0 / (dt * n_obs**2))
     theta0 = model.nonlinear_init(sig)
-    nll = _nll_fn(model, sig, y, obs, p0, reml, n_obs.astype(y.dtype))
+
+    def nll(params):
+        lq, lr, theta = params[:3], params[3:6], params[6:]
+        x = _design(model, sig, theta, dtype)[idx]
+
+        def axis(yi, xi, qi, ri):
+            return loglik(yi, xi, o, t, qi, ri, p0, reml)[0]
+
+        ll = jax.vmap(axis, in_axes=(1, 1, 0, 0))(y, x, jnp.exp(lq), jnp.exp(lr))
+        return -jnp.sum(ll) / n_obs + _floor_penalty(lq, floor)
+
     grid = jnp.linspace(jnp.log(1e-9), jnp.log(10.0), n_grid)
-
-    def at(g):
-        lq = jnp.log(r0 / dt) + g
-        return nll(jnp.concatenate([lq, jnp.log(r0), theta0]))
-
-    vals = jax.vmap(at)(grid)
+    vals = jax.vmap(lambda g: nll(jnp.concatenate([jnp.log(r0 / dt) + g, jnp.log(r0), theta0])))(grid)
     vals = jnp.where(jnp.isfinite(vals), vals, jnp.inf)
-    lq0 = jnp.log(r0 / dt) + grid[jnp.argmin(vals)]
-    x0 = jnp.concatenate([lq0, jnp.log(r0), theta0])
+    x0 = jnp.concatenate([jnp.log(r0 / dt) + grid[jnp.argmin(vals)], jnp.log(r0), theta0])
     solver = optx.BFGS(rtol=rtol, atol=atol)
     sol = optx.minimise(lambda p, _: nll(p), solver, x0, max_steps=max_steps, throw=False)
     p = sol.value
-    theta = p[6:]
-    x = model.design(sig, theta) if model.n_params else jnp.zeros((y.shape[0], 3, 0), y.dtype)
-    sb = smooth_bias(y, x, obs, sig.t, jnp.exp(p[:3]), jnp.exp(p[3:6]), p0, reml)
-    return NoiseFit(q=jnp.exp(p[:3]), r=jnp.exp(p[3:6]), theta=theta, beta=sb.beta,
-                    loglik=jnp.sum(sb.loglik), steps=sol.stats["num_steps"],
-                    converged=sol.result == optx.RESULTS.successful)
+    q, r, theta = jnp.exp(p[:3]), jnp.exp(p[3:6]), p[6:]
+    x = _design(model, sig, theta, dtype)[idx]
+    ll, beta = jax.vmap(lambda yi, xi, qi, ri: loglik(yi, xi, o, t, qi, ri, p0, reml),
+                        in_axes=(1, 1, 0, 0))(y, x, q, r)
+    return NoiseFit(q=q, r=r, theta=theta, beta=beta, loglik=jnp.sum(ll),
+                    steps=sol.stats["num_steps"], converged=sol.result == optx.RESULTS.successful)
+
+
+def observed_indices(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per device, the indices of the observed samples padded to one bucket length, and
+    their validity: the ``keep`` argument of :func:`learn_noise` for a batch (host numpy)."""
+    from .data import bucket_length
+
+    obs = np.asarray(obs, bool)
+    counts = obs.sum(axis=1)
+    length = min(bucket_length(max(int(counts.max()), 1)), obs.shape[1])
+    idx = np.zeros((obs.shape[0], length), np.int64)
+    ok = np.zeros((obs.shape[0], length), bool)
+    for d in range(obs.shape[0]):
+        where = np.flatnonzero(obs[d])
+        if where.size:
+            idx[d, :where.size] = where
+            idx[d, where.size:] = where[-1]
+            ok[d, :where.size] = True
+    return idx, ok
 
 
 # --------------------------------------------------------------------------- the batch fit
@@ -391,7 +426,7 @@ class RandomWalkFit(eqx.Module):
         return [self.summary(i) for i in range(self.n_devices)]
 
 
-def _fit_device(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds):
+def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
     from .fit import (  # shared definitions keep held-out numbers comparable with fit()
         FAILED,
         INSUFFICIENT_DATA,
@@ -401,10 +436,10 @@ def _fit_device(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds):
         _noise_floor,
     )
 
-    nf = learn_noise(model, sig, obs, p0, reml=reml, max_steps=max_steps)
+    nf = learn_noise(model, sig, obs, p0, keep, reml=reml, max_steps=max_steps)
     obs = obs & sig.mask
     y = jnp.where(obs[:, None], sig.gyro - sig.rate, 0.0)
-    x = model.design(sig, nf.theta) if model.n_params else jnp.zeros((y.shape[0], 3, 0), y.dtype)
+    x = _design(model, sig, nf.theta, y.dtype)
     sb = smooth_bias(y, x, obs, sig.t, nf.q, nf.r, p0, reml)
     w = obs.astype(y.dtype)
     resid = (y - sb.bias) * w[:, None]
@@ -434,12 +469,12 @@ def _fit_device(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds):
 
 
 @eqx.filter_jit
-def _fit_batch(model, sig, obs, p0, reml, max_steps, n_blocks, n_folds, chunk):
+def _fit_batch(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds, chunk):
     def one(args):
-        s, o = args
-        return _fit_device(model, s, o, p0, reml, max_steps, n_blocks, n_folds)
+        s, o, k = args
+        return _fit_device(model, s, o, k, p0, reml, max_steps, n_blocks, n_folds)
 
-    return jax.lax.map(one, (sig, obs), batch_size=chunk)
+    return jax.lax.map(one, (sig, obs, keep), batch_size=chunk)
 
 
 def fit_random_walk(
@@ -478,7 +513,9 @@ def fit_random_walk(
         obs = obs & np.asarray(static, bool).reshape(obs.shape)
     if p0 is None:
         p0 = 0.0 if any(t.name == "bias_poly" for t in model.deterministic) else WIDE_PRIOR
-    out = _fit_batch(model, sig, jnp.asarray(obs), jnp.asarray(p0, sig.gyro.dtype), reml,
+    idx, ok = observed_indices(obs)
+    keep = (jnp.asarray(idx), jnp.asarray(ok))
+    out = _fit_batch(model, sig, jnp.asarray(obs), keep, jnp.asarray(p0, sig.gyro.dtype), reml,
                      opts.max_steps, opts.n_blocks, opts.n_folds, opts.chunk)
     norm_out = sig.norm if sig.norm is not None else TempNorm(
         centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
@@ -573,18 +610,23 @@ def heading_errors(
     smoother with the same q, r (post-processing, uses the future too).
     Heading error = ∫ (corrected rate − true rate) dt, trapezoidal, rad.
     """
-    t = jnp.asarray(t)
     gz = jnp.asarray(gz)
-    rz = jnp.asarray(rz)
-    static = jnp.asarray(static, bool)
+    return _heading_errors(jnp.asarray(t, gz.dtype), gz, jnp.asarray(rz, gz.dtype),
+                           jnp.asarray(static, bool), jnp.asarray(q, gz.dtype),
+                           jnp.asarray(r, gz.dtype), jnp.asarray(q_s1, gz.dtype), window, init)
+
+
+@eqx.filter_jit
+def _heading_errors(t, gz, rz, static, q, r, q_s1, window, init):
     n = gz.shape[0]
     k = (n - init) // window
     win_static = jnp.all(static[init:init + k * window].reshape(k, window), axis=1)
     s1 = s1_offset_filter(gz, win_static, window, init, q_s1)
     e0 = jnp.mean(gz[:init])
     pred, _ = causal_bias(gz, static, t, q, r, e0, jnp.var(gz[:init]) / init)
-    sb = smooth_bias(jnp.repeat(gz[:, None], 3, axis=1), jnp.ones((n, 3, 1), gz.dtype), static, t,
-                     jnp.full((3,), q), jnp.full((3,), r), 0.0)
+    fp = rw_filter(gz, jnp.ones((n, 1), gz.dtype), static, t, q, r, 0.0)
+    _, beta, _ = profile(fp, static)
+    walk, _ = rts_smoother(fp, beta)
 
     def integrate(err):
         inc = 0.5 * (err[1:] + err[:-1]) * jnp.diff(t)
@@ -595,5 +637,5 @@ def heading_errors(
         "fixed": integrate(gz - e0 - rz),
         "s1": integrate(gz - s1.offset - rz),
         "learned": integrate(gz - pred - rz),
-        "smoothed": integrate(gz - sb.bias[:, 0] - rz),
+        "smoothed": integrate(gz - beta[0] - walk - rz),
     }
