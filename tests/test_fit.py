@@ -37,7 +37,7 @@ def test_closed_form_equals_lm_and_lstsq(thermal):
     model = ErrorModel.from_spec(spec)
     sig = batch_signals(batch, norm=truth.norm)
     for d in range(batch.n_devices):
-        s = jax.tree.map(lambda a: a[d], sig)
+        s = jax.tree.map(lambda a, d=d: a[d], sig)
         n = int(batch.n_valid[d])
         x = np.asarray(model.design(s, jnp.zeros(0)))[:n]
         y = np.asarray(s.gyro - s.rate)[:n]
