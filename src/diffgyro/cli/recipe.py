@@ -1,0 +1,190 @@
+"""``diffgyro recipe NAME DATA``: run a published calibration method as published.
+
+Every recipe reads the standard columns (mapped with ``--columns`` and the
+unit options) and works in SI units; results are printed in SI (rates in
+rad/s) except ``six-position``, whose ``--json`` object is in the input units
+(DESIGN.md §4). Options that a recipe does not take are an error.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+    load_from_cli,
+)
+
+
+def _opt(name: str, help_text: str, **kw):
+    return typer.Option(name, help=help_text, show_default=False, **kw)
+
+
+Sections = Annotated[Path | None, _opt(
+    "--sections", "six-position: JSON of sample ranges (x_p, x_a, y_p, y_a, z_p, z_a, x_rot, "
+    "y_rot, z_rot), default DATA's stem + '_list.json'; cube-bias: JSON of the static sets "
+    "(z_up_1 ... y_down_4).")]
+
+
+@app.command("recipe")
+def recipe_command(
+    name: Annotated[str, typer.Argument(help="Recipe: binned-thermal, static-kalman, fog-one-run, "
+                                             "attitude-reference, cube-bias, six-position, "
+                                             "multi-position.", show_default=False)],
+    data: Annotated[Path, typer.Argument(help="Data file (CSV, TSV, Parquet, NPZ).",
+                                         show_default=False)],
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    out: Annotated[Path | None, _opt("--out", "Also write the JSON result to this file.")] = None,
+    device: Annotated[str | None, _opt("--device", "Run on this device only (files with "
+                                                   "several devices).")] = None,
+    sections: Sections = None,
+    rotation_angle: Annotated[float | None, _opt(
+        "--rotation-angle", "six-position: angle of each turn in degrees (default -360, "
+                            "clockwise).")] = None,
+    gravity: Annotated[float | None, _opt("--gravity", "Local gravity in m/s² (default 9.81).")] = None,
+    bin_width: Annotated[float | None, _opt("--bin-width", "binned-thermal: bin width in °C "
+                                                           "(default 0.1).")] = None,
+    edge: Annotated[str | None, _opt("--edge", "binned-thermal: bin temperature at its low, "
+                                               "centre or high edge (default low).")] = None,
+    per_bin: Annotated[int | None, _opt("--per-bin", "binned-thermal: samples kept per bin.")] = None,
+    r_min: Annotated[float | None, _opt("--r-min", "binned-thermal: |r| needed to accept a line "
+                                                   "(default 0.999).")] = None,
+    init: Annotated[int | None, _opt("--init", "static-kalman: samples of the initial rest "
+                                               "(default 1000).")] = None,
+    window: Annotated[int | None, _opt("--window", "static-kalman: samples per window (default "
+                                                   "100); multi-position: variance window "
+                                                   "(default 101).")] = None,
+    margin: Annotated[float | None, _opt("--margin", "static-kalman: threshold margin M "
+                                                     "(default 1.5).")] = None,
+    q: Annotated[float | None, _opt("--q", "static-kalman: Kalman Q in (--q-unit)² "
+                                           "(default 1e-4).")] = None,
+    q_unit: Annotated[str | None, _opt("--q-unit", "static-kalman: unit of Q's square root, "
+                                                   "deg/s or rad/s (default deg/s).")] = None,
+    axis: Annotated[str | None, _opt("--axis", "fog-one-run: the table axis x, y or z "
+                                               "(default z).")] = None,
+    k0: Annotated[float | None, _opt("--k0", "fog-one-run: room-temperature scale factor "
+                                             "(default 1).")] = None,
+    n: Annotated[int | None, _opt("--n", "fog-one-run: dT over 2^n samples (default 6).")] = None,
+    m: Annotated[int | None, _opt("--m", "fog-one-run: samples removed each side of a sign "
+                                         "change (default 3).")] = None,
+    signs_from: Annotated[str | None, _opt("--signs-from", "fog-one-run: sign changes of the "
+                                                           "'rate' (default) or the 'gyro'.")] = None,
+    accel_band: Annotated[float | None, _opt("--accel-band", "attitude-reference: |a| gate as a "
+                                                             "fraction of g (default 0.02).")] = None,
+    ratio: Annotated[float | None, _opt("--ratio", "attitude-reference: fusion weight of the "
+                                                   "accel/mag attitude (default 0.02).")] = None,
+    reference: Annotated[str | None, _opt("--reference", "attitude-reference: 'am' or "
+                                                         "'fused' reference rate.")] = None,
+    interval: Annotated[int | None, _opt("--interval", "attitude-reference: samples between "
+                                                       "the two quaternions (default 1).")] = None,
+    all_faces: Annotated[bool | None, _opt("--all-faces/--published-faces",
+                                           "cube-bias: average every perpendicular face pair "
+                                           "instead of the patent's assignment.")] = None,
+    init_seconds: Annotated[float | None, _opt("--init-seconds", "multi-position: initial rest "
+                                                                 "in s (default 50).")] = None,
+    pose_means: Annotated[bool | None, _opt("--pose-means/--pose-samples",
+                                            "multi-position: fit whole-pose means (diffgyro) or "
+                                            "the first 100 samples (IMU-TK).")] = None,
+    columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object)."""
+    from diffgyro.errors import DataError
+    from diffgyro.io import resolve_units
+    from diffgyro.recipes import get
+    from diffgyro.recipes._common import jsonable
+
+    recipe = get(name)
+    given = {
+        "rotation_angle": rotation_angle, "gravity": gravity, "bin_width": bin_width,
+        "edge": edge, "per_bin": per_bin, "r_min": r_min, "init": init, "window": window,
+        "margin": margin, "q": q, "q_unit": q_unit, "axis": axis, "k0": k0, "n": n, "m": m,
+        "signs_from": signs_from, "accel_band": accel_band, "ratio": ratio,
+        "reference": reference, "interval": interval, "all_faces": all_faces,
+        "init_seconds": init_seconds, "pose_means": pose_means,
+    }
+    given = {k: v for k, v in given.items() if v is not None}
+    accepted = set(recipe.options())
+    for key in given:
+        if key not in accepted:
+            raise DataError(f"option --{key.replace('_', '-')} does not apply to recipe {name}",
+                            hint="its options: " + ", ".join(
+                                "--" + o.replace("_", "-") for o in recipe.options()))
+    if "sections" in accepted:
+        if sections is None:
+            sections = data.with_name(data.stem + "_list.json")
+            if not sections.exists():
+                raise DataError(f"recipe {name} needs the sample ranges of its sections",
+                                file=str(data), hint=f"give --sections FILE (looked for {sections})")
+        given["sections"] = sections
+    elif sections is not None:
+        raise DataError(f"option --sections does not apply to recipe {name}")
+    if "sampling_rate" in accepted and sampling_rate is not None:
+        given["sampling_rate"] = sampling_rate
+
+    recordings = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                               sampling_rate, drop_invalid, batch=False)
+    if device is not None:
+        recordings = [r for r in recordings if r.device == device]
+        if not recordings:
+            raise DataError(f"device {device!r} is not in the data", file=str(data))
+    conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
+    results = []
+    for rec in recordings:
+        res = recipe.run(rec, **given)
+        if name == "six-position":  # the contract: input units
+            res = res.scaled(1.0 / conv.get("gyro", (1.0, 0.0))[0],
+                             1.0 / conv.get("accel", (1.0, 0.0))[0])
+        results.append((rec.device, res))
+    if len(results) == 1:
+        payload = jsonable(results[0][1].to_dict())
+    else:
+        payload = {"devices": [{"device": d, **jsonable(r.to_dict())} for d, r in results]}
+    if out is not None:
+        out.write_text(json.dumps(payload, indent=2) + "\n")
+    if as_json:
+        typer.echo(json.dumps(payload))
+        return
+    _print_human(name, recipe, results)
+
+
+def _print_human(name, recipe, results) -> None:
+    """Short, readable summary: scalars and small arrays of each result."""
+    import numpy as np
+    from rich.console import Console
+
+    from diffgyro.recipes._common import jsonable
+
+    con = Console(width=120)
+    con.print(f"[bold]{name}[/bold] — {recipe.source}")
+    for dev, res in results:
+        con.print(f"device [bold]{dev}[/bold]")
+        for key, val in jsonable(res.to_dict()).items():
+            arr = np.asarray(val, dtype=object) if isinstance(val, list) else None
+            if arr is not None and arr.size > 12:
+                continue
+            if isinstance(val, dict) and len(json.dumps(val)) > 200:
+                continue
+            con.print(f"  {key}: {_fmt(val)}")
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.6g}"
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items()) + "}"
+    return str(v)
