@@ -1,0 +1,5 @@
+"""``python -m diffgyro`` runs the command line."""
+
+from .cli import run
+
+run()

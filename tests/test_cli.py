@@ -1,0 +1,97 @@
+"""The command line: bad input gives one line naming file/device/column/row and exit 2;
+fit --json / --out and compensate follow DESIGN.md §4."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from diffgyro.cli import main
+
+BAD = {
+    "missing_column": ("t,gx,gy\n0,0,0\n1,0,0\n", "column gz"),
+    "non_numeric": ("t,gx,gy,gz\n0,0,0,0\n1,0,abc,0\n2,0,0,0\n", "row 2"),
+    "nan": ("t,gx,gy,gz\n0,0,0,0\n1,0,nan,0\n2,0,0,0\n", "column gy"),
+    "inf": ("t,gx,gy,gz\n0,0,0,0\n1,0,0,inf\n2,0,0,0\n", "column gz"),
+    "time_backwards": ("t,gx,gy,gz\n0,0,0,0\n2,0,0,0\n1,0,0,0\n", "row 3"),
+    "time_duplicate": ("t,gx,gy,gz\n0,0,0,0\n1,0,0,0\n1,0,0,0\n", "row 3"),
+    "too_few_samples": ("t,gx,gy,gz,temp\n0,0,0,0,20\n1,0,0,0,21\n2,0,0,0,22\n", "fewer samples"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_input_is_one_clear_line(case, tmp_path, capsys):
+    text, must = BAD[case]
+    path = tmp_path / f"{case}.csv"
+    path.write_text(text)
+    code = main(["fit", str(path), "--model", "bias_poly(2)"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert str(path) in err or path.name in err
+    assert must in err, err
+
+
+def test_unknown_unit_and_repeated_device(tmp_path, capsys):
+    a = tmp_path / "a.csv"
+    a.write_text("device,t,gx,gy,gz\nu1,0,0,0,0\nu1,1,0,0,0\nu1,2,0,0,0\n")
+    assert main(["fit", str(a), "--model", "bias_poly(0)", "--gyro-unit", "furlong/s"]) == 2
+    assert "furlong" in capsys.readouterr().err
+    b = tmp_path / "b.csv"
+    b.write_text(a.read_text())
+    assert main(["fit", str(a), str(b), "--model", "bias_poly(0)"]) == 2
+    err = capsys.readouterr().err
+    assert "u1" in err and "a.csv" in err and "b.csv" in err
+
+
+def test_bad_model_spec_lists_valid_names(tmp_path, capsys):
+    a = tmp_path / "a.csv"
+    a.write_text("t,gx,gy,gz\n0,0,0,0\n1,0,0,0\n2,0,0,0\n")
+    assert main(["fit", str(a), "--model", "bias_poly(2)+gradiant"]) == 2
+    err = capsys.readouterr().err
+    assert "gradiant" in err and "gradient" in err
+
+
+@pytest.fixture(scope="module")
+def thermal_csv(tmp_path_factory):
+    path = tmp_path_factory.mktemp("cli") / "th.csv"
+    assert main(["simulate", "--plan", "thermal", "--devices", "3", "--seed", "2",
+                 "--duration", "3600", "--rate", "1", "--out", str(path)]) == 0
+    return path
+
+
+def test_fit_json_out_and_compensate(thermal_csv, tmp_path, capsys):
+    capsys.readouterr()
+    cal = tmp_path / "cal.json"
+    assert main(["fit", str(thermal_csv), "--model", "bias_poly(2)", "--json",
+                 "--out", str(cal)]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["model"] == "bias_poly(2)" and len(out["devices"]) == 3
+    for d in out["devices"]:
+        assert {"device", "status", "rms", "heldout_rms", "noise_floor", "params"} <= set(d)
+    saved = json.loads(cal.read_text())
+    assert saved["model"] == "bias_poly(2)" and saved["input_hash"].startswith("sha256:")
+    assert {"created", "diffgyro_version", "format_version"} <= set(saved)
+    comp = tmp_path / "comp.parquet"
+    assert main(["compensate", str(thermal_csv), "--cal", str(cal), "--out", str(comp)]) == 0
+    from diffgyro.io import load
+
+    before = {r.device: r for r in load(thermal_csv)}
+    after = load(comp)
+    assert [r.device for r in after] == list(before)
+    for r in after:
+        np.testing.assert_array_equal(r.t, before[r.device].t)       # nothing reordered or lost
+        np.testing.assert_array_equal(r.temp, before[r.device].temp)
+        assert np.abs(r.gyro.mean(axis=0)).max() < np.abs(before[r.device].gyro.mean(axis=0)).max()
+
+
+def test_console_script_has_no_traceback(tmp_path):
+    bad = tmp_path / "bad.csv"
+    bad.write_text("t,gx,gy,gz\n0,0,0,0\n0,0,0,0\n")
+    p = subprocess.run([sys.executable, "-m", "diffgyro", "fit", str(bad), "--model", "bias_poly(0)"],
+                       capture_output=True, text=True)
+    assert p.returncode == 2 and "Traceback" not in p.stderr and "row 2" in p.stderr
