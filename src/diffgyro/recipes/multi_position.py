@@ -122,7 +122,7 @@ def fit_accel(samples: np.ndarray, gravity: float) -> tuple[np.ndarray, np.ndarr
     if not np.isfinite(radius) or radius <= 0:
         raise DataError("static poses do not span enough directions for an accelerometer fit")
     norm = (samples - centre) / radius
-    length = 1024 * int(np.ceil(norm.shape[0] / 1024))
+    length = max(1024, 2 ** int(np.ceil(np.log2(norm.shape[0]))))  # few shapes, few compiles
     w = _pad(np.ones(norm.shape[0]), length)
     p0 = jnp.array([gravity, 0, 0, gravity, 0, gravity, 0, 0, 0], jnp.float64)
     p, cost = _accel_solve(p0, jnp.asarray(_pad(norm, length, fill=1.0)), jnp.asarray(w), gravity)
