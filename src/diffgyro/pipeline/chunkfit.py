@@ -6,10 +6,14 @@ device, whose results are dropped) and on the sample axis to a bucket length,
 so every chunk of a run reuses one compiled function. With several local JAX
 devices (GPUs, or CPU devices forced with
 ``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the device axis is
-split over a one-axis mesh with :func:`jax.shard_map`: each JAX device fits its
-own slice with :func:`diffgyro.fit.solve_device`, with no collective
-communication at all (the per-device fits are independent), so there is
-nothing to deadlock on and the numbers are those of the single-device run.
+laid out as (shards, blocks, block) with the shard axis placed on a one-axis
+mesh (``NamedSharding``): XLA partitions the vmap over shards, so each JAX
+device fits its own slice. Linear models compile to a program without any
+collective operation (nothing to wait on, nothing to deadlock); models with
+time constants add one all-reduce per solver step, where the shards agree on
+when every device has converged. The numbers are those of the single-device
+run to rounding (tests/test_sharding.py). ``jax.shard_map`` would be the
+natural tool, but lineax rejects the manual-axis avals it creates.
 """
 
 from __future__ import annotations

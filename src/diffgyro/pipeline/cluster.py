@@ -76,7 +76,7 @@ def run_on_dask(address: str, pending: list[dict], setup: dict,
 
     client, cluster = _client(address)
     try:
-        cache_dir = jax.config.read("jax_compilation_cache_dir")
+        cache_dir = jax.config.jax_compilation_cache_dir
         client.register_plugin(WarmWorker(cache_dir), name=WarmWorker.name)
         token = uuid.uuid4().hex[:8]
         futures = as_completed()
