@@ -90,39 +90,63 @@ def test_chi2_quantile_and_interval():
         assert lo < float(r.adev[i]) < hi
 
 
-def test_readouts_on_simulated_static_runs():
-    """Hours-long static runs (10 Hz) of 8 devices × 3 axes with known ARW and RRW.
-
-    ARW is read where the data are plentiful: every curve within 3 %. RRW rests
-    on the few long clusters: one realisation scatters by about ±17 % (1 sd
-    of log) with the 3-hour runs used here, some curves show no clean +1/2
-    region at all (NaN, honestly), so only the median over the batch is held
-    to 25 %.
-    """
+@pytest.fixture(scope="module")
+def walk_runs():
+    """Hours-long static runs (10 Hz, 3 h) of 8 devices × 3 axes with known ARW and RRW; the
+    −1/2 and +1/2 lines cross at τ = 60 s."""
     rng = np.random.default_rng(11)
     dt, hours, d = 0.1, 3.0, 8
     n = int(hours * 3600 / dt)
     arw = np.exp(rng.uniform(np.log(5e-5), np.log(5e-4), (d, 3)))  # rad/√s = rad/s/√Hz
-    tau_c = 60.0  # crossing of the −1/2 and +1/2 lines, seconds
+    tau_c = 60.0
     rrw = math.sqrt(3.0) * arw / tau_c  # rad/s/√s = rad/s²/√Hz
     y = _white_plus_walk(rng, (d, 3), n, dt, arw, rrw, offset=rng.normal(0, 0.01, (d, 3, 1)))
-    r = allan(y, dt)
+    return y, dt, arw, rrw
+
+
+@pytest.mark.parametrize("method", ["fit", "lines"])
+def test_readouts_on_simulated_static_runs(walk_runs, method):
+    """ARW is read where the data are plentiful: every curve within 3 %. RRW rests on the few
+    long clusters: one realisation scatters by 10-20 % (sd of log; measured 0.11 with "fit",
+    0.18 with "lines"), so only the median over the batch is held to 25 %."""
+    y, dt, arw, rrw = walk_runs
+    r = allan(y, dt, method=method)
     arw_ratio = np.asarray(r.readouts.arw) / arw
     rrw_ratio = np.asarray(r.readouts.rrw) / rrw
     spread = np.nanstd(np.log(rrw_ratio))
-    print(f"ARW worst relative error {np.max(np.abs(arw_ratio - 1)):.4f}; RRW ratio median "
-          f"{np.nanmedian(rrw_ratio):.3f}, single-curve spread {spread:.3f} (sd of log), "
+    print(f"[{method}] ARW worst relative error {np.max(np.abs(arw_ratio - 1)):.4f}; RRW ratio "
+          f"median {np.nanmedian(rrw_ratio):.3f}, single-curve spread {spread:.3f} (sd of log), "
           f"{np.sum(np.isnan(rrw_ratio))}/{rrw_ratio.size} curves without a +1/2 region")
     assert np.all(np.abs(arw_ratio - 1) < 0.03)
     assert np.mean(np.isfinite(rrw_ratio)) > 0.75
     assert abs(np.nanmedian(rrw_ratio) - 1) < 0.25
     assert 0.03 < spread < 0.5  # a single realisation really does scatter
-    # white + random walk only: the minimum is the crossing of the two lines
     bi = np.asarray(r.readouts.bias_instability)
-    sig_min = np.sqrt(2.0) * arw / np.sqrt(tau_c)
-    ok = np.isfinite(bi)
-    assert ok.mean() > 0.75
-    assert np.all(np.abs(bi[ok] * FLICKER_FACTOR / sig_min[ok] - 1) < 0.25)
+    if method == "fit":  # white + random walk: a V-shaped minimum, no flat floor, no flicker
+        assert np.mean(np.isnan(bi)) > 0.9
+    else:  # the graphical reading takes the crossing of the two lines as the floor
+        sig_min = np.sqrt(2.0) * arw / np.sqrt(60.0)
+        ok = np.isfinite(bi)
+        assert ok.mean() > 0.75
+        assert np.all(np.abs(bi[ok] * FLICKER_FACTOR / sig_min[ok] - 1) < 0.25)
+
+
+def test_bias_instability_on_flicker_noise():
+    """White noise + flicker (bias instability B) from the project's simulator: the floor is
+    read within 10 % on every curve, ARW within 3 %, and no rate random walk is claimed."""
+    from diffgyro.simulate.noise import flicker
+
+    rng = np.random.default_rng(13)
+    dt, n = 0.1, int(3 * 3600 / 0.1)
+    arw, b = 1e-4, 1e-4
+    y = arw / math.sqrt(dt) * rng.standard_normal((4, 3, n)) + b * flicker(n, dt, (4, 3), rng)
+    r = allan(y, dt)
+    bi = np.asarray(r.readouts.bias_instability) / b
+    print(f"B read-out / truth: {np.round(bi.ravel(), 3)}")
+    assert np.all(np.abs(bi - 1) < 0.10)
+    assert np.all(np.abs(np.asarray(r.readouts.arw) / arw - 1) < 0.03)
+    assert np.mean(np.isnan(np.asarray(r.readouts.rrw))) > 0.9
+    assert np.all(np.asarray(r.readouts.flat_region).sum(-1) >= 3)
 
 
 def test_white_noise_only_reports_no_rrw_and_no_floor():
