@@ -172,6 +172,10 @@ def test_fit_dispatches_random_walk_models():
     assert res.bias.shape == (2, batch.length, 3)
     np.testing.assert_allclose(np.asarray(res.residual),
                                (batch.gyro - np.asarray(res.bias)) * batch.mask[..., None], atol=1e-15)
+    # re-smoothing the same data with the fitted β, q, r gives the fit's own bias
+    np.testing.assert_allclose(np.asarray(res.residuals(batch)), np.asarray(res.residual), atol=1e-12)
+    again = res.smooth(batch)
+    np.testing.assert_allclose(np.asarray(again.loglik.sum(-1)), np.asarray(res.loglik), rtol=1e-9)
 
 
 def _s1_reference(rz, static, window, init, q):

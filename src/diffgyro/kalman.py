@@ -370,10 +370,53 @@ class RandomWalkFit(eqx.Module):
     steps: Int[Array, " d"]
     status: Int[Array, " d"]
     n_samples: Float[Array, " d"]
+    temp_range: Float[Array, "d 2"] | None
+    options: object
+    p0: Float[Array, ""]
+    reml: bool = eqx.field(static=True, default=False)
 
     @property
     def n_devices(self) -> int:
         return len(self.devices)
+
+    def signals(self, batch):
+        """Derived signals of ``batch`` with this fit's temperature centring."""
+        from .fit import batch_signals
+
+        norm = self.norm if self.model.requires() & {"temp"} else None
+        return batch_signals(batch, norm=norm, dtemp_window=self.options.dtemp_window)
+
+    def smooth(self, batch, static=None) -> SmoothedBias:
+        """The fitted model's bias on ``batch`` (same devices): β and θ kept, the walk smoothed
+        afresh with the learned q, r where ``batch`` observes it (its reference rate, or
+        ``static``, or every sample)."""
+        sig = self.signals(batch)
+        obs = jnp.asarray(batch.mask)
+        if static is not None:
+            obs = obs & jnp.asarray(static, bool)
+        model, p0, reml = self.model, self.p0, self.reml
+
+        def one(s, o, beta, theta, q, r):
+            y = jnp.where(o[:, None], s.gyro - s.rate, 0.0)
+            det = jnp.einsum("nip,ip->ni", _design(model, s, theta, y.dtype), beta)
+            none = jnp.zeros((y.shape[0], 0), y.dtype)
+
+            def axis(zi, qi, ri):
+                fp = rw_filter(zi, none, o, s.t, qi, ri, p0)
+                ll, _, _ = profile(fp, o, reml)
+                ms, ps = rts_smoother(fp, jnp.zeros((0,), y.dtype))
+                return ms, jnp.sqrt(jnp.maximum(ps, 0.0)), ll
+
+            walk, sd, ll = jax.vmap(axis, in_axes=(1, 0, 0), out_axes=(1, 1, 0))(y - det, q, r)
+            return SmoothedBias(beta=beta, bias=det + walk, walk=walk, walk_sd=sd, loglik=ll)
+
+        return jax.vmap(one)(sig, obs, self.params.beta, self.params.theta, self.q, self.r)
+
+    def residuals(self, batch, static=None) -> Float[Array, "d n 3"]:
+        """Measured minus reference rate minus the smoothed bias (β, θ, q, r of this fit)."""
+        sig = self.signals(batch)
+        sb = self.smooth(batch, static)
+        return (sig.gyro - sig.rate - sb.bias) * sig.mask[..., None]
 
     @property
     def rrw(self) -> Float[Array, "d 3"]:
@@ -519,13 +562,19 @@ def fit_random_walk(
                      opts.max_steps, opts.n_blocks, opts.n_folds, opts.chunk)
     norm_out = sig.norm if sig.norm is not None else TempNorm(
         centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
+    temp_range = None
+    if batch.temp is not None:
+        tmask = np.where(batch.mask, batch.temp, np.nan)
+        temp_range = jnp.stack([jnp.asarray(np.nanmin(tmask, axis=1)),
+                                jnp.asarray(np.nanmax(tmask, axis=1))], axis=1)
     return RandomWalkFit(
         model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
         norm=norm_out, q=out["q"], r=out["r"], loglik=out["loglik"], bias=out["bias"],
         walk=out["walk"], walk_sd=out["walk_sd"], residual=out["residual"],
         observed=jnp.asarray(obs), rms=out["rms"], heldout_rms=out["heldout_rms"],
         fold_mse=out["fold_mse"], noise_floor=out["noise_floor"], noise_axes=out["noise_axes"],
-        steps=out["steps"], status=out["status"], n_samples=out["n_samples"])
+        steps=out["steps"], status=out["status"], n_samples=out["n_samples"],
+        temp_range=temp_range, options=opts, p0=jnp.asarray(p0, sig.gyro.dtype), reml=reml)
 
 
 # --------------------------------------------------------------------------- S1's filter
