@@ -13,6 +13,7 @@ device never sinks the batch.
 
 from __future__ import annotations
 
+import collections
 import math
 import warnings
 
@@ -32,6 +33,9 @@ from .signals import Signals, TempNorm, make_signals
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
                 "insufficient_data", "failed")
 OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED = range(6)
+#: How often each compiled batch function was traced (tests check that a new batch
+#: size within a bucket does not compile again).
+TRACE_COUNTS: collections.Counter = collections.Counter()
 
 
 class FitOptions(eqx.Module):
@@ -49,6 +53,12 @@ class FitOptions(eqx.Module):
     #: "closed": closed form (linear part) + variable projection (time constants);
     #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
     solver: str = eqx.field(static=True, default="closed")
+    #: Linear models: "sums" reads the samples once and never forms the design
+    #: (fit_sums.py); "direct" forms it; "auto" takes "sums" for linear models.
+    path: str = eqx.field(static=True, default="auto")
+    #: The model-free noise floor is a median (a sort per device and axis), the
+    #: costliest part of a linear fit; False skips it (NaN) when only coefficients matter.
+    noise_floor: bool = eqx.field(static=True, default=True)
 
 
 # --------------------------------------------------------------------------- signals
@@ -313,7 +323,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     heldout_rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * jnp.sum(cnt), 1.0))
     fold_mse = sse / jnp.maximum(3 * cnt, 1.0)
 
-    noise_axes = _noise_floor(y, sig.mask)
+    noise_axes = _noise_floor(y, sig.mask) if opts.noise_floor else jnp.full((3,), jnp.nan, y.dtype)
     cov, sigma = _covariance(model, sig, params, w, resid, n_valid)
 
     # status, most basic problem first
@@ -338,6 +348,8 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
 
 @eqx.filter_jit
 def _solve_batch(model: ErrorModel, sig: Signals, opts: FitOptions, theta0):
+    TRACE_COUNTS["direct"] += 1
+
     def one(args):
         s, th = args
         return solve_device(model, s, opts, th)
@@ -487,11 +499,26 @@ def fit(
     opts = options or FitOptions()
     if option_overrides:
         opts = _replace(opts, **option_overrides)
+    if opts.path not in ("auto", "direct", "sums"):
+        raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
+    if opts.path != "direct" and model.is_linear and opts.solver != "lm":
+        from .fit_sums import applicable
+
+        if opts.path == "sums" or applicable(model, batch):
+            return _fit_sums(model, batch, norm, opts)
+    if opts.path == "sums":
+        raise ValueError("path='sums' needs a model linear in all parameters and solver='closed'")
+    n_dev = batch.n_devices
+    batch = _pad_devices(batch)  # a few device-count buckets: no compile per batch size
     sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
     if theta0 is not None:
-        theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype),
-                                  (batch.n_devices, model.n_nonlinear))
+        theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype), (n_dev, model.n_nonlinear))
+        theta0 = theta0[np.minimum(np.arange(batch.n_devices), n_dev - 1)]
     out = _solve_batch(model, sig, opts, theta0)
+    if batch.n_devices != n_dev:
+        out = jax.tree.map(lambda a: a[:n_dev], out)
+        sig = jax.tree.map(lambda a: a[:n_dev], sig)
+        batch = batch.select(np.arange(n_dev))
     temp_range = None
     if batch.temp is not None:
         tmask = np.where(batch.mask, batch.temp, np.nan)
@@ -499,6 +526,46 @@ def fit(
                                 jnp.asarray(np.nanmax(tmask, axis=1))], axis=1)
     norm_out = sig.norm if sig.norm is not None else TempNorm(
         centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
+    return FitResult(
+        model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
+        norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
+        heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
+        noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
+        status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
+        n_samples=out["n_samples"], options=opts)
+
+
+def device_bucket(n: int) -> int:
+    """Padded device count of a direct-path batch: powers of two up to 64 (at least 8),
+    then multiples of 64, so that a few more or fewer devices reuse the compiled fit."""
+    n = max(int(n), 1)
+    if n <= 64:
+        return max(8, 1 << (n - 1).bit_length())
+    return -(-n // 64) * 64
+
+
+def _pad_devices(batch: Batch) -> Batch:
+    """The batch with its last device repeated up to :func:`device_bucket` devices."""
+    n = batch.n_devices
+    m = device_bucket(n)
+    if m == n:
+        return batch
+    return batch.select(np.minimum(np.arange(m), n - 1))
+
+
+def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions) -> FitResult:
+    """A linear model through the one-pass sums path (fit_sums.py)."""
+    from .fit_sums import solve_sums
+
+    out = solve_sums(model, batch, norm, opts)
+    d = batch.n_devices
+    if "norm_centre" in out:
+        norm_out = TempNorm(centre=jnp.asarray(out.pop("norm_centre")),
+                            scale=jnp.asarray(out.pop("norm_scale")))
+    else:
+        norm_out = TempNorm(centre=jnp.zeros(d), scale=jnp.ones(d))
+    temp_range = jnp.asarray(out.pop("temp_range")) if "temp_range" in out else None
+    out = {k: jnp.asarray(v) for k, v in out.items()}
     return FitResult(
         model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
         norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],

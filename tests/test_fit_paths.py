@@ -1,0 +1,170 @@
+"""The one-pass sums path of linear fits equals the direct (design-matrix) path.
+
+Every number fit() reports — coefficients, rms, held-out rms and per-fold
+errors, covariance, σ, noise floor, status, flags, normalisation — must agree
+to 1e-9 relative, on plans that exercise every kind of column (temperature
+polynomials, scale factor, misalignment, g-sensitivity, gradient, temp_diff),
+on devices of different lengths, masks with holes, odd block/fold counts and
+batches split over many compiled groups.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import diffgyro.fit_sums as fs
+from diffgyro import Batch, Recording
+from diffgyro.effects import AbstractEffect, register
+from diffgyro.effects._common import per_axis
+from diffgyro.fit import fit
+from diffgyro.simulate import simulate
+
+FIELDS = ("rms", "heldout_rms", "fold_mse", "cov", "sigma", "noise_floor", "noise_axes",
+          "n_samples", "temp_range")
+EXACT = ("status", "range_flags", "collinear", "steps")
+
+
+def assert_same(direct, sums, rtol=1e-9):
+    assert direct.devices == sums.devices
+    b1, b2 = np.asarray(direct.params.beta), np.asarray(sums.params.beta)
+    scale = np.max(np.abs(b1), axis=-1, keepdims=True)  # per device and axis
+    assert np.max(np.abs(b1 - b2) / scale) < rtol
+    for name in FIELDS:
+        a, b = getattr(direct, name), getattr(sums, name)
+        if a is None:
+            assert b is None, name
+            continue
+        a, b = np.asarray(a), np.asarray(b)
+        assert a.shape == b.shape, name
+        if name == "cov":  # relative to each parameter's own variance
+            d = np.sqrt(np.abs(np.einsum("...ii->...i", a)))
+            a, b = a / (d[..., :, None] * d[..., None, :]), b / (d[..., :, None] * d[..., None, :])
+            np.testing.assert_allclose(b, a, rtol=0, atol=rtol, err_msg=name)
+        else:
+            np.testing.assert_allclose(b, a, rtol=rtol, atol=0, err_msg=name)
+    for name in EXACT:
+        np.testing.assert_array_equal(np.asarray(getattr(direct, name)),
+                                      np.asarray(getattr(sums, name)), err_msg=name)
+    np.testing.assert_allclose(np.asarray(sums.norm.centre), np.asarray(direct.norm.centre),
+                               rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(sums.norm.scale), np.asarray(direct.norm.scale),
+                               rtol=1e-14)
+
+
+CASES = [
+    ("thermal", "bias_poly(3)", dict(duration=3600.0, sample_rate=1.0)),
+    ("rate_table", "bias_poly(2)+scale_poly(2)+gradient+temp_diff", dict(sample_rate=1.0)),
+    ("six_face", "bias_poly(0)+g_sens+scale_poly(0)+misalignment", dict(sample_rate=2.0)),
+]
+
+
+@pytest.mark.parametrize("plan,spec,kw", CASES, ids=[c[0] for c in CASES])
+def test_sums_equals_direct(plan, spec, kw):
+    batch, truth = simulate(plan, 3, effects=spec, seed=3, **kw)
+    direct = fit(spec, batch, path="direct")
+    sums = fit(spec, batch, path="sums")
+    auto = fit(spec, batch)
+    assert set(np.asarray(direct.status)) == {0}
+    assert_same(direct, sums)
+    np.testing.assert_array_equal(np.asarray(auto.params.beta), np.asarray(sums.params.beta))
+
+
+def _thermal_recordings(lengths, seed=0):
+    rng = np.random.default_rng(seed)
+    recs = []
+    for k, n in enumerate(lengths):
+        t = np.arange(n) * 0.5
+        temp = 25 + 12 * np.sin(t / 400 + k) + 0.05 * rng.normal(size=n)
+        ts = (temp - 25) / 12
+        beta = rng.normal(size=(3, 3)) * 1e-3
+        gyro = np.stack([ts**j for j in range(3)], 1) @ beta.T + 2e-4 * rng.normal(size=(n, 3))
+        recs.append(Recording(t=t, gyro=gyro, temp=temp, device=f"u{k}"))
+    return recs
+
+
+@pytest.mark.parametrize("opts", [{}, {"n_blocks": 7, "n_folds": 3}, {"n_blocks": 20}])
+def test_uneven_lengths_odd_blocks(opts):
+    # a device shorter than the blocks' chunk (c = 1) alongside long ones, lengths not
+    # multiples of any chunk, and block counts that do not divide into the folds
+    batch = Batch.from_recordings(_thermal_recordings([2500, 1999, 1003, 150]))
+    spec = "bias_poly(2)"
+    assert_same(fit(spec, batch, path="direct", **opts), fit(spec, batch, path="sums", **opts))
+
+
+def test_mask_with_holes():
+    batch = Batch.from_recordings(_thermal_recordings([3000, 2800, 2900], seed=1))
+    mask = batch.mask.copy()
+    mask[0, 100:400] = False  # a gap
+    mask[1, ::7] = False  # dropped samples
+    mask[2, :50] = False  # late start
+    holes = Batch(t=batch.t, gyro=batch.gyro, mask=mask, n_valid=mask.sum(1), temp=batch.temp,
+                  devices=batch.devices)
+    spec = "bias_poly(3)"
+    assert_same(fit(spec, holes, path="direct"), fit(spec, holes, path="sums"))
+
+
+def test_many_groups(monkeypatch):
+    # tiny groups: many compiled calls, the last one padded with repeats
+    monkeypatch.setattr(fs, "GROUP_SAMPLES", 4096)
+    batch = Batch.from_recordings(_thermal_recordings([1800] * 11, seed=2))
+    assert fs.group_size(batch.n_devices, batch.length) == 2
+    spec = "bias_poly(1)"
+    assert_same(fit(spec, batch, path="direct"), fit(spec, batch, path="sums"))
+
+
+def test_noise_floor_off_and_given_norm():
+    batch = Batch.from_recordings(_thermal_recordings([2000, 2100], seed=4))
+    from diffgyro.signals import TempNorm
+
+    norm = TempNorm(centre=jnp.asarray(24.0), scale=jnp.asarray(10.0))
+    full = fit("bias_poly(2)", batch, norm=norm)
+    quick = fit("bias_poly(2)", batch, norm=norm, noise_floor=False)
+    assert np.all(np.isnan(np.asarray(quick.noise_floor)))
+    np.testing.assert_array_equal(np.asarray(quick.params.beta), np.asarray(full.params.beta))
+    np.testing.assert_allclose(np.asarray(full.norm.centre), 24.0)
+    assert_same(fit("bias_poly(2)", batch, norm=norm, path="direct"), full)
+
+
+@register
+class _RunningMeanTemp(AbstractEffect):
+    """A test-only linear term whose column reads earlier samples (not pointwise)."""
+
+    name = "test_running_mean_temp"
+    description = "running mean of temperature (test only)"
+    needs = frozenset({"temp"})
+
+    def param_names(self):
+        return ("m",)
+
+    def columns(self, sig, theta):
+        return per_axis(jnp.cumsum(sig.temp_s) / jnp.arange(1, sig.temp_s.shape[0] + 1))
+
+
+def test_path_choice_and_errors():
+    batch = Batch.from_recordings(_thermal_recordings([1500, 1600], seed=5))
+    spec = "bias_poly(1)+test_running_mean_temp"
+    assert not fs.applicable(fit.__globals__["ErrorModel"].from_spec(spec), batch)
+    auto = fit(spec, batch)  # falls back to the direct path
+    direct = fit(spec, batch, path="direct")
+    np.testing.assert_array_equal(np.asarray(auto.params.beta), np.asarray(direct.params.beta))
+    with pytest.raises(ValueError, match="other samples"):
+        fit(spec, batch, path="sums")
+    with pytest.raises(ValueError, match="linear"):
+        fit("bias_poly(1)+thermal_lag", batch, path="sums")
+    with pytest.raises(ValueError, match="unknown fit path"):
+        fit("bias_poly(1)", batch, path="fast")
+
+
+def test_layout_shares_products():
+    from diffgyro.model import ErrorModel
+
+    present = frozenset({"t", "gyro", "temp", "rate"})
+    lay, need = fs.layout_of(ErrorModel.from_spec("bias_poly(3)"), present)
+    # Hankel structure: T^0..T^6 once for all axes (T^0 is the sample count)
+    assert len(lay.xx) == 6 and all(lay.shared)
+    assert need == {"temp"}  # no time, no rate, no dT/dt
+    lay, need = fs.layout_of(ErrorModel.from_spec("bias_poly(1)+scale_poly(1)+gradient"), present)
+    assert lay.shared == (True, True, False, False, True)
+    assert {"temp", "rate", "t", "dt"} <= need
