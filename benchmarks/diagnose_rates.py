@@ -1,0 +1,129 @@
+"""Detection and `adequate` rates of diagnose() over a catalogue of hidden-effect problems.
+
+Recordings come from ``tests/hidden_effects.py`` (independent of the project's
+simulator) with varied noise (white, flicker, random walk, output and
+temperature quantisation, read-out lag) and hidden-effect sizes. The per-fold
+numbers of every device are saved, so thresholds can be re-tuned offline with
+:func:`diffgyro.diagnose.redecide` without refitting.
+
+    python benchmarks/diagnose_rates.py --devices 16 --out /tmp/rates.pkl
+    python benchmarks/diagnose_rates.py --load /tmp/rates.pkl        # summary only
+"""
+
+from __future__ import annotations
+
+import argparse
+import pickle
+import sys
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+
+#: (plan, base model, effects hidden one at a time; None = clean)
+CATALOGUE = [
+    ("thermal", "bias_poly(2)", ["gradient", "temp_diff", "thermal_lag", "hysteresis", "warmup",
+                                 "random_walk", "bias_poly", None, None]),
+    ("rate_table", "bias_poly(1)+scale_poly(0)+misalignment",
+     ["scale_asym", "scale_nonlin", "g_sens", None]),
+    ("rate_table", "bias_poly(1)+scale_poly(0)", ["misalignment", None]),
+    ("rate_table", "bias_poly(1)", ["scale_poly", None]),
+    ("multi_position", "bias_poly(1)+scale_poly(0)+misalignment", ["g_sens", "warmup", "random_walk", None]),
+]
+
+
+def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0)):
+    import diffgyro
+
+    diffgyro.enable_x64()
+    diffgyro.enable_compilation_cache()
+    import hidden_effects as H
+
+    from diffgyro.data import Batch
+    from diffgyro.diagnose import diagnose
+
+    rows = []
+    for plan, base, effects in CATALOGUE:
+        if problems and plan not in problems:
+            continue
+        recs, meta = [], []
+        for k in range(devices):
+            for j, eff in enumerate(effects):
+                seed = seed0 + 1000 * k + 37 * j + zlib.crc32((plan + base).encode()) % 997
+                rng = np.random.default_rng(seed)
+                noise = H.draw_noise(rng)
+                size = float(np.exp(rng.uniform(np.log(sizes[0]), np.log(sizes[1]))))
+                h = H.make_recording(plan, eff, base, seed, size=size, noise=noise,
+                                     earth_in_reference=True,
+                                     device=f"{plan}-{eff}-{k}-{j}")
+                recs.append(h.recording)
+                meta.append({"plan": plan, "base": base, "effect": eff, "size": size, "noise": noise})
+        t0 = time.time()
+        for start in range(0, len(recs), 8):
+            batch = Batch.from_recordings(recs[start:start + 8])
+            dg = diagnose(base, batch)
+            for i, d in enumerate(dg.devices):
+                m = dict(meta[start + i])
+                m["raw"] = {k: (v[i] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == batch.n_devices
+                                else v) for k, v in dg.raw.items() if k != "candidates"}
+                m["cand_names"] = [c.effect for c in dg.raw["candidates"]]
+                m["cand_specs"] = [c.spec for c in dg.raw["candidates"]]
+                m["diag"] = d.record()
+                rows.append(m)
+        print(f"{plan} {base}: {len(recs)} devices in {time.time() - t0:.0f} s", flush=True)
+    return rows
+
+
+def summary(rows, th=None):
+    from diffgyro.diagnose import FAMILIES, Thresholds, redecide
+
+    th = th or Thresholds()
+    look = {n: set(v) for v in FAMILIES.values() for n in v}
+    stats = {}
+    for r in rows:
+        d = redecide(r, th) if th is not None else r["diag"]
+        key = (r["plan"], r["base"], r["effect"])
+        s = stats.setdefault(key, {"n": 0, "ok": 0, "first": 0, "second": 0, "fails": []})
+        s["n"] += 1
+        names = [c["effect"] for c in d["candidates"]]
+        if r["effect"] is None:
+            good = d["verdict"] == "adequate"
+        else:
+            first = names[0] if names else None
+            good = d["verdict"] == "missing_effect" and (
+                first == r["effect"] or (first in look.get(r["effect"], ()) and len(names) > 1
+                                         and names[1] == r["effect"]))
+            s["first"] += first == r["effect"]
+        s["ok"] += good
+        if not good:
+            s["fails"].append((round(r["size"], 2), d["verdict"], names[:3],
+                               round(d["excess"], 3) if d["excess"] is not None else None))
+    for key, s in stats.items():
+        print(f"{key[0]:15s} {key[1]:40s} {str(key[2]):13s} {s['ok']}/{s['n']}"
+              f"  first {s['first']}")
+        for f in s["fails"][:4]:
+            print("      fail:", f)
+    return stats
+
+
+if __name__ == "__main__":
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--devices", type=int, default=8)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--plans", nargs="*")
+    ap.add_argument("--out")
+    ap.add_argument("--load", nargs="*")
+    a = ap.parse_args()
+    if a.load:
+        rows = []
+        for f in a.load:
+            rows += pickle.load(open(f, "rb"))
+    else:
+        rows = run(a.devices, a.seed, a.plans)
+        if a.out:
+            pickle.dump(rows, open(a.out, "wb"))
+    summary(rows)
