@@ -135,11 +135,22 @@ def _walk_batch(rng, d, n, dt, q, r, rate=False):
 
 @pytest.fixture(scope="module")
 def walk_fit():
-    """50 simulated static devices, 3000 s at 1 Hz: white noise σ = 1e-3 rad/s and a bias
-    random walk of RRW 1e-4 rad/s²/√Hz (q = 1e-8 (rad/s)²/s)."""
-    rng = np.random.default_rng(20)
+    """50 static devices, 3000 s at 1 Hz, noise from the project simulator: ARW 1e-3 rad/s/√Hz
+    (σ = 1e-3 rad/s per sample, r = 1e-6) and RRW 1e-4 rad/s²/√Hz (q = 1e-8 (rad/s)²/s),
+    on top of a constant bias per device."""
+    from diffgyro.simulate.noise import NoiseLevels, gyro_noise
+
+    d, n, dt = 50, 3000, 1.0
     q, r = 1e-8, 1e-6
-    batch = _walk_batch(rng, 50, 3000, 1.0, q, r)
+    levels = NoiseLevels(arw=np.full((d, 3), math.sqrt(r * dt)), rrw=np.full((d, 3), math.sqrt(q)),
+                         bias_instability=np.zeros((d, 3)), quantum=np.zeros(d),
+                         accel_noise=np.zeros(d))
+    noise = gyro_noise(levels, n, dt, seed=20)
+    noise = noise[0] if isinstance(noise, tuple) else noise
+    offsets = np.random.default_rng(20).normal(0, 0.01, (d, 1, 3))
+    t = np.arange(n) * dt
+    batch = Batch.from_recordings([Recording(t=t, gyro=offsets[i] + noise[i], device=f"d{i:02d}")
+                                   for i in range(d)])
     return q, r, batch, fit_random_walk("bias_poly(0)+random_walk", batch)
 
 
