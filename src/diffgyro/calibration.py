@@ -180,7 +180,7 @@ def _req(obj: dict, key: str, kind, where: str):
     if kind is float:
         if isinstance(val, bool) or not isinstance(val, (int, float)):
             raise SpecError(f"calibration file: {where}.{key} must be a number")
-        return float(val)
+        return _finite(val, f"{where}.{key}")
     if not isinstance(val, kind) or isinstance(val, bool) and kind is not bool:
         raise SpecError(f"calibration file: {where}.{key} must be {kind.__name__}")
     return val
@@ -197,7 +197,70 @@ def _floats(val, shape: tuple[int, ...], where: str, allow_null: bool = False) -
     if a.shape != shape or any(isinstance(x, bool) or not isinstance(x, (int, float))
                                for x in a.ravel()):
         raise SpecError(f"calibration file: {where} must be numbers of shape {list(shape)}")
-    return a.astype(float).tolist()
+    return np.array([_finite(x, where, allow_nan=True) for x in a.ravel()],
+                    float).reshape(shape).tolist()
+
+
+def _finite(x, where: str, allow_nan: bool = False) -> float:
+    """A JSON number as a float; integers too large for a float are an error, not a crash."""
+    try:
+        v = float(x)
+    except OverflowError:
+        raise SpecError(f"calibration file: {where} holds a number too large") from None
+    if not math.isfinite(v) and not (allow_nan and math.isnan(v)):
+        raise SpecError(f"calibration file: {where} holds a non-finite number")
+    return v
+
+
+_FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
+                        "diffgyro_version", "input_hash", "units", "devices"})
+_DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
+                          "temp_range", "quality", "params", "status_detail"})
+MAX_THETA = 700.0        # |log τ|: beyond this exp() overflows
+MAX_DTEMP_WINDOW = 1e6   # s
+MAX_NAME = 1000
+
+
+def _known_keys(obj: dict, allowed: frozenset, where: str) -> None:
+    unknown = sorted(str(k) for k in obj if k not in allowed)
+    if unknown:
+        raise SpecError(f"calibration file: unknown key {unknown[0][:40]!r} in {where}",
+                        hint="a calibration file holds only the fields diffgyro writes")
+
+
+def _text(obj: dict, key: str, where: str, default: str = "") -> str:
+    val = obj.get(key, default)
+    if not isinstance(val, str):
+        raise SpecError(f"calibration file: {where}.{key} must be text")
+    return val
+
+
+def _flat_numbers(val, where: str, max_items: int = 256) -> dict:
+    """An object of name -> finite number or null (fit quality, labelled parameters)."""
+    if not isinstance(val, dict) or len(val) > max_items:
+        raise SpecError(f"calibration file: {where} must be an object of numbers")
+    out = {}
+    for k, v in val.items():
+        if not isinstance(k, str) or len(k) > MAX_NAME:
+            raise SpecError(f"calibration file: {where} has a bad key")
+        if v is None:
+            out[k] = None
+        elif isinstance(v, bool) or not isinstance(v, (int, float)):
+            raise SpecError(f"calibration file: {where}.{k[:40]} must be a number or null")
+        elif isinstance(v, int):
+            _finite(v, f"{where}.{k[:40]}")
+            out[k] = v
+        else:
+            out[k] = None if math.isnan(v) else _finite(v, f"{where}.{k[:40]}")
+    return out
+
+
+def _device_name(name: str, where: str) -> str:
+    if not name.strip() or len(name) > MAX_NAME:
+        raise SpecError(f"calibration file: {where}.device must be 1 to {MAX_NAME} characters")
+    if any(ord(c) < 32 or 127 <= ord(c) < 160 for c in name):
+        raise SpecError(f"calibration file: {where}.device holds control characters")
+    return name
 
 
 def from_json(obj) -> Calibration:
@@ -206,6 +269,7 @@ def from_json(obj) -> Calibration:
         raise SpecError("calibration file: top level must be a JSON object")
     if obj.get("format") != FORMAT:
         raise SpecError(f"calibration file: 'format' must be {FORMAT!r}")
+    _known_keys(obj, _FILE_KEYS, "the file")
     version = _req(obj, "format_version", int, "file")
     if version > FORMAT_VERSION or version < 1:
         raise SpecError(f"calibration file: format_version {version} is not supported "
@@ -219,7 +283,8 @@ def from_json(obj) -> Calibration:
     out, seen = [], set()
     for k, d in enumerate(devs):
         where = f"devices[{k}]"
-        name = _req(d, "device", str, where)
+        name = _device_name(_req(d, "device", str, where), where)
+        _known_keys(d, _DEVICE_KEYS, where)
         if name in seen:
             raise SpecError(f"calibration file: device {name!r} appears twice")
         seen.add(name)
@@ -236,27 +301,39 @@ def from_json(obj) -> Calibration:
         tr = d.get("temp_range")
         if tr is not None:
             tr = _floats(tr, (2,), f"{where}.temp_range")
+            if not all(math.isfinite(x) for x in tr):
+                raise SpecError(f"calibration file: {where}.temp_range must be finite")
             if not tr[0] <= tr[1]:
                 raise SpecError(f"calibration file: {where}.temp_range is reversed")
         if ok and not (np.all(np.isfinite(beta)) and np.all(np.isfinite(theta))):
             raise SpecError(f"calibration file: {where} has status ok but non-finite coefficients")
-        quality = d.get("quality", {})
+        if np.any(np.abs(np.asarray(theta, float)) > MAX_THETA):
+            raise SpecError(f"calibration file: {where}.theta: a time constant is out of range "
+                            f"(|log τ| > {MAX_THETA:g})")
+        quality = _flat_numbers(d.get("quality", {}), f"{where}.quality")
         params = d.get("params", {})
-        if not isinstance(quality, dict) or not isinstance(params, dict):
-            raise SpecError(f"calibration file: {where}.quality/params must be objects")
+        if not isinstance(params, dict) or len(params) > 16:
+            raise SpecError(f"calibration file: {where}.params must be an object of groups")
+        params = {g: _flat_numbers(v, f"{where}.params.{str(g)[:40]}") for g, v in params.items()}
         out.append(DeviceCalibration(device=name, status=status, beta=beta, theta=theta,
                                      temp_centre=centre, temp_scale=scale, temp_range=tr,
                                      quality=quality, params=params,
-                                     status_detail=str(d.get("status_detail", ""))))
+                                     status_detail=_text(d, "status_detail", where)))
     window = _req(obj, "dtemp_window", float, "file")
-    if not (math.isfinite(window) and window > 0):
-        raise SpecError("calibration file: dtemp_window must be a positive number")
+    if not (0 < window <= MAX_DTEMP_WINDOW):
+        raise SpecError(f"calibration file: dtemp_window must be a positive number of seconds "
+                        f"up to {MAX_DTEMP_WINDOW:g}")
     ih = obj.get("input_hash")
+    if ih is not None and not isinstance(ih, str):
+        raise SpecError("calibration file: input_hash must be text or null")
+    units = obj.get("units", {})
+    if not isinstance(units, dict) or len(units) > 256 or not all(
+            isinstance(k, str) and isinstance(v, str) for k, v in units.items()):
+        raise SpecError("calibration file: units must be an object of texts")
     return Calibration(model=model.spec, devices=out, dtemp_window=window,
-                       created=str(obj.get("created", "")),
-                       diffgyro_version=str(obj.get("diffgyro_version", "")),
-                       input_hash=ih if isinstance(ih, str) else None,
-                       units=obj.get("units") if isinstance(obj.get("units"), dict) else {})
+                       created=_text(obj, "created", "file"),
+                       diffgyro_version=_text(obj, "diffgyro_version", "file"),
+                       input_hash=ih, units=dict(units))
 
 
 def load(path: str | os.PathLike) -> Calibration:
@@ -266,7 +343,8 @@ def load(path: str | os.PathLike) -> Calibration:
         if os.path.getsize(path) > MAX_FILE_BYTES:
             raise SpecError("calibration file is too large", file=path)
         with open(path, encoding="utf-8") as f:
-            obj = json.load(f, parse_constant=_reject_constant)
+            obj = json.load(f, parse_constant=_reject_constant,
+                            object_pairs_hook=_reject_duplicate_keys)
     except SpecError as err:
         raise SpecError(err.problem, file=path, hint=err.hint) from None
     except (OSError, UnicodeDecodeError, ValueError, RecursionError) as err:
@@ -279,6 +357,16 @@ def load(path: str | os.PathLike) -> Calibration:
 
 def _reject_constant(name):
     raise ValueError(f"{name} is not valid JSON")
+
+
+def _reject_duplicate_keys(pairs: list) -> dict:
+    """JSON objects with a key twice are refused: two readers could see two different files."""
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise SpecError(f"calibration file: key {k[:40]!r} appears twice in one object")
+        out[k] = v
+    return out
 
 
 # --------------------------------------------------------------------------- compensation
