@@ -118,3 +118,38 @@ def test_multi_position_on_the_imutk_files(capsys, tmp_path):
     assert len(res["intervals"]) == 38
     assert max(abs(x) for x in res["pose_norm_error"]) < 5e-4 * 9.81744
     np.testing.assert_allclose(res["gyro_scale_counts"], 4770, rtol=0.01)
+
+
+def test_cube_bias_fog_and_attitude_from_simulated_files(capsys, tmp_path):
+    from diffgyro.io import save
+    from diffgyro.simulate import simulate
+
+    batch, truth = simulate("six_face", 1, seed=1, turns=False, noise="none")
+    save(batch.recording(0), tmp_path / "cube.csv")
+    sets = {f"{s['face'][1]}_{'up' if s['face'][0] == '+' else 'down'}_{s['index'] + 1}":
+            {"start": s["start"], "end": s["end"]} for s in truth.segments if s["label"] == "face"}
+    (tmp_path / "cube_list.json").write_text(json.dumps(sets))
+    code, out, err = run(capsys, "recipe", "cube-bias", tmp_path / "cube.csv", "--json")
+    assert code == 0, err
+    np.testing.assert_allclose(json.loads(out)["gyro_bias"], np.asarray(truth.params.beta)[0, :, 0],
+                               atol=1e-9)
+    code, out, err = run(capsys, "recipe", "cube-bias", tmp_path / "cube.csv")
+    assert code == 0 and "pairs_used: {x: [z], y: [z], z: [y]}" in out
+
+    batch, _ = simulate("s2", 1, seed=1)
+    save(batch.recording(0), tmp_path / "s2.csv")
+    code, out, err = run(capsys, "recipe", "fog-one-run", tmp_path / "s2.csv", "--m", 3, "--json")
+    assert code == 0, err
+    res = json.loads(out)
+    assert res["columns"] == ["D", "T*D", "T^2*D", "T", "T-T_out", "dT"]
+    assert abs(res["coefficients"][0] - 1.0) < 1e-3
+
+    batch, _ = simulate("attitude", 1, seed=1, duration=60.0, accel_share=0.0)
+    save(batch.recording(0), tmp_path / "att.csv")
+    code, out, err = run(capsys, "recipe", "attitude-reference", tmp_path / "att.csv",
+                         "--interval", 10, "--json")
+    assert code == 0, err
+    res = json.loads(out)
+    assert set(res) >= {"scale", "bias", "joint_scale", "joint_bias", "n_gated"}
+    code, _, err = run(capsys, "recipe", "attitude-reference", tmp_path / "s2.csv")
+    assert code == 2 and "mx, my, mz" in err

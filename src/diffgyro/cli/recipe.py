@@ -170,14 +170,15 @@ def _print_human(name, recipe, results) -> None:
     con = Console(width=120)
     con.print(f"[bold]{name}[/bold] — {recipe.source}")
     for dev, res in results:
-        con.print(f"device [bold]{dev}[/bold]")
+        con.print("device ", end="")
+        con.print(dev, style="bold", markup=False)
         for key, val in jsonable(res.to_dict()).items():
             arr = np.asarray(val, dtype=object) if isinstance(val, list) else None
             if arr is not None and arr.size > 12:
                 continue
             if isinstance(val, dict) and len(json.dumps(val)) > 200:
                 continue
-            con.print(f"  {key}: {_fmt(val)}")
+            con.print(f"  {key}: {_fmt(val)}", markup=False, highlight=False)
 
 
 def _fmt(v) -> str:
