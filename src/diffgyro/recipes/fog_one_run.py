@@ -53,6 +53,12 @@ class FogOneRunResult(RecipeResult):
 
     name = "fog-one-run"
 
+    def to_dict(self) -> dict:
+        out = {k: v for k, v in super().to_dict().items() if k != "kept"}
+        out["n_kept"] = int(np.sum(self.kept))
+        out["n_removed"] = int(self.kept.size - np.sum(self.kept))
+        return out
+
     def design(self, d: np.ndarray, temp: np.ndarray, temp_ext: np.ndarray) -> np.ndarray:
         return s2_design(d, temp, temp_ext, self.n_avg)
 

@@ -71,8 +71,19 @@ class StaticKalmanResult(RecipeResult):
         return np.asarray(gyro) - self.offset
 
     def to_dict(self) -> dict:
-        out = super().to_dict()
+        """Per-window tracks and heading summaries (per-sample arrays stay on the object)."""
+        per_sample = {"offset", "t", "yaw_raw", "yaw_fixed", "yaw_tracked", "heading_error_raw",
+                      "heading_error_fixed", "heading_error_tracked"}
+        out = {k: v for k, v in super().to_dict().items() if k not in per_sample}
         out["n_static_windows"] = int(np.sum(self.static))
+        out["duration"] = float(self.t[-1] - self.t[0])
+        out["yaw_end"] = {"raw": float(self.yaw_raw[-1]), "fixed": float(self.yaw_fixed[-1]),
+                          "tracked": float(self.yaw_tracked[-1])}
+        if self.heading_error_tracked is not None:
+            out["heading_error"] = {
+                name: {"final": float(e[np.isfinite(e)][-1]), "worst": float(np.nanmax(np.abs(e)))}
+                for name, e in (("raw", self.heading_error_raw), ("fixed", self.heading_error_fixed),
+                                ("tracked", self.heading_error_tracked))}
         return out
 
 
