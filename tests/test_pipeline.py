@@ -195,3 +195,42 @@ def test_cli_streams_a_directory_with_the_json_contract(dataset, tmp_path, capsy
     table = pq.read_table(tmp_path / "res.parquet").to_pandas()
     assert list(table["device"]) == [d["device"] for d in obj["devices"]]
     assert set(table.loc[table.status != "ok", "device"]) == set(bad)
+
+
+def test_fast_calibration_entries_equal_from_fit():
+    """The pipeline's entry builder gives exactly calibration.from_fit's entries, including
+    time constants, non-ok statuses and non-finite numbers."""
+    from diffgyro.fit import FitOptions, FitResult
+    from diffgyro.model import ErrorModel, Params
+    from diffgyro.pipeline.run import calibration_entries
+    from diffgyro.signals import TempNorm
+
+    model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient")
+    d, p, q, t = 4, model.n_params, model.n_nonlinear, len(model.deterministic)
+    rng = np.random.default_rng(0)
+    beta = rng.standard_normal((d, 3, p))
+    beta[2, 1, 0] = np.nan
+    rms = rng.uniform(1e-5, 1e-4, d)
+    rms[2] = np.inf
+    status = np.array([0, 1, 3, 2])
+    range_flags = np.zeros((d, t), bool)
+    range_flags[2, 0] = True
+    collinear = np.zeros((d, t), bool)
+    collinear[3, 1:] = True
+    k = 3 * p + q
+    result = FitResult(
+        model=model, devices=("a", "b", "c", "d"),
+        params=Params(beta=beta, theta=rng.uniform(1, 6, (d, q))),
+        norm=TempNorm(centre=rng.uniform(0, 30, d), scale=rng.uniform(5, 40, d)),
+        temp_range=np.sort(rng.uniform(-10, 60, (d, 2)), axis=1), cov=np.zeros((d, k, k)),
+        rms=rms, heldout_rms=rms * 1.1, fold_mse=np.zeros((d, 5)),
+        noise_floor=rng.uniform(1e-5, 1e-4, d), noise_axes=np.zeros((d, 3)),
+        sigma=np.zeros((d, 3)), steps=np.array([5, 100, 3, 1]), status=status,
+        range_flags=range_flags, collinear=collinear, n_samples=np.full(d, 200.0),
+        options=FitOptions())
+    expected = [calibration._clean(dict(x.__dict__))
+                for x in calibration.from_fit(result).devices]
+    got = calibration_entries(result)
+    assert json.dumps(got, allow_nan=False) == json.dumps(expected, allow_nan=False)
+    assert got[2]["status_detail"].startswith("insufficient_range")
+    assert "thermal_lag.tau" in got[0]["params"]["shared"]
