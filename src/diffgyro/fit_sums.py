@@ -412,7 +412,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
     arrays = {"gyro": batch.gyro, "mask": batch.mask, "centre": centre, "scale": scale, "dt": dt}
     for k in INPUTS:
         arr = getattr(batch, k)
-        arrays[k] = arr if (arr is not None and (k in need or k == "temp")) else None
+        # the reference rate is always read: the fit is of gyro − rate
+        arrays[k] = arr if (arr is not None and (k in need or k in ("temp", "rate"))) else None
     if "t" not in need:
         arrays["t"] = None
     devices = jax.local_devices()
