@@ -87,6 +87,14 @@ class Thresholds:
     random walk when it closes at least ``rw_prefer`` of the gap, or leaves
     less than ``rw_ratio`` times the gap the random walk leaves. ``alt_share``: a significant candidate is a close
     alternative when it closes at least this share of what the best closes.
+
+    An effect confined to a small part of the record (a warm-up transient,
+    the highest rates of a rate table) can be material where it happens yet
+    small over the whole record. So a candidate is also material when, in the
+    ``local_share`` of time blocks it improves most, the base model's held-out
+    MSE is at least ``1 + local_excess`` times the floor's and the candidate
+    closes ``local_closure`` of that local gap, with a whole-record gain of at
+    least ``local_gain_min`` (never for the random walk).
     """
 
     t_min: float = 3.0
@@ -99,6 +107,10 @@ class Thresholds:
     rw_prefer: float = 0.8
     rw_ratio: float = 2.5
     alt_share: float = 0.6
+    local_share: float = 0.05
+    local_excess: float = 1.0
+    local_closure: float = 0.5
+    local_gain_min: float = 0.005
 
 
 #: Effects that mimic each other on common test plans (reported together).
@@ -395,6 +407,15 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     fold = _fold_ids(sig.mask, n_blocks, n_folds)
     oh = (fold[:, None] == jnp.arange(n_folds)[None, :]).astype(dtype)  # (n, f)
     cnt = jnp.sum(oh, axis=0)
+    # time block of every valid sample (padding -> an extra, ignored segment)
+    k_valid = jnp.cumsum(sig.mask) - 1
+    block = jnp.where(sig.mask, (k_valid * n_blocks) // jnp.maximum(jnp.sum(sig.mask), 1), n_blocks)
+    fsafe = jnp.clip(fold, 0, n_folds - 1)
+
+    def per_block(r2):  # (n,) -> (n_blocks,)
+        return jax.ops.segment_sum(r2 * w, block, num_segments=n_blocks + 1)[:n_blocks]
+
+    blk_cnt = per_block(jnp.ones_like(w))
     ee = jnp.einsum("nf,ni->fi", oh, e * e)  # (f, 3)
 
     def train(s):
@@ -410,8 +431,10 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
 
     b_base = _solve_scaled(train(xx), train(xe), dx) if p else jnp.zeros((n_folds, 3, 0), dtype)
     base_sse = held_sse(b_base, xx, xe, ee) if p else ee  # (f, 3)
+    r_base = e - jnp.einsum("nip,nip->ni", xb, b_base[fsafe])  # held-out residual of every sample
+    base_blk = per_block(jnp.sum(r_base**2, -1))
 
-    cand_sse, cand_full, cand_theta = [], [], []
+    cand_sse, cand_full, cand_theta, cand_blk = [], [], [], []
     for c in cands:
         z, grid = _extra_columns(c, base, sig, theta_b)  # (g, n, 3, k)
         z = jnp.where(jnp.isfinite(z), z, 0.0) * w[None, :, None, None]
@@ -436,6 +459,11 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         tot_tr = jnp.sum(sse_tr, -1)
         pick = jnp.argmin(jnp.where(jnp.isfinite(tot_tr), tot_tr, jnp.inf), axis=0)  # (f,)
         cand_sse.append(jnp.take_along_axis(sse_h, pick[None, :, None], axis=0)[0])
+        b_pick = b[pick, jnp.arange(n_folds)]  # (f, 3, P)
+        bn = b_pick[fsafe]  # (n, 3, P)
+        zn = z[pick[fsafe], jnp.arange(z.shape[1])]  # (n, 3, k)
+        r_c = e - jnp.einsum("nip,nip->ni", xb, bn[..., :p]) - jnp.einsum("nik,nik->ni", zn, bn[..., p:])
+        cand_blk.append(per_block(jnp.sum(jnp.where(jnp.isfinite(r_c), r_c, 0.0) ** 2, -1)))
         b_all = _solve_scaled(gtot, ctot, d)  # (g, 3, P)
         sse_all = jnp.sum(ee, 0)[None] - jnp.sum(b_all * ctot, -1)  # (g, 3)
         tot_all = jnp.sum(sse_all, -1)
@@ -469,6 +497,7 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     ms3 = ms.reshape(e.shape[0], s_f, 3).transpose(1, 0, 2)
     mf3 = mf.reshape(e.shape[0], s_f, 3).transpose(1, 0, 2)
     rw_interp = jnp.sum(jnp.where(held, (e_f - ms3[:n_folds]) ** 2, 0.0), axis=1)  # (f, 3)
+    r_rw = jnp.sum(jnp.where(held, (e_f - ms3[:n_folds]) ** 2, 0.0), axis=(0, 2))  # (n,)
     rw_fore = jnp.sum(jnp.where(held, (e_f - mf3[:n_folds]) ** 2, 0.0), axis=1)
     rw_full = jnp.sum(w[:, None] * (e - ms3[n_folds]) ** 2, axis=0)  # (3,)
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
@@ -481,6 +510,8 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         cand_full=jnp.stack(cand_full) if cands else jnp.full((1, 3), jnp.nan, dtype),
         cand_theta=_stack_theta(cand_theta, dtype),
         rw_interp=rw_interp, rw_fore=rw_fore, rw_full=rw_full, rw_q=rw_q,
+        blk_cnt=blk_cnt, base_blk=base_blk, rw_blk=per_block(r_rw),
+        cand_blk=jnp.stack(cand_blk) if cands else jnp.full((1, n_blocks), jnp.nan, dtype),
         rw_walk=ms3[n_folds], residual=e,
     )
 
@@ -792,7 +823,7 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
             names: list[str], specs: list[str], cand_fold: np.ndarray, cand_full: np.ndarray,
             ok: np.ndarray, taus, rw_spec: str | None, rw_fold: np.ndarray, rw_full: np.ndarray,
             floor_axes: np.ndarray, floor_allan: float, slope: float, n_valid: int,
-            th: Thresholds, ev: dict) -> DeviceDiagnosis:
+            th: Thresholds, ev: dict, blocks: dict | None = None) -> DeviceDiagnosis:
     """Scores, significance, ranking and verdict of one device from its per-fold numbers."""
     n_held = max(float(np.sum(cnt)), 1.0)
     floor = float(np.sqrt(np.mean(floor_axes**2)))
@@ -803,7 +834,20 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
     excess = gap / f2
     rms_b = math.sqrt(max(float(np.sum(base_full)) / (3 * max(n_valid, 1)), 0.0))
 
-    def score(effect, spec, fold_sse, full_sse, tau=None, stochastic=False, usable=True):
+    def local(j):
+        """Material where it happens: in the blocks the candidate improves most."""
+        if blocks is None or j is None:
+            return False
+        bc, bb, cb = blocks["cnt"], blocks["base"], blocks["cand"][j]
+        if not (np.all(np.isfinite(cb)) and bc.sum() > 0):
+            return False
+        k = max(2, int(math.ceil(th.local_share * len(bc))))
+        top = np.argsort(bb - cb)[-k:]
+        nb = max(3.0 * float(bc[top].sum()), 1.0)
+        mb, mc = float(bb[top].sum()) / nb, float(cb[top].sum()) / nb
+        return (mb - f2) / f2 >= th.local_excess and (mb - mc) / max(mb - f2, 1e-300) >= th.local_closure
+
+    def score(effect, spec, fold_sse, full_sse, tau=None, stochastic=False, usable=True, j=None):
         mse_c = fold_sse.sum(-1) / np.maximum(3 * cnt, 1.0)
         hc2 = float(fold_sse.sum() / (3 * n_held))
         diff = mse_b - mse_c
@@ -813,8 +857,10 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
         gain = (hb2 - hc2) / f2
         closure = (hb2 - hc2) / gap if gap > 0 else 0.0
         steady = mean > 0 and (t >= th.t_min or float(np.min(diff)) >= -th.consistency * mean)
-        sig = bool(usable and math.isfinite(hc2) and excess >= th.excess_min and steady
-                   and closure >= th.closure_min and gain >= th.gain_min)
+        material = excess >= th.excess_min and closure >= th.closure_min and gain >= th.gain_min
+        if not material and not stochastic and gain >= th.local_gain_min:
+            material = local(j)
+        sig = bool(usable and math.isfinite(hc2) and steady and material)
         return Candidate(effect=effect, spec=spec, heldout_rms=math.sqrt(max(hc2, 0.0)),
                          significant=sig, gain=gain, closure=closure, t=t,
                          folds_improved=int(np.sum(diff > 0)),
@@ -830,7 +876,7 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
         if not np.all(np.isfinite(cand_fold[j])):
             skipped[effect] = "the fit failed"
             continue
-        det.append(score(effect, spec, cand_fold[j], cand_full[j], tau=taus[j]))
+        det.append(score(effect, spec, cand_fold[j], cand_full[j], tau=taus[j], j=j))
     rw_c = None
     if rw_spec:
         rw_c = score("random_walk", rw_spec, rw_fold, rw_full, stochastic=True)
@@ -887,7 +933,9 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
                 names, specs, r["cand_sse"], r["cand_full"], r["ok"], [None] * len(names),
                 row["diag"]["random_walk"]["spec"] if row["diag"].get("random_walk") else None,
                 r[rw_key], r["rw_full"], r["floors"], float(r["floor_allan"]), float(r["slope"]),
-                int(r["n_valid"]), thresholds, row["diag"].get("evidence", {}))
+                int(r["n_valid"]), thresholds, row["diag"].get("evidence", {}),
+                blocks={"cnt": r["blk_cnt"], "base": r["base_blk"], "cand": r["cand_blk"]}
+                if "blk_cnt" in r else None)
     return d.record()
 
 
@@ -936,7 +984,7 @@ def diagnose(
                         jnp.asarray(floors))
     out = {k: np.asarray(v) for k, v in out.items()}
     if not cands_t:
-        for k in ("cand_sse", "cand_full", "cand_theta"):
+        for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk"):
             out[k] = out[k][:, :0]
     ranges = np.asarray(_range_problems(cands_t, sig)) if cands_t else np.zeros((batch.n_devices, 0))
 
@@ -974,7 +1022,8 @@ def diagnose(
             batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
             out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],
             out["cand_sse"][i], out["cand_full"][i], ok, taus, rw_spec, out["rw_interp"][i],
-            out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev))
+            out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
+            blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]}))
     return Diagnosis(model=model, devices=devices, fit=res, residuals=resid, allan=al, thresholds=th,
                      options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                               "dtemp_window": opts.dtemp_window},
@@ -984,8 +1033,136 @@ def diagnose(
                           "n_valid": np.asarray(batch.n_valid)})
 
 
-__all__ = ["FAMILIES", "Candidate", "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Thresholds",
-           "candidate_specs", "diagnose", "evidence", "explain", "family_of", "noise_floor", "redecide"]
+# --------------------------------------------------------------------------- the ladder (--auto)
+
+
+@dataclass
+class LadderStep:
+    """One rung: the model, the effect added to reach it, and per-device numbers."""
+
+    spec: str
+    added: str | None
+    heldout_rms: list[float]
+    noise_floor: list[float]
+    rms: list[float]
+    verdicts: list[str]
+
+    def record(self, devices) -> dict:
+        return {"spec": self.spec, "added": self.added,
+                "devices": [{"device": dev, "heldout_rms": _num(h), "rms": _num(r),
+                             "noise_floor": _num(f), "verdict": v}
+                            for dev, h, r, f, v in zip(devices, self.heldout_rms, self.rms,
+                                                       self.noise_floor, self.verdicts)]}
+
+
+@dataclass
+class Ladder:
+    """Held-out RMS as terms are added, from the base model to an adequate one."""
+
+    devices: list[str]
+    steps: list[LadderStep]
+    first: Diagnosis   # diagnosis of the base model
+    final: Diagnosis   # diagnosis of the last deterministic model
+
+    @property
+    def spec(self) -> str:
+        return self.steps[-1].spec
+
+    def records(self) -> list[dict]:
+        return [s.record(self.devices) for s in self.steps]
+
+    def table_rows(self) -> list[tuple[str, str, float, float, int]]:
+        """(added, spec, median held-out, median floor, adequate count) per rung."""
+        return [(s.added or "(base)", s.spec, float(np.median(s.heldout_rms)),
+                 float(np.median(s.noise_floor)), sum(v == "adequate" for v in s.verdicts))
+                for s in self.steps]
+
+    def html_table(self) -> str:
+        import html as _html
+
+        rows = "".join(
+            f"<tr><td class=l>{_html.escape(a)}</td><td class=l><code>{_html.escape(sp)}</code></td>"
+            f"<td>{h:.3g}</td><td>{f:.3g}</td><td>{k}/{len(self.devices)}</td></tr>"
+            for a, sp, h, f, k in self.table_rows())
+        return ("<table><tr><th class=l>added</th><th class=l>model</th><th>median held-out RMS</th>"
+                f"<th>median noise floor</th><th>adequate</th></tr>{rows}</table>")
+
+
+def _step(diag: Diagnosis, added: str | None) -> LadderStep:
+    return LadderStep(spec=diag.spec, added=added,
+                      heldout_rms=[d.heldout_rms for d in diag.devices],
+                      noise_floor=[d.noise_floor for d in diag.devices],
+                      rms=[d.rms for d in diag.devices], verdicts=[d.verdict for d in diag.devices])
+
+
+def choose_effect(diag: Diagnosis) -> str | None:
+    """The effect to add for a batch: named best by most devices missing an effect
+    (ties: the lower median held-out RMS)."""
+    votes: dict[str, list[float]] = {}
+    for d in diag.devices:
+        if d.verdict == "missing_effect" and d.best is not None:
+            votes.setdefault(d.best.effect, []).append(d.best.heldout_rms / max(d.noise_floor, 1e-300))
+    if not votes:
+        return None
+    return min(votes, key=lambda k: (-len(votes[k]), float(np.median(votes[k]))))
+
+
+def diagnose_auto(
+    model: ErrorModel | str,
+    batch: Batch | Recording | list[Recording],
+    candidates: list[str] | None = None,
+    *,
+    max_steps: int = 6,
+    thresholds: Thresholds | None = None,
+    progress=None,
+    **fit_options,
+) -> Ladder:
+    """Repeat "add the best significant candidate" until every device is adequate.
+
+    One model for the whole batch: each rung adds the effect that most
+    devices missing an effect name as their best. A random walk ends the
+    ladder (its rung reports the smoother's held-out numbers). ``progress``
+    is called with a line of text before each diagnosis.
+    """
+    from .fit import _as_batch
+
+    if isinstance(model, str):
+        model = ErrorModel.from_spec(model)
+    batch = _as_batch(batch)
+    th = thresholds or Thresholds()
+    if "dtemp_window" not in fit_options:
+        fit_options["dtemp_window"] = suggest_dtemp_window(batch)
+    say = progress or (lambda _text: None)
+    say(f"diagnosing {model.spec}")
+    diag = diagnose(model, batch, candidates, thresholds=th, **fit_options)
+    first = diag
+    steps = [_step(diag, None)]
+    for _ in range(max_steps):
+        effect = choose_effect(diag)
+        if effect is None:
+            break
+        if effect == "random_walk":
+            rws = [d.random_walk for d in diag.devices]
+            h = [c.heldout_rms if c is not None else d.heldout_rms for c, d in zip(rws, diag.devices)]
+            f = [d.noise_floor for d in diag.devices]
+            verdicts = ["adequate" if (hh**2 - ff**2) / max(ff**2, 1e-300) < th.excess_min
+                        else "missing_effect" for hh, ff in zip(h, f)]
+            steps.append(LadderStep(spec=(diag.model + "random_walk").spec, added="random_walk",
+                                    heldout_rms=h, noise_floor=f,
+                                    rms=[c.rms if c is not None else d.rms for c, d in zip(rws, diag.devices)],
+                                    verdicts=verdicts))
+            break
+        spec = next(c.spec for d in diag.devices for c in d.candidates if c.effect == effect)
+        say(f"adding {effect}: diagnosing {spec}")
+        diag = diagnose(spec, batch, candidates, thresholds=th, **fit_options)
+        steps.append(_step(diag, effect))
+    return Ladder(devices=[d.device for d in first.devices], steps=steps, first=first, final=diag)
+
+
+__all__ = ["FAMILIES", "Candidate", "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Ladder",
+           "LadderStep", "Thresholds", "candidate_specs", "choose_effect", "diagnose",
+           "diagnose_auto", "evidence", "explain", "family_of", "noise_floor", "redecide",
+           "suggest_dtemp_window", "temperature_quantum"]
 
 # jaxtyping names used in annotations only
 _ = (Array, Int)

@@ -1,0 +1,391 @@
+"""Figures and self-contained HTML reports of a diagnosis.
+
+Per device: the residual of the base model against time, temperature
+(heating and cooling coloured), dT/dt, input rate and specific force (when
+the data has them); the Allan deviation of the residual with the noise
+floor; the candidates' held-out RMS against the base model and the floor;
+and the model ladder when the diagnosis came from ``--auto``. A batch gets a
+summary page: how many devices are adequate, the distribution of every
+coefficient across devices and the outlier devices.
+
+Images are embedded as base64 PNG, so each page is one file that can be
+mailed or archived; every file is written atomically (a temporary file in
+the same folder, then renamed).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import math
+import os
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from .data import Batch
+
+AXES = ("x", "y", "z")
+COLORS = ("tab:blue", "tab:orange", "tab:green")
+#: Most points drawn per scatter (the rest are thinned evenly; bin means are drawn on top).
+MAX_POINTS = 3000
+
+
+# --------------------------------------------------------------------------- plumbing
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def figure_png(fig) -> str:
+    """A matplotlib figure as a base64 PNG string (the figure is closed)."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    _plt().close(fig)
+    return base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def write_atomic(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` to ``path`` through a temporary file and a rename (never half-written)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+        raise
+    return path
+
+
+def _thin(n: int) -> np.ndarray:
+    step = max(1, n // MAX_POINTS)
+    return np.arange(0, n, step)
+
+
+def _binned(x, y, bins=60):
+    """Mean of ``y`` in equal-count bins of ``x`` (for a readable trend over a cloud)."""
+    order = np.argsort(x)
+    xs, ys = x[order], y[order]
+    k = max(1, len(xs) // bins)
+    m = len(xs) // k * k
+    if m == 0:
+        return xs, ys
+    return xs[:m].reshape(-1, k).mean(1), ys[:m].reshape(-1, k).mean(1)
+
+
+def _scatter_vs(ax, x, e, xlabel, color_by=None):
+    idx = _thin(len(x))
+    for i in range(3):
+        if color_by is None:
+            ax.plot(x[idx], e[idx, i], ".", ms=1.5, alpha=0.25, color=COLORS[i])
+        bx, by = _binned(x, e[:, i])
+        ax.plot(bx, by, "-", lw=1.5, color=COLORS[i], label=f"g{AXES[i]} (bin mean)")
+    if color_by is not None:
+        for val, col, lab in ((1.0, "tab:red", "heating"), (-1.0, "tab:blue", "cooling")):
+            sel = idx[color_by[idx] == val]
+            ax.plot(x[sel], e[sel].mean(1), ".", ms=1.5, alpha=0.3, color=col, label=lab)
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel("residual (rad/s)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, markerscale=4)
+
+
+# --------------------------------------------------------------------------- figures
+
+
+def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, str]:
+    """The figures of device ``i`` as {title: base64 PNG}."""
+    plt = _plt()
+    d = diagnosis.devices[i]
+    n = int(batch.n_valid[i])
+    rec = batch.recording(i)
+    e = np.asarray(diagnosis.residuals[i, :n])
+    t = rec.t - rec.t[0]
+    sig = diagnosis.fit.signals(batch)
+    out: dict[str, str] = {}
+
+    fig, ax = plt.subplots(figsize=(9, 3.2))
+    idx = _thin(n)
+    for k in range(3):
+        ax.plot(t[idx] / 60.0, e[idx, k], lw=0.6, color=COLORS[k], label=f"g{AXES[k]}")
+    ax.axhline(d.noise_floor, color="k", ls=":", lw=0.8, label="± noise floor")
+    ax.axhline(-d.noise_floor, color="k", ls=":", lw=0.8)
+    ax.set_xlabel("time (min)")
+    ax.set_ylabel("residual (rad/s)")
+    ax.set_title(f"{d.device}: residual of {diagnosis.spec}", fontsize=9)
+    ax.grid(alpha=0.3)
+    if rec.temp is not None:
+        ax2 = ax.twinx()
+        ax2.plot(t[idx] / 60.0, rec.temp[idx], color="0.5", lw=0.8)
+        ax2.set_ylabel("temp (°C)", color="0.4")
+    ax.legend(fontsize=7, loc="upper left")
+    out["Residual against time"] = figure_png(fig)
+
+    if rec.temp is not None:
+        heat = None if sig.heating is None else np.asarray(sig.heating[i, :n])
+        fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
+        _scatter_vs(axs[0], rec.temp, e, "temperature (°C)", color_by=heat)
+        axs[0].set_title("residual vs temperature (heating red, cooling blue)", fontsize=9)
+        if sig.dtemp is not None:
+            _scatter_vs(axs[1], np.asarray(sig.dtemp[i, :n]) * 60.0, e, "dT/dt (°C/min)")
+            axs[1].set_title("residual vs dT/dt", fontsize=9)
+        out["Residual against temperature and dT/dt"] = figure_png(fig)
+
+    moving = rec.rate is not None and np.max(np.abs(rec.rate)) > 1e-3
+    varying_f = rec.accel is not None and np.ptp(rec.accel, axis=0).max() > 1.0
+    if moving or varying_f:
+        fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
+        if moving:
+            for k in range(3):
+                idk = _thin(n)
+                axs[0].plot(rec.rate[idk, k], e[idk, k], ".", ms=1.5, alpha=0.3, color=COLORS[k],
+                            label=f"g{AXES[k]} vs r{AXES[k]}")
+            axs[0].set_xlabel("input rate (rad/s)")
+            axs[0].set_ylabel("residual (rad/s)")
+            axs[0].grid(alpha=0.3)
+            axs[0].legend(fontsize=7, markerscale=4)
+            axs[0].set_title("residual vs input rate (own axis)", fontsize=9)
+        else:
+            axs[0].set_axis_off()
+        if varying_f:
+            fn = np.linalg.norm(rec.accel, axis=1)
+            for k in range(3):
+                idk = _thin(n)
+                axs[1].plot(rec.accel[idk, k] / np.maximum(fn[idk], 1e-9), e[idk, k], ".", ms=1.5,
+                            alpha=0.3, color=COLORS[k], label=f"g{AXES[k]} vs a{AXES[k]}/|a|")
+            axs[1].set_xlabel("specific force direction (a/|a|)")
+            axs[1].set_ylabel("residual (rad/s)")
+            axs[1].grid(alpha=0.3)
+            axs[1].legend(fontsize=7, markerscale=4)
+            axs[1].set_title("residual vs specific force", fontsize=9)
+        else:
+            axs[1].set_axis_off()
+        out["Residual against input rate and specific force"] = figure_png(fig)
+
+    # Allan deviation of the residual with the floor
+    al = diagnosis.allan
+    tau = np.asarray(al.tau)[i]
+    adev = np.asarray(al.adev)[i]
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for k in range(3):
+        ok = np.isfinite(adev[k])
+        ax.loglog(tau[k][ok], adev[k][ok], "o-", ms=2.5, lw=1, color=COLORS[k], label=f"g{AXES[k]}")
+    ok = np.isfinite(tau[0])
+    if ok.any():
+        dt = float(tau[0][ok][0])
+        tt = tau[0][ok]
+        ax.loglog(tt, d.noise_floor * np.sqrt(dt / tt), "k--", lw=1,
+                  label=f"white noise at the floor ({d.noise_floor:.2g} rad/s)")
+    ax.set_xlabel("τ (s)")
+    ax.set_ylabel("Allan deviation of residual (rad/s)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.set_title(f"long-τ slope {d.allan_slope:+.2f} (−½ white, 0 flicker, +½ random walk)", fontsize=9)
+    ax.legend(fontsize=7)
+    out["Allan deviation of the residual"] = figure_png(fig)
+
+    # candidates / ladder
+    fig, ax = plt.subplots(figsize=(8, 0.6 + 0.28 * (len(d.candidates) + 1)))
+    labels = [f"{diagnosis.spec} (base)"] + [c.effect for c in d.candidates]
+    vals = [d.heldout_rms] + [c.heldout_rms for c in d.candidates]
+    cols = ["0.6"] + ["tab:red" if c.significant else "tab:gray" for c in d.candidates]
+    y = np.arange(len(labels))[::-1]
+    ax.barh(y, vals, color=cols)
+    ax.set_yticks(y, labels, fontsize=7)
+    ax.axvline(d.noise_floor, color="k", ls="--", lw=1, label="noise floor")
+    ax.set_xlabel("held-out RMS (rad/s); red = significant")
+    ax.set_xlim(0, max(vals + [d.noise_floor]) * 1.05 if vals else 1)
+    ax.legend(fontsize=7)
+    out["Candidates: held-out RMS with each term added"] = figure_png(fig)
+
+    if ladder is not None and len(ladder.steps) > 1:
+        out["Model ladder"] = ladder_png(ladder, device=i)
+    return out
+
+
+def ladder_png(ladder, device: int | None = None) -> str:
+    """Held-out RMS as terms are added (one line per device, or one device)."""
+    plt = _plt()
+    fig, ax = plt.subplots(figsize=(7, 3.6))
+    specs = [s.spec for s in ladder.steps]
+    x = np.arange(len(specs))
+    h = np.array([s.heldout_rms for s in ladder.steps])  # (steps, devices)
+    fl = np.array([s.noise_floor for s in ladder.steps])
+    devs = range(h.shape[1]) if device is None else [device]
+    for k in devs:
+        ax.plot(x, h[:, k], "o-", lw=1.2, label=ladder.devices[k] if device is not None or h.shape[1] <= 8 else None)
+        ax.plot(x, fl[:, k], ":", color="0.4", lw=0.8)
+    ax.set_xticks(x, [s.added or "base" for s in ladder.steps], rotation=20, fontsize=8)
+    ax.set_ylabel("held-out RMS (rad/s)")
+    ax.set_yscale("log")
+    ax.grid(alpha=0.3, which="both")
+    ax.set_title("model ladder (dotted: noise floor)", fontsize=9)
+    if device is not None or h.shape[1] <= 8:
+        ax.legend(fontsize=7)
+    return figure_png(fig)
+
+
+# --------------------------------------------------------------------------- pages
+
+_CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto;color:#222}
+h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em}table{border-collapse:collapse;font-size:.85em}
+td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}
+td.l,th.l{text-align:left}.adequate{color:#1a7f37}.missing_effect{color:#b42318}
+.expl{background:#f7f7f7;border-left:4px solid #888;padding:.6em 1em}img{max-width:100%}"""
+
+
+def _page(title: str, body: str) -> str:
+    return (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>"
+            f"<style>{_CSS}</style></head><body>{body}</body></html>")
+
+
+def _fmt(x) -> str:
+    return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
+
+
+def device_page(diagnosis, batch: Batch, i: int, ladder=None) -> str:
+    d = diagnosis.devices[i]
+    rows = "".join(
+        f"<tr><td class=l>{html.escape(c.effect)}</td><td class=l>{html.escape(c.spec)}</td>"
+        f"<td>{_fmt(c.heldout_rms)}</td><td>{_fmt(c.closure * 100)} %</td><td>{_fmt(c.t)}</td>"
+        f"<td>{'yes' if c.significant else 'no'}</td></tr>" for c in d.candidates)
+    skipped = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in d.skipped.items())
+    body = [
+        f"<h1>{html.escape(d.device)} — <span class={d.verdict}>{d.verdict}</span></h1>",
+        f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status {html.escape(d.status)}. "
+        f"RMS {_fmt(d.rms)}, held-out RMS {_fmt(d.heldout_rms)}, noise floor {_fmt(d.noise_floor)} "
+        f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
+        f"<p class=expl>{html.escape(d.explanation)}</p>",
+        "<h2>Candidates (best first)</h2><table><tr><th class=l>effect</th><th class=l>model</th>"
+        "<th>held-out RMS</th><th>gap closed</th><th>paired t</th><th>significant</th></tr>"
+        f"{rows}</table>",
+    ]
+    if skipped:
+        body.append(f"<p>Not tried:</p><ul>{skipped}</ul>")
+    for title, png in device_figures(diagnosis, batch, i, ladder).items():
+        body.append(f"<h2>{html.escape(title)}</h2><img alt='{html.escape(title)}' "
+                    f"src='data:image/png;base64,{png}'>")
+    body.append("<p><a href='index.html'>batch summary</a></p>")
+    return _page(f"diffgyro diagnosis: {d.device}", "".join(body))
+
+
+def _coefficients(fit) -> dict[str, np.ndarray]:
+    """Every coefficient label -> values across devices."""
+    out: dict[str, list] = {}
+    for i in range(fit.n_devices):
+        for ax, vals in fit.param_dict(i).items():
+            for lab, v in vals.items():
+                out.setdefault(f"{ax}: {lab}" if ax != "shared" else lab, []).append(v)
+    return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def outliers(diagnosis, z: float = 5.0) -> list[tuple[str, str]]:
+    """Devices far from the batch: robust z (median/MAD) of held-out/floor or of a coefficient."""
+    out = []
+    devs = [d.device for d in diagnosis.devices]
+    if len(devs) < 4:
+        return out
+    ratio = np.array([d.heldout_rms / max(d.noise_floor, 1e-300) for d in diagnosis.devices])
+    series = {"held-out RMS / noise floor": ratio, **_coefficients(diagnosis.fit)}
+    for name, v in series.items():
+        med = np.nanmedian(v)
+        mad = 1.4826 * np.nanmedian(np.abs(v - med))
+        if not np.isfinite(mad) or mad <= 0:
+            continue
+        for k in np.flatnonzero(np.abs(v - med) > z * mad):
+            out.append((devs[k], f"{name} = {v[k]:.3g} (batch median {med:.3g})"))
+    return out
+
+
+def summary_page(diagnosis, ladder=None) -> str:
+    plt = _plt()
+    devs = diagnosis.devices
+    counts = diagnosis.verdicts()
+    body = [f"<h1>diffgyro diagnosis of {len(devs)} device(s)</h1>",
+            f"<p>Model <code>{html.escape(diagnosis.spec)}</code>: {counts['adequate']} adequate, "
+            f"{counts['missing_effect']} missing an effect.</p>"]
+    best: dict[str, int] = {}
+    for d in devs:
+        if d.best is not None:
+            best[d.best.effect] = best.get(d.best.effect, 0) + 1
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3))
+    axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red"])
+    axs[0].set_title("verdicts", fontsize=9)
+    if best:
+        axs[1].bar(list(best), list(best.values()), color="tab:red")
+        axs[1].tick_params(axis="x", rotation=20, labelsize=8)
+    axs[1].set_title("missing effect named (best candidate)", fontsize=9)
+    body.append(f"<img src='data:image/png;base64,{figure_png(fig)}'>")
+
+    rows = "".join(
+        f"<tr><td class=l><a href='{_slug(d.device)}.html'>{html.escape(d.device)}</a></td>"
+        f"<td class='l {d.verdict}'>{d.verdict}</td><td>{_fmt(d.heldout_rms)}</td>"
+        f"<td>{_fmt(d.noise_floor)}</td><td class=l>{html.escape(d.best.effect if d.best else '')}</td>"
+        f"<td class=l>{html.escape(', '.join(c.effect for c in d.alternatives))}</td></tr>" for d in devs)
+    body.append("<h2>Devices</h2><table><tr><th class=l>device</th><th class=l>verdict</th>"
+                "<th>held-out RMS</th><th>noise floor</th><th class=l>add</th>"
+                f"<th class=l>close alternatives</th></tr>{rows}</table>")
+
+    coefs = _coefficients(diagnosis.fit)
+    if coefs and len(devs) > 1:
+        names = list(coefs)
+        ncol = 4
+        nrow = math.ceil(len(names) / ncol)
+        fig, axs = plt.subplots(nrow, ncol, figsize=(12, 2.2 * nrow), squeeze=False)
+        for ax, name in zip(axs.flat, names):
+            v = coefs[name]
+            ax.hist(v[np.isfinite(v)], bins=min(20, max(3, len(v) // 2)), color="tab:blue")
+            ax.set_title(name, fontsize=7)
+            ax.tick_params(labelsize=6)
+        for ax in list(axs.flat)[len(names):]:
+            ax.set_axis_off()
+        fig.tight_layout()
+        body.append("<h2>Coefficients across devices</h2>"
+                    f"<img src='data:image/png;base64,{figure_png(fig)}'>")
+    out = outliers(diagnosis)
+    body.append("<h2>Outlier devices</h2>" + (
+        "<ul>" + "".join(f"<li>{html.escape(a)}: {html.escape(b)}</li>" for a, b in out) + "</ul>"
+        if out else "<p>None (robust z ≤ 5 on held-out/floor and on every coefficient).</p>"))
+    if ladder is not None and len(ladder.steps) > 1:
+        body.append("<h2>Model ladder</h2>" + ladder.html_table()
+                    + f"<img src='data:image/png;base64,{ladder_png(ladder)}'>")
+    return _page("diffgyro diagnosis summary", "".join(body))
+
+
+def _slug(name: str) -> str:
+    keep = "".join(ch if ch.isalnum() or ch in "-_." else "_" for ch in name)
+    return keep or "device"
+
+
+def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=None) -> list[Path]:
+    """Write ``index.html`` (batch summary) and one page per device into ``directory``.
+
+    Returns the paths written. Each page embeds its figures (base64 PNG).
+    """
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    paths = []
+    seen: set[str] = set()
+    for i, d in enumerate(diagnosis.devices):
+        slug = _slug(d.device)
+        while slug in seen:
+            slug += "_"
+        seen.add(slug)
+        paths.append(write_atomic(directory / f"{slug}.html", device_page(diagnosis, batch, i, ladder)))
+    paths.insert(0, write_atomic(directory / "index.html", summary_page(diagnosis, ladder)))
+    return paths
+
+
+__all__ = ["device_figures", "device_page", "figure_png", "ladder_png", "outliers", "summary_page",
+           "write_atomic", "write_report"]
