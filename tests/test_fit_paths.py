@@ -194,3 +194,21 @@ def test_noise_floor_equals_nanmedian_definition(n):
     for k in range(1, x.size + 1):
         got = float(masked_median(jnp.asarray(x[:k]), jnp.ones(k, bool)))
         assert got == float(np.nanmedian(x[:k])) or np.isnan(got) == np.isnan(np.nanmedian(x[:k]))
+
+
+def test_reference_rate_is_subtracted_for_bias_only_models():
+    # the fit is of gyro − rate even when no column reads the rate
+    rng = np.random.default_rng(7)
+    recs = []
+    for k in range(2):
+        n = 2400
+        t = np.arange(n) * 0.5
+        temp = 25 + 10 * np.sin(t / 300 + k)
+        rate = np.repeat(rng.choice([-1.0, 0.0, 1.0], size=(n // 100, 3)), 100, axis=0)
+        bias = 1e-3 * (1 + 0.5 * (temp - 25) / 10)
+        gyro = rate + bias[:, None] + 1e-5 * rng.normal(size=(n, 3))
+        recs.append(Recording(t=t, gyro=gyro, temp=temp, rate=rate, device=f"r{k}"))
+    batch = Batch.from_recordings(recs)
+    sums = fit("bias_poly(1)", batch, path="sums")
+    assert_same(fit("bias_poly(1)", batch, path="direct"), sums)
+    assert float(np.max(np.asarray(sums.rms))) < 1e-4

@@ -32,6 +32,8 @@ is part of the compiled shape.
 from __future__ import annotations
 
 import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -419,8 +421,9 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
     devices = jax.local_devices()
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     ramp = np.arange(n)
-    outs = []
-    for j, start in enumerate(range(0, d, g)):
+
+    def run(j: int) -> dict:
+        start = j * g
         stop = min(start + g, d)
         sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
                                                                     stop - 1)
@@ -439,6 +442,14 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
             else:
                 args.append(jax.device_put(np.ascontiguousarray(np.asarray(a[sl], dtype)), dev))
         args.append(jax.device_put(nv.astype(np.int32), dev))
-        outs.append((stop - start, _group(model, layout, opts, c, prefix, *args)))
-    keys = outs[0][1].keys()
-    return {k: np.concatenate([np.asarray(o[k])[:m] for m, o in outs], axis=0) for k in keys}
+        out = _group(model, layout, opts, c, prefix, *args)
+        return {k: np.asarray(v)[:stop - start] for k, v in out.items()}
+
+    n_groups = -(-d // g)
+    if n_groups == 1:
+        outs = [run(0)]
+    else:  # XLA runs each call on the calling thread (on CPU): one caller per core
+        workers = min(n_groups, max(len(devices), os.cpu_count() or 1))
+        with ThreadPoolExecutor(workers) as pool:
+            outs = list(pool.map(run, range(n_groups)))
+    return {k: np.concatenate([o[k] for o in outs], axis=0) for k in outs[0]}

@@ -1,0 +1,626 @@
+"""diffgyro against the tools users would otherwise pick, and against the memory-bandwidth limit.
+
+Every case times diffgyro and its baseline(s) in this one process,
+interleaved (candidate, then each baseline, repeated), after a warm-up, and
+reports medians. ``compile_s`` is the first call's time minus the median
+(tracing + XLA compilation; the persistent compilation cache is not used).
+The machine's memory read bandwidth is measured in the same run (numpy and
+JAX sums over a 1 GB array, the faster one counts); a case's bandwidth limit
+is the time to read its input once, and ``fraction_of_bandwidth_limit`` is
+limit / diffgyro_s.
+
+Per-device Python loops (numpy.polyfit, scipy least_squares, filterpy,
+allantools) run on a subset of the devices (or of the samples, for the
+per-sample filterpy loop); their time is scaled linearly to the whole case
+and the subset is stated in the row (``baseline_subset``). Answers are
+compared on that subset.
+
+    python benchmarks/run.py --quick                   # < 3 minutes on 2 CPU cores
+    python benchmarks/run.py --json results.json       # the issue's sizes
+    python benchmarks/run.py --cases bias_poly3,allan  # a selection
+    python benchmarks/run.py --host-devices 2          # shard over 2 forced host devices
+
+Runs unchanged on a GPU machine (the backend and device are printed).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# --------------------------------------------------------------------------- sizes
+
+#: case -> (devices, samples) for the full run (the issue's sizes) and for --quick.
+FULL = {
+    "bias_poly3": (10_000, 10_000),
+    "s2_regression": (1_000, 10_000),
+    "thermal_lag": (1_000, 10_000),
+    "kalman": (1_000, 100_000),
+    "allan": (100, 1_000_000),
+    "diagnose": (100, 20_000),
+}
+QUICK = {
+    "bias_poly3": (2_000, 10_000),
+    "s2_regression": (200, 10_000),
+    "thermal_lag": (64, 4_000),
+    "kalman": (200, 50_000),
+    "allan": (8, 1_000_000),
+    "diagnose": (8, 5_000),
+}
+#: How many devices (series) the per-device Python baselines run, full / quick.
+SUBSET = {
+    "bias_poly3": (1000, 300),
+    "s2_regression": (1000, 200),
+    "thermal_lag": (24, 6),
+    "kalman": (20_000, 5_000),  # samples of one series through filterpy
+    "allan": (9, 3),
+}
+GOALS = {
+    "bias_poly3": "≥5× faster, coefficients equal to 1e-9 relative, ≥25% of the bandwidth limit",
+    "s2_regression": "≥2× faster than batched numpy normal equations, same answer",
+    "thermal_lag": "≥10× faster than a scipy least_squares loop, same optimum to 1e-8",
+    "kalman": "≥100× faster than a filterpy loop, same estimates",
+    "allan": "≥3× faster than allantools oadev, same values",
+    "diagnose": "report devices/s",
+}
+
+
+def now() -> float:
+    return time.perf_counter()
+
+
+def block(x):
+    import jax
+
+    return jax.block_until_ready(x)
+
+
+def measure(candidate, baselines: dict, repeats: int):
+    """Warm up, then time the candidate and each baseline in turn, ``repeats`` times.
+
+    Returns (first-call time, median candidate time, {name: median baseline time}, outputs).
+    """
+    t0 = now()
+    out_c = candidate()
+    first = now() - t0
+    out_b = {k: f() for k, f in baselines.items()}
+    tc, tb = [], {k: [] for k in baselines}
+    for _ in range(repeats):
+        t0 = now()
+        candidate()
+        tc.append(now() - t0)
+        for k, f in baselines.items():
+            t0 = now()
+            f()
+            tb[k].append(now() - t0)
+    return first, statistics.median(tc), {k: statistics.median(v) for k, v in tb.items()}, \
+        (out_c, out_b)
+
+
+def row(case, devices, samples, dg_s, first_s, baseline, base_s, diff, rel, nbytes, bw, **extra):
+    limit = nbytes / bw if nbytes else None
+    out = {
+        "case": case, "devices": devices, "samples": samples,
+        "diffgyro_s": dg_s, "baseline": baseline, "baseline_s": base_s,
+        "speedup": (base_s / dg_s) if (base_s and dg_s) else None,
+        "max_abs_diff": diff, "max_rel_diff": rel, "bytes": nbytes,
+        "fraction_of_bandwidth_limit": (limit / dg_s) if limit else None,
+        "compile_s": max(first_s - dg_s, 0.0) if first_s is not None else None,
+        "goal": GOALS.get(case.split(":")[0]),
+    }
+    out.update(extra)
+    return out
+
+
+# --------------------------------------------------------------------------- machine
+
+
+def machine_info() -> dict:
+    import jax
+
+    cpu = platform.processor() or ""
+    try:
+        for line in open("/proc/cpuinfo"):
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    dev = jax.devices()[0]
+    return {"cpu": cpu, "cores": os.cpu_count(), "backend": jax.default_backend(),
+            "device": getattr(dev, "device_kind", str(dev)), "n_devices": jax.device_count(),
+            "jax": jax.__version__, "numpy": np.__version__, "python": platform.python_version()}
+
+
+def bandwidth(gigabytes: float = 1.0, repeats: int = 5) -> dict:
+    """Memory read bandwidth (bytes/s): numpy and XLA sums over one large array."""
+    import jax
+    import jax.numpy as jnp
+
+    a = np.ones(int(gigabytes * 1e9) // 8)
+    t_np = []
+    for _ in range(repeats):
+        t0 = now()
+        a.sum()
+        t_np.append(now() - t0)
+    b = jax.device_put(a)
+    f = jax.jit(jnp.sum)
+    block(f(b))
+    t_jx = []
+    for _ in range(repeats):
+        t0 = now()
+        block(f(b))
+        t_jx.append(now() - t0)
+    del b
+    bw_np, bw_jx = a.nbytes / statistics.median(t_np), a.nbytes / statistics.median(t_jx)
+    return {"numpy_GBps": bw_np / 1e9, "jax_GBps": bw_jx / 1e9, "bytes_per_s": max(bw_np, bw_jx)}
+
+
+# --------------------------------------------------------------------------- data
+
+
+def thermal_profiles(rng, devices: int, samples: int, dt: float = 1.0):
+    """Chamber-like temperatures: per device a few ramps and soaks between -20 and 60 °C."""
+    t = np.arange(samples) * dt
+    temp = np.empty((devices, samples))
+    for i in range(devices):
+        knots = np.sort(rng.uniform(0, t[-1], 6))
+        levels = rng.uniform(-20, 60, 8)
+        temp[i] = np.interp(t, np.concatenate([[0], knots, [t[-1]]]), levels)
+    temp += 0.02 * rng.normal(size=temp.shape)
+    return t, temp
+
+
+def own_norm(temp):
+    lo, hi = temp.min(axis=1), temp.max(axis=1)
+    return 0.5 * (lo + hi), np.maximum(0.5 * (hi - lo), 0.5)
+
+
+def make_batch(t, gyro, **signals):
+    from diffgyro import Batch
+
+    d, n = gyro.shape[:2]
+    return Batch(t=np.broadcast_to(t, (d, n)), gyro=gyro, mask=np.ones((d, n), bool),
+                 n_valid=np.full(d, n), devices=tuple(f"d{i}" for i in range(d)), **signals)
+
+
+def compare(a, b):
+    """Largest absolute difference, and largest relative to each row's largest magnitude."""
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    scale = np.max(np.abs(b), axis=-1, keepdims=True)
+    return float(np.max(np.abs(a - b))), float(np.max(np.abs(a - b) / np.where(scale > 0, scale, 1)))
+
+
+# --------------------------------------------------------------------------- cases
+
+
+def case_bias_poly3(devices, samples, subset, repeats, bw, full_fit=True):
+    """bias_poly(3) per axis against numpy.polyfit and numpy.linalg.lstsq loops."""
+    from diffgyro.fit import fit
+
+    rng = np.random.default_rng(1)
+    t, temp = thermal_profiles(rng, devices, samples)
+    centre, scale = own_norm(temp)
+    ts = (temp - centre[:, None]) / scale[:, None]
+    coef = rng.normal(size=(devices, 3, 4)) * np.array([1e-2, 3e-3, 1e-3, 3e-4])
+    gyro = np.empty((devices, samples, 3))
+    for i in range(0, devices, 256):
+        s = slice(i, i + 256)
+        pw = np.stack([ts[s] ** j for j in range(4)], axis=-1)  # (b, n, 4)
+        gyro[s] = np.einsum("bnj,bij->bni", pw, coef[s]) + 1e-4 * rng.normal(size=(pw.shape[0], samples, 3))
+    del ts
+    batch = make_batch(t, gyro, temp=temp)
+    sub = min(subset, devices)
+
+    def candidate():
+        r = fit("bias_poly(3)", batch, noise_floor=False)
+        return np.asarray(block(r.params.beta))
+
+    def polyfit():
+        out = np.empty((sub, 3, 4))
+        for i in range(sub):
+            x = (temp[i] - centre[i]) / scale[i]
+            out[i] = np.polyfit(x, gyro[i], 3)[::-1].T
+        return out
+
+    def lstsq():
+        out = np.empty((sub, 3, 4))
+        for i in range(sub):
+            x = (temp[i] - centre[i]) / scale[i]
+            out[i] = np.linalg.lstsq(np.vander(x, 4, increasing=True), gyro[i], rcond=None)[0].T
+        return out
+
+    first, dg, base, (out_c, out_b) = measure(candidate, {"polyfit": polyfit, "lstsq": lstsq},
+                                              repeats)
+    nbytes = temp.nbytes + gyro.nbytes + batch.mask.nbytes
+    rows = []
+    for name, label in (("polyfit", "numpy.polyfit loop (3 axes per call)"),
+                        ("lstsq", "numpy.linalg.lstsq loop")):
+        diff, rel = compare(out_c[:sub], out_b[name])
+        rows.append(row("bias_poly3", devices, samples, dg, first, label,
+                        base[name] * devices / sub, diff, rel, nbytes, bw,
+                        baseline_subset=f"{sub} devices, scaled",
+                        note="fit(noise_floor=False): coefficients, held-out folds, covariance, "
+                             "status"))
+    if full_fit:
+        # the default fit() also computes the model-free noise floor (a sort per device)
+        def candidate_full():
+            r = fit("bias_poly(3)", batch)
+            return np.asarray(block(r.params.beta))
+
+        first_f, dg_f, _, (out_f, _) = measure(candidate_full, {}, max(3, repeats // 2))
+        diff, rel = compare(out_f[:sub], out_b["lstsq"])
+        rows.append(row("bias_poly3:defaults", devices, samples, dg_f, first_f,
+                        "numpy.linalg.lstsq loop", base["lstsq"] * devices / sub, diff, rel,
+                        nbytes, bw, baseline_subset=f"{sub} devices, scaled",
+                        note="fit() with its defaults, noise floor included"))
+    return rows
+
+
+def local_slope_np(t, y, half):
+    """numpy twin of diffgyro.signals.local_slope (all samples valid)."""
+    n = t.shape[-1]
+    tc = t - t.mean(axis=-1, keepdims=True)
+    yc = y - y.mean(axis=-1, keepdims=True)
+
+    def csum(x):
+        return np.concatenate([np.zeros(x.shape[:-1] + (1,)), np.cumsum(x, axis=-1)], axis=-1)
+
+    i = np.arange(n)
+    lo, hi = np.clip(i - half, 0, n), np.clip(i + half + 1, 0, n)
+    c = [csum(np.broadcast_to(v, y.shape)) for v in (np.ones_like(tc), tc, yc, tc * tc, tc * yc)]
+    s1, st, sy, stt, sty = (x[..., hi] - x[..., lo] for x in c)
+    var = stt - st * st / s1
+    cov = sty - st * sy / s1
+    return np.where(var > 0, cov / np.where(var > 0, var, 1.0), 0.0)
+
+
+def s2_design(temp, temp_ext, rate, t, window=60.0):
+    """numpy regressors of bias_poly(2)+scale_poly(2)+gradient+temp_diff, (d, n, 3, 8)."""
+    centre, scale = own_norm(temp)
+    ts = (temp - centre[:, None]) / scale[:, None]
+    dt = float(np.median(np.diff(t)))
+    half = max(1, int(round(0.5 * window / dt)))
+    dtemp = local_slope_np(t[None, :], temp, half)
+    d, n = temp.shape
+    x = np.empty((d, n, 3, 8))
+    for j in range(3):
+        x[:, :, :, j] = (ts ** j)[:, :, None]
+        x[:, :, :, 3 + j] = rate * (ts ** j)[:, :, None]
+    x[:, :, :, 6] = dtemp[:, :, None]
+    x[:, :, :, 7] = (temp - temp_ext)[:, :, None]
+    return x
+
+
+def case_s2(devices, samples, subset, repeats, bw):
+    """S2's regression (bias_poly(2)+scale_poly(2)+gradient+temp_diff) against batched numpy
+    normal equations."""
+    from diffgyro.fit import fit
+
+    spec = "bias_poly(2)+scale_poly(2)+gradient+temp_diff"
+    rng = np.random.default_rng(2)
+    t, temp = thermal_profiles(rng, devices, samples)
+    temp_ext = 0.7 * temp + 5 + 0.5 * rng.normal(size=temp.shape)
+    steps = rng.choice([-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0], size=(devices, samples // 200 + 1, 3))
+    rate = np.repeat(steps, 200, axis=1)[:, :samples]
+    beta = rng.normal(size=(devices, 3, 8)) * np.array([1e-2, 3e-3, 1e-3, 1e-3, 3e-4, 1e-4, 0.5,
+                                                          1e-4])
+    gyro = np.empty((devices, samples, 3))
+    for i in range(0, devices, 64):
+        s = slice(i, i + 64)
+        x = s2_design(temp[s], temp_ext[s], rate[s], t)
+        gyro[s] = rate[s] + np.einsum("dnip,dip->dni", x, beta[s]) + 1e-4 * rng.normal(
+            size=rate[s].shape)
+    batch = make_batch(t, gyro, temp=temp, temp_ext=temp_ext, rate=rate)
+    sub = min(subset, devices)
+
+    def candidate():
+        r = fit(spec, batch, noise_floor=False)
+        return np.asarray(block(r.params.beta))
+
+    def numpy_normal():
+        out = np.empty((sub, 3, 8))
+        for i in range(0, sub, 32):
+            s = slice(i, min(i + 32, sub))
+            x = s2_design(temp[s], temp_ext[s], rate[s], t)  # (b, n, 3, p)
+            y = gyro[s] - rate[s]
+            xa = np.ascontiguousarray(np.moveaxis(x, 2, 1))  # (b, 3, n, p)
+            a = np.swapaxes(xa, -1, -2) @ xa  # (b, 3, p, p)
+            c = np.einsum("binp,bni->bip", xa, y)
+            d = np.sqrt(np.einsum("...ii->...i", a))
+            z = np.linalg.solve(a / (d[..., :, None] * d[..., None, :]), (c / d)[..., None])
+            out[s] = z[..., 0] / d
+        return out
+
+    first, dg, base, (out_c, out_b) = measure(candidate, {"np": numpy_normal}, repeats)
+    diff, rel = compare(out_c[:sub], out_b["np"])
+    nbytes = temp.nbytes + temp_ext.nbytes + gyro.nbytes + rate.nbytes + batch.mask.nbytes + t.nbytes
+    return [row("s2_regression", devices, samples, dg, first,
+                "batched numpy normal equations (regressors built in numpy)",
+                base["np"] * devices / sub, diff, rel, nbytes, bw,
+                baseline_subset=f"{sub} devices, scaled" if sub < devices else "all devices",
+                note=f"{spec}; fit(noise_floor=False) with held-out folds")]
+
+
+def case_thermal_lag(devices, samples, subset, repeats, bw):
+    """bias_poly(1)+thermal_lag (one shared time constant) against scipy least_squares per device."""
+    from scipy.optimize import least_squares
+    from scipy.signal import lfilter
+
+    from diffgyro.fit import fit
+
+    spec = "bias_poly(1)+thermal_lag"
+    rng = np.random.default_rng(3)
+    dt = 1.0
+    t, temp = thermal_profiles(rng, devices, samples, dt)
+    centre, scale = own_norm(temp)
+    tau = rng.uniform(100.0, 600.0, devices)
+
+    def lag(x, tau_):
+        a = -np.expm1(-dt / tau_)
+        y, _ = lfilter([a], [1.0, -(1.0 - a)], x[1:], zi=[(1.0 - a) * x[0]])
+        return np.concatenate([x[:1], y])
+
+    gyro = np.empty((devices, samples, 3))
+    coef = rng.normal(size=(devices, 3, 2)) * np.array([1e-2, 3e-3])
+    for i in range(devices):
+        lag_s = (lag(temp[i], tau[i]) - centre[i]) / scale[i]
+        gyro[i] = coef[i, :, 0] + np.outer(lag_s, coef[i, :, 1]) + 1e-4 * rng.normal(size=(samples, 3))
+    batch = make_batch(t, gyro, temp=temp)
+    sub = min(subset, devices)
+
+    def candidate():
+        r = fit(spec, batch, noise_floor=False)
+        return np.asarray(block(r.params.beta)), np.exp(np.asarray(r.params.theta[:, 0]))
+
+    def scipy_loop():
+        betas, taus = np.empty((sub, 3, 3)), np.empty(sub)
+        for i in range(sub):
+            ts = (temp[i] - centre[i]) / scale[i]
+            y = gyro[i]
+
+            def resid(p, i=i, ts=ts, y=y):
+                lag_s = (lag(temp[i], np.exp(p[9])) - centre[i]) / scale[i]
+                x = np.stack([np.ones_like(ts), ts, lag_s - ts], axis=1)
+                return (y - x @ p[:9].reshape(3, 3).T).ravel()
+
+            tau0 = np.clip(t[-1] / 30.0, 10.0, 3600.0)  # diffgyro's nonlinear_init
+            lag0 = (lag(temp[i], tau0) - centre[i]) / scale[i]
+            x0 = np.stack([np.ones_like(ts), ts, lag0 - ts], axis=1)
+            b0 = np.linalg.lstsq(x0, y, rcond=None)[0].T
+            sol = least_squares(resid, np.concatenate([b0.ravel(), [np.log(tau0)]]),
+                                xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=2000)
+            betas[i], taus[i] = sol.x[:9].reshape(3, 3), np.exp(sol.x[9])
+        return betas, taus
+
+    first, dg, base, (out_c, out_b) = measure(candidate, {"scipy": scipy_loop}, repeats)
+    (b_c, tau_c), (b_s, tau_s) = out_c, out_b["scipy"]
+    diff, rel = compare(b_c[:sub], b_s)
+    tau_rel = float(np.max(np.abs(tau_c[:sub] - tau_s) / tau_s))
+    nbytes = temp.nbytes + gyro.nbytes + batch.mask.nbytes
+    return [row("thermal_lag", devices, samples, dg, first,
+                "scipy.optimize.least_squares loop (all 10 parameters, lfilter lag)",
+                base["scipy"] * devices / sub, diff, max(rel, tau_rel), nbytes, bw,
+                baseline_subset=f"{sub} devices, scaled", tau_max_rel_diff=tau_rel,
+                note=f"{spec}; diffgyro also refits the time constant on 5 held-out folds")]
+
+
+def case_kalman(devices, samples, subset, repeats, bw):
+    """Random-walk bias Kalman filter of every device and axis against filterpy and a numpy loop."""
+    import jax
+    import jax.numpy as jnp
+    from filterpy.kalman import KalmanFilter
+
+    from diffgyro.kalman import rw_filter
+
+    rng = np.random.default_rng(4)
+    dt, q, r, p0 = 0.1, 1e-9, 1e-6, 1e-4
+    series = devices * 3
+    y = np.cumsum(np.sqrt(q * dt) * rng.normal(size=(series, samples)), axis=1)
+    y += np.sqrt(r) * rng.normal(size=y.shape) + 1e-3
+    t = np.arange(samples) * dt
+    nb = min(subset, samples)
+
+    @jax.jit
+    def filt(y, t):
+        obs = jnp.ones(y.shape[-1], bool)
+        x0 = jnp.zeros((y.shape[-1], 0), y.dtype)
+        return jax.vmap(lambda yy: rw_filter(yy, x0, obs, t, q, r, p0).a_y)(y)
+
+    yj, tj = jax.device_put(y), jax.device_put(t)
+
+    def candidate():
+        return np.asarray(block(filt(yj, tj)))
+
+    def numpy_loop():  # one time loop, all series as a vector (a strong numpy baseline)
+        a = np.zeros(series)
+        p = np.full(series, p0)
+        out = np.empty_like(y)
+        for k in range(samples):
+            if k:
+                p = p + q * dt
+            f = p + r
+            a = a + p / f * (y[:, k] - a)
+            p = p * r / f
+            out[:, k] = a
+        return out
+
+    def filterpy_loop():  # one series, nb samples (per-sample Python objects)
+        kf = KalmanFilter(dim_x=1, dim_z=1)
+        kf.x = np.zeros((1, 1))
+        kf.F = np.eye(1)
+        kf.H = np.eye(1)
+        kf.R = np.eye(1) * r
+        kf.Q = np.eye(1) * q * dt
+        kf.P = np.eye(1) * p0
+        out = np.empty(nb)
+        for k in range(nb):
+            if k:
+                kf.predict()
+            kf.update(y[0, k])
+            out[k] = kf.x[0, 0]
+        return out
+
+    first, dg, base, (out_c, out_b) = measure(candidate, {"np": numpy_loop, "fp": filterpy_loop},
+                                              repeats)
+    nbytes = y.nbytes + t.nbytes
+    diff_np, rel_np = compare(out_c, out_b["np"])
+    diff_fp, rel_fp = compare(out_c[:1, :nb], out_b["fp"][None])
+    return [
+        row("kalman", devices, samples, dg, first, "filterpy KalmanFilter per-sample loop",
+            base["fp"] * series * samples / nb, diff_fp, rel_fp, nbytes, bw,
+            baseline_subset=f"1 series × {nb} samples, scaled to {series} series",
+            note="filtered bias of every device and axis (lax.scan, vmapped)"),
+        row("kalman", devices, samples, dg, first,
+            "numpy time loop, all series vectorised", base["np"], diff_np, rel_np, nbytes, bw,
+            baseline_subset="all"),
+    ]
+
+
+def case_allan(devices, samples, subset, repeats, bw):
+    """Overlapping Allan deviation of every device and axis against allantools.oadev."""
+    import allantools
+    import jax
+    import jax.numpy as jnp
+
+    from diffgyro import allan
+
+    rng = np.random.default_rng(5)
+    dt = 0.01
+    y = 1e-3 * rng.normal(size=(devices, 3, samples))
+    y += np.cumsum(1e-6 * rng.normal(size=y.shape), axis=-1)
+    m = allan.default_m(samples)
+    mj = jnp.asarray(m)
+    yj = jax.device_put(y)
+    sub = min(subset, devices * 3)
+    flat = y.reshape(-1, samples)
+
+    def candidate():
+        adev, _ = allan.oadev(yj, dt, mj)
+        return np.asarray(block(adev)).reshape(-1, len(m))
+
+    def at_loop():
+        return np.stack([allantools.oadev(flat[i], rate=1.0 / dt, data_type="freq",
+                                          taus=m * dt)[1] for i in range(sub)])
+
+    first, dg, base, (out_c, out_b) = measure(candidate, {"at": at_loop}, repeats)
+    diff, rel = compare(out_c[:sub], out_b["at"])
+    return [row("allan", devices, samples, dg, first, "allantools.oadev loop",
+                base["at"] * devices * 3 / sub, diff, rel, y.nbytes, bw,
+                baseline_subset=f"{sub} series, scaled to {devices * 3}",
+                note=f"{len(m)} cluster sizes, all devices × 3 axes")]
+
+
+def case_diagnose(devices, samples, subset, repeats, bw):
+    """diagnose() with every candidate effect: devices per second."""
+    try:
+        from diffgyro.diagnose import diagnose
+    except ImportError:
+        return [row("diagnose", devices, samples, None, None, None, None, None, None, 0, bw,
+                    note="diffgyro.diagnose not available yet")]
+    from diffgyro.simulate import simulate
+
+    batch, _ = simulate("thermal", devices, effects="bias_poly(2)+gradient", seed=6,
+                        sample_rate=1.0, duration=float(samples))
+
+    def candidate():
+        return diagnose("bias_poly(2)", batch)
+
+    first, dg, _, _ = measure(candidate, {}, repeats)
+    nbytes = sum(getattr(batch, k).nbytes for k in batch.signals if getattr(batch, k) is not None)
+    return [row("diagnose", devices, int(batch.length), dg, first, None, None, None, None,
+                nbytes, bw, devices_per_s=devices / dg,
+                note="diagnose('bias_poly(2)') with every candidate; thermal plan")]
+
+
+CASES = {
+    "bias_poly3": case_bias_poly3,
+    "s2_regression": case_s2,
+    "thermal_lag": case_thermal_lag,
+    "kalman": case_kalman,
+    "allan": case_allan,
+    "diagnose": case_diagnose,
+}
+
+
+# --------------------------------------------------------------------------- output
+
+
+def fmt(x, spec=".3g"):
+    if x is None:
+        return "—"
+    if isinstance(x, float):
+        return format(x, spec)
+    return str(x)
+
+
+def table(rows) -> str:
+    cols = [("case", "case", "s"), ("devices", "devices", "d"), ("samples", "samples", "d"),
+            ("diffgyro_s", "diffgyro s", ".3g"), ("compile_s", "compile s", ".2g"),
+            ("baseline_s", "baseline s", ".3g"), ("speedup", "speedup", ".3g"),
+            ("max_rel_diff", "max rel diff", ".1e"),
+            ("fraction_of_bandwidth_limit", "of BW limit", ".1%"), ("baseline", "baseline", "s")]
+    lines = ["| " + " | ".join(c[1] for c in cols) + " |", "|" + "---|" * len(cols)]
+    for r in rows:
+        lines.append("| " + " | ".join(fmt(r.get(k), s) for k, _, s in cols) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    p.add_argument("--quick", action="store_true", help="smaller sizes (under 3 minutes on 2 cores)")
+    p.add_argument("--json", type=Path, help="write the rows to this file")
+    p.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ",".join(CASES))
+    p.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
+    p.add_argument("--host-devices", type=int, default=0,
+                   help="force this many XLA host devices (CPU sharding); 0 = JAX default")
+    args = p.parse_args(argv)
+    if args.host_devices:
+        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
+                                   f" --xla_force_host_platform_device_count={args.host_devices}")
+    import diffgyro
+
+    diffgyro.enable_x64()
+    names = [c.strip() for c in args.cases.split(",") if c.strip()]
+    unknown = set(names) - set(CASES)
+    if unknown:
+        p.error(f"unknown case(s) {sorted(unknown)}; choose from {', '.join(CASES)}")
+    info = machine_info()
+    print(f"machine: {info['cpu']}, {info['cores']} cores; JAX {info['jax']} backend "
+          f"{info['backend']} ({info['device']} × {info['n_devices']})", flush=True)
+    bw = bandwidth()
+    print(f"memory read bandwidth: numpy {bw['numpy_GBps']:.1f} GB/s, JAX {bw['jax_GBps']:.1f} GB/s",
+          flush=True)
+    sizes = QUICK if args.quick else FULL
+    rows = []
+    t_all = now()
+    for name in names:
+        d, n = sizes[name]
+        sub = SUBSET.get(name, (0, 0))[1 if args.quick else 0]
+        t0 = now()
+        new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"])
+        for r in new:
+            r.update(mode="quick" if args.quick else "full", backend=info["backend"],
+                     device=info["device"], cpu=info["cpu"], cores=info["cores"],
+                     bandwidth_GBps=bw["bytes_per_s"] / 1e9)
+        rows += new
+        print(f"  {name}: {now() - t0:.1f} s", flush=True)
+    print(table(rows))
+    print(f"total {now() - t_all:.1f} s")
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
