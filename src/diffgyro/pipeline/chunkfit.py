@@ -108,7 +108,22 @@ class ChunkFitter:
         return 1 if self.mesh is None else self.mesh.size
 
     def fit(self, batch: Batch) -> FitResult:
-        """Fit a batch of at most ``padded`` devices; FitResult of exactly these devices."""
+        """Fit a batch of at most ``padded`` devices; FitResult of exactly these devices.
+
+        Linear models the one-pass sums path can take, and every model on one JAX
+        device, go through :func:`diffgyro.fit.fit` itself (the sums path spreads its
+        device groups over the local JAX devices on its own); the rest (time
+        constants) through the sharded direct path here.
+        """
+        from ..fit import fit
+        from ..fit_sums import applicable
+
+        if self.mesh is None or (self.model.is_linear and applicable(self.model, batch)):
+            result = fit(self.model, batch, options=self.opts)
+            return jax.tree.map(np.asarray, result)
+        return self._fit_sharded(batch)
+
+    def _fit_sharded(self, batch: Batch) -> FitResult:
         n = batch.n_devices
         if n > self.padded:
             raise ValueError(f"chunk of {n} devices is larger than the planned {self.padded}")
