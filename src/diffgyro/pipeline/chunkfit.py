@@ -1,6 +1,12 @@
 """Fit one chunk of devices with a compiled function reused across chunks, sharded
 over the local JAX devices.
 
+Linear models that the one-pass sums path takes, and every model when there is
+one JAX device, go through :func:`diffgyro.fit.fit` itself: it keeps compiled
+shapes fixed (device groups, device buckets) and spreads the sums path's
+device groups over the local JAX devices. Models with time constants on
+several JAX devices take the sharded direct path of this module:
+
 Each chunk is padded on the device axis to a fixed size (copies of its last
 device, whose results are dropped) and on the sample axis to a bucket length,
 so every chunk of a run reuses one compiled function. With several local JAX
