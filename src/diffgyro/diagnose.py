@@ -311,7 +311,12 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
 # --------------------------------------------------------------------------- the engine (one device)
 
 
-def _extra_columns(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b):
+#: Candidates whose time constant is searched from the dT/dt window up: a lag shorter than
+#: the window that estimates dT/dt is the ``gradient`` term at the data's resolution.
+LAG_FROM_DTEMP_WINDOW = ("thermal_lag",)
+
+
+def _extra_columns(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, min_lag: float = 0.0):
     """Columns a candidate adds to the base design, one set per grid point: (g, n, 3, k),
     and the grid (g, q) of its nonlinear parameters."""
     term = c.term
@@ -326,6 +331,9 @@ def _extra_columns(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b):
     grid = term.nonlinear_grid(sig)
     if grid.shape[1] == 1:
         lo, hi = jnp.min(grid[:, 0]), jnp.max(grid[:, 0])
+        if term.name in LAG_FROM_DTEMP_WINDOW and min_lag > 0:
+            lo = jnp.maximum(lo, math.log(min_lag))
+            hi = jnp.maximum(hi, lo + math.log(4.0))
         grid = jnp.linspace(lo, hi, GRID_POINTS)[:, None]
     cols = jax.vmap(lambda th: term.columns(sig, th))(grid)
     return cols, grid
@@ -394,7 +402,7 @@ def _rts(mf, pf, pp):
 
 
 def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int, n_folds: int,
-                   sig: Signals, beta_b, theta_b, floor_axes):
+                   min_lag: float, sig: Signals, beta_b, theta_b, floor_axes):
     """Held-out scores of the base model, every deterministic candidate and the random walk."""
     from .fit import _fold_ids
 
@@ -436,7 +444,7 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
 
     cand_sse, cand_full, cand_theta, cand_blk = [], [], [], []
     for c in cands:
-        z, grid = _extra_columns(c, base, sig, theta_b)  # (g, n, 3, k)
+        z, grid = _extra_columns(c, base, sig, theta_b, min_lag)  # (g, n, 3, k)
         z = jnp.where(jnp.isfinite(z), z, 0.0) * w[None, :, None, None]
         zx = jnp.einsum("nf,gnik,nip->gfikp", oh, z, xb)
         zz = jnp.einsum("nf,gnik,gnil->gfikl", oh, z, z)
@@ -524,10 +532,10 @@ def _stack_theta(thetas, dtype):
 
 
 @eqx.filter_jit
-def _engine_batch(base, cands, n_blocks, n_folds, sig, beta, theta, floor_axes):
+def _engine_batch(base, cands, n_blocks, n_folds, min_lag, sig, beta, theta, floor_axes):
     def one(args):
         s, b, th, fl = args
-        return _device_engine(base, cands, n_blocks, n_folds, s, b, th, fl)
+        return _device_engine(base, cands, n_blocks, n_folds, min_lag, s, b, th, fl)
 
     return jax.lax.map(one, (sig, beta, theta, floor_axes), batch_size=1)
 
@@ -538,16 +546,6 @@ def _floors(sig: Signals):
         return noise_floor(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
 
     return jax.lax.map(one, sig)
-
-
-@eqx.filter_jit
-def _range_problems(cands, sig):
-    """Per device and candidate: > 0 where the data cannot support the candidate term."""
-    def one(s):
-        vals = [c.term.range_problem(s) for c in cands]
-        return jnp.stack(vals) if vals else jnp.zeros((0,))
-
-    return jax.vmap(one)(sig)
 
 
 # --------------------------------------------------------------------------- results
@@ -657,14 +655,30 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The DESIGN.md §4 ``diagnose --json`` object (extra keys per device)."""
-        return {"model": self.spec, "devices": [d.record() for d in self.devices],
-                "thresholds": asdict(self.thresholds)}
+        return _plain({"model": self.spec, "devices": [d.record() for d in self.devices],
+                       "thresholds": asdict(self.thresholds),
+                       "dtemp_window": self.options.get("dtemp_window")})
 
     def verdicts(self) -> dict[str, int]:
         out = {"adequate": 0, "missing_effect": 0}
         for d in self.devices:
             out[d.verdict] += 1
         return out
+
+
+def _plain(x):
+    """JSON-safe copy: numpy scalars to Python, non-finite floats to None."""
+    if isinstance(x, dict):
+        return {str(k): _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return _num(x)
+    return x
 
 
 def _num(x) -> float | None:
@@ -974,19 +988,25 @@ def diagnose(
     opts = res.options
     sig = res.signals(batch)
     available = frozenset(batch.signals)
-    cands = [c for c in candidate_specs(model, available, candidates) if not c.stochastic]
+    every = [c for c in candidate_specs(model, available, candidates) if not c.stochastic]
     want_rw = any(c.stochastic for c in candidate_specs(model, available, candidates))
+    # drop candidates no device can support (e.g. scale terms on a static run) before compiling
+    all_ranges = np.stack([np.asarray(jax.vmap(c.term.range_problem)(sig)) for c in every], axis=1) \
+        if every else np.zeros((batch.n_devices, 0))
+    usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
+    cands = [every[j] for j in usable]
+    unsupported = [c.effect for j, c in enumerate(every) if j not in usable]
     cands_t = tuple(cands)
     floors = np.asarray(_floors(sig))  # (d, 3)
     beta = jnp.asarray(res.params.beta)[: batch.n_devices]
     theta = jnp.asarray(res.params.theta)[: batch.n_devices]
-    out = _engine_batch(model, cands_t, opts.n_blocks, opts.n_folds, sig, beta, theta,
-                        jnp.asarray(floors))
+    out = _engine_batch(model, cands_t, opts.n_blocks, opts.n_folds, float(opts.dtemp_window), sig,
+                        beta, theta, jnp.asarray(floors))
     out = {k: np.asarray(v) for k, v in out.items()}
     if not cands_t:
         for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk"):
             out[k] = out[k][:, :0]
-    ranges = np.asarray(_range_problems(cands_t, sig)) if cands_t else np.zeros((batch.n_devices, 0))
+    ranges = all_ranges[:, usable]
 
     resid = out["residual"]
     dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(batch.n_devices)])
@@ -1024,6 +1044,8 @@ def diagnose(
             out["cand_sse"][i], out["cand_full"][i], ok, taus, rw_spec, out["rw_interp"][i],
             out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
             blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]}))
+        for name in unsupported:
+            devices[-1].skipped[name] = "the data cannot support it (range: e.g. no rate, no temperature span)"
     return Diagnosis(model=model, devices=devices, fit=res, residuals=resid, allan=al, thresholds=th,
                      options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                               "dtemp_window": opts.dtemp_window},

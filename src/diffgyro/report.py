@@ -61,6 +61,9 @@ def write_atomic(path: str | os.PathLike, text: str) -> Path:
     try:
         with os.fdopen(fd, "w", encoding="utf-8") as fh:
             fh.write(text)
+        umask = os.umask(0)
+        os.umask(umask)
+        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a report is meant to be read
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
@@ -119,7 +122,11 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
     fig, ax = plt.subplots(figsize=(9, 3.2))
     idx = _thin(n)
     for k in range(3):
-        ax.plot(t[idx] / 60.0, e[idx, k], lw=0.6, color=COLORS[k], label=f"g{AXES[k]}")
+        ax.plot(t[idx] / 60.0, e[idx, k], ".", ms=1.2, alpha=0.25, color=COLORS[k])
+        m = max(1, n // 150)
+        cut = n // m * m
+        ax.plot(t[:cut].reshape(-1, m).mean(1) / 60.0, e[:cut, k].reshape(-1, m).mean(1), lw=1.4,
+                color=COLORS[k], label=f"g{AXES[k]} (moving mean)")
     ax.axhline(d.noise_floor, color="k", ls=":", lw=0.8, label="± noise floor")
     ax.axhline(-d.noise_floor, color="k", ls=":", lw=0.8)
     ax.set_xlabel("time (min)")
@@ -337,7 +344,8 @@ def summary_page(diagnosis, ladder=None) -> str:
                 "<th>held-out RMS</th><th>noise floor</th><th class=l>add</th>"
                 f"<th class=l>close alternatives</th></tr>{rows}</table>")
 
-    coefs = _coefficients(diagnosis.fit)
+    fit = ladder.final.fit if ladder is not None else diagnosis.fit
+    coefs = _coefficients(fit)
     if coefs and len(devs) > 1:
         names = list(coefs)
         ncol = 4
@@ -345,13 +353,21 @@ def summary_page(diagnosis, ladder=None) -> str:
         fig, axs = plt.subplots(nrow, ncol, figsize=(12, 2.2 * nrow), squeeze=False)
         for ax, name in zip(axs.flat, names):
             v = coefs[name]
-            ax.hist(v[np.isfinite(v)], bins=min(20, max(3, len(v) // 2)), color="tab:blue")
+            v = v[np.isfinite(v)]
+            if len(v) >= 20:
+                ax.hist(v, bins=min(30, len(v) // 3), color="tab:blue")
+            else:  # a strip of dots reads better than a histogram of a few devices
+                jitter = np.random.default_rng(0).uniform(-0.3, 0.3, len(v))
+                ax.plot(v, jitter, "o", ms=4, color="tab:blue", alpha=0.7)
+                ax.set_ylim(-1, 1)
+                ax.set_yticks([])
             ax.set_title(name, fontsize=7)
             ax.tick_params(labelsize=6)
+            ax.locator_params(axis="x", nbins=4)
         for ax in list(axs.flat)[len(names):]:
             ax.set_axis_off()
         fig.tight_layout()
-        body.append("<h2>Coefficients across devices</h2>"
+        body.append(f"<h2>Coefficients across devices (<code>{html.escape(fit.model.spec)}</code>)</h2>"
                     f"<img src='data:image/png;base64,{figure_png(fig)}'>")
     out = outliers(diagnosis)
     body.append("<h2>Outlier devices</h2>" + (

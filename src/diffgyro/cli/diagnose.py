@@ -1,0 +1,141 @@
+"""``diffgyro diagnose``: where the model fails and which physical effect is missing."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DataFiles,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+)
+
+Model = Annotated[str, typer.Option("--model", "-m", help="Model spec to diagnose, e.g. 'bias_poly(2)' "
+                                                         "(see 'diffgyro effects').")]
+
+
+def _fmt(x) -> str:
+    return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
+
+
+def print_diagnosis(diag, console) -> None:
+    """A rich table of the devices, then each device's explanation."""
+    from rich.table import Table
+
+    table = Table(title=f"diagnosis of {diag.spec} (rates in rad/s)")
+    for col in ("device", "verdict", "rms", "held-out", "floor", "add", "held-out with it",
+                "close alternatives"):
+        table.add_column(col, justify="left" if col in ("device", "verdict", "add",
+                                                        "close alternatives") else "right")
+    for d in diag.devices:
+        colour = "green" if d.verdict == "adequate" else "red"
+        table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
+                      _fmt(d.noise_floor), d.best.effect if d.best else "",
+                      _fmt(d.best.heldout_rms) if d.best else "",
+                      ", ".join(c.effect for c in d.alternatives))
+    console.print(table)
+    for d in diag.devices:
+        console.print(d.explanation, markup=False, highlight=False)
+
+
+def print_ladder(ladder, console) -> None:
+    from rich.table import Table
+
+    table = Table(title="model ladder (median over devices)")
+    for col in ("added", "model", "held-out RMS", "noise floor", "adequate"):
+        table.add_column(col, justify="left" if col in ("added", "model") else "right")
+    for added, spec, h, f, k in ladder.table_rows():
+        table.add_row(added, spec, _fmt(h), _fmt(f), f"{k}/{len(ladder.devices)}")
+    console.print(table)
+
+
+@app.command("diagnose")
+def diagnose_command(
+    data: DataFiles,
+    model: Model,
+    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    report: Annotated[Path | None, typer.Option(
+        "--report", help="Write a self-contained HTML report (one page per device + summary) here.")] = None,
+    auto: Annotated[bool, typer.Option(
+        "--auto", help="Add the best significant candidate until every device is adequate; "
+                       "print the ladder.")] = False,
+    candidates: Annotated[str | None, typer.Option(
+        "--candidates", help="Comma-separated effects to try (default: every registered effect "
+                             "the data supports).")] = None,
+    max_steps: Annotated[int, typer.Option("--max-steps", help="Most terms --auto adds.")] = 6,
+    dtemp_window: Annotated[float | None, typer.Option(
+        "--dtemp-window", help="Seconds of the centred slope that gives dT/dt (default: chosen "
+                               "from the temperature read-out's noise and steps).")] = None,
+    columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
+    the missing effect (if any) with the evidence, close alternatives.
+
+    --json prints {"model", "devices": [{"device", "rms", "heldout_rms", "noise_floor",
+    "verdict", "candidates": [{"effect", "spec", "heldout_rms", "significant"}, ...]}]}
+    with candidates sorted best first (extra keys: explanation, evidence, alternatives, ...).
+    """
+    from rich.console import Console
+
+    from diffgyro.diagnose import diagnose, diagnose_auto
+    from diffgyro.model import ErrorModel
+
+    from .fit import load_for_model
+
+    spec = ErrorModel.from_spec(model)  # SpecError (a DataError) for a bad spec: exit 2
+    batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                           sampling_rate, drop_invalid)
+    names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
+    if names:
+        from diffgyro.effects import parse_term
+
+        for n in names:
+            parse_term(n)
+    missing = spec.requires() - set(batch.signals) - {"t"}
+    if missing:
+        from diffgyro.errors import DataError
+
+        raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
+                        file=batch.sources[0] if batch.sources else None)
+    opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
+    err = Console(stderr=True)
+    ladder = None
+    if auto:
+        with err.status("diagnosing") as status:
+            ladder = diagnose_auto(spec, batch, names, max_steps=max_steps,
+                                   progress=lambda text: status.update(text), **opts)
+        diag = ladder.first
+    else:
+        with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
+            diag = diagnose(spec, batch, names, **opts)
+    if report is not None:
+        from diffgyro.report import write_report
+
+        with err.status(f"writing the report to {report}"):
+            write_report(diag, batch, report, ladder=ladder)
+    if as_json:
+        out = diag.to_json()
+        if ladder is not None:
+            out["ladder"] = ladder.records()
+            out["final"] = ladder.final.to_json()
+        typer.echo(json.dumps(out, allow_nan=False))
+        return
+    console = Console()
+    print_diagnosis(diag, console)
+    if ladder is not None:
+        print_ladder(ladder, console)
+    if report is not None:
+        console.print(f"report: {Path(report) / 'index.html'}")
