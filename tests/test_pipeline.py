@@ -234,3 +234,39 @@ def test_fast_calibration_entries_equal_from_fit():
     assert json.dumps(got, allow_nan=False) == json.dumps(expected, allow_nan=False)
     assert got[2]["status_detail"].startswith("insufficient_range")
     assert "thermal_lag.tau" in got[0]["params"]["shared"]
+
+
+def test_streamed_diagnosis_names_the_missing_effect(tmp_path):
+    """The truth has a gradient term; diagnosing bias_poly(1) without it finds it missing
+    (gradient, or its look-alike temp_diff, first); a device with bad data is recorded."""
+    import io
+
+    import pandas as pd
+    from pipeline_data import simulated, write_parquet
+
+    from diffgyro.pipeline import diagnose_dataset
+
+    batch, _ = simulated(3, 5, "g-")
+    frame = batch.to_frame()
+    bad = frame[frame.device == "g-002"].copy()
+    bad["device"] = "g-bad"
+    bad.loc[bad.index[5], "temp"] = np.inf
+    write_parquet(pd.concat([frame, bad], ignore_index=True), tmp_path / "d" / "a.parquet")
+    buf = io.StringIO()
+    summary = diagnose_dataset([tmp_path / "d"], "bias_poly(1)", chunk_devices=CHUNK,
+                               work_dir=tmp_path / "w", progress=False, json_stream=buf,
+                               fit_options={"dtemp_window": 60.0})
+    obj = json.loads(buf.getvalue())
+    assert obj["model"] == "bias_poly(1)"
+    devs = {d["device"]: d for d in obj["devices"]}
+    assert list(devs) == ["g-000", "g-001", "g-002", "g-bad"]
+    for name in ("g-000", "g-001", "g-002"):
+        d = devs[name]
+        assert d["verdict"] == "missing_effect", d["explanation"]
+        assert d["candidates"][0]["effect"] in ("gradient", "temp_diff")
+        assert d["candidates"][0]["significant"] is True
+        assert d["candidates"][0]["heldout_rms"] < d["heldout_rms"]
+    assert devs["g-bad"]["status"] == "invalid_data" and "infinite" in devs["g-bad"]["reason"]
+    assert summary.statuses == {"ok": 3, "invalid_data": 1}
+    lines = (tmp_path / "w" / "results.jsonl").read_text().splitlines()
+    assert [json.loads(x)["device"] for x in lines] == list(devs)

@@ -1,6 +1,6 @@
 """Production scale: datasets larger than memory, resumable runs, sharding, Dask.
 
-:func:`fit_dataset` fits a model to every device of a Parquet dataset (a
+:func:`fit_dataset` fits (and :func:`diagnose_dataset` diagnoses) a model on every device of a Parquet dataset (a
 directory of files, many devices each) in chunks of devices, writing each
 chunk's results atomically to a work directory so that a killed run resumes
 where it stopped, then merges them into a calibration file and a per-device
@@ -11,7 +11,15 @@ Dask.
 
 from __future__ import annotations
 
-from .run import DEFAULT_CHUNK_DEVICES, INVALID, RunSummary, fit_chunk, fit_dataset, read_chunk
+from .run import (
+    DEFAULT_CHUNK_DEVICES,
+    INVALID,
+    RunSummary,
+    diagnose_dataset,
+    fit_chunk,
+    fit_dataset,
+    read_chunk,
+)
 
-__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "fit_chunk", "fit_dataset",
-           "read_chunk"]
+__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "diagnose_dataset", "fit_chunk",
+           "fit_dataset", "read_chunk"]

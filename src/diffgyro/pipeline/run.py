@@ -150,10 +150,36 @@ def calibration_entries(result) -> list[dict]:
     return out
 
 
+PAD = "__diffgyro_pad_{}__"
+
+
+def _diagnose_group(group: list[Recording], setup: dict) -> dict[str, dict]:
+    """``diagnose`` records of one group, padded to the chunk size (one compiled shape)."""
+    from ..diagnose import diagnose
+
+    n = len(group)
+    pads = [Recording(**{s: getattr(group[-1], s) for s in ("t", "gyro", "temp", "temp_ext",
+                                                             "accel", "mag", "rate", "quat")},
+                      device=PAD.format(k), source=None)
+            for k in range(max(0, int(setup["chunk_devices"]) - n))]
+    opts = dict(setup["fit_options"])
+    if opts.get("dtemp_window") is None:
+        opts.pop("dtemp_window", None)
+    diag = diagnose(setup["model"], Batch.from_recordings(group + pads),
+                    setup["task_options"].get("candidates"), **opts)
+    return {r["device"]: r for r in diag.to_json()["devices"][:n]}
+
+
+def _invalid_diagnosis(device: str, reason: str) -> dict:
+    return {"device": device, "rms": None, "heldout_rms": None, "noise_floor": None,
+            "verdict": None, "candidates": [], "status": INVALID, "reason": reason}
+
+
 def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
-    """Fit one chunk; its JSON-ready result (records and calibration entries, in plan order)."""
+    """Fit (or diagnose) one chunk; its JSON-ready result: records and calibration
+    entries, in plan order."""
     recs, failed = prepared if prepared is not None else read_chunk(job, setup)
-    fitter = _fitter(setup)
+    diagnosing = setup.get("command", "fit") == "diagnose"
     records: dict[str, dict] = {}
     cal: dict[str, dict] = {}
     # devices recording different signal sets are fitted apart: a device's result never
@@ -163,7 +189,10 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
         if dev in recs:
             groups.setdefault(recs[dev].signals, []).append(recs[dev])
     for group in groups.values():
-        result = fitter.fit(Batch.from_recordings(group))
+        if diagnosing:
+            records.update(_diagnose_group(group, setup))
+            continue
+        result = _fitter(setup).fit(Batch.from_recordings(group))
         for entry in calibration_entries(result):
             name = entry["device"]
             cal[name] = entry
@@ -174,7 +203,7 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
                                  "steps": q["steps"], "n_samples": q["n_samples"],
                                  "params": entry["params"]}
     for dev, reason in failed.items():
-        records[dev] = _invalid_record(dev, reason)
+        records[dev] = (_invalid_diagnosis if diagnosing else _invalid_record)(dev, reason)
     h = hashlib.sha256()
     for dev in job["devices"]:
         if dev in recs:
@@ -186,7 +215,7 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
 
 
 def run_chunk(job: dict, setup: dict) -> dict:
-    """Read and fit one chunk (the unit of work a Dask worker runs)."""
+    """Read and fit (or diagnose) one chunk: the unit of work a Dask worker runs."""
     import diffgyro
 
     diffgyro.enable_x64()
@@ -228,6 +257,11 @@ def plan_chunks(index, chunk_devices: int) -> list[dict]:
 
 def _needed_signals(model) -> tuple[str, ...]:
     return tuple(s for s in ("temp", "temp_ext", "accel", "rate") if s in model.requires())
+
+
+#: Optional signals read for each command (diagnose tries effects that need any of them).
+_WANTED = {"fit": lambda em: {"rate", *_needed_signals(em)},
+           "diagnose": lambda em: {"rate", "temp", "temp_ext", "accel"}}
 
 
 def default_work_dir(out: Path | None, results: Path | None, key: dict) -> Path:
@@ -351,8 +385,7 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
             writers.append(res_w)
         if out is not None:
             header = {"format": "diffgyro-calibration", "format_version": 1, "model": spec,
-                      "dtemp_window": float(manifest["key"]["options"]["fit"].get(
-                          "dtemp_window", 60.0)),
+                      "dtemp_window": float(manifest["key"]["options"]["fit"]["dtemp_window"]),
                       "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
                       "diffgyro_version": __version__, "input_hash": None,
                       "units": units_of(ErrorModel.from_spec(spec))}
@@ -410,7 +443,41 @@ def combined_hash(chunk_hashes: Sequence[str]) -> str:
 # --------------------------------------------------------------------------- the run
 
 
-def fit_dataset(
+def fit_dataset(paths: Sequence[str | os.PathLike], model: str, **kwargs) -> RunSummary:
+    """Fit ``model`` to every device of a Parquet dataset, chunk by chunk, resumably.
+
+    ``out`` is the calibration file; ``results`` the per-device table
+    (``.jsonl`` or ``.parquet``; default beside ``out`` as ``NAME.devices.jsonl``,
+    else in the work directory). ``work_dir`` holds the resumable state
+    (default ``OUT.work``); ``resume=False`` discards it first. ``dask`` is a
+    scheduler address, or ``local:N`` for a local cluster of N worker
+    processes. ``fit_options`` are :class:`~diffgyro.fit.FitOptions` fields.
+    ``json_stream`` receives the ``fit --json`` object, device by device.
+    ``columns``, ``units``, ``drop_invalid``, ``sampling_rate`` are as in
+    :func:`diffgyro.io.load`; ``shard=False`` keeps each chunk on one JAX device.
+    """
+    kwargs["fit_options"] = {"dtemp_window": 60.0, **(kwargs.get("fit_options") or {})}
+    return _run("fit", paths, model, **kwargs)
+
+
+def diagnose_dataset(paths: Sequence[str | os.PathLike], model: str,
+                     candidates: Sequence[str] | None = None, **kwargs) -> RunSummary:
+    """:func:`diffgyro.diagnose.diagnose` over a Parquet dataset, chunk by chunk, resumably.
+
+    ``json_stream`` receives the ``diagnose --json`` object (``model``, ``devices``);
+    ``results`` the per-device table. Without ``fit_options["dtemp_window"]`` each
+    chunk chooses its own dT/dt window from its temperature read-outs (as
+    ``diagnose`` does for a batch); give one to make it the same for all. Other
+    keywords as for :func:`fit_dataset` (no calibration file: ``out`` is refused).
+    """
+    if kwargs.get("out") is not None:
+        raise DataError("diagnose writes no calibration file; use results= for the table")
+    task = {"candidates": None if candidates is None else sorted(set(candidates))}
+    return _run("diagnose", paths, model, task_options=task, **kwargs)
+
+
+def _run(
+    command: str,
     paths: Sequence[str | os.PathLike],
     model: str,
     *,
@@ -425,21 +492,13 @@ def fit_dataset(
     drop_invalid: bool = False,
     sampling_rate: float | None = None,
     fit_options: dict | None = None,
+    task_options: dict | None = None,
     shard: bool | None = None,
     progress: bool = True,
     json_stream: IO[str] | None = None,
     on_chunk: Callable[[dict], None] | None = None,
 ) -> RunSummary:
-    """Fit ``model`` to every device of a Parquet dataset, chunk by chunk, resumably.
-
-    ``out`` is the calibration file; ``results`` the per-device table
-    (``.jsonl`` or ``.parquet``; default beside ``out`` as ``NAME.devices.jsonl``,
-    else in the work directory). ``work_dir`` holds the resumable state
-    (default ``OUT.work``); ``resume=False`` discards it first. ``dask`` is a
-    scheduler address, or ``local:N`` for a local cluster of N worker
-    processes. ``fit_options`` are :class:`~diffgyro.fit.FitOptions` fields.
-    ``json_stream`` receives the ``fit --json`` object, device by device.
-    """
+    """The streaming run behind :func:`fit_dataset` and :func:`diagnose_dataset`."""
     from ..effects import parse_spec
     from ..io import parse_columns, resolve_units
     from ..model import ErrorModel
@@ -456,13 +515,13 @@ def fit_dataset(
     if sampling_rate is not None and not (np.isfinite(sampling_rate) and sampling_rate > 0):
         raise DataError(f"sampling rate must be a positive number of Hz, got {sampling_rate}")
     fit_options = dict(fit_options or {})
-    fit_options.setdefault("dtemp_window", 60.0)
+    task_options = dict(task_options or {})
     files = expand_inputs(paths)
     cfg = ReadConfig(columns=dict(columns or {}), units=dict(units or {}),
                      drop_invalid=bool(drop_invalid), sampling_rate=sampling_rate,
-                     wanted=tuple(sorted({"rate", *_needed_signals(em)})))
-    key = {"command": "fit", "model": spec, "chunk_devices": chunk_devices,
-           "options": {"fit": fit_options, "read": cfg.to_json()},
+                     wanted=tuple(sorted(_WANTED[command](em))))
+    key = {"command": command, "model": spec, "chunk_devices": chunk_devices,
+           "options": {"fit": fit_options, "task": task_options, "read": cfg.to_json()},
            "inputs": [fingerprint(f) for f in files]}
     out = None if out is None else Path(out)
     if results is None and out is not None:
@@ -492,7 +551,8 @@ def fit_dataset(
             work.write_manifest(manifest)
         work.remove_temporaries()
         plan = manifest["chunks"]
-        setup = {"model": spec, "fit_options": fit_options, "chunk_devices": chunk_devices,
+        setup = {"command": command, "model": spec, "fit_options": fit_options,
+                 "task_options": task_options, "chunk_devices": chunk_devices,
                  "shard": shard, "read": key["options"]["read"], "files": manifest["files"]}
         done: set[int] = set()
         skipped_failed = 0
@@ -503,7 +563,7 @@ def fit_dataset(
                 skipped_failed += sum(r["status"] != "ok" for r in obj["records"])
             del obj
         pending = [c for c in plan if c["chunk"] not in done]
-        bar = _progress(progress, manifest["n_devices"],
+        bar = _progress(progress, command, manifest["n_devices"],
                         sum(len(c["devices"]) for c in plan if c["chunk"] in done), skipped_failed)
         last_manifest = [time.monotonic()]
 
@@ -552,10 +612,10 @@ def fit_dataset(
                       outputs={k: v for k, v in manifest["outputs"].items() if v})
 
 
-def _progress(enabled: bool, total: int, skipped: int, skipped_failed: int):
+def _progress(enabled: bool, label: str, total: int, skipped: int, skipped_failed: int):
     from .progress import RunProgress
 
-    return RunProgress(total, skipped, skipped_failed, enabled=enabled)
+    return RunProgress(total, skipped, skipped_failed, enabled=enabled, label=label)
 
 
 def _run_local(pending: list[dict], setup: dict, finished: Callable[[dict], None]) -> None:
@@ -572,5 +632,6 @@ def _run_local(pending: list[dict], setup: dict, finished: Callable[[dict], None
             del prepared
 
 
-__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "atomic_write_bytes", "fit_dataset",
-           "fit_chunk", "merge", "plan_chunks", "read_chunk", "run_chunk"]
+__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "atomic_write_bytes",
+           "diagnose_dataset", "fit_chunk", "fit_dataset", "merge", "plan_chunks", "read_chunk",
+           "run_chunk"]
