@@ -64,3 +64,49 @@ def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_
           f"chunks run, {summary.devices_per_second:.1f} devices/s", file=sys.stderr)
     for name, path in summary.outputs.items():
         print(f"diffgyro fit: {name} written to {path}", file=sys.stderr)
+
+
+def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window, columns,
+                    gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
+                    chunk_devices, work_dir, resume, dask, results) -> None:
+    """``diffgyro diagnose`` over a dataset in chunks; same ``--json`` object (model, devices)."""
+    import json
+
+    from diffgyro.errors import DataError
+    from diffgyro.io import parse_columns
+    from diffgyro.pipeline import DEFAULT_CHUNK_DEVICES, diagnose_dataset
+
+    if report is not None or auto:
+        raise DataError("--report and --auto need every device in memory; they do not stream",
+                        hint="give data files without --chunk-devices/--dask, or a subset")
+    names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
+    if names:
+        from diffgyro.effects import parse_term
+
+        for n in names:
+            parse_term(n)
+    summary = diagnose_dataset(
+        data, model, names, results=results, work_dir=work_dir,
+        chunk_devices=chunk_devices or DEFAULT_CHUNK_DEVICES, resume=resume, dask=dask,
+        columns=parse_columns(columns),
+        units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
+        drop_invalid=drop_invalid, sampling_rate=sampling_rate,
+        fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
+        progress=True, json_stream=sys.stdout if as_json else None)
+    verdicts: dict[str, int] = {}
+    missing: dict[str, int] = {}
+    with open(summary.outputs["results"], encoding="utf-8") as fh:
+        for line in fh:
+            r = json.loads(line)
+            verdicts[str(r.get("verdict") or r.get("status"))] = \
+                verdicts.get(str(r.get("verdict") or r.get("status")), 0) + 1
+            best = r.get("best_effect")
+            if r.get("verdict") == "missing_effect" and best:
+                missing[best] = missing.get(best, 0) + 1
+    text = ", ".join(f"{n} {v}" for v, n in sorted(verdicts.items(), key=lambda x: -x[1]))
+    print(f"diffgyro diagnose: {summary.n_devices} devices: {text}; {summary.chunks_run} of "
+          f"{summary.chunks_total} chunks run", file=sys.stderr)
+    if missing:
+        top = ", ".join(f"{e} ({n})" for e, n in sorted(missing.items(), key=lambda x: -x[1]))
+        print(f"diffgyro diagnose: missing effects found: {top}", file=sys.stderr)
+    print(f"diffgyro diagnose: results written to {summary.outputs['results']}", file=sys.stderr)

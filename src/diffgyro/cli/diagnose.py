@@ -20,6 +20,7 @@ from ._options import (
     TempUnit,
     TimeUnit,
 )
+from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec to diagnose, e.g. 'bias_poly(2)' "
                                                          "(see 'diffgyro effects').")]
@@ -80,6 +81,8 @@ def diagnose_command(
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
+    chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
+    dask: DaskOpt = None, results: ResultsOpt = None,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -87,7 +90,16 @@ def diagnose_command(
     --json prints {"model", "devices": [{"device", "rms", "heldout_rms", "noise_floor",
     "verdict", "candidates": [{"effect", "spec", "heldout_rms", "significant"}, ...]}]}
     with candidates sorted best first (extra keys: explanation, evidence, alternatives, ...).
+    A directory of Parquet files, --chunk-devices or --dask streams the data in chunks of
+    devices with resumable state in --work-dir (see docs/dask.md).
     """
+    if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
+        from ._stream import stream_diagnose
+
+        stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window, columns,
+                        gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
+                        chunk_devices, work_dir, resume, dask, results)
+        return
     from rich.console import Console
 
     from diffgyro.diagnose import diagnose, diagnose_auto

@@ -472,7 +472,7 @@ def diagnose_dataset(paths: Sequence[str | os.PathLike], model: str,
     """
     if kwargs.get("out") is not None:
         raise DataError("diagnose writes no calibration file; use results= for the table")
-    task = {"candidates": None if candidates is None else sorted(set(candidates))}
+    task = {"candidates": None if candidates is None else list(dict.fromkeys(candidates))}
     return _run("diagnose", paths, model, task_options=task, **kwargs)
 
 
