@@ -111,12 +111,20 @@ def child(args: dict) -> None:
                           resume=False, progress=True)
     wall = time.monotonic() - t0
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB -> MB (Linux)
+    rss_end = float("nan")
+    try:
+        with open("/proc/self/status") as fh:
+            rss_end = next(int(x.split()[1]) for x in fh if x.startswith("VmRSS:")) / 1024.0
+    except (OSError, StopIteration, ValueError):
+        pass
+    load = os.getloadavg()[0]
     print(json.dumps({
         "devices": summary.n_devices, "ok": summary.n_ok, "chunks": summary.chunks_total,
         "chunk_devices": args["chunk"], "wall_s": round(wall, 1),
         "devices_per_s_end_to_end": round(summary.n_devices / wall, 1),
         "devices_per_s_fitting": round(summary.devices_per_second, 1),
-        "peak_rss_mb": round(rss, 1),
+        "peak_rss_mb": round(rss, 1), "rss_at_end_mb": round(rss_end, 1),
+        "load_average_1min": round(load, 1),
         "calibration_mb": round(out.stat().st_size / 2**20, 1)}))
 
 
@@ -151,7 +159,8 @@ def main(argv=None) -> None:
         print(f"{res['devices']:>7} devices: {res['wall_s']:.0f} s, "
               f"{res['devices_per_s_end_to_end']:.1f} devices/s end to end "
               f"({res['devices_per_s_fitting']:.1f} while fitting), "
-              f"peak RSS {res['peak_rss_mb']:.0f} MB, {res['ok']} ok")
+              f"peak RSS {res['peak_rss_mb']:.0f} MB (at the end {res['rss_at_end_mb']:.0f} MB), "
+              f"{res['ok']} ok, load average {res['load_average_1min']}")
     report = {"model": MODEL, "samples": a.samples, "chunk_devices": a.chunk_devices,
               "dataset_gib": round(size / 2**30, 2), "generate_s": round(gen_s, 1), "runs": runs}
     if len(runs) == 2:
