@@ -118,11 +118,16 @@ def test_compensate_reaches_noise_on_heldout_data():
     # a second run of the same devices (same coefficients, new noise)
     again, truth2 = _sim("rate_table", spec, n=3, seed=3, params=truth.params,
                          temp_norm=truth.norm)
-    corrected, clamped = calibration.compensate(cal, again)
+    with pytest.warns(UserWarning, match="clamped"):  # its sensors warm differently
+        corrected, clamped = calibration.compensate(cal, again)
     sigma = np.asarray(truth2.noise.arw) * np.sqrt(2.0)  # σ per sample at 2 Hz
     for d in range(3):
         n = int(again.n_valid[d])
-        err = np.asarray(corrected.gyro[d, :n]) - np.asarray(again.rate[d, :n])
+        lo, hi = cal.devices[d].temp_range
+        temp = np.asarray(again.temp[d, :n])
+        inside = (temp >= lo) & (temp <= hi)   # judged where the calibration is valid
+        assert clamped.get(again.devices[d], 0) == int(np.sum(~inside))
+        err = (np.asarray(corrected.gyro[d, :n]) - np.asarray(again.rate[d, :n]))[inside]
         ratio = err.std(axis=0) / sigma[d]
         assert np.all(np.abs(ratio - 1.0) < 0.05), ratio
 
@@ -162,10 +167,10 @@ def test_nonlinear_start_far_away_is_flagged_alone():
     batch, truth = _sim("warmup", spec, n=8, seed=4)
     theta0 = np.tile(np.asarray(truth.params.theta)[:, :1], 1)
     theta0[2] = 16.0  # τ ≈ 100 days: the start sees no transient at all
-    res = fit(spec, batch, theta0=theta0, max_steps=12)
-    ref = fit(spec, batch, theta0=np.asarray(truth.params.theta), max_steps=12)
+    res = fit(spec, batch, theta0=theta0)
+    ref = fit(spec, batch, theta0=np.asarray(truth.params.theta))
     names = [res.status_name(i) for i in range(8)]
-    assert names[2] in ("not_converged", "rank_deficient"), names
+    assert names[2] == "not_converged", names  # stuck on a plateau worse than the grid
     others = [i for i in range(8) if i != 2]
     assert all(names[i] == "ok" for i in others)
     np.testing.assert_allclose(np.asarray(res.params.beta)[others],
@@ -178,25 +183,34 @@ def test_gradient_through_fit_matches_finite_differences(spec):
     batch, truth = _sim(plan, spec, n=1, seed=1, duration=1800.0)
     model = ErrorModel.from_spec(spec)
     sig = jax.tree.map(lambda a: a[0], batch_signals(batch, norm=truth.norm))
-    opts = FitOptions()
+    # tight tolerances: the finite differences see the solver's stopping error
+    opts = FitOptions(rtol=jnp.asarray(1e-14), atol=jnp.asarray(1e-18), max_steps=200)
     theta0 = None if model.is_linear else jnp.asarray(truth.params.theta[0])
 
+    @jax.jit
     def params_of(gyro):
         out = solve_device(model, eqx_replace_gyro(sig, gyro), opts, theta0)
         return jnp.concatenate([out["beta"].ravel(), out["theta"]])
 
     g0 = sig.gyro
-    jac = jax.jacrev(params_of)(g0)  # (params, n, 3)
+    jac = jax.jacrev(params_of)(g0)  # (params, n, 3): reverse mode, implicit adjoint
     rng = np.random.default_rng(0)
-    for _ in range(3):
-        k, ax = int(rng.integers(0, int(batch.n_valid[0]))), int(rng.integers(0, 3))
-        h = 1e-6
-        plus = params_of(g0.at[k, ax].add(h))
-        minus = params_of(g0.at[k, ax].add(-h))
-        fd = np.asarray((plus - minus) / (2 * h))
-        an = np.asarray(jac[:, k, ax])
-        scale = np.max(np.abs(an)) + 1e-300
-        assert np.max(np.abs(fd - an)) / scale < 1e-5
+    v = jnp.asarray(rng.normal(size=g0.shape)) * sig.mask[:, None]
+    directions = [v] + [jnp.zeros_like(g0).at[int(rng.integers(0, int(batch.n_valid[0]))),
+                                              int(rng.integers(0, 3))].set(1.0) for _ in range(3)]
+    for k, e in enumerate(directions):
+        an = np.asarray(jnp.einsum("pna,na->p", jac, e))
+        # a step well above the solver's stopping error; Richardson removes the O(h²) part
+        h = 2e-3 / float(jnp.linalg.norm(e))
+
+        def central(h, e=e):
+            return np.asarray((params_of(g0 + h * e) - params_of(g0 - h * e)) / (2 * h))
+
+        fd = (4.0 * central(h / 2) - central(h)) / 3.0
+        # one sample moves a time constant by ~1e-9: the LM stopping error (~1e-9 in log τ)
+        # then limits the finite difference itself, not the implicit gradient
+        tol = 1e-5 if (model.is_linear or k == 0) else 1e-4
+        assert np.max(np.abs(fd - an)) / np.max(np.abs(an)) < tol
 
 
 def eqx_replace_gyro(sig, gyro):

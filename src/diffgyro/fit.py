@@ -42,7 +42,7 @@ class FitOptions(eqx.Module):
     """Solver settings. Integers are static; tolerances are arrays so changing them
     does not compile again."""
 
-    n_blocks: int = eqx.field(static=True, default=20)
+    n_blocks: int = eqx.field(static=True, default=100)
     n_folds: int = eqx.field(static=True, default=5)
     max_steps: int = eqx.field(static=True, default=100)
     chunk: int = eqx.field(static=True, default=64)
@@ -218,6 +218,7 @@ def _full_lm(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions):
 
 
 def _grid_start(model: ErrorModel, sig: Signals, y, w):
+    """Best point of the coarse grid of time constants, and its cost."""
     grid = model.nonlinear_grid(sig)
 
     def cost(theta):
@@ -227,7 +228,8 @@ def _grid_start(model: ErrorModel, sig: Signals, y, w):
 
     costs = jax.vmap(cost)(grid)
     costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
-    return grid[jnp.argmin(costs)]
+    best = jnp.argmin(costs)
+    return grid[best], costs[best]
 
 
 def _sort_key(x):
@@ -345,7 +347,8 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
 
     # full fit
     if q:
-        start = _grid_start(model, sig, y, w) if theta0 is None else theta0
+        start, grid_cost = _grid_start(model, sig, y, w)
+        start = start if theta0 is None else theta0
     else:
         start = jnp.zeros((0,), y.dtype)
     if opts.solver == "lm":
@@ -363,6 +366,8 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     params = Params(beta=beta, theta=theta)
     resid = (y - jnp.einsum("nip,ip->ni", x, beta)) * w[:, None]
     rms = jnp.sqrt(jnp.sum(resid**2) / jnp.maximum(3 * n_valid, 1.0))
+    if q:  # a local optimum worse than the best grid point is not the answer
+        converged = converged & (jnp.sum(resid**2) <= grid_cost * (1.0 + 1e-9) + 1e-300)
 
     # held-out error over folds of interleaved time blocks
     fold = _fold_ids(sig.mask, opts.n_blocks, opts.n_folds)
@@ -415,9 +420,16 @@ def _solve_batch(model: ErrorModel, sig: Signals, opts: FitOptions, theta0):
         s, th = args
         return solve_device(model, s, opts, th)
 
-    if theta0 is None:
-        return jax.lax.map(lambda s: solve_device(model, s, opts, None), sig, batch_size=opts.chunk)
-    return jax.lax.map(one, (sig, theta0), batch_size=opts.chunk)
+    xs = (sig, theta0)
+    d = sig.gyro.shape[0]
+    b = min(opts.chunk, d)
+    if d % b:
+        return jax.lax.map(one, xs, batch_size=opts.chunk)
+    # whole chunks (fit() pads to them): reshape by hand, since lax.map's own reshape of
+    # the outputs fails on zero-size ones (theta of a linear model) when no remainder is left
+    grouped = jax.tree.map(lambda a: a.reshape(d // b, b, *a.shape[1:]), xs)
+    out = jax.lax.map(jax.vmap(one), grouped)
+    return jax.tree.map(lambda a: a.reshape(d, *a.shape[2:]), out)
 
 
 # --------------------------------------------------------------------------- results
