@@ -280,6 +280,7 @@ class Hidden:
     truth_error: np.ndarray  # the full deterministic error (n, 3)
     hidden: np.ndarray       # the hidden effect alone (n, 3)
     env: dict                # die and air temperature, true dT/dt, rates, force
+    noise_rms: float = 0.0   # RMS of all the gyro noise added (white, flicker, walk, LSB), mean removed
 
 
 def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
@@ -374,7 +375,9 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
         lsb = noise.quantum * noise.white
         gyro = np.round(gyro / lsb) * lsb
     rec = replace_recording(rec0, gyro)
-    return Hidden(rec, effect, plan, noise, size, base + hidden, hidden, env)
+    added = gyro - (gyro_clean + hidden)
+    noise_rms = float(np.sqrt(np.mean(np.var(added, axis=0))))
+    return Hidden(rec, effect, plan, noise, size, base + hidden, hidden, env, noise_rms)
 
 
 def replace_recording(rec: Recording, gyro: np.ndarray) -> Recording:

@@ -442,9 +442,10 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     r_base = e - jnp.einsum("nip,nip->ni", xb, b_base[fsafe])  # held-out residual of every sample
     base_blk = per_block(jnp.sum(r_base**2, -1))
 
-    cand_sse, cand_full, cand_theta, cand_blk = [], [], [], []
-    for c in cands:
-        z, grid = _extra_columns(c, base, sig, theta_b, min_lag)  # (g, n, 3, k)
+    eetr = train(ee)  # (f, 3)
+
+    def score(z):
+        """Per-fold training and held-out SSE of base + z for every column set (g, n, 3, k)."""
         z = jnp.where(jnp.isfinite(z), z, 0.0) * w[None, :, None, None]
         zx = jnp.einsum("nf,gnik,nip->gfikp", oh, z, xb)
         zz = jnp.einsum("nf,gnik,gnil->gfikl", oh, z, z)
@@ -461,23 +462,52 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         gtr = jnp.sum(gm, axis=1, keepdims=True) - gm
         ctr = jnp.sum(cv, axis=1, keepdims=True) - cv
         b = _solve_scaled(gtr, ctr, d[:, None])  # (g, f, 3, P)
-        eetr = train(ee)  # (f, 3)
-        sse_tr = eetr[None] - jnp.sum(b * ctr, -1)  # (g, f, 3)
+        sse_tr = jnp.sum(eetr[None] - jnp.sum(b * ctr, -1), -1)  # (g, f)
         sse_h = held_sse(b, gm, cv, ee[None])  # (g, f, 3)
-        tot_tr = jnp.sum(sse_tr, -1)
-        pick = jnp.argmin(jnp.where(jnp.isfinite(tot_tr), tot_tr, jnp.inf), axis=0)  # (f,)
-        cand_sse.append(jnp.take_along_axis(sse_h, pick[None, :, None], axis=0)[0])
-        b_pick = b[pick, jnp.arange(n_folds)]  # (f, 3, P)
-        bn = b_pick[fsafe]  # (n, 3, P)
-        zn = z[pick[fsafe], jnp.arange(z.shape[1])]  # (n, 3, k)
-        r_c = e - jnp.einsum("nip,nip->ni", xb, bn[..., :p]) - jnp.einsum("nik,nik->ni", zn, bn[..., p:])
-        cand_blk.append(per_block(jnp.sum(jnp.where(jnp.isfinite(r_c), r_c, 0.0) ** 2, -1)))
         b_all = _solve_scaled(gtot, ctot, d)  # (g, 3, P)
         sse_all = jnp.sum(ee, 0)[None] - jnp.sum(b_all * ctot, -1)  # (g, 3)
-        tot_all = jnp.sum(sse_all, -1)
-        best = jnp.argmin(jnp.where(jnp.isfinite(tot_all), tot_all, jnp.inf))
-        cand_full.append(sse_all[best])
-        cand_theta.append(grid[best] if grid.shape[1] else jnp.zeros((1,), dtype) * jnp.nan)
+        clean = lambda a: jnp.where(jnp.isfinite(a), a, jnp.inf)  # noqa: E731
+        return z, b, clean(sse_tr), sse_h, sse_all, clean(jnp.sum(sse_all, -1))
+
+    cand_sse, cand_full, cand_theta, cand_blk = [], [], [], []
+    folds = jnp.arange(n_folds)
+    for c in cands:
+        z, grid = _extra_columns(c, base, sig, theta_b, min_lag)  # (g, n, 3, k)
+        z, b, tr, sse_h, sse_all, tot_all = score(z)
+        pick = jnp.argmin(tr, axis=0)  # (f,) grid point chosen on each fold's training blocks
+        best = jnp.argmin(tot_all)
+        held = sse_h[pick, folds]  # (f, 3)
+        b_pick = b[pick, folds]  # (f, 3, P)
+        z_fold = z[pick]  # (f, n, 3, k)
+        full, theta = sse_all[best], grid[best] if grid.shape[1] else jnp.full((1,), jnp.nan, dtype)
+        if grid.shape[0] >= 3 and grid.shape[1] == 1:
+            # refine the time constant between grid points (parabola through the neighbours),
+            # again on each fold's training blocks only
+            def vertex(costs, i, grid=grid):
+                i = jnp.clip(i, 1, grid.shape[0] - 2)
+                c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
+                den = c0 - 2.0 * c1 + c2
+                off = jnp.where((den > 0) & jnp.isfinite(den), 0.5 * (c0 - c2) / jnp.where(den > 0, den, 1.0), 0.0)
+                step = grid[1, 0] - grid[0, 0]
+                return grid[i, 0] + jnp.clip(off, -1.0, 1.0) * step
+
+            th2 = jnp.concatenate([jax.vmap(vertex, in_axes=(1, 0))(tr, pick), vertex(tot_all, best)[None]])
+            z2 = jax.vmap(lambda th, term=c.term: term.columns(sig, th[None]))(th2)  # (f+1, n, 3, k)
+            z2, b2, tr2, sse_h2, sse_all2, tot_all2 = score(z2)
+            better = tr2[folds, folds] < tr[pick, folds]  # keep the refinement only if it helps
+            held = jnp.where(better[:, None], sse_h2[folds, folds], held)
+            b_pick = jnp.where(better[:, None, None], b2[folds, folds], b_pick)
+            z_fold = jnp.where(better[:, None, None, None], z2[:n_folds], z_fold)
+            full_better = tot_all2[n_folds] < tot_all[best]
+            full = jnp.where(full_better, sse_all2[n_folds], full)
+            theta = jnp.where(full_better, th2[n_folds:], theta)
+        cand_sse.append(held)
+        bn = b_pick[fsafe]  # (n, 3, P)
+        zn = z_fold[fsafe, jnp.arange(z.shape[1])]  # (n, 3, k)
+        r_c = e - jnp.einsum("nip,nip->ni", xb, bn[..., :p]) - jnp.einsum("nik,nik->ni", zn, bn[..., p:])
+        cand_blk.append(per_block(jnp.sum(jnp.where(jnp.isfinite(r_c), r_c, 0.0) ** 2, -1)))
+        cand_full.append(full)
+        cand_theta.append(theta)
 
     # random walk: local level on the base residual of each fold's training fit
     r = jnp.maximum(floor_axes**2, 1e-300)
@@ -546,6 +576,20 @@ def _floors(sig: Signals):
         return noise_floor(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
 
     return jax.lax.map(one, sig)
+
+
+def device_bucket(n: int) -> int:
+    """Padded device count of the compiled diagnosis: 1, 2, 4, ... 64, then multiples of 64."""
+    n = max(int(n), 1)
+    return 1 << (n - 1).bit_length() if n <= 64 else -(-n // 64) * 64
+
+
+def _pad_devices(tree, n: int, m: int):
+    """Repeat the last device of every leading-axis array up to ``m`` devices."""
+    if m == n:
+        return tree
+    idx = np.minimum(np.arange(m), n - 1)
+    return jax.tree.map(lambda a: a[idx] if getattr(a, "ndim", 0) and a.shape[0] == n else a, tree)
 
 
 # --------------------------------------------------------------------------- results
@@ -658,6 +702,10 @@ class Diagnosis:
         return _plain({"model": self.spec, "devices": [d.record() for d in self.devices],
                        "thresholds": asdict(self.thresholds),
                        "dtemp_window": self.options.get("dtemp_window")})
+
+    def records(self) -> list[dict]:
+        """One JSON-ready record per device (the ``devices`` list of :meth:`to_json`)."""
+        return self.to_json()["devices"]
 
     def verdicts(self) -> dict[str, int]:
         out = {"adequate": 0, "missing_effect": 0}
@@ -986,32 +1034,38 @@ def diagnose(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
     opts = res.options
-    sig = res.signals(batch)
+    n_dev = batch.n_devices
+    m_dev = device_bucket(n_dev)
+    sig = _pad_devices(res.signals(batch), n_dev, m_dev)  # a few device counts: few compiles
     available = frozenset(batch.signals)
     every = [c for c in candidate_specs(model, available, candidates) if not c.stochastic]
     want_rw = any(c.stochastic for c in candidate_specs(model, available, candidates))
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
-    all_ranges = np.stack([np.asarray(jax.vmap(c.term.range_problem)(sig)) for c in every], axis=1) \
-        if every else np.zeros((batch.n_devices, 0))
+    all_ranges = np.stack([np.asarray(jax.vmap(c.term.range_problem)(sig))[:n_dev] for c in every],
+                          axis=1) if every else np.zeros((n_dev, 0))
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
     unsupported = [c.effect for j, c in enumerate(every) if j not in usable]
     cands_t = tuple(cands)
-    floors = np.asarray(_floors(sig))  # (d, 3)
-    beta = jnp.asarray(res.params.beta)[: batch.n_devices]
-    theta = jnp.asarray(res.params.theta)[: batch.n_devices]
+    floors_p = _floors(sig)  # (m, 3)
+    floors = np.asarray(floors_p)[:n_dev]
+    beta = _pad_devices(jnp.asarray(res.params.beta)[:n_dev], n_dev, m_dev)
+    theta = _pad_devices(jnp.asarray(res.params.theta)[:n_dev], n_dev, m_dev)
     out = _engine_batch(model, cands_t, opts.n_blocks, opts.n_folds, float(opts.dtemp_window), sig,
-                        beta, theta, jnp.asarray(floors))
-    out = {k: np.asarray(v) for k, v in out.items()}
+                        beta, theta, floors_p)
+    out = {k: np.asarray(v)[:n_dev] for k, v in out.items()}
     if not cands_t:
         for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk"):
             out[k] = out[k][:, :0]
     ranges = all_ranges[:, usable]
 
     resid = out["residual"]
-    dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(batch.n_devices)])
-    al = allan_mod.allan(np.moveaxis(resid, -1, 1), dts[:, None],
-                         n_valid=np.repeat(np.asarray(batch.n_valid)[:, None], 3, axis=1))
+    dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
+    pick = np.minimum(np.arange(m_dev), n_dev - 1)
+    al = allan_mod.allan(np.moveaxis(resid, -1, 1)[pick], dts[pick, None],
+                         n_valid=np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1))
+    al = jax.tree.map(lambda a: a[:n_dev] if getattr(a, "ndim", 0) and a.shape[0] == m_dev
+                      and a is not al.m else a, al)
     adev = np.asarray(al.adev)
     tau = np.asarray(al.tau)
 
