@@ -287,8 +287,12 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
         wanted = {n: None for n in registry()}
     else:
         for text in names:
+            text = text.strip()
+            if text in registry():  # a bare name: the default candidate of that effect
+                wanted[text] = None
+                continue
             term = parse_term(text)
-            wanted[term.name] = term if "(" in text else None
+            wanted[term.name] = term
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]

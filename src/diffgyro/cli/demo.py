@@ -19,17 +19,16 @@ def demo_command(
 ) -> None:
     """Simulate gyros with a hidden effect, fit a base model, diagnose it, add the named
     effect, refit, print the ladder and write the report (default ./diffgyro-demo/)."""
-    from rich.console import Console
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from diffgyro.demo import BASE, TRUTH, run_demo
     from diffgyro.errors import DataError
 
-    from .diagnose import print_diagnosis, print_ladder
+    from .diagnose import print_diagnosis, print_ladder, wide_console
 
     if devices < 1:
         raise DataError(f"--devices must be at least 1, not {devices}")
-    console = Console()
+    console = wide_console()
     console.print(f"[bold]diffgyro demo[/bold]: the truth is [cyan]{TRUTH}[/cyan] "
                   f"(hidden); we start from [cyan]{BASE}[/cyan].")
     start = time.perf_counter()

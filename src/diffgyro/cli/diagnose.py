@@ -37,8 +37,8 @@ def print_diagnosis(diag, console) -> None:
     table = Table(title=f"diagnosis of {diag.spec} (rates in rad/s)")
     for col in ("device", "verdict", "rms", "held-out", "floor", "add", "held-out with it",
                 "close alternatives"):
-        table.add_column(col, justify="left" if col in ("device", "verdict", "add",
-                                                        "close alternatives") else "right")
+        left = col in ("device", "verdict", "add", "close alternatives")
+        table.add_column(col, justify="left" if left else "right", no_wrap=col != "close alternatives")
     for d in diag.devices:
         colour = "green" if d.verdict == "adequate" else "red"
         table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
@@ -47,7 +47,7 @@ def print_diagnosis(diag, console) -> None:
                       ", ".join(c.effect for c in d.alternatives))
     console.print(table)
     for d in diag.devices:
-        console.print(d.explanation, markup=False, highlight=False)
+        console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
 
 
 def print_ladder(ladder, console) -> None:
@@ -59,6 +59,15 @@ def print_ladder(ladder, console) -> None:
     for added, spec, h, f, k in ladder.table_rows():
         table.add_row(added, spec, _fmt(h), _fmt(f), f"{k}/{len(ladder.devices)}")
     console.print(table)
+
+
+def wide_console():
+    """A rich console; 140 columns when stdout is not a terminal (pipes, logs, tests)."""
+    import sys
+
+    from rich.console import Console
+
+    return Console() if sys.stdout.isatty() else Console(width=140)
 
 
 @app.command("diagnose")
@@ -112,10 +121,11 @@ def diagnose_command(
                            sampling_rate, drop_invalid)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:
-        from diffgyro.effects import parse_term
+        from diffgyro.effects import parse_term, registry
 
         for n in names:
-            parse_term(n)
+            if n not in registry():
+                parse_term(n)  # SpecError naming the valid effects
     missing = spec.requires() - set(batch.signals) - {"t"}
     if missing:
         from diffgyro.errors import DataError
@@ -145,7 +155,7 @@ def diagnose_command(
             out["final"] = ladder.final.to_json()
         typer.echo(json.dumps(out, allow_nan=False))
         return
-    console = Console()
+    console = wide_console()
     print_diagnosis(diag, console)
     if ladder is not None:
         print_ladder(ladder, console)

@@ -1,0 +1,117 @@
+"""``diffgyro diagnose``: the DESIGN.md §4 JSON exactly, the report, --auto, bad input.
+
+Data: independent recordings (hidden_effects.py) written in the standard
+schema: one device with a hidden ``gradient`` (CSV), one clean (Parquet), both
+2 Hz thermal runs.
+"""
+
+from __future__ import annotations
+
+import json
+
+import hidden_effects as H
+import pytest
+
+from diffgyro.cli import main
+from diffgyro.io import save
+
+KEYS = {"device", "rms", "heldout_rms", "noise_floor", "verdict", "candidates"}
+CAND_KEYS = {"effect", "spec", "heldout_rms", "significant"}
+
+
+@pytest.fixture(scope="module")
+def thermal_csv(tmp_path_factory):
+    noise = H.Noise(white=2e-4, flicker=0.1, drift=0.1)
+    hidden = H.make_recording("thermal", "gradient", "bias_poly(2)", 21, size=2.0, noise=noise,
+                              device="unit-gradient").recording
+    clean = H.make_recording("thermal", None, "bias_poly(2)", 22, noise=noise,
+                             device="unit-clean").recording
+    folder = tmp_path_factory.mktemp("diag")
+    save(hidden, folder / "unit-gradient.csv")
+    save(clean, folder / "unit-clean.parquet")
+    return [str(folder / "unit-gradient.csv"), str(folder / "unit-clean.parquet")]
+
+
+def _json(capsys, args):
+    code = main(args)
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    return json.loads(cap.out)
+
+
+def test_json_contract(thermal_csv, capsys):
+    out = _json(capsys, ["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--json"])
+    assert out["model"] == "bias_poly(2)"
+    devs = {d["device"]: d for d in out["devices"]}
+    assert set(devs) == {"unit-gradient", "unit-clean"}
+    for d in devs.values():
+        assert KEYS <= set(d)
+        assert d["verdict"] in ("adequate", "missing_effect")
+        assert d["candidates"], "every supported effect is scored"
+        for c in d["candidates"]:
+            assert CAND_KEYS <= set(c) and isinstance(c["significant"], bool)
+            assert c["spec"].startswith("bias_poly(2)+") or c["spec"].startswith("bias_poly(3)")
+        hs = [c["heldout_rms"] for c in d["candidates"]]
+        assert hs == sorted(hs), "candidates best first"
+        if d["verdict"] == "adequate":
+            assert not any(c["significant"] for c in d["candidates"])
+        else:
+            assert any(c["significant"] for c in d["candidates"])
+    g = devs["unit-gradient"]
+    assert g["verdict"] == "missing_effect" and g["candidates"][0]["effect"] == "gradient"
+    assert g["candidates"][0]["spec"] == "bias_poly(2)+gradient"
+    assert g["candidates"][0]["heldout_rms"] < g["heldout_rms"]
+    assert devs["unit-clean"]["verdict"] == "adequate"
+    assert "dT/dt" in g["explanation"]
+
+
+def test_report_and_auto(thermal_csv, tmp_path, capsys):
+    report = tmp_path / "report"
+    out = _json(capsys, ["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--json",
+                         "--auto", "--report", str(report)])
+    assert [s["added"] for s in out["ladder"]] == [None, "gradient"]
+    assert out["ladder"][-1]["spec"] == "bias_poly(2)+gradient"
+    assert all(d["verdict"] == "adequate" for d in out["final"]["devices"])
+    pages = sorted(p.name for p in report.iterdir())
+    assert pages == ["index.html", "unit-clean.html", "unit-gradient.html"]
+    page = (report / "unit-gradient.html").read_text()
+    assert page.count("data:image/png;base64,") >= 4 and "http" not in page.split("<body>")[1][:200]
+
+
+def test_table_output(thermal_csv, capsys):
+    code = main(["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--candidates",
+                 "gradient,temp_diff,bias_poly"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    assert "unit-gradient" in cap.out and "missing_effect" in cap.out and "add `gradient`" in cap.out
+
+
+@pytest.mark.parametrize("args, must", [
+    (["--model", "bias_poly(2)+gradiant"], "gradiant"),
+    (["--model", "bias_poly(2)", "--candidates", "nonsense"], "nonsense"),
+])
+def test_bad_spec_is_one_line(thermal_csv, capsys, args, must):
+    code = main(["diagnose", *thermal_csv, *args])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and must in err and "Traceback" not in err
+
+
+def test_bad_data_is_one_line(tmp_path, capsys):
+    path = tmp_path / "bad.csv"
+    path.write_text("t,gx,gy,gz,temp\n0,0,0,0,20\n1,0,0,0,21\n1,0,0,0,22\n")
+    code = main(["diagnose", str(path), "--model", "bias_poly(1)", "--json"])
+    cap = capsys.readouterr()
+    assert code == 2 and cap.out == ""
+    assert len(cap.err.strip().splitlines()) == 1 and "bad.csv" in cap.err
+
+
+def test_model_needs_missing_column(tmp_path, capsys):
+    rec = H.make_recording("thermal", None, "bias_poly(2)", 5, hours=0.5).recording
+    from diffgyro.data import Recording
+
+    bare = Recording(t=rec.t, gyro=rec.gyro, device="bare")
+    path = tmp_path / "bare.csv"
+    save(bare, path)
+    code = main(["diagnose", str(path), "--model", "bias_poly(2)"])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "temp" in err and len(err.splitlines()) == 1
