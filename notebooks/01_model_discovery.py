@@ -34,7 +34,6 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 import diffgyro
-from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose, diagnose_auto
 from diffgyro.fit import fit
 from diffgyro.simulate import simulate
