@@ -36,7 +36,8 @@ CATALOGUE = [
 ]
 
 
-def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0)):
+def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2.0,
+        hours: float | None = None, colour: float = 1.0, lowpass: float = 0.0):
     import diffgyro
 
     diffgyro.enable_x64()
@@ -56,8 +57,10 @@ def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0)):
                 seed = seed0 + 1000 * k + 37 * j + zlib.crc32((plan + base).encode()) % 997
                 rng = np.random.default_rng(seed)
                 noise = H.draw_noise(rng)
+                noise = H.replace(noise, flicker=noise.flicker * colour, drift=noise.drift * colour,
+                                  lowpass=lowpass)
                 size = float(np.exp(rng.uniform(np.log(sizes[0]), np.log(sizes[1]))))
-                h = H.make_recording(plan, eff, base, seed, size=size, noise=noise,
+                h = H.make_recording(plan, eff, base, seed, size=size, noise=noise, fs=fs, hours=hours,
                                      earth_in_reference=True,
                                      device=f"{plan}-{eff}-{k}-{j}")
                 recs.append(h.recording)
@@ -117,13 +120,18 @@ if __name__ == "__main__":
     ap.add_argument("--plans", nargs="*")
     ap.add_argument("--out")
     ap.add_argument("--load", nargs="*")
+    ap.add_argument("--fs", type=float, default=2.0, help="sample rate (Hz)")
+    ap.add_argument("--hours", type=float, help="recording length (default: the plan's)")
+    ap.add_argument("--colour", type=float, default=1.0, help="scale of flicker and random-walk noise")
+    ap.add_argument("--lowpass", type=float, default=0.0, help="lag-1 correlation of the white noise")
     a = ap.parse_args()
     if a.load:
         rows = []
         for f in a.load:
             rows += pickle.load(open(f, "rb"))
     else:
-        rows = run(a.devices, a.seed, a.plans)
+        rows = run(a.devices, a.seed, a.plans, fs=a.fs, hours=a.hours, colour=a.colour,
+                   lowpass=a.lowpass)
         if a.out:
             pickle.dump(rows, open(a.out, "wb"))
     summary(rows)

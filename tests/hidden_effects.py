@@ -47,6 +47,7 @@ class Noise:
     temp_noise: float = 0.01
     temp_quantum: float = 0.0
     readout_lag: float = 5.0
+    lowpass: float = 0.0     # lag-1 correlation of the white noise (an internal low-pass filter)
 
 
 def draw_noise(rng: np.random.Generator) -> Noise:
@@ -366,6 +367,9 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
         hidden = pattern * (size * noise.white / max(rms, 1e-300))
     # noise
     white = rng.normal(size=(n, 3)) * noise.white
+    if noise.lowpass > 0:  # MA(1) with lag-1 correlation ρ, same variance
+        a = (1 - math.sqrt(max(1 - 4 * noise.lowpass**2, 0.0))) / (2 * noise.lowpass)
+        white = (white + a * np.roll(white, 1, axis=0)) / math.sqrt(1 + a * a)
     fl = _flicker(n, dt, rng) * noise.flicker * noise.white if noise.flicker > 0 else 0.0
     total_t = n * dt
     steps = rng.normal(size=(n, 3)) * (noise.drift * noise.white / math.sqrt(total_t)) * math.sqrt(dt)

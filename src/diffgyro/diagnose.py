@@ -85,7 +85,10 @@ class Thresholds:
     excess it needs (low-level flicker and rate random walk are noise, not a
     missing effect). A significant deterministic term is preferred to the
     random walk when it closes at least ``rw_prefer`` of the gap, or leaves
-    less than ``rw_ratio`` times the gap the random walk leaves. ``alt_share``: a significant candidate is a close
+    less than ``rw_ratio`` times the gap the random walk leaves; a term whose
+    time constant ran to the slow end of its search (a warm-up with τ of a
+    quarter of the record) fits a drift, not a physical transient, and does
+    not count. ``alt_share``: a significant candidate is a close
     alternative when it closes at least this share of what the best closes.
 
     An effect confined to a small part of the record (a warm-up transient,
@@ -94,7 +97,9 @@ class Thresholds:
     ``local_share`` of time blocks it improves most, the base model's held-out
     MSE is at least ``1 + local_excess`` times the floor's and the candidate
     closes ``local_closure`` of that local gap, with a whole-record gain of at
-    least ``local_gain_min`` (never for the random walk).
+    least ``local_gain_min`` and at least ``local_closure_min`` of the
+    whole-record gap closed (so a term that follows one flicker excursion does
+    not pass); never for the random walk.
     """
 
     t_min: float = 3.0
@@ -107,10 +112,11 @@ class Thresholds:
     rw_prefer: float = 0.8
     rw_ratio: float = 2.5
     alt_share: float = 0.6
-    local_share: float = 0.05
-    local_excess: float = 1.0
+    local_share: float = 0.02
+    local_excess: float = 2.0
     local_closure: float = 0.5
     local_gain_min: float = 0.005
+    local_closure_min: float = 0.5
 
 
 #: Effects that mimic each other on common test plans (reported together).
@@ -473,7 +479,7 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         clean = lambda a: jnp.where(jnp.isfinite(a), a, jnp.inf)  # noqa: E731
         return z, b, clean(sse_tr), sse_h, sse_all, clean(jnp.sum(sse_all, -1))
 
-    cand_sse, cand_full, cand_theta, cand_blk = [], [], [], []
+    cand_sse, cand_full, cand_theta, cand_blk, edges = [], [], [], [], []
     folds = jnp.arange(n_folds)
     for c in cands:
         z, grid = _extra_columns(c, base, sig, theta_b, min_lag)  # (g, n, 3, k)
@@ -505,6 +511,10 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
             full_better = tot_all2[n_folds] < tot_all[best]
             full = jnp.where(full_better, sse_all2[n_folds], full)
             theta = jnp.where(full_better, th2[n_folds:], theta)
+        if grid.shape[0] >= 2 and grid.shape[1] == 1:
+            edges.append(theta[0] >= grid[-1, 0] - 0.5 * (grid[1, 0] - grid[0, 0]))
+        else:
+            edges.append(jnp.asarray(False))
         cand_sse.append(held)
         bn = b_pick[fsafe]  # (n, 3, P)
         zn = z_fold[fsafe, jnp.arange(z.shape[1])]  # (n, 3, k)
@@ -554,6 +564,7 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         rw_interp=rw_interp, rw_fore=rw_fore, rw_full=rw_full, rw_q=rw_q,
         blk_cnt=blk_cnt, base_blk=base_blk, rw_blk=per_block(r_rw),
         cand_blk=jnp.stack(cand_blk) if cands else jnp.full((1, n_blocks), jnp.nan, dtype),
+        cand_edge=jnp.stack(edges) if cands else jnp.zeros((1,), bool),
         rw_walk=ms3[n_folds], residual=e,
     )
 
@@ -889,7 +900,8 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
             names: list[str], specs: list[str], cand_fold: np.ndarray, cand_full: np.ndarray,
             ok: np.ndarray, taus, rw_spec: str | None, rw_fold: np.ndarray, rw_full: np.ndarray,
             floor_axes: np.ndarray, floor_allan: float, slope: float, n_valid: int,
-            th: Thresholds, ev: dict, blocks: dict | None = None) -> DeviceDiagnosis:
+            th: Thresholds, ev: dict, blocks: dict | None = None,
+            edge: np.ndarray | None = None) -> DeviceDiagnosis:
     """Scores, significance, ranking and verdict of one device from its per-fold numbers."""
     n_held = max(float(np.sum(cnt)), 1.0)
     floor = float(np.sqrt(np.mean(floor_axes**2)))
@@ -921,10 +933,11 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
         mean = float(np.mean(diff))
         t = mean / (sd / math.sqrt(diff.size)) if sd > 0 else (math.inf if mean > 0 else 0.0)
         gain = (hb2 - hc2) / f2
-        closure = (hb2 - hc2) / gap if gap > 0 else 0.0
+        closure = (hb2 - hc2) / gap if gap > 0.01 * f2 else 0.0
         steady = mean > 0 and (t >= th.t_min or float(np.min(diff)) >= -th.consistency * mean)
         material = excess >= th.excess_min and closure >= th.closure_min and gain >= th.gain_min
-        if not material and not stochastic and gain >= th.local_gain_min:
+        if (not material and not stochastic and gain >= th.local_gain_min
+                and closure >= th.local_closure_min):
             material = local(j)
         sig = bool(usable and math.isfinite(hc2) and steady and material)
         return Candidate(effect=effect, spec=spec, heldout_rms=math.sqrt(max(hc2, 0.0)),
@@ -943,16 +956,22 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
             skipped[effect] = "the fit failed"
             continue
         det.append(score(effect, spec, cand_fold[j], cand_full[j], tau=taus[j], j=j))
+        if edge is not None and bool(edge[j]):
+            det[-1].note = ("time constant at the slow end of the search: a slow drift rather "
+                            "than a transient")
     rw_c = None
     if rw_spec:
         rw_c = score("random_walk", rw_spec, rw_fold, rw_full, stochastic=True)
         rw_c.note = ("local-level smoother of the residual; walk variance by maximum likelihood on "
                      "the training blocks")
     det_sig = [c for c in det if c.significant]
+    # a term whose time constant ran to the slow end of its search fits a drift, not physics
+    physical = [c for c in det_sig if not c.note.startswith("time constant at the slow end")]
+    best_phys = min(physical, key=lambda c: c.heldout_rms) if physical else None
     best_det = min(det_sig, key=lambda c: c.heldout_rms) if det_sig else None
     in_contention = rw_c is not None and (
-        best_det is None or (best_det.closure < th.rw_prefer
-                             and 1.0 - best_det.closure > th.rw_ratio * (1.0 - rw_c.closure)))
+        best_phys is None or (best_phys.closure < th.rw_prefer
+                              and 1.0 - best_phys.closure > th.rw_ratio * (1.0 - rw_c.closure)))
     if rw_c is not None:
         rw_c.significant = bool(rw_c.significant and in_contention and excess >= th.rw_excess_min
                                 and math.isfinite(slope) and slope >= th.rw_slope_min)
@@ -986,6 +1005,15 @@ def _allan_slope(adev: np.ndarray, tau: np.ndarray, total: float) -> float:
     return float(np.polyfit(np.log(t[sel]), 0.5 * np.log(a2[sel]), 1)[0])
 
 
+def _edge_from_theta(r: dict):
+    """Older saved rows: a time constant at a quarter of the record or more counts as the edge."""
+    th = r.get("cand_theta")
+    if th is None:
+        return None
+    total = float(r["n_valid"]) * 0.5
+    return np.array([bool(np.isfinite(t[0]) and np.exp(t[0]) >= 0.2 * total) for t in th])
+
+
 def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> dict:
     """Re-run the decision of one device from its saved per-fold numbers (threshold tuning).
 
@@ -1001,7 +1029,7 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
                 r[rw_key], r["rw_full"], r["floors"], float(r["floor_allan"]), float(r["slope"]),
                 int(r["n_valid"]), thresholds, row["diag"].get("evidence", {}),
                 blocks={"cnt": r["blk_cnt"], "base": r["base_blk"], "cand": r["cand_blk"]}
-                if "blk_cnt" in r else None)
+                if "blk_cnt" in r else None, edge=r.get("cand_edge", _edge_from_theta(r)))
     return d.record()
 
 
@@ -1059,7 +1087,7 @@ def diagnose(
                         beta, theta, floors_p)
     out = {k: np.asarray(v)[:n_dev] for k, v in out.items()}
     if not cands_t:
-        for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk"):
+        for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk", "cand_edge"):
             out[k] = out[k][:, :0]
     ranges = all_ranges[:, usable]
 
@@ -1101,7 +1129,8 @@ def diagnose(
             out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],
             out["cand_sse"][i], out["cand_full"][i], ok, taus, rw_spec, out["rw_interp"][i],
             out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
-            blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]}))
+            blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
+            edge=out["cand_edge"][i]))
         for name in unsupported:
             devices[-1].skipped[name] = "the data cannot support it (range: e.g. no rate, no temperature span)"
     return Diagnosis(model=model, devices=devices, fit=res, residuals=resid, allan=al, thresholds=th,
