@@ -5,8 +5,9 @@ A :class:`ChamberPlan` is a thermal-chamber profile with a rate table inside
 at ``ramp`` (°C/s) to each soak temperature ``temps[k]`` in turn and holds it
 for ``soaks[k]`` seconds. The last ``spin_fraction`` of every soak turns the
 table at each rate level ``rates[r]``, clockwise then counter-clockwise for
-equal times; the static rest of the soak is split into ``n_headings`` equal
-dwells at table headings ``360°·j/n_headings`` (ramps and spins at heading 0).
+equal times; the static rest of the soak is split into ``2·n_headings`` equal
+dwells at table headings ``360°·j/n_headings``, ``j = 0 … n−1`` and back
+(ramps and spins start at heading 0).
 
 Every number of the plan is a JAX array and the whole chain
 
@@ -188,14 +189,17 @@ def plan_environment(plan: ChamberPlan, config: PlanConfig,
     mount = mount / jnp.linalg.norm(mount)
     table = omega[:, None] * mount[None, :]
 
-    # heading: steps of 360°/nh between static dwells, back to 0 before the spins,
-    # plus the angle the table turns while spinning
+    # heading: 2·nh equal static dwells at headings 0, 1, …, nh−1, nh−1, …, 0 (× 360°/nh; the
+    # mirrored order cancels a linear temperature drift within the soak), plus the angle
+    # the table turns while spinning
     heading = jnp.cumsum(omega) * dt
     if nh > 1:
-        dwell = (spin0 - soak_start) / nh
-        edges = soak_start[:, None] + dwell[:, None] * jnp.arange(1, nh, dtype=dtype)[None, :]
-        heading = heading + (2 * jnp.pi / nh) * (jnp.sum(step(edges.reshape(-1)), axis=1)
-                                                  - (nh - 1) * jnp.sum(step(spin0), axis=1))
+        dwell = (spin0 - soak_start) / (2 * nh)
+        j = np.arange(1, 2 * nh)
+        jump = np.where(j < nh, 1.0, np.where(j == nh, 0.0, -1.0))
+        edges = soak_start[:, None] + dwell[:, None] * jnp.asarray(j, dtype)[None, :]  # (k, 2nh-1)
+        heading = heading + (2 * jnp.pi / nh) * (
+            step(edges.reshape(-1)) @ jnp.tile(jnp.asarray(jump, dtype), k))
     rot = jnp.asarray(_rotation_to(config.mount), dtype)  # table frame -> body
     lat = config.latitude * DEG
     if config.earth_rate == "none":
@@ -590,24 +594,43 @@ def heading_study(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str
 
 def budget_for_accuracy(target: float, plan0: ChamberPlan, config: PlanConfig,
                         model: ErrorModel | str, arw, op: OperatingRange, lo: float, hi: float,
-                        iterations: int = 6, **opt_kw) -> tuple[float, DesignResult]:
+                        iterations: int = 4, **opt_kw) -> tuple[float, DesignResult]:
     """Shortest test time whose optimised plan reaches a predicted worst-case ``target``.
 
-    Bisection in log time between ``lo`` and ``hi`` seconds (``hi`` must
-    reach the target), optimising a plan at every trial time (started from
-    ``plan0``). Returns the time and the optimised plan there.
+    From ``hi`` seconds (which must reach the target), steps down in time by
+    the white-noise law (error ∝ time^−½) until the target is missed, then
+    regula falsi (Illinois) on log error against log time, never below
+    ``lo``; every trial time optimises a plan started from ``plan0``.
+    Returns the shortest trial time that reached the target and its plan.
     """
-    best = optimise_plan(plan0, config, model, arw, op, budget=hi, **opt_kw)
-    if float(best.prediction.worst) > target:
+    def err(x):
+        res = optimise_plan(plan0, config, model, arw, op, budget=math.exp(x), **opt_kw)
+        return math.log(float(res.prediction.worst)) - math.log(target), res
+
+    b = math.log(hi)
+    fb, best = err(b)
+    if fb > 0:
         raise ValueError("the optimised plan misses the target even at the longest time")
-    a, b = math.log(lo), math.log(hi)
+    a = fa = None
+    side = 0
     for _ in range(iterations):
-        mid = 0.5 * (a + b)
-        res = optimise_plan(plan0, config, model, arw, op, budget=math.exp(mid), **opt_kw)
-        if float(res.prediction.worst) <= target:
-            b, best = mid, res
+        if a is None:
+            x = max(b + 2.0 * fb, math.log(lo))
+            if x >= b - 1e-6:
+                break
         else:
-            a = mid
+            x = b - fb * (b - a) / (fb - fa)
+        fx, res = err(x)
+        if fx <= 0:
+            b, fb, best = x, fx, res
+            if side == -1:
+                fa *= 0.5
+            side = -1
+        else:
+            if a is not None and side == 1:
+                fb *= 0.5
+            a, fa = x, fx
+            side = 1
     return math.exp(b), best
 
 
@@ -694,9 +717,13 @@ class MonteCarlo(eqx.Module):
 
 def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, arw,
                 op: OperatingRange, n_devices: int = 400, seed: int = 0, chunk: int = 100,
-                truth: Params | None = None, **sim_kw) -> MonteCarlo:
+                truth: Params | None = None, fit_kw: dict | None = None, **sim_kw) -> MonteCarlo:
     """Simulate ``n_devices`` through ``plan``, calibrate each with :func:`~diffgyro.fit.fit`
-    and measure its compensation error over the operating range."""
+    and measure its compensation error over the operating range.
+
+    ``fit_kw`` goes to ``fit``; by default ``path="direct"`` (the
+    :func:`~diffgyro.fit.solve_device` path that the sensitivities differentiate).
+    """
     from .fit import fit
 
     if isinstance(model, str):
@@ -709,7 +736,7 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
         m = min(chunk, n_devices - start)
         batch, true = simulate_devices(plan, config, model, m, arw, op.norm, seed=seed * 1000 + c,
                                        truth=truth, **sim_kw)
-        res = fit(model, batch, norm=op.norm)
+        res = fit(model, batch, norm=op.norm, **{"path": "direct", **(fit_kw or {})})
         errors.append(err_fn(res.params, true))
         status.append(res.status)
     return MonteCarlo(errors=jnp.concatenate(errors), status=jnp.concatenate(status))

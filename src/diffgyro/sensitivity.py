@@ -437,6 +437,11 @@ def compensation_jacobian(model: ErrorModel, params: Params, norm: TempNorm, tem
     return jac, corr
 
 
+def _band_arrays(model: ErrorModel, params: Params, norm: TempNorm, cov, temps, rate, dtemp):
+    g, corr = compensation_jacobian(model, params, norm, temps, rate, dtemp)
+    return corr, jnp.sqrt(jnp.maximum(jnp.einsum("mik,kl,mil->mi", g, cov, g), 0.0))
+
+
 def uncertainty_band(result: FitResult, i: int, temps, rate=0.0, cov=None, level: float = 0.95,
                      dtemp: float = 0.0, label: str = "") -> Band:
     """Propagated uncertainty of device ``i``'s compensated rate over ``temps`` (°C).
@@ -450,11 +455,27 @@ def uncertainty_band(result: FitResult, i: int, temps, rate=0.0, cov=None, level
     params = result.device_params(i)
     norm = TempNorm(centre=result.norm.centre[i], scale=result.norm.scale[i])
     cov = result.cov[i] if cov is None else jnp.asarray(cov)
-    temps = jnp.asarray(temps, params.beta.dtype)
-    g, corr = compensation_jacobian(result.model, params, norm, temps, rate, dtemp)
-    sigma = jnp.sqrt(jnp.maximum(jnp.einsum("mik,kl,mil->mi", g, cov, g), 0.0))
+    temps = jnp.atleast_1d(jnp.asarray(temps, params.beta.dtype))
+    corr, sigma = _band_arrays(result.model, params, norm, cov, temps, rate, dtemp)
     return Band(temps=temps, rate=jnp.broadcast_to(jnp.asarray(rate, temps.dtype), (3,)),
                 correction=corr, sigma=sigma, level=level, label=label)
+
+
+def uncertainty_bands(result: FitResult, temps, rate=0.0, cov=None, level: float = 0.95,
+                      dtemp: float = 0.0) -> Band:
+    """:func:`uncertainty_band` of every device at once (arrays get a leading device axis)."""
+    cov = result.cov if cov is None else jnp.asarray(cov)
+    temps = jnp.atleast_1d(jnp.asarray(temps, result.params.beta.dtype))
+    model = result.model
+
+    @jax.jit
+    def run(params, centre, scale, cov):
+        return jax.vmap(lambda p, c, s, v: _band_arrays(model, p, TempNorm(centre=c, scale=s), v,
+                                                         temps, rate, dtemp))(params, centre, scale, cov)
+
+    corr, sigma = run(result.params, result.norm.centre, result.norm.scale, cov)
+    return Band(temps=temps, rate=jnp.broadcast_to(jnp.asarray(rate, temps.dtype), (3,)),
+                correction=corr, sigma=sigma, level=level)
 
 
 UNITS = {"rad/s": 1.0, "deg/s": 180 / math.pi, "deg/h": 180 / math.pi * 3600}
