@@ -124,14 +124,16 @@ if __name__ == "__main__":
     ap.add_argument("--hours", type=float, help="recording length (default: the plan's)")
     ap.add_argument("--colour", type=float, default=1.0, help="scale of flicker and random-walk noise")
     ap.add_argument("--lowpass", type=float, default=0.0, help="lag-1 correlation of the white noise")
+    ap.add_argument("--sizes", type=float, nargs=2, default=(0.5, 3.0),
+                    help="range of hidden-effect sizes (unabsorbed RMS / white σ), log-uniform")
     a = ap.parse_args()
     if a.load:
         rows = []
         for f in a.load:
             rows += pickle.load(open(f, "rb"))
     else:
-        rows = run(a.devices, a.seed, a.plans, fs=a.fs, hours=a.hours, colour=a.colour,
-                   lowpass=a.lowpass)
+        rows = run(a.devices, a.seed, a.plans, sizes=tuple(a.sizes), fs=a.fs, hours=a.hours,
+                   colour=a.colour, lowpass=a.lowpass)
         if a.out:
             pickle.dump(rows, open(a.out, "wb"))
     summary(rows)
