@@ -142,19 +142,53 @@ class _RunningMeanTemp(AbstractEffect):
         return per_axis(jnp.cumsum(sig.temp_s) / jnp.arange(1, sig.temp_s.shape[0] + 1))
 
 
-def test_path_choice_and_errors():
+def test_columns_that_read_other_samples():
+    # such a column is formed once on the whole recording and its rows are gathered
     batch = Batch.from_recordings(_thermal_recordings([1500, 1600], seed=5))
     spec = "bias_poly(1)+test_running_mean_temp"
-    assert not fs.applicable(fit.__globals__["ErrorModel"].from_spec(spec), batch)
-    auto = fit(spec, batch)  # falls back to the direct path
-    direct = fit(spec, batch, path="direct")
-    np.testing.assert_array_equal(np.asarray(auto.params.beta), np.asarray(direct.params.beta))
-    with pytest.raises(ValueError, match="other samples"):
-        fit(spec, batch, path="sums")
-    with pytest.raises(ValueError, match="linear"):
-        fit("bias_poly(1)+thermal_lag", batch, path="sums")
+    present = frozenset(batch.signals)
+    assert not fs.layout_of(fit.__globals__["ErrorModel"].from_spec(spec), present)[0].pointwise
+    assert_same(fit(spec, batch, path="direct"), fit(spec, batch))
     with pytest.raises(ValueError, match="unknown fit path"):
         fit("bias_poly(1)", batch, path="fast")
+    with pytest.raises(ValueError, match="solver"):
+        fit("bias_poly(1)", batch, path="sums", solver="lm")
+
+
+@pytest.fixture(scope="module")
+def lagged():
+    batch, truth = simulate("thermal", 4, effects="bias_poly(1)+thermal_lag", seed=11,
+                            duration=4 * 3600.0, sample_rate=0.5,
+                            noise={"rrw": 0.0, "bias_instability": 0.0, "quantum": 0.0})
+    return batch, truth
+
+
+def test_separable_sums_equals_direct(lagged):
+    # variable projection on sums (Newton on the time constant) against optimistix LM on
+    # the design: the same optimum, the sums path at least as low a cost
+    batch, truth = lagged
+    spec = "bias_poly(1)+thermal_lag"
+    direct = fit(spec, batch, path="direct")
+    sums = fit(spec, batch, path="sums")
+    ok = (np.asarray(direct.status) == 0) & (np.asarray(sums.status) == 0)
+    assert ok.sum() >= 3
+    th_d, th_s = np.asarray(direct.params.theta)[ok], np.asarray(sums.params.theta)[ok]
+    assert np.max(np.abs(th_d - th_s)) < 1e-6
+    b1, b2 = np.asarray(direct.params.beta)[ok], np.asarray(sums.params.beta)[ok]
+    assert np.max(np.abs(b1 - b2) / np.max(np.abs(b1), axis=-1, keepdims=True)) < 1e-6
+    assert np.all(np.asarray(sums.rms)[ok] <= np.asarray(direct.rms)[ok] * (1 + 1e-9))
+    for name in ("heldout_rms", "sigma", "noise_floor"):
+        np.testing.assert_allclose(np.asarray(getattr(sums, name))[ok],
+                                   np.asarray(getattr(direct, name))[ok], rtol=1e-6)
+    d = np.sqrt(np.einsum("...ii->...i", np.asarray(direct.cov)[ok]))
+    np.testing.assert_allclose(np.asarray(sums.cov)[ok] / (d[..., :, None] * d[..., None, :]),
+                               np.asarray(direct.cov)[ok] / (d[..., :, None] * d[..., None, :]),
+                               atol=1e-5)
+    assert np.all(np.asarray(sums.steps)[ok] <= 12)  # Newton: a handful of steps
+    # the true time constant is found
+    tau_true = np.exp(np.asarray(truth.params.theta)[:, 0])[ok]
+    tau = np.exp(th_s[:, 0])
+    assert np.max(np.abs(tau - tau_true) / tau_true) < 0.05
 
 
 def test_layout_shares_products():

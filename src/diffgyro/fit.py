@@ -574,13 +574,10 @@ def fit(
         opts = _replace(opts, **option_overrides)
     if opts.path not in ("auto", "direct", "sums"):
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
-    if opts.path != "direct" and model.is_linear and opts.solver != "lm":
-        from .fit_sums import applicable
-
-        if opts.path == "sums" or applicable(model, batch):
-            return _fit_sums(model, batch, norm, opts)
+    if opts.solver != "lm" and (opts.path == "sums" or (opts.path == "auto" and model.is_linear)):
+        return _fit_sums(model, batch, norm, opts, theta0)
     if opts.path == "sums":
-        raise ValueError("path='sums' needs a model linear in all parameters and solver='closed'")
+        raise ValueError("path='sums' needs solver='closed'")
     n_dev = batch.n_devices
     batch = _pad_devices(batch)  # a few device-count buckets: no compile per batch size
     sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
@@ -626,11 +623,12 @@ def _pad_devices(batch: Batch) -> Batch:
     return batch.select(np.minimum(np.arange(m), n - 1))
 
 
-def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions) -> FitResult:
-    """A linear model through the one-pass sums path (fit_sums.py)."""
+def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
+              theta0=None) -> FitResult:
+    """The sums path (fit_sums.py): one blocked pass per trial of the time constants."""
     from .fit_sums import solve_sums
 
-    out = solve_sums(model, batch, norm, opts)
+    out = solve_sums(model, batch, norm, opts, theta0)
     d = batch.n_devices
     if "norm_centre" in out:
         norm_out = TempNorm(centre=jnp.asarray(out.pop("norm_centre")),

@@ -32,8 +32,6 @@ is part of the compiled shape.
 from __future__ import annotations
 
 import functools
-import os
-from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -66,6 +64,7 @@ class Layout(eqx.Module):
     xx: tuple = eqx.field(static=True)
     a_map: tuple = eqx.field(static=True)  # (3·p·p,) product index of every Gram entry
     shared: tuple = eqx.field(static=True)  # per column: equal on the three axes
+    pointwise: bool = eqx.field(static=True)  # columns read only their own sample's signals
     const_col: int | None = eqx.field(static=True)
 
     @property
@@ -102,32 +101,34 @@ def _random_signals(present: frozenset[str], n: int, seed: int) -> Signals:
 
 
 @functools.lru_cache(maxsize=256)
-def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout | None, frozenset[str]]:
+def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, frozenset[str]]:
     """The model's product layout and the inputs its columns and range checks read.
 
     Evaluated once per model on random signals: which columns are equal on all
-    axes, which column products coincide, and whether every column is a
-    function of its own sample's signals (``None`` if not: such a model takes
-    the direct path). Which inputs are read — and whether the sampling
+    axes, which column products coincide (at two sets of time constants), and
+    whether every column is a function of its own sample's signals (linear
+    models that are not take the direct path). Which inputs are read — and whether the sampling
     interval (dT/dt) matters — comes from dead-code elimination of the trace.
     """
-    n = 24
+    n, q = 24, model.n_nonlinear
     sig = _random_signals(present, n, 12345)
     perm = np.random.default_rng(1).permutation(n)
     sig_p = jax.tree.map(lambda a: a[perm] if (a.ndim >= 1 and a.shape[0] == n) else a, sig)
-    x, xp = jax.jit(lambda s, sp: (model.design(s, jnp.zeros((0,), s.gyro.dtype)),
-                                   model.design(sp, jnp.zeros((0,), s.gyro.dtype))))(sig, sig_p)
-    x, xp = np.asarray(x), np.asarray(xp)
-    p = x.shape[-1]
+    # two sets of time constants (log s): a coincidence at one is not at the other
+    thetas = [jnp.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
+    xs = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)])(sig, sig_p)
+    xs = [np.asarray(v) for v in xs]
+    p = xs[0].shape[-1]
     # pointwise: the columns of a reordered recording are the reordered columns
-    pointwise = np.allclose(xp, x[perm], rtol=1e-12, atol=0.0)
+    pointwise = all(np.allclose(b, a[perm], rtol=1e-12, atol=0.0) for a, b in zip(xs[::2], xs[1::2]))
     # distinct products: the count (1) first, then column products in order
-    reps, vals = [None], [np.ones(n)]
+    reps, vals = [None], [np.ones(n * len(thetas))]
+    xall = np.concatenate(xs[::2], axis=0)
     a_map = np.zeros((3, p, p), np.int64)
     for i in range(3):
         for a in range(p):
             for b in range(a, p):
-                v = x[:, i, a] * x[:, i, b]
+                v = xall[:, i, a] * xall[:, i, b]
                 scale = np.max(np.abs(v)) + 1e-300
                 k = next((j for j, u in enumerate(vals)
                           if np.max(np.abs(u - v)) <= 1e-12 * scale), None)
@@ -140,10 +141,10 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout | None
     for term, sl, _ in model.slices():
         if term.name == "bias_poly":
             const_col = sl.start
-    shared = tuple(bool(np.array_equal(x[:, 0, a], x[:, 1, a]) and
-                        np.array_equal(x[:, 0, a], x[:, 2, a])) for a in range(p))
+    shared = tuple(bool(np.array_equal(xall[:, 0, a], xall[:, 1, a]) and
+                        np.array_equal(xall[:, 0, a], xall[:, 2, a])) for a in range(p))
     layout = Layout(p=p, xx=tuple(reps[1:]), a_map=tuple(a_map.ravel().tolist()), shared=shared,
-                    const_col=const_col) if pointwise else None
+                    const_col=const_col, pointwise=bool(pointwise))
     # which inputs matter (and the sampling interval, through dT/dt)
     dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
     shapes = {"t": (n,), "rate": (n, 3), "temp": (n,), "temp_ext": (n,), "accel": (n, 3)}
@@ -152,7 +153,7 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout | None
     def f(dt, *arrays):
         kw = dict(zip(names, arrays))
         s = make_signals(kw.pop("t"), jnp.zeros((n, 3), dtype), jnp.ones(n, bool), **kw, dt=dt)
-        out = [model.design(s, jnp.zeros((0,), dtype))]
+        out = [model.design(s, jnp.zeros((q,), dtype))]
         if model.deterministic:
             out.append(model.range_problems(s))
         return out
@@ -164,38 +165,59 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout | None
     return layout, frozenset(need)
 
 
-def applicable(model: ErrorModel, batch: Batch) -> bool:
-    """Whether the sums path can fit ``model`` on ``batch`` (linear, pointwise columns)."""
-    return model.is_linear and layout_of(model, frozenset(batch.signals))[0] is not None
-
-
-def _products(layout: Layout, sig: Signals, model: ErrorModel, y0, mask):
-    """Per-sample products in the order of :meth:`Layout.index`; masked samples give 0.
+def _products(layout: Layout, x, ys, mask):
+    """Per-sample products of design ``x`` (..., 3, p) and rates ``ys`` (..., 3) in the order
+    of :meth:`Layout.index`; masked samples give 0.
 
     The mask is applied once to each column and rate (products of masked
     factors are masked), and a column equal on all axes is formed once.
     """
-    dtype = sig.gyro.dtype
-    x = model.design(sig, jnp.zeros((0,), dtype))
-    ys = sig.gyro - sig.rate - y0
-
     def col(i, a):
         return jnp.where(mask, x[..., 0 if layout.shared[a] else i, a], 0.0)
 
     yw = [jnp.where(mask, ys[..., i], 0.0) for i in range(3)]
-    ops = [mask.astype(dtype)]
+    ops = [mask.astype(ys.dtype)]
     ops += [col(i, a) * col(i, b) for a, b, i in layout.xx]
     ops += [yw[i] * col(i, a) for i in range(3) for a in range(layout.p)]
     ops += [yw[i] * yw[i] for i in range(3)]
     return ops
 
 
-def _vsum(ops, axis: int = -1):
-    """Sums of many arrays along one axis in a single loop (an XLA variadic reduce)."""
-    axis = axis % ops[0].ndim
+def _signal_products(layout: Layout, model: ErrorModel, theta, y0):
+    """Products of a recording's signals through the model's design (a pointwise model)."""
+    def products(sig, mask):
+        x = model.design(sig, theta)
+        return _products(layout, x, sig.gyro - sig.rate - y0, mask)
+
+    return products
+
+
+def _design_products(layout: Layout):
+    """Products of a precomputed design and rates, given as the pair (x, ys)."""
+    def products(xy, mask):
+        return _products(layout, xy[0], xy[1], mask)
+
+    return products
+
+
+@jax.custom_jvp
+def _vsum_stacked(ops):
     zero = (jnp.zeros((), ops[0].dtype),) * len(ops)
-    out = lax.reduce(tuple(ops), zero, lambda u, v: tuple(a + b for a, b in zip(u, v)), (axis,))
+    out = lax.reduce(tuple(ops), zero, lambda u, v: tuple(a + b for a, b in zip(u, v)),
+                     (ops[0].ndim - 1,))
     return jnp.stack(out, axis=-1)
+
+
+@_vsum_stacked.defjvp
+def _vsum_jvp(primals, tangents):
+    (ops,), (dops,) = primals, tangents
+    return _vsum_stacked(ops), _vsum_stacked(dops)
+
+
+def _vsum(ops):
+    """Sums of many arrays along their last axis in a single loop (an XLA variadic reduce),
+    stacked on a new last axis."""
+    return _vsum_stacked(list(ops))
 
 
 def _block_positions(mask, nv, n_blocks: int, prefix: bool):
@@ -213,19 +235,19 @@ def _block_positions(mask, nv, n_blocks: int, prefix: bool):
     return jnp.searchsorted(cm, rank + 1, side="left").astype(jnp.int32)
 
 
-def _fold_sums(model, layout, sig, y0, mask, nv, n_blocks: int, n_folds: int, c: int,
-               prefix: bool):
+def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, prefix: bool):
     """Total and per-fold sums of every product, reading the samples once.
 
-    Chunks of ``c`` samples (no longer than the shortest block) are summed in
-    one variadic reduction and credited to the fold of their first sample. The
-    chunks a block boundary cuts are summed again up to the boundary (a second,
-    small reduction over just those chunks) and the rest is moved to the next
-    block's fold.
+    ``products(src, mask)`` gives the per-sample products of ``src`` (a pytree
+    of arrays with the sample axis first). Chunks of ``c`` samples (no longer
+    than the shortest block) are summed in one variadic reduction and credited
+    to the fold of their first sample. The chunks a block boundary cuts are
+    summed again up to the boundary (a second, small reduction over just those
+    chunks, gathered from ``src``) and the rest is moved to the next block's fold.
     """
     n = mask.shape[0]
     nc = n // c
-    ops = _products(layout, sig, model, y0, mask)
+    ops = products(src, mask)
     tot = _vsum([o.reshape(nc, c) for o in ops])  # (nc, F)
     pos = _block_positions(mask, nv, n_blocks, prefix)
     starts = jnp.arange(nc, dtype=jnp.int32) * c
@@ -241,8 +263,8 @@ def _fold_sums(model, layout, sig, y0, mask, nv, n_blocks: int, n_folds: int, c:
     cut = (p % c != 0) & (p < n)
     idx = (ch[:, None] * c + jnp.arange(c, dtype=jnp.int32)[None, :]).reshape(-1)
     head_mask = (idx.reshape(-1, c) < p[:, None]).reshape(-1) & mask[idx]
-    sig_h = jax.tree.map(lambda a: a[idx] if (a.ndim >= 1 and a.shape[0] == n) else a, sig)
-    head = _vsum([o.reshape(-1, c) for o in _products(layout, sig_h, model, y0, head_mask)])
+    src_h = jax.tree.map(lambda a: a[idx] if (a.ndim >= 1 and a.shape[0] == n) else a, src)
+    head = _vsum([o.reshape(-1, c) for o in products(src_h, head_mask)])
     late = jnp.where(cut[:, None], tot[ch] - head, 0.0)  # belongs to the next block
     b = jnp.arange(n_blocks, dtype=jnp.int32)  # block -1 (before the first valid sample) is fold -1
     move = (((b % n_folds)[None, :] == folds[:, None]).astype(late.dtype)
@@ -280,11 +302,62 @@ def _sse(a, c, q, beta):
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
+def _newton(f, theta0, max_steps: int, rtol):
+    """Minimise a smooth function of a few parameters (log time constants).
+
+    Newton steps with exact forward-mode gradient and Hessian; negative
+    curvature is flipped and a Levenberg term damps the step, which is
+    accepted only if ``f`` does not grow (and is at most 1 in log τ); near a
+    minimum (convex, Newton step below 1e-3) the plain Newton step is taken.
+    Converged when the Newton step is below ``rtol·(1 + |θ|)``.
+    Returns (theta, steps, converged).
+    """
+    def fa(t):
+        v = f(t)
+        return v, v
+
+    def ga(t):
+        g, v = jax.jacfwd(fa, has_aux=True)(t)
+        return g, (g, v)
+
+    def body(state):
+        th, lam, k, _ = state
+        h, (g, v) = jax.jacfwd(ga, has_aux=True)(th)
+        e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
+        convex = jnp.all(e > 0)
+        e = jnp.abs(e)
+        big = jnp.max(e) + 1e-300
+        gv = vec.T @ g
+        newton = -(vec @ (gv / jnp.maximum(e, 1e-300 * big)))
+        scale_th = 1.0 + jnp.linalg.norm(th)
+        size_n = jnp.linalg.norm(newton)
+        # close to a minimum Newton converges quadratically and f's rounding noise (a
+        # difference of sums) would veto its last steps: take them without the f test
+        near = convex & (size_n <= 1e-3 * scale_th)
+        step = -(vec @ (gv / (e + lam * big)))
+        step = jnp.where(near, newton, step)
+        size = jnp.linalg.norm(step)
+        step = step * jnp.minimum(1.0, 1.0 / jnp.maximum(size, 1e-300))
+        v_new = f(th + step)
+        ok = jnp.isfinite(v_new) & ((v_new <= v) | near)
+        done = jnp.isfinite(v) & (size_n <= rtol * scale_th)
+        th = jnp.where(ok & ~done, th + step, th)
+        lam = jnp.where(ok, lam * 0.3, lam * 10.0)
+        return th, lam, k + 1, done
+
+    def cond(state):
+        return (state[2] < max_steps) & ~state[3]
+
+    init = (theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(0, jnp.int32), jnp.asarray(False))
+    th, _, k, done = lax.while_loop(cond, body, init)
+    return th, k, done
+
+
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
-            temp, temp_ext, accel, centre, scale, dt, nv):
+            temp, temp_ext, accel, centre, scale, dt, nv, theta0):
     from . import fit as F
 
-    p = layout.p
+    p, nq = layout.p, model.n_nonlinear
     dtype = gyro.dtype
     norm = None
     if temp is not None:
@@ -300,10 +373,55 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         y0 = y[jnp.argmax(mask)]
     else:
         y0 = jnp.zeros((3,), dtype)
-    tot, per_fold = _fold_sums(model, layout, sig, y0, mask, nv, opts.n_blocks, opts.n_folds, c,
-                               prefix)
+    n_folds = opts.n_folds
+
+    def sums_at(th):
+        if layout.pointwise:
+            return _fold_sums(_signal_products(layout, model, th, y0), sig, mask, nv,
+                              opts.n_blocks, n_folds, c, prefix)
+        x = model.design(sig, th)  # a column that reads other samples is formed once
+        return _fold_sums(_design_products(layout), (x, y - y0), mask, nv, opts.n_blocks,
+                          n_folds, c, prefix)
+
+    if nq == 0:
+        theta = jnp.zeros((0,), dtype)
+        tot, per_fold = sums_at(theta)
+        held, train = per_fold, tot[None] - per_fold
+        steps, converged = jnp.asarray(1, jnp.int32), jnp.asarray(True)
+    else:
+        # variable projection: the linear coefficients are solved from the sums for
+        # every trial of the time constants; Newton moves the time constants alone
+        def cost(th):
+            s_ = sums_at(th)[0]
+            a_, c_, q_, _ = _unpack(layout, s_)
+            return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
+
+        grid = model.nonlinear_grid(sig).astype(dtype)
+        costs = jax.vmap(cost)(grid)
+        costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
+        best = jnp.argmin(costs)
+        start = grid[best] if theta0 is None else theta0
+        theta, steps, converged = _newton(cost, start, opts.max_steps, opts.rtol)
+        tot, _ = sums_at(theta)
+        a_, c_, q_, _ = _unpack(layout, tot)
+        # a local optimum worse than the best grid point is not the answer
+        full_cost = jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
+        converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
+
+        def fold(k):  # refit the time constants without fold k, from the full optimum
+            def cost_k(th):
+                s_, pf = sums_at(th)
+                a_, c_, q_, _ = _unpack(layout, s_ - pf[k])
+                return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
+
+            th_k, _, _ = _newton(cost_k, theta, max(8, opts.max_steps // 4), opts.rtol)
+            s_, pf = sums_at(th_k)
+            return pf[k], s_ - pf[k]
+
+        held, train = jax.vmap(fold)(jnp.arange(n_folds))
     a, cc, q, n_valid = _unpack(layout, tot)
-    af, cf, qf, nf = _unpack(layout, per_fold)
+    af, cf, qf, nf = _unpack(layout, held)
+    at, ct, _, _ = _unpack(layout, train)
 
     # full fit
     chol, dsc = _cholesky(a)
@@ -317,17 +435,19 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * n_valid, 1.0))
 
     # held-out folds: train on total − fold, score on the fold's own sums
-    beta_f = _cho_solve(*_cholesky(a[None] - af), cc[None] - cf)
+    beta_f = _cho_solve(*_cholesky(at), ct)
     sse_f = jnp.sum(jnp.maximum(_sse(af, cf, qf, beta_f), 0.0), axis=-1)
     heldout_rms = jnp.sqrt(jnp.sum(sse_f) / jnp.maximum(3 * jnp.sum(nf), 1.0))
     fold_mse = sse_f / jnp.maximum(3 * nf, 1.0)
 
-    # covariance of the linear coefficients: block diagonal, σ_i² (X_iᵀX_i)⁻¹ per axis
-    dof = jnp.maximum(n_valid - p, 1.0)
+    dof = jnp.maximum(n_valid - p - nq, 1.0)
     sigma2 = jnp.maximum(sse / dof, 1e-300)
-    eye = jnp.broadcast_to(jnp.eye(p, dtype=dtype), (3, p, p))
-    inv = jax.scipy.linalg.cho_solve((chol, True), eye) / (dsc[:, :, None] * dsc[:, None, :])
-    cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
+    if nq == 0:  # block diagonal: σ_i² (X_iᵀX_i)⁻¹ per axis
+        eye = jnp.broadcast_to(jnp.eye(p, dtype=dtype), (3, p, p))
+        inv = jax.scipy.linalg.cho_solve((chol, True), eye) / (dsc[:, :, None] * dsc[:, None, :])
+        cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
+    else:
+        cov = _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2)
 
     if opts.noise_floor:
         noise_axes = F._noise_floor(y, mask)
@@ -339,16 +459,17 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])
     collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
         jnp.zeros((len(terms),), bool)
-    finite = jnp.all(jnp.isfinite(beta)) & jnp.isfinite(rms)
+    finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
     status = jnp.where(
-        n_valid < max(2 * p, p + 4), F.INSUFFICIENT_DATA,
+        n_valid < max(2 * (p + nq), p + nq + 4), F.INSUFFICIENT_DATA,
         jnp.where(jnp.any(range_flags), F.INSUFFICIENT_RANGE,
                   jnp.where(~jnp.all(rank_ok), F.RANK_DEFICIENT,
-                            jnp.where(finite, F.OK, F.FAILED))))
-    out = dict(beta=beta, theta=jnp.zeros((0,), dtype), cov=cov, rms=rms,
+                            jnp.where(~converged, F.NOT_CONVERGED,
+                                      jnp.where(finite, F.OK, F.FAILED)))))
+    out = dict(beta=beta, theta=theta, cov=cov, rms=rms,
                heldout_rms=heldout_rms, fold_mse=fold_mse,
                noise_floor=jnp.sqrt(jnp.mean(noise_axes**2)), noise_axes=noise_axes,
-               sigma=jnp.sqrt(sigma2), steps=jnp.asarray(1, jnp.int32),
+               sigma=jnp.sqrt(sigma2), steps=jnp.asarray(steps, jnp.int32),
                status=jnp.asarray(status, jnp.int32), range_flags=range_flags,
                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
     if temp is not None:
@@ -359,9 +480,34 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     return out
 
 
+def _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2):
+    """Gauss–Newton covariance of (β per axis, θ), each axis weighted by 1/σ_i², as
+    :func:`diffgyro.fit._covariance` forms it, from one more pass of sums."""
+    p, nq = layout.p, theta.shape[0]
+    x = model.design(sig, theta)
+    g = jax.jacfwd(lambda th: jnp.einsum("nip,ip->ni", model.design(sig, th), beta))(theta)
+    ops = [jnp.where(mask, x[:, i, pp] * g[:, i, k], 0.0)
+           for i in range(3) for pp in range(p) for k in range(nq)]
+    ops += [jnp.where(mask, g[:, i, k] * g[:, i, r], 0.0)
+            for i in range(3) for k in range(nq) for r in range(nq)]
+    sums = _vsum(ops)
+    i_bt = sums[:3 * p * nq].reshape(3, p, nq) / sigma2[:, None, None]
+    i_tt = jnp.sum(sums[3 * p * nq:].reshape(3, nq, nq) / sigma2[:, None, None], axis=0)
+    k = 3 * p + nq
+    info = jnp.zeros((k, k), a.dtype)
+    for i in range(3):
+        info = info.at[i * p:(i + 1) * p, i * p:(i + 1) * p].set(a[i] / sigma2[i])
+        info = info.at[i * p:(i + 1) * p, 3 * p:].set(i_bt[i])
+        info = info.at[3 * p:, i * p:(i + 1) * p].set(i_bt[i].T)
+    info = info.at[3 * p:, 3 * p:].set(i_tt)
+    d = jnp.sqrt(jnp.diagonal(info))
+    d = jnp.where(d > 0, d, 1.0)
+    return jnp.linalg.inv(info / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
+
+
 @eqx.filter_jit
 def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel, centre,
-           scale, dt, nv):
+           scale, dt, nv, theta0):
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
@@ -369,7 +515,8 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
     def one(*args):
         return _device(model, layout, opts, c, prefix, *args)
 
-    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv)
+    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv,
+                         theta0)
 
 
 def _pow2_floor(x: int) -> int:
@@ -391,19 +538,16 @@ def chunk_size(min_valid: int, n_blocks: int, length: int) -> int:
     return max(c, 1)
 
 
-def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dtype=np.float64):
+def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, theta0=None,
+               dtype=np.float64):
     """Fit every device of ``batch`` with the sums path; numpy arrays with a device axis.
 
-    Raises ValueError if the model's columns are not functions of each sample's
-    own signals (use the direct path then).
+    ``theta0`` (devices × time constants, log s) replaces the grid start.
     """
     from .fit import sampling_intervals
 
     present = frozenset(batch.signals)
     layout, need = layout_of(model, present)
-    if layout is None:
-        raise ValueError(f"model {model.spec!r} has columns that read other samples; "
-                         "the sums path cannot fit it (use path='direct')")
     d, n = batch.n_devices, batch.length
     g = group_size(d, n)
     dt = sampling_intervals(batch) if "dt" in need else np.ones(d)
@@ -411,7 +555,9 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
     if norm is not None and batch.temp is not None:
         centre = np.broadcast_to(np.asarray(norm.centre, dtype), (d,))
         scale = np.broadcast_to(np.asarray(norm.scale, dtype), (d,))
-    arrays = {"gyro": batch.gyro, "mask": batch.mask, "centre": centre, "scale": scale, "dt": dt}
+    arrays = {"gyro": batch.gyro, "mask": batch.mask, "centre": centre, "scale": scale, "dt": dt,
+              "theta0": None if theta0 is None else np.broadcast_to(
+                  np.asarray(theta0, dtype), (d, model.n_nonlinear))}
     for k in INPUTS:
         arr = getattr(batch, k)
         # the reference rate is always read: the fit is of gyro − rate
@@ -422,7 +568,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     ramp = np.arange(n)
 
-    def run(j: int) -> dict:
+    def run(j: int):
         start = j * g
         stop = min(start + g, d)
         sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
@@ -442,14 +588,12 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, dty
             else:
                 args.append(jax.device_put(np.ascontiguousarray(np.asarray(a[sl], dtype)), dev))
         args.append(jax.device_put(nv.astype(np.int32), dev))
-        out = _group(model, layout, opts, c, prefix, *args)
-        return {k: np.asarray(v)[:stop - start] for k, v in out.items()}
+        th0 = arrays["theta0"]
+        args.append(None if th0 is None else jax.device_put(np.ascontiguousarray(th0[sl]), dev))
+        return stop - start, _group(model, layout, opts, c, prefix, *args)
 
-    n_groups = -(-d // g)
-    if n_groups == 1:
-        outs = [run(0)]
-    else:  # XLA runs each call on the calling thread (on CPU): one caller per core
-        workers = min(n_groups, max(len(devices), os.cpu_count() or 1))
-        with ThreadPoolExecutor(workers) as pool:
-            outs = list(pool.map(run, range(n_groups)))
-    return {k: np.concatenate([o[k] for o in outs], axis=0) for k in outs[0]}
+    # dispatch every group, then collect (concurrent calls from several Python threads
+    # deadlocked XLA's CPU client: keep to one caller)
+    outs = [run(j) for j in range(-(-d // g))]
+    return {k: np.concatenate([np.asarray(o[k])[:m] for m, o in outs], axis=0)
+            for k in outs[0][1]}
