@@ -1,0 +1,35 @@
+"""benchmarks/run.py's cases run at toy sizes and report comparable answers (not a benchmark)."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+from conftest import ROOT
+
+KEYS = {"case", "devices", "samples", "diffgyro_s", "baseline", "baseline_s", "speedup",
+        "max_abs_diff", "bytes", "fraction_of_bandwidth_limit", "compile_s"}
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("bench_run", ROOT / "benchmarks" / "run.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.parametrize("case,args", [
+    ("bias_poly3", dict(devices=6, samples=700, subset=3, full_fit=False)),
+    ("kalman", dict(devices=2, samples=400, subset=150)),
+    ("allan", dict(devices=1, samples=4096, subset=2)),
+])
+def test_case_runs_and_agrees(bench, case, args):
+    rows = bench.CASES[case](repeats=1, bw=1e10, **args)
+    assert rows
+    for r in rows:
+        assert KEYS <= set(r)
+        assert r["diffgyro_s"] > 0 and r["baseline_s"] > 0 and r["speedup"] > 0
+        assert r["max_rel_diff"] < 1e-8, (case, r["baseline"], r["max_rel_diff"])
+        assert 0 < r["fraction_of_bandwidth_limit"]
+    assert "| " + case in bench.table(rows)
