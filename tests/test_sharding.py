@@ -49,8 +49,8 @@ def assert_close(a, b, rel=1e-12, path="") -> None:
         assert isinstance(b, dict) and set(a) == set(b), path
         for k in a:
             assert_close(a[k], b[k], rel, f"{path}.{k}")
-    elif isinstance(a, list):
-        assert isinstance(b, list) and len(a) == len(b), path
+    elif isinstance(a, (list, tuple)):
+        assert isinstance(b, (list, tuple)) and len(a) == len(b), path
         for i, (x, y) in enumerate(zip(a, b)):
             assert_close(x, y, rel, f"{path}[{i}]")
     elif isinstance(a, float) and isinstance(b, float):
@@ -106,16 +106,18 @@ def test_sharded_stream_equals_single_device(tmp_path):
 @pytest.mark.slow
 def test_sharded_variable_projection_does_not_hang(tmp_path):
     """The nonlinear path (optimistix LM in a while loop: one all-reduce per step across
-    the shards to agree on stopping) under sharding, against the single-device run."""
+    the shards to agree on stopping) under sharding, against the same path on one device,
+    on devices with a power-on warm-up transient."""
     script = """
-    from pipeline_data import simulated
+    from diffgyro.simulate import simulate
     from diffgyro.pipeline.chunkfit import ChunkFitter
-    batch, _ = simulated(5, 3, "w-")
+    batch, truth = simulate("warmup", 5, effects="bias_poly(0)+warmup", seed=3,
+                            sample_rate=0.5, duration=1800.0)
     out = {}
     for name, shard in (("sharded", None), ("single", False)):
-        fitter = ChunkFitter("bias_poly(0)+warmup", 5, {"n_folds": 2, "max_steps": 30},
+        fitter = ChunkFitter("bias_poly(0)+warmup", 5, {"n_folds": 2},
                              shard=shard)
-        r = fitter.fit(batch)
+        r = fitter.fit_direct(batch)
         out[name] = {"n_shards": fitter.n_shards, "beta": r.params.beta.tolist(),
                      "theta": r.params.theta.tolist(), "rms": r.rms.tolist(),
                      "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist(),
@@ -124,6 +126,7 @@ def test_sharded_variable_projection_does_not_hang(tmp_path):
     """
     out = run_forced(script, timeout=400)
     assert out["sharded"].pop("n_shards") == 2 and out["single"].pop("n_shards") == 1
+    assert out["single"]["status"].count(0) >= 3   # a well-posed problem: most converge
     assert_close(out["sharded"], out["single"], rel=1e-10)
 
 

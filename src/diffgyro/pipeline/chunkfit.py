@@ -1,11 +1,10 @@
 """Fit one chunk of devices with a compiled function reused across chunks, sharded
 over the local JAX devices.
 
-Linear models that the one-pass sums path takes, and every model when there is
-one JAX device, go through :func:`diffgyro.fit.fit` itself: it keeps compiled
-shapes fixed (device groups, device buckets) and spreads the sums path's
-device groups over the local JAX devices. Models with time constants on
-several JAX devices take the sharded direct path of this module:
+With one JAX device a chunk goes through :func:`diffgyro.fit.fit` itself
+(which keeps compiled shapes fixed: device groups, device buckets), one
+device group at a time. With several JAX devices it takes the sharded direct
+path of this module (:func:`diffgyro.fit.solve_device` per device):
 
 Each chunk is padded on the device axis to a fixed size (copies of its last
 device, whose results are dropped) and on the sample axis to a bucket length,
@@ -82,6 +81,25 @@ def local_mesh(shard: bool | None = None) -> Mesh | None:
     return Mesh(np.asarray(devices), (AXIS,))
 
 
+def concat_results(parts: list[FitResult]) -> FitResult:
+    """FitResults of consecutive device groups as one (host arrays)."""
+    import dataclasses
+
+    first = parts[0]
+    kw = {}
+    for f in dataclasses.fields(FitResult):
+        vals = [getattr(p, f.name) for p in parts]
+        if f.name == "devices":
+            kw[f.name] = tuple(d for v in vals for d in v)
+        elif f.name in ("model", "options"):
+            kw[f.name] = vals[0]
+        elif vals[0] is None:
+            kw[f.name] = None
+        else:
+            kw[f.name] = jax.tree.map(lambda *xs: np.concatenate(xs, axis=0), *vals)
+    return type(first)(**kw)
+
+
 class ChunkFitter:
     """Fits chunks of up to ``chunk_devices`` devices with ``spec``.
 
@@ -116,20 +134,29 @@ class ChunkFitter:
     def fit(self, batch: Batch) -> FitResult:
         """Fit a batch of at most ``padded`` devices; FitResult of exactly these devices.
 
-        Linear models the one-pass sums path can take, and every model on one JAX
-        device, go through :func:`diffgyro.fit.fit` itself (the sums path spreads its
-        device groups over the local JAX devices on its own); the rest (time
-        constants) through the sharded direct path here.
+        On one JAX device: :func:`diffgyro.fit.fit` itself (whichever path it takes),
+        one device group at a time. On several: the sharded direct path of this module.
         """
         from ..fit import fit
-        from ..fit_sums import applicable
 
-        if self.mesh is None or (self.model.is_linear and applicable(self.model, batch)):
-            result = fit(self.model, batch, options=self.opts)
-            return jax.tree.map(np.asarray, result)
-        return self._fit_sharded(batch)
+        if self.mesh is not None:
+            return self.fit_direct(batch)
+        # fit() runs a batch of several sums-path device groups on a pool of threads, and
+        # that deadlocked (XLA on CPU, jax 0.10) from the second call of a process on: hand
+        # it one group at a time. Same groups, so the same numbers, one compiled shape.
+        try:
+            from ..fit_sums import group_size
 
-    def _fit_sharded(self, batch: Batch) -> FitResult:
+            g = group_size(batch.n_devices, batch.length)
+        except ImportError:
+            g = batch.n_devices
+        parts = [jax.tree.map(np.asarray, fit(self.model, batch.select(
+            np.arange(lo, min(lo + g, batch.n_devices))), options=self.opts))
+            for lo in range(0, batch.n_devices, g)]
+        return parts[0] if len(parts) == 1 else concat_results(parts)
+
+    def fit_direct(self, batch: Batch) -> FitResult:
+        """The direct path of this module (sharded when the fitter has a mesh)."""
         n = batch.n_devices
         if n > self.padded:
             raise ValueError(f"chunk of {n} devices is larger than the planned {self.padded}")
