@@ -109,8 +109,8 @@ class Thresholds:
     gain_min: float = 0.03
     rw_slope_min: float = 0.25
     rw_excess_min: float = 0.2
-    rw_prefer: float = 0.8
-    rw_ratio: float = 2.5
+    rw_prefer: float = 0.85
+    rw_ratio: float = 2.0
     alt_share: float = 0.6
     local_share: float = 0.02
     local_excess: float = 2.0
