@@ -53,8 +53,9 @@ class FitOptions(eqx.Module):
     #: "closed": closed form (linear part) + variable projection (time constants);
     #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
     solver: str = eqx.field(static=True, default="closed")
-    #: Linear models: "sums" reads the samples once and never forms the design
-    #: (fit_sums.py); "direct" forms it; "auto" takes "sums" for linear models.
+    #: "sums" reads the samples once per trial of the time constants and never forms the
+    #: design (fit_sums.py; Newton on the projected cost for time constants); "direct"
+    #: forms it (optimistix LM for time constants); "auto": "sums" for linear models.
     path: str = eqx.field(static=True, default="auto")
     #: The model-free noise floor is a median (a sort per device and axis), the
     #: costliest part of a linear fit; False skips it (NaN) when only coefficients matter.
