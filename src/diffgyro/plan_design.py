@@ -14,8 +14,8 @@ Every number of the plan is a JAX array and the whole chain
     plan → chamber temperature → sensor temperature (first-order lag)
          → table rate, Earth rate, gravity → :func:`~diffgyro.signals.make_signals`
 
-is smooth (segment edges are logistic steps ``edge`` seconds wide, at least
-one sample: the table's acceleration), so the Fisher
+is smooth (table edges are logistic steps ``edge`` seconds wide and chamber
+corners are rounded over ``corner`` seconds, each at least one sample), so the Fisher
 information of a plan, the predicted compensation error over an operating
 range, and an expected fit through :func:`~diffgyro.fit.solve_device` can all
 be differentiated with respect to soak temperatures and durations, ramp rate,
@@ -72,8 +72,10 @@ class ChamberPlan(eqx.Module):
 class PlanConfig(eqx.Module):
     """Everything about a plan that is not optimised (static, hashable)."""
 
+    #: time grid; keep its interval well below the shortest spin (S2: 1 min → ≥ 2048 samples)
     n_samples: int = eqx.field(static=True, default=8192)
-    edge: float = eqx.field(static=True, default=5.0)  # s, width of segment edges (≥ one sample)
+    edge: float = eqx.field(static=True, default=5.0)  # s, width of table edges (≥ one sample)
+    corner: float = eqx.field(static=True, default=30.0)  # s, rounding of chamber corners
     n_headings: int = eqx.field(static=True, default=1)
     start_temp: float = eqx.field(static=True, default=25.0)
     temp_limits: tuple[float, float] = eqx.field(static=True, default=(-40.0, 70.0))
@@ -162,14 +164,22 @@ def plan_environment(plan: ChamberPlan, config: PlanConfig,
     # knot times: ramp_k ends at e_k, soak_k ends at f_k
     seg = jnp.stack([ramps, plan.soaks], axis=1).reshape(-1)
     ends = jnp.cumsum(seg)
-    total = ends[-1]
+    # the record runs a few edge widths past the last soak so that the last spin ends
+    total = ends[-1] + 10 * config.edge
     soak_start, soak_end = ends[0::2], ends[1::2]
     dt = total / (n - 1)
     t = jnp.arange(n, dtype=dtype) * dt
-    knot_t = jnp.concatenate([jnp.zeros((1,), dtype), ends])
-    knot_temp = jnp.concatenate([jnp.asarray([config.start_temp], dtype),
-                                 jnp.repeat(plan.temps, 2)])
-    chamber = jnp.interp(t, knot_t, knot_temp)
+    # chamber: ramps at ±ramp between soaks, corners rounded over ``corner`` seconds (a
+    # controller's response; it also keeps the profile smooth in every plan number)
+    prev = jnp.concatenate([jnp.asarray([config.start_temp], dtype), plan.temps[:-1]])
+    slope = (plan.temps - prev) / ramps                       # (k,) °C/s, finite for equal temps
+    ramp_start = jnp.concatenate([jnp.zeros((1,), dtype), soak_end[:-1]])
+    corner = jnp.maximum(config.corner, dt)
+
+    def rise(a):  # smoothed max(t − a, 0)
+        return corner * jax.nn.softplus((t[:, None] - a[None, :]) / corner)
+
+    chamber = config.start_temp + (rise(ramp_start) - rise(soak_start)) @ slope
     temp = first_order_lag(t, chamber + heat, tau)
 
     width = jnp.maximum(config.edge, dt)
@@ -414,7 +424,7 @@ def _fit_noiseless(plan, config, model, truth_model, truth, norm, fit_options):
     true_sig = env_signals(env, norm, reference=False, dtemp_window=config.dtemp_window)
     gyro = truth_model.predict(truth, true_sig)
     sig = env_signals(env, norm, gyro=gyro, dtemp_window=config.dtemp_window)
-    out = solve_device(model, sig, fit_options or FitOptions(n_folds=1, n_blocks=1))
+    out = solve_device(model, sig, fit_options or FitOptions(n_folds=2, n_blocks=2))
     return Params(beta=out["beta"], theta=out["theta"])
 
 
