@@ -50,18 +50,18 @@ FULL = {
     "diagnose": (100, 20_000),
 }
 QUICK = {
-    "bias_poly3": (2_000, 10_000),
+    "bias_poly3": (1_000, 10_000),
     "s2_regression": (200, 10_000),
-    "thermal_lag": (64, 4_000),
+    "thermal_lag": (32, 4_000),
     "kalman": (200, 50_000),
-    "allan": (8, 1_000_000),
+    "allan": (4, 1_000_000),
     "diagnose": (8, 5_000),
 }
 #: How many devices (series) the per-device Python baselines run, full / quick.
 SUBSET = {
     "bias_poly3": (1000, 300),
     "s2_regression": (1000, 200),
-    "thermal_lag": (24, 6),
+    "thermal_lag": (24, 4),
     "kalman": (20_000, 5_000),  # samples of one series through filterpy
     "allan": (9, 3),
 }
@@ -352,7 +352,7 @@ def case_s2(devices, samples, subset, repeats, bw):
                 note=f"{spec}; fit(noise_floor=False) with held-out folds")]
 
 
-def case_thermal_lag(devices, samples, subset, repeats, bw):
+def case_thermal_lag(devices, samples, subset, repeats, bw, also_direct=True):
     """bias_poly(1)+thermal_lag (one shared time constant) against scipy least_squares per device."""
     from scipy.optimize import least_squares
     from scipy.signal import lfilter
@@ -379,8 +379,8 @@ def case_thermal_lag(devices, samples, subset, repeats, bw):
     batch = make_batch(t, gyro, temp=temp)
     sub = min(subset, devices)
 
-    def candidate():
-        r = fit(spec, batch, noise_floor=False)
+    def candidate(path="sums"):
+        r = fit(spec, batch, noise_floor=False, path=path)
         return np.asarray(block(r.params.beta)), np.exp(np.asarray(r.params.theta[:, 0]))
 
     def scipy_loop():
@@ -408,11 +408,23 @@ def case_thermal_lag(devices, samples, subset, repeats, bw):
     diff, rel = compare(b_c[:sub], b_s)
     tau_rel = float(np.max(np.abs(tau_c[:sub] - tau_s) / tau_s))
     nbytes = temp.nbytes + gyro.nbytes + batch.mask.nbytes
-    return [row("thermal_lag", devices, samples, dg, first,
-                "scipy.optimize.least_squares loop (all 10 parameters, lfilter lag)",
-                base["scipy"] * devices / sub, diff, max(rel, tau_rel), nbytes, bw,
-                baseline_subset=f"{sub} devices, scaled", tau_max_rel_diff=tau_rel,
-                note=f"{spec}; diffgyro also refits the time constant on 5 held-out folds")]
+    label = "scipy.optimize.least_squares loop (all 10 parameters, lfilter lag)"
+    rows = [row("thermal_lag", devices, samples, dg, first, label, base["scipy"] * devices / sub,
+                diff, max(rel, tau_rel), nbytes, bw, baseline_subset=f"{sub} devices, scaled",
+                tau_max_rel_diff=tau_rel,
+                note=f"{spec}; fit(path='sums'): Newton on the projected cost; also refits "
+                     "the time constant on 5 held-out folds")]
+    if also_direct:  # fit()'s default for time constants: optimistix LM on the design
+        first_d, dg_d, _, ((b_d, tau_d), _) = measure(lambda: candidate("direct"), {},
+                                                       max(3, repeats // 2))
+        diff, rel = compare(b_d[:sub], b_s)
+        tau_rel = float(np.max(np.abs(tau_d[:sub] - tau_s) / tau_s))
+        rows.append(row("thermal_lag:direct", devices, samples, dg_d, first_d, label,
+                        base["scipy"] * devices / sub, diff, max(rel, tau_rel), nbytes, bw,
+                        baseline_subset=f"{sub} devices, scaled", tau_max_rel_diff=tau_rel,
+                        note=f"{spec}; fit(path='direct'): optimistix LM over the time "
+                             "constant, design formed per trial"))
+    return rows
 
 
 def case_kalman(devices, samples, subset, repeats, bw):
@@ -608,7 +620,8 @@ def main(argv=None) -> int:
         d, n = sizes[name]
         sub = SUBSET.get(name, (0, 0))[1 if args.quick else 0]
         t0 = now()
-        new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"])
+        kw = {"also_direct": not args.quick} if name == "thermal_lag" else {}
+        new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"], **kw)
         for r in new:
             r.update(mode="quick" if args.quick else "full", backend=info["backend"],
                      device=info["device"], cpu=info["cpu"], cores=info["cores"],
