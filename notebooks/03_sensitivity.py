@@ -195,7 +195,7 @@ rows = []
 for name, res in designs.items():
     free = free_thermal if name == "thermal only" else ("temps", "soaks", "ramp", "spin_fraction")
     t_eq, _ = budget_for_accuracy(target, s2, config, model, arw, op, lo=0.5 * 3600, hi=T_s2,
-                                  iterations=3, free=free, steps=150)
+                                  iterations=6, free=free, steps=150)
     rows.append((name, float(res.prediction.worst), t_eq))
     print(f"{name:13s} equal time: worst {float(res.prediction.worst) * DPH:.4f} °/h "
           f"({100 * (1 - float(res.prediction.worst) / target):.0f} % better than S2); "

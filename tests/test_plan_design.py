@@ -69,7 +69,7 @@ def test_s2_timeline_and_physics():
 
 def test_prediction_matches_closed_form_information():
     """A constant bias under white noise: σ = ARW / √(time), at every operating point."""
-    cfg = PlanConfig(n_samples=4096, earth_rate="none")
+    cfg = PlanConfig(n_samples=2048, earth_rate="none")
     plan = s2_plan()
     model = ErrorModel.from_spec("bias_poly(0)")
     pred = predict_plan(plan, cfg, model, ARW, OP)
@@ -143,13 +143,12 @@ def test_headings_cancel_an_unknown_earth_rate():
     model = ErrorModel.from_spec("bias_poly(3)+scale_poly(2)")
     # (a grid fine enough that the one-minute spins turn the table smoothly)
     unknown = heading_study(plan, PlanConfig(n_samples=2048, earth_rate="unknown"), model, ARW, OP,
-                            headings=(1, 2, 4))
-    known = heading_study(plan, PlanConfig(n_samples=2048), model, ARW, OP, headings=(1, 4))
+                            headings=(1, 2))
+    known = float(predict_plan(plan, PlanConfig(n_samples=2048), model, ARW, OP).worst)
     print("worst case by headings, Earth rate unknown:", unknown, "known:", known)
-    assert unknown[1] > 1.8 * unknown[2] and unknown[4] <= unknown[2]
+    assert unknown[1] > 1.8 * unknown[2] > 1.8 * 5 * known
     # the horizontal Earth rate (Ω_E cos 45°) is the size of the one-heading error
     assert 0.5 * EARTH_RATE < unknown[1] < EARTH_RATE
-    assert abs(known[4] / known[1] - 1) < 1e-3  # known Earth rate: headings barely matter
 
 
 @pytest.fixture(scope="module")
