@@ -479,49 +479,77 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
         clean = lambda a: jnp.where(jnp.isfinite(a), a, jnp.inf)  # noqa: E731
         return z, b, clean(sse_tr), sse_h, sse_all, clean(jnp.sum(sse_all, -1))
 
-    cand_sse, cand_full, cand_theta, cand_blk, edges = [], [], [], [], []
     folds = jnp.arange(n_folds)
-    for c in cands:
-        z, grid = _extra_columns(c, base, sig, theta_b, min_lag)  # (g, n, 3, k)
-        z, b, tr, sse_h, sse_all, tot_all = score(z)
+
+    def scored_groups(column_sets):
+        """Score every (g, n, 3, k) column set; sets with the same k share one compiled pass."""
+        by_k: dict[int, list[int]] = {}
+        for j, z in enumerate(column_sets):
+            by_k.setdefault(int(z.shape[-1]), []).append(j)
+        out = [None] * len(column_sets)
+        for idx in by_k.values():
+            sizes = [int(column_sets[j].shape[0]) for j in idx]
+            res = score(jnp.concatenate([column_sets[j] for j in idx], axis=0))
+            start = 0
+            for j, g in zip(idx, sizes):
+                out[j] = tuple(a[start:start + g] for a in res)
+                start += g
+        return out
+
+    columns = [_extra_columns(c, base, sig, theta_b, min_lag) for c in cands]  # (z, grid)
+    first = scored_groups([z for z, _ in columns])
+    state = []
+    for (_, grid), (z, b, tr, sse_h, sse_all, tot_all) in zip(columns, first):
         pick = jnp.argmin(tr, axis=0)  # (f,) grid point chosen on each fold's training blocks
         best = jnp.argmin(tot_all)
-        held = sse_h[pick, folds]  # (f, 3)
-        b_pick = b[pick, folds]  # (f, 3, P)
-        z_fold = z[pick]  # (f, n, 3, k)
-        full, theta = sse_all[best], grid[best] if grid.shape[1] else jnp.full((1,), jnp.nan, dtype)
-        if grid.shape[0] >= 3 and grid.shape[1] == 1:
-            # refine the time constant between grid points (parabola through the neighbours),
-            # again on each fold's training blocks only
-            def vertex(costs, i, grid=grid):
-                i = jnp.clip(i, 1, grid.shape[0] - 2)
-                c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
-                den = c0 - 2.0 * c1 + c2
-                off = jnp.where((den > 0) & jnp.isfinite(den), 0.5 * (c0 - c2) / jnp.where(den > 0, den, 1.0), 0.0)
-                step = grid[1, 0] - grid[0, 0]
-                return grid[i, 0] + jnp.clip(off, -1.0, 1.0) * step
+        state.append(dict(
+            grid=grid, pick=pick, best=best, tr_pick=tr[pick, folds], tot_best=tot_all[best],
+            held=sse_h[pick, folds], b_pick=b[pick, folds], z_fold=z[pick], full=sse_all[best],
+            theta=grid[best] if grid.shape[1] else jnp.full((1,), jnp.nan, dtype), tr=tr,
+            tot_all=tot_all))
 
-            th2 = jnp.concatenate([jax.vmap(vertex, in_axes=(1, 0))(tr, pick), vertex(tot_all, best)[None]])
-            z2 = jax.vmap(lambda th, term=c.term: term.columns(sig, th[None]))(th2)  # (f+1, n, 3, k)
-            z2, b2, tr2, sse_h2, sse_all2, tot_all2 = score(z2)
-            better = tr2[folds, folds] < tr[pick, folds]  # keep the refinement only if it helps
-            held = jnp.where(better[:, None], sse_h2[folds, folds], held)
-            b_pick = jnp.where(better[:, None, None], b2[folds, folds], b_pick)
-            z_fold = jnp.where(better[:, None, None, None], z2[:n_folds], z_fold)
-            full_better = tot_all2[n_folds] < tot_all[best]
-            full = jnp.where(full_better, sse_all2[n_folds], full)
-            theta = jnp.where(full_better, th2[n_folds:], theta)
+    # refine one time constant between grid points (a parabola through the neighbours),
+    # again chosen on each fold's training blocks only
+    refine = [j for j, (_, grid) in enumerate(columns) if grid.shape[0] >= 3 and grid.shape[1] == 1]
+
+    def vertex(costs, i, grid):
+        i = jnp.clip(i, 1, grid.shape[0] - 2)
+        c0, c1, c2 = costs[i - 1], costs[i], costs[i + 1]
+        den = c0 - 2.0 * c1 + c2
+        off = jnp.where((den > 0) & jnp.isfinite(den), 0.5 * (c0 - c2) / jnp.where(den > 0, den, 1.0), 0.0)
+        return grid[i, 0] + jnp.clip(off, -1.0, 1.0) * (grid[1, 0] - grid[0, 0])
+
+    thetas2, sets2 = [], []
+    for j in refine:
+        st, term = state[j], cands[j].term
+        th2 = jnp.concatenate([jax.vmap(vertex, in_axes=(1, 0, None))(st["tr"], st["pick"], st["grid"]),
+                               vertex(st["tot_all"], st["best"], st["grid"])[None]])  # (f+1,)
+        thetas2.append(th2)
+        sets2.append(jax.vmap(lambda th, term=term: term.columns(sig, th[None]))(th2))
+    for j, th2, (z2, b2, tr2, sse_h2, sse_all2, tot_all2) in zip(refine, thetas2, scored_groups(sets2)):
+        st = state[j]
+        better = tr2[folds, folds] < st["tr_pick"]  # keep the refinement only where it helps
+        st["held"] = jnp.where(better[:, None], sse_h2[folds, folds], st["held"])
+        st["b_pick"] = jnp.where(better[:, None, None], b2[folds, folds], st["b_pick"])
+        st["z_fold"] = jnp.where(better[:, None, None, None], z2[:n_folds], st["z_fold"])
+        full_better = tot_all2[n_folds] < st["tot_best"]
+        st["full"] = jnp.where(full_better, sse_all2[n_folds], st["full"])
+        st["theta"] = jnp.where(full_better, th2[n_folds:], st["theta"])
+
+    cand_sse, cand_full, cand_theta, cand_blk, edges = [], [], [], [], []
+    for st in state:
+        grid = st["grid"]
         if grid.shape[0] >= 2 and grid.shape[1] == 1:
-            edges.append(theta[0] >= grid[-1, 0] - 0.5 * (grid[1, 0] - grid[0, 0]))
+            edges.append(st["theta"][0] >= grid[-1, 0] - 0.5 * (grid[1, 0] - grid[0, 0]))
         else:
             edges.append(jnp.asarray(False))
-        cand_sse.append(held)
-        bn = b_pick[fsafe]  # (n, 3, P)
-        zn = z_fold[fsafe, jnp.arange(z.shape[1])]  # (n, 3, k)
+        cand_sse.append(st["held"])
+        bn = st["b_pick"][fsafe]  # (n, 3, P)
+        zn = st["z_fold"][fsafe, jnp.arange(e.shape[0])]  # (n, 3, k)
         r_c = e - jnp.einsum("nip,nip->ni", xb, bn[..., :p]) - jnp.einsum("nik,nik->ni", zn, bn[..., p:])
         cand_blk.append(per_block(jnp.sum(jnp.where(jnp.isfinite(r_c), r_c, 0.0) ** 2, -1)))
-        cand_full.append(full)
-        cand_theta.append(theta)
+        cand_full.append(st["full"])
+        cand_theta.append(st["theta"])
 
     # random walk: local level on the base residual of each fold's training fit
     r = jnp.maximum(floor_axes**2, 1e-300)
@@ -605,6 +633,50 @@ def _pad_devices(tree, n: int, m: int):
         return tree
     idx = np.minimum(np.arange(m), n - 1)
     return jax.tree.map(lambda a: a[idx] if getattr(a, "ndim", 0) and a.shape[0] == n else a, tree)
+
+
+@eqx.filter_jit
+def _signals_jit(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, dtemp_window):
+    from .signals import make_signals
+
+    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt):
+        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
+                            norm=norm, dtemp_window=dtemp_window, dt=dt)
+
+    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt)
+
+
+def _signals(batch: Batch, res, n: int, m: int) -> Signals:
+    """The fit's derived signals (its TempNorm and dT/dt window), padded to ``m`` devices,
+    through one compiled function (``FitResult.signals`` runs op by op)."""
+    from .fit import sampling_intervals
+    from .signals import TempNorm
+
+    idx = np.minimum(np.arange(m), n - 1)
+
+    def arr(x):
+        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
+
+    norm = None
+    if res.model.requires() & {"temp"}:
+        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(res.norm.centre, jnp.float64), (n,))[idx],
+                        scale=jnp.broadcast_to(jnp.asarray(res.norm.scale, jnp.float64), (n,))[idx])
+    return _signals_jit(arr(batch.t), arr(batch.gyro), jnp.asarray(np.asarray(batch.mask)[idx]),
+                        arr(batch.rate), arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm,
+                        jnp.asarray(sampling_intervals(batch)[idx]), float(res.options.dtemp_window))
+
+
+@eqx.filter_jit
+def _ranges(cands, sig):
+    """(devices, candidates): > 0 where a device's data cannot support the candidate term."""
+    return jax.vmap(lambda s: jnp.stack([c.term.range_problem(s) for c in cands]))(sig)
+
+
+class AllanCurves(eqx.Module):
+    """Overlapping Allan deviation of the residuals: ``tau``, ``adev`` (devices, 3, k)."""
+
+    tau: np.ndarray
+    adev: np.ndarray
 
 
 # --------------------------------------------------------------------------- results
@@ -694,7 +766,7 @@ class Diagnosis:
     devices: list[DeviceDiagnosis]
     fit: object  # FitResult of the base model
     residuals: np.ndarray  # (d, n, 3), padding zeroed
-    allan: object  # AllanResult of the residuals, leading axes (d, 3)
+    allan: object  # AllanCurves of the residuals (tau, adev), leading axes (d, 3)
     thresholds: Thresholds
     options: dict = field(default_factory=dict)
     #: Per-fold numbers behind every decision (re-decide with other thresholds: :func:`redecide`).
@@ -1068,13 +1140,12 @@ def diagnose(
     opts = res.options
     n_dev = batch.n_devices
     m_dev = device_bucket(n_dev)
-    sig = _pad_devices(res.signals(batch), n_dev, m_dev)  # a few device counts: few compiles
+    sig = _signals(batch, res, n_dev, m_dev)  # padded to a few device counts: few compiles
     available = frozenset(batch.signals)
     every = [c for c in candidate_specs(model, available, candidates) if not c.stochastic]
     want_rw = any(c.stochastic for c in candidate_specs(model, available, candidates))
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
-    all_ranges = np.stack([np.asarray(jax.vmap(c.term.range_problem)(sig))[:n_dev] for c in every],
-                          axis=1) if every else np.zeros((n_dev, 0))
+    all_ranges = np.asarray(_ranges(tuple(every), sig))[:n_dev] if every else np.zeros((n_dev, 0))
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
     unsupported = [c.effect for j, c in enumerate(every) if j not in usable]
@@ -1094,12 +1165,13 @@ def diagnose(
     resid = out["residual"]
     dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
     pick = np.minimum(np.arange(m_dev), n_dev - 1)
-    al = allan_mod.allan(np.moveaxis(resid, -1, 1)[pick], dts[pick, None],
-                         n_valid=np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1))
-    al = jax.tree.map(lambda a: a[:n_dev] if getattr(a, "ndim", 0) and a.shape[0] == m_dev
-                      and a is not al.m else a, al)
-    adev = np.asarray(al.adev)
-    tau = np.asarray(al.tau)
+    m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
+    adev_p, _ = allan_mod.oadev(jnp.asarray(np.moveaxis(resid, -1, 1)[pick]), jnp.asarray(dts[pick, None]),
+                                jnp.asarray(m), jnp.asarray(np.repeat(np.asarray(batch.n_valid)[pick, None],
+                                                                      3, axis=1)))
+    adev = np.asarray(adev_p)[:n_dev]
+    tau = dts[:, None, None] * np.asarray(m)[None, None, :] * np.ones((1, 3, 1))
+    al = AllanCurves(tau=tau, adev=adev)
 
     devices = []
     slopes, floor_allans = [], []
