@@ -306,3 +306,27 @@ def test_temperature_quantum_and_window():
     assert suggest_dtemp_window(Batch.from_recordings([h.recording])) >= 180.0
     h = H.make_recording("thermal", None, "bias_poly(2)", 3, noise=H.Noise(temp_noise=0.001))
     assert suggest_dtemp_window(Batch.from_recordings([h.recording])) == 60.0
+
+
+def test_unfittable_device_and_stochastic_base(tmp_path):
+    """A device the base model cannot fit (no temperature span for bias_poly(2)) gets no
+    named effect and a plain explanation; the others are diagnosed; a random walk in the
+    base model is refused with a hint (it is a candidate)."""
+    from diffgyro.data import Recording
+    from diffgyro.errors import SpecError
+    from diffgyro.report import write_report
+
+    batch, _ = _thermal_batch("gradient", 2, 70, size=2.0)
+    r = batch.recording(1)
+    flat = Recording(t=r.t, gyro=r.gyro, temp=np.full_like(r.temp, 25.0), temp_ext=r.temp_ext,
+                     accel=r.accel, rate=r.rate, device="flat")
+    batch = Batch.from_recordings([batch.recording(0), flat])
+    dg = diagnose("bias_poly(2)", batch)
+    good, bad = dg.devices
+    assert good.verdict == "missing_effect" and good.best.effect == "gradient"
+    assert bad.verdict == "adequate" and not bad.candidates and "could not be fitted" in bad.explanation
+    rec = dg.to_json()["devices"][1]
+    assert rec["heldout_rms"] is None and rec["status"].startswith("insufficient_range")
+    write_report(dg, batch, tmp_path)  # the report copes with it
+    with pytest.raises(SpecError, match="random_walk"):
+        diagnose("bias_poly(2)+random_walk", batch)

@@ -52,6 +52,7 @@ rates they give.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import asdict, dataclass, field
 
 import equinox as eqx
@@ -1067,9 +1068,23 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
     return d
 
 
+def _unfitted(name: str, status: str, floor_axes: np.ndarray) -> DeviceDiagnosis:
+    """A device whose base model could not be fitted: nothing to diagnose against."""
+    floor = float(np.sqrt(np.mean(floor_axes**2)))
+    d = DeviceDiagnosis(
+        device=name, status=status, rms=float("nan"), heldout_rms=float("nan"), noise_floor=floor,
+        noise_axes=[float(v) for v in floor_axes], floor_allan=float("nan"), verdict="adequate",
+        candidates=[], best=None, alternatives=[], random_walk=None, allan_slope=float("nan"))
+    d.explanation = (f"{name}: the base model could not be fitted ({status}); the data do not "
+                     f"support it, so no effect is named: simplify the model (see `diffgyro fit`).")
+    return d
+
+
 def _allan_slope(adev: np.ndarray, tau: np.ndarray, total: float) -> float:
     """Log-log slope of the residual's (axis-pooled) Allan deviation at long τ (T/100 .. T/8)."""
-    a2 = np.nanmean(adev**2, axis=0)
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        a2 = np.nanmean(adev**2, axis=0)
     t = tau[0]
     sel = np.isfinite(a2) & (a2 > 0) & (t >= total / 100.0) & (t <= total / 8.0)
     if sel.sum() < 3:
@@ -1132,6 +1147,11 @@ def diagnose(
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
+    if any(t.stochastic for t in model.terms):
+        from .errors import SpecError
+
+        raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
+                        hint="drop random_walk from --model: it is tried as a candidate")
     batch = _as_batch(batch)
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options and base_fit is None:
@@ -1196,6 +1216,10 @@ def diagnose(
               "heating": None if sig.heating is None else np.asarray(sig.heating[i, :nv])}
         ev = evidence(resid[i, :nv], rec, sd)
         ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
+        if not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
+                and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
+            devices.append(_unfitted(batch.devices[i], res.status_detail(i), floors[i]))
+            continue
         devices.append(_decide(
             batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
             out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],

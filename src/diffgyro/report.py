@@ -182,6 +182,8 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
         out["Residual against input rate and specific force"] = figure_png(fig)
 
     # Allan deviation of the residual with the floor
+    if not math.isfinite(d.heldout_rms):  # no base fit: nothing more to draw
+        return out
     al = diagnosis.allan
     tau = np.asarray(al.tau)[i]
     adev = np.asarray(al.adev)[i]
@@ -203,6 +205,10 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
     out["Allan deviation of the residual"] = figure_png(fig)
 
     # candidates / ladder
+    if not (math.isfinite(d.heldout_rms) and d.candidates):
+        if ladder is not None and len(ladder.steps) > 1:
+            out["Model ladder"] = ladder_png(ladder, device=i)
+        return out
     fig, ax = plt.subplots(figsize=(8, 0.6 + 0.28 * (len(d.candidates) + 1)))
     labels = [f"{diagnosis.spec} (base)"] + [c.effect for c in d.candidates]
     vals = [d.heldout_rms] + [c.heldout_rms for c in d.candidates]
