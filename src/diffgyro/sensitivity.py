@@ -176,16 +176,19 @@ def levinson(g: Float[Array, " p1"], n_valid) -> tuple[Float[Array, " p"], Float
     return jnp.stack(coefs)[order], errs[order], order
 
 
-def ar_autocovariance(x: Float[Array, " n"], n_valid, m: int, pmax: int = 16) -> Float[Array, " m"]:
-    """Autocovariance at every circular lag of the AR(p) model (p ≤ pmax by AIC) fitted to ``x``."""
+def ar_autocovariance(x: Float[Array, " n"], n_valid, m: int, pmax: int = 16,
+                      return_order: bool = False):
+    """Autocovariance at every circular lag of the AR(p) model (p ≤ pmax by AIC) fitted to ``x``
+    (and the order p, with ``return_order``)."""
     x = x - jnp.sum(x) / jnp.maximum(n_valid, 1.0) * (jnp.arange(x.shape[0]) < n_valid)
     g = autocovariance(x, n_valid)[:pmax + 1]
-    a, e, _ = levinson(g, n_valid)
+    a, e, order = levinson(g, n_valid)
     omega = 2 * jnp.pi * jnp.arange(m // 2 + 1) / m
     lags = jnp.arange(1, pmax + 1)
     poly = 1 - jnp.sum(a[None, :] * jnp.exp(-1j * omega[:, None] * lags[None, :]), axis=1)
     spec = e / jnp.abs(poly) ** 2
-    return jnp.fft.irfft(spec, m)
+    gam = jnp.fft.irfft(spec, m)
+    return (gam, order) if return_order else gam
 
 
 # --------------------------------------------------------------------------- covariances
@@ -216,8 +219,8 @@ def device_hac(model: ErrorModel, sig: Signals, params: Params, method: str = "a
     Haan & Levin, per axis on the residuals; it assumes stationary noise).
 
     Returns ``cov`` (k, k), the plain Gauss–Newton ``cov_gn`` from the same
-    residuals, the ``bandwidth`` used (samples; AR: the chosen orders' max)
-    and the prewhitening ``rho`` (k,).
+    residuals, the ``bandwidth`` used (samples; for ``"ar"`` the largest AR
+    order chosen) and the prewhitening ``rho`` (k,; zero for ``"ar"``).
     """
     if method == "ar":
         return _device_ar_hac(model, sig, params, pmax)
@@ -258,24 +261,23 @@ def _device_ar_hac(model: ErrorModel, sig: Signals, params: Params, pmax: int) -
     m = _fft_size(resid.shape[0])
     p, q = model.n_params, model.n_nonlinear
     s = jnp.zeros((k, k), resid.dtype)
+    orders = []
     for i in range(3):
         cols = np.r_[i * p:(i + 1) * p, 3 * p:3 * p + q]  # axis i's rows of the Jacobian are 0 elsewhere
-        gam = ar_autocovariance(resid[:, i], n, m, pmax)
+        gam, order = ar_autocovariance(resid[:, i], n, m, pmax, return_order=True)
+        orders.append(order)
         # residual variance is short by the fitted share; the dof factor restores it
         gam = gam * n / jnp.maximum(n - k / 3, 1.0)
         s = s.at[np.ix_(cols, cols)].add(lag_weighted_sum(jac[:, i, cols] / sigma2[i], gam))
     cov = hinv @ s @ hinv
-    return dict(cov=0.5 * (cov + cov.T), cov_gn=hinv, bandwidth=jnp.asarray(float(pmax), resid.dtype),
+    return dict(cov=0.5 * (cov + cov.T), cov_gn=hinv,
+                bandwidth=jnp.max(jnp.stack(orders)).astype(resid.dtype),
                 rho=jnp.zeros((k,), resid.dtype))
 
 
 def _sym_inverse(a):
     d = jnp.sqrt(jnp.maximum(jnp.diagonal(a), 1e-300))
     return jnp.linalg.inv(a / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
-
-
-def _device_signals(result: FitResult, batch: Batch) -> Signals:
-    return result.signals(batch)
 
 
 def hac_covariance(result: FitResult, batch: Batch, method: str = "ar", kernel: str = "bartlett",
@@ -289,7 +291,7 @@ def hac_covariance(result: FitResult, batch: Batch, method: str = "ar", kernel: 
     """
     if kernel not in KERNELS:
         raise ValueError(f"unknown kernel {kernel!r}; choose from {KERNELS}")
-    return _hac_batch(result.model, _device_signals(result, batch), result.params, method, kernel,
+    return _hac_batch(result.model, result.signals(batch), result.params, method, kernel,
                       bandwidth, prewhiten, cap, pmax, chunk)
 
 
@@ -367,7 +369,7 @@ def block_bootstrap(result: FitResult, batch: Batch, n_boot: int = 200, block=No
     projection from the fitted time constants otherwise.
     """
     keys = jax.random.split(jax.random.PRNGKey(seed), result.n_devices)
-    return _bootstrap_batch(result.model, _device_signals(result, batch), result.params, keys,
+    return _bootstrap_batch(result.model, result.signals(batch), result.params, keys,
                             n_boot, block, result.options, chunk)
 
 
