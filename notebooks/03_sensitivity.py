@@ -106,7 +106,7 @@ plt.show()
 # %%
 batch, truth = simulate_devices(s2, config, model, 120, arw, op.norm, seed=1,
                                 gm_sigma=0.5 / DPH, gm_tau=120.0)
-result = fit(model, batch, norm=op.norm, path="direct")  # the solve_device path
+result = fit(model, batch, norm=op.norm)
 est = np.asarray(jax.vmap(flat)(result.params))
 tru = np.asarray(jax.vmap(flat)(truth))
 hac = hac_covariance(result, batch)                       # AR-spectral (default)

@@ -120,7 +120,7 @@ def test_parameter_gradients_match_finite_differences(spec):
 def test_sensitivities_vmap_over_devices_and_chain_to_compensation():
     spec = "bias_poly(2)+scale_poly(1)"
     model, batch, sig = _small_device(spec, n_devices=2, seed=4)
-    result = fit(model, batch, norm=SMALL_OP.norm, path="direct")
+    result = fit(model, batch, norm=SMALL_OP.norm)
     many = batch_param_sensitivity(result, batch)
     single = jax.jit(lambda s: param_sensitivity(model, s))
     for d in range(2):
@@ -164,8 +164,7 @@ def _coverage_run(gm_sigma):
     model = ErrorModel.from_spec(COVER_SPEC)
     batch, truth = simulate_devices(COVER_PLAN, COVER_CFG, model, N_DEVICES, 1e-4, COVER_OP.norm,
                                     seed=11, gm_sigma=gm_sigma, gm_tau=60.0)
-    # the solve_device path (the sums path's thread pool hung on 500 devices on 2 cores)
-    result = fit(model, batch, norm=COVER_OP.norm, path="direct")
+    result = fit(model, batch, norm=COVER_OP.norm)
     assert set(np.asarray(result.status).tolist()) == {0}
     est = np.asarray(jax.vmap(flat)(result.params))
     tru = np.asarray(jax.vmap(flat)(truth))

@@ -731,7 +731,7 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
     """Simulate ``n_devices`` through ``plan``, calibrate each with :func:`~diffgyro.fit.fit`
     and measure its compensation error over the operating range.
 
-    ``fit_kw`` goes to ``fit``; by default ``path="direct"`` (the
+    ``fit_kw`` goes to ``fit`` (e.g. ``path="direct"`` for the
     :func:`~diffgyro.fit.solve_device` path that the sensitivities differentiate).
     """
     from .fit import fit
@@ -746,7 +746,7 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
         m = min(chunk, n_devices - start)
         batch, true = simulate_devices(plan, config, model, m, arw, op.norm, seed=seed * 1000 + c,
                                        truth=truth, **sim_kw)
-        res = fit(model, batch, norm=op.norm, **{"path": "direct", **(fit_kw or {})})
+        res = fit(model, batch, norm=op.norm, **(fit_kw or {}))
         errors.append(err_fn(res.params, true))
         status.append(res.status)
     return MonteCarlo(errors=jnp.concatenate(errors), status=jnp.concatenate(status))
