@@ -101,6 +101,11 @@ class Thresholds:
     least ``local_gain_min`` and at least ``local_closure_min`` of the
     whole-record gap closed (so a term that follows one flicker excursion does
     not pass); never for the random walk.
+
+    A model whose held-out MSE is ``1 + unexplained_excess`` times the
+    floor's or more is ``missing_effect`` even when no single term is
+    significant (several effects missing at once, or one outside the
+    vocabulary); it then names none.
     """
 
     t_min: float = 3.0
@@ -118,6 +123,7 @@ class Thresholds:
     local_closure: float = 0.5
     local_gain_min: float = 0.005
     local_closure_min: float = 0.5
+    unexplained_excess: float = 1.0
 
 
 #: Effects that mimic each other on common test plans (reported together).
@@ -266,14 +272,17 @@ class CandidateSpec:
         return self.term.stochastic
 
 
-def _new_term(cls, present: AbstractEffect | None) -> AbstractEffect | None:
+def _new_terms(cls, present: AbstractEffect | None) -> list[AbstractEffect]:
+    """The terms to try for one effect: an absent one at its default order (0 when it has
+    none) and one above; a present one with an order raised by one."""
     if present is None:
         if cls.order_arg:
-            return cls(order=cls.default_order if cls.default_order is not None else 0)
-        return cls()
+            k = cls.default_order if cls.default_order is not None else 0
+            return [cls(order=j) for j in (k, k + 1) if j <= MAX_ORDER]
+        return [cls()]
     if cls.order_arg and present.order < MAX_ORDER:
-        return cls(order=present.order + 1)
-    return None
+        return [cls(order=present.order + 1)]
+    return []
 
 
 def candidate_specs(model: ErrorModel, available: frozenset[str],
@@ -281,41 +290,44 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     """Every registered effect the data supports and ``model`` lacks (or can raise).
 
     An effect already in the model with an order (``bias_poly(2)``) is offered
-    one order higher; an absent one at its default order (0 when it has none).
-    ``names`` limits the search to those effect names (or full terms such as
-    ``bias_poly(3)``). Order-k columns must be the first columns of order k+1
-    (true of the built-in polynomial terms) for the raised candidate to be scored.
+    one order higher; an absent one at its default order (0 when it has none)
+    and one order above (a scale factor that drifts with temperature is
+    ``scale_poly(1)``; ``scale_poly(0)`` alone can be worse than nothing
+    there). ``names`` limits the search to those effect names (or full terms
+    such as ``bias_poly(3)``). Order-k columns must be the first columns of
+    order k+1 (true of the built-in polynomial terms) for a raised candidate
+    to be scored.
     """
     from .effects import parse_term
 
     present = {t.name: t for t in model.terms}
-    wanted: dict[str, AbstractEffect | None] = {}
+    wanted: dict[str, list[AbstractEffect] | None] = {}
     if names is None:
         wanted = {n: None for n in registry()}
     else:
         for text in names:
             text = text.strip()
-            if text in registry():  # a bare name: the default candidate of that effect
+            if text in registry():  # a bare name: the default candidates of that effect
                 wanted[text] = None
                 continue
             term = parse_term(text)
-            wanted[term.name] = term
+            wanted.setdefault(term.name, [])
+            if wanted[term.name] is not None:
+                wanted[term.name].append(term)
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]
         old = present.get(name)
-        term = explicit if explicit is not None else _new_term(cls, old)
-        if term is None or (old is not None and term == old):
-            continue
-        if old is not None and (not cls.order_arg or term.order <= old.order):
-            continue
-        if not term.requires() <= available | {"t", "gyro"}:
-            continue
-        if old is None:
-            new_model = model + term
-        else:
-            new_model = ErrorModel(tuple(term if t is old else t for t in model.terms))
-        out.append(CandidateSpec(effect=name, term=term, model=new_model, old=old))
+        for term in (explicit if explicit is not None else _new_terms(cls, old)):
+            if old is not None and (term == old or not cls.order_arg or term.order <= old.order):
+                continue
+            if not term.requires() <= available | {"t", "gyro"}:
+                continue
+            if old is None:
+                new_model = model + term
+            else:
+                new_model = ErrorModel(tuple(term if t is old else t for t in model.terms))
+            out.append(CandidateSpec(effect=name, term=term, model=new_model, old=old))
     return out
 
 
@@ -700,12 +712,15 @@ class Candidate:
     family: str | None = None
     stochastic: bool = False
     note: str = ""
+    term: str = ""       # the term added or raised, as written in a spec (``scale_poly(1)``)
 
     def record(self) -> dict:
         out = {"effect": self.effect, "spec": self.spec, "heldout_rms": _num(self.heldout_rms),
                "significant": bool(self.significant), "gain": _num(self.gain),
                "closure": _num(self.closure), "t": _num(self.t),
                "folds_improved": self.folds_improved, "rms": _num(self.rms)}
+        if self.term:
+            out["term"] = self.term
         if self.tau is not None:
             out["tau"] = _num(self.tau)
         if self.family:
@@ -746,6 +761,7 @@ class DeviceDiagnosis:
             "status": self.status,
             "best": self.best.spec if self.best else None,
             "best_effect": self.best.effect if self.best else None,
+            "best_term": self.best.term if self.best else None,
             "alternatives": [{"effect": c.effect, "spec": c.spec, "heldout_rms": _num(c.heldout_rms)}
                              for c in self.alternatives],
             "noise_floor_axes": [_num(v) for v in self.noise_axes],
@@ -936,6 +952,15 @@ def explain(d: DeviceDiagnosis) -> str:
                      f"(closes {100 * max(c.closure, 0):.0f} % of a small gap: not material)")
         return text + "."
     b = d.best
+    if b is None:
+        near = [c for c in d.candidates if c.closure > 0][:3]
+        text = (f"{d.device}: missing effect — held-out RMS {_fmt(d.heldout_rms)} rad/s is "
+                f"{d.heldout_rms / max(d.noise_floor, 1e-300):.1f}× the {floor}, and no single term "
+                f"closes enough of the gap")
+        if near:
+            text += " (best: " + ", ".join(f"`{c.spec}` {_fmt(c.heldout_rms)}, closes "
+                                           f"{100 * c.closure:.0f} %" for c in near) + ")"
+        return text + ": several effects may be missing at once, or one outside the vocabulary."
     sig_name, phrase = EFFECT_SIGNAL.get(b.effect, (None, f"follows the `{b.effect}` term"))
     ev = d.evidence.get(sig_name) if sig_name else None
     what = f"residual {phrase}"
@@ -950,12 +975,13 @@ def explain(d: DeviceDiagnosis) -> str:
         what += (f"; residual RMS {_fmt(d.evidence['high_rate_rms'])} at high rates vs "
                  f"{_fmt(d.evidence.get('low_rate_rms'))} at low")
     tau = f" (τ ≈ {b.tau:.0f} s)" if b.tau else ""
-    text = (f"{d.device}: {what}: add `{b.effect}`{tau}; held-out RMS {_fmt(d.heldout_rms)} → "
-            f"{_fmt(b.heldout_rms)} rad/s, {floor}.")
+    text = (f"{d.device}: {what}: add `{b.term or b.effect}`{tau}; held-out RMS "
+            f"{_fmt(d.heldout_rms)} → {_fmt(b.heldout_rms)} rad/s, {floor}.")
     if d.alternatives:
-        alts = ", ".join(f"`{c.effect}` {_fmt(c.heldout_rms)}" for c in d.alternatives)
+        alts = ", ".join(f"`{c.term or c.effect}` {_fmt(c.heldout_rms)}" for c in d.alternatives)
         fam = family_of(b.effect)
-        text += f" Close alternatives{f' ({fam} family)' if fam else ''}: {alts}."
+        same = fam is not None and all(family_of(c.effect) == fam for c in d.alternatives)
+        text += f" Close alternatives{f' ({fam} family)' if same else ''}: {alts}."
     if b.effect != "random_walk" and d.random_walk is not None and d.random_walk.closure > 0.5:
         text += (f" A random-walk smoother would also follow this residual (held-out "
                  f"{_fmt(d.random_walk.heldout_rms)}), but `{b.effect}` explains it with a "
@@ -974,7 +1000,7 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
             ok: np.ndarray, taus, rw_spec: str | None, rw_fold: np.ndarray, rw_full: np.ndarray,
             floor_axes: np.ndarray, floor_allan: float, slope: float, n_valid: int,
             th: Thresholds, ev: dict, blocks: dict | None = None,
-            edge: np.ndarray | None = None) -> DeviceDiagnosis:
+            edge: np.ndarray | None = None, base_spec: str | None = None) -> DeviceDiagnosis:
     """Scores, significance, ranking and verdict of one device from its per-fold numbers."""
     n_held = max(float(np.sum(cnt)), 1.0)
     floor = float(np.sqrt(np.mean(floor_axes**2)))
@@ -1017,7 +1043,8 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
                          significant=sig, gain=gain, closure=closure, t=t,
                          folds_improved=int(np.sum(diff > 0)),
                          rms=math.sqrt(max(float(full_sse.sum()) / (3 * max(n_valid, 1)), 0.0)),
-                         tau=tau, family=family_of(effect), stochastic=stochastic)
+                         tau=tau, family=family_of(effect), stochastic=stochastic,
+                         term=_added_term(base_spec, spec) if base_spec else effect)
 
     det: list[Candidate] = []
     skipped: dict = {}
@@ -1055,7 +1082,8 @@ def _decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base
         best = rw_c
     else:
         best = best_det
-    verdict = "missing_effect" if sig_all else "adequate"
+    # far above the floor with no single term closing it: still not adequate
+    verdict = "missing_effect" if sig_all or excess >= th.unexplained_excess else "adequate"
     alts = []
     if best is not None:
         alts = [c for c in sig_all if c is not best and c.closure >= th.alt_share * best.closure]
@@ -1226,7 +1254,7 @@ def diagnose(
             out["cand_sse"][i], out["cand_full"][i], ok, taus, rw_spec, out["rw_interp"][i],
             out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
             blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
-            edge=out["cand_edge"][i]))
+            edge=out["cand_edge"][i], base_spec=model.spec))
         for name in unsupported:
             devices[-1].skipped[name] = "the data cannot support it (range: e.g. no rate, no temperature span)"
     return Diagnosis(model=model, devices=devices, fit=res, residuals=resid, allan=al, thresholds=th,
@@ -1300,16 +1328,25 @@ def _step(diag: Diagnosis, added: str | None) -> LadderStep:
                       rms=[d.rms for d in diag.devices], verdicts=[d.verdict for d in diag.devices])
 
 
-def choose_effect(diag: Diagnosis) -> str | None:
-    """The effect to add for a batch: named best by most devices missing an effect
-    (ties: the lower median held-out RMS)."""
-    votes: dict[str, list[float]] = {}
+def choose_effect(diag: Diagnosis) -> tuple[str, str] | None:
+    """(effect, spec) to add for a batch: the effect named best by most devices missing one
+    (ties: the lower median held-out RMS), in the spec most of those devices chose."""
+    votes: dict[str, list[tuple[float, str]]] = {}
     for d in diag.devices:
         if d.verdict == "missing_effect" and d.best is not None:
-            votes.setdefault(d.best.effect, []).append(d.best.heldout_rms / max(d.noise_floor, 1e-300))
+            votes.setdefault(d.best.effect, []).append(
+                (d.best.heldout_rms / max(d.noise_floor, 1e-300), d.best.spec))
     if not votes:
         return None
-    return min(votes, key=lambda k: (-len(votes[k]), float(np.median(votes[k]))))
+    effect = min(votes, key=lambda k: (-len(votes[k]), float(np.median([v for v, _ in votes[k]]))))
+    specs = [sp for _, sp in votes[effect]]
+    return effect, max(dict.fromkeys(specs), key=specs.count)
+
+
+def _added_term(old: str, new: str) -> str:
+    """The term text that ``new`` has and ``old`` lacks (``scale_poly(1)``, ``bias_poly(3)``)."""
+    extra = [t for t in new.split("+") if t not in old.split("+")]
+    return "+".join(extra) or new
 
 
 def diagnose_auto(
@@ -1343,9 +1380,10 @@ def diagnose_auto(
     first = diag
     steps = [_step(diag, None)]
     for _ in range(max_steps):
-        effect = choose_effect(diag)
-        if effect is None:
+        choice = choose_effect(diag)
+        if choice is None:
             break
+        effect, spec = choice
         if effect == "random_walk":
             rws = [d.random_walk for d in diag.devices]
             h = [c.heldout_rms if c is not None else d.heldout_rms for c, d in zip(rws, diag.devices)]
@@ -1357,10 +1395,10 @@ def diagnose_auto(
                                     rms=[c.rms if c is not None else d.rms for c, d in zip(rws, diag.devices)],
                                     verdicts=verdicts))
             break
-        spec = next(c.spec for d in diag.devices for c in d.candidates if c.effect == effect)
-        say(f"adding {effect}: diagnosing {spec}")
+        added = _added_term(diag.spec, spec)
+        say(f"adding {added}: diagnosing {spec}")
         diag = diagnose(spec, batch, candidates, thresholds=th, **fit_options)
-        steps.append(_step(diag, effect))
+        steps.append(_step(diag, added))
     return Ladder(devices=[d.device for d in first.devices], steps=steps, first=first, final=diag)
 
 

@@ -42,9 +42,9 @@ def print_diagnosis(diag, console) -> None:
     for d in diag.devices:
         colour = "green" if d.verdict == "adequate" else "red"
         table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
-                      _fmt(d.noise_floor), d.best.effect if d.best else "",
+                      _fmt(d.noise_floor), (d.best.term or d.best.effect) if d.best else "",
                       _fmt(d.best.heldout_rms) if d.best else "",
-                      ", ".join(c.effect for c in d.alternatives))
+                      ", ".join(c.term or c.effect for c in d.alternatives))
     console.print(table)
     for d in diag.devices:
         console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
