@@ -273,12 +273,14 @@ class CandidateSpec:
 
 
 def _new_terms(cls, present: AbstractEffect | None) -> list[AbstractEffect]:
-    """The terms to try for one effect: an absent one at its default order (0 when it has
-    none) and one above; a present one with an order raised by one."""
+    """The terms to try for one effect: an absent one at its default order, or at orders 0
+    and 1 when it has no default (a constant and a temperature-dependent one); a present
+    one with its order raised by one."""
     if present is None:
         if cls.order_arg:
-            k = cls.default_order if cls.default_order is not None else 0
-            return [cls(order=j) for j in (k, k + 1) if j <= MAX_ORDER]
+            if cls.default_order is not None:
+                return [cls(order=cls.default_order)]
+            return [cls(order=0), cls(order=1)]
         return [cls()]
     if cls.order_arg and present.order < MAX_ORDER:
         return [cls(order=present.order + 1)]
@@ -290,8 +292,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     """Every registered effect the data supports and ``model`` lacks (or can raise).
 
     An effect already in the model with an order (``bias_poly(2)``) is offered
-    one order higher; an absent one at its default order (0 when it has none)
-    and one order above (a scale factor that drifts with temperature is
+    one order higher; an absent one at its default order, or at orders 0 and 1
+    when it has none (a scale factor that drifts with temperature is
     ``scale_poly(1)``; ``scale_poly(0)`` alone can be worse than nothing
     there). ``names`` limits the search to those effect names (or full terms
     such as ``bias_poly(3)``). Order-k columns must be the first columns of
