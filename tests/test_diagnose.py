@@ -287,6 +287,17 @@ def test_noise_floor_is_the_white_sigma(quantum):
     assert np.allclose(got, expect, rtol=0.05), (got, expect)
 
 
+@pytest.mark.parametrize("lsb", [2.0, 4.0])
+def test_noise_floor_of_a_coarsely_quantised_output(lsb):
+    """An LSB of several σ makes most successive differences exactly zero (the MAD is 0); the
+    floor is then the RMS of the quantised differences, never zero."""
+    rng = np.random.default_rng(8)
+    y = np.round((rng.normal(size=(20000, 3)) + 0.3) / lsb) * lsb
+    expect = np.sqrt(np.mean(np.diff(y, axis=0) ** 2, axis=0) / 2)
+    got = np.asarray(noise_floor(jnp.asarray(y), jnp.ones(len(y), bool)))
+    assert np.allclose(got, expect, rtol=0.05), (got, expect)
+
+
 def test_noise_floor_sees_correlated_samples():
     """Positively correlated output samples (an internal low-pass filter) shrink lag-1
     differences; the lag-2 check keeps the floor near the true σ."""

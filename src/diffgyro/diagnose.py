@@ -162,7 +162,9 @@ def noise_floor(
     scale-factor error would leak in) are left out. A first robust scale
     (MAD) sets a ±4σ window; the floor is the root mean square of the
     differences inside it (corrected for the truncation), which, unlike a
-    median, stays continuous when the output is quantised to a few LSB.
+    median, stays continuous when the output is quantised to a few LSB. When
+    the LSB exceeds ~2σ most differences are exactly zero and the MAD
+    collapses; the RMS of all but the largest 0.5 % of differences is used.
     The same on lag-2 differences guards against output samples that are
     correlated (a sensor's internal low-pass filter): the larger is kept.
     """
@@ -178,10 +180,19 @@ def noise_floor(
             ok = jnp.where(jnp.sum(calm) >= 0.2 * jnp.sum(ok), calm, ok)
         s1 = _mad(d, ok)
         med = _masked_median(d, ok)
-        inside = ok[:, None] & (jnp.abs(d - med) <= 4.0 * s1)
-        ms = jnp.sum(jnp.where(inside, (d - med) ** 2, 0.0), axis=0) / jnp.maximum(
-            jnp.sum(inside, axis=0), 1)
-        out.append(jnp.sqrt(ms / (2.0 * _TRUNC4)))
+        dev = jnp.abs(d - med)
+        inside = ok[:, None] & (dev <= 4.0 * s1)
+        ms = jnp.sum(jnp.where(inside, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(inside, axis=0), 1)
+        ms = ms / _TRUNC4
+        # an output quantised to more than ~2σ makes most differences exactly 0 and the MAD
+        # collapse; then the RMS of all but the largest 0.5 % of the differences is the floor
+        lim = jnp.nanquantile(jnp.where(ok[:, None], dev, jnp.nan), 0.995, axis=0)
+        keep = ok[:, None] & (dev <= lim)
+        ms_trim = jnp.sum(jnp.where(keep, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(keep, axis=0), 1)
+        ms = jnp.where(s1**2 < 0.25 * ms_trim, ms_trim, ms)
+        ms_all = jnp.sum(jnp.where(ok[:, None], dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(ok), 1)
+        ms = jnp.where(ms > 0, ms, ms_all)  # a nearly constant output: every difference counts
+        out.append(jnp.sqrt(ms / 2.0))
     return jnp.maximum(out[0], out[1])
 
 
