@@ -395,9 +395,10 @@ def _fold_sums(oh, a, b):
 def _local_level(e, obs, t, r, q_rel, p0, keep: bool = True):
     """Local-level (random-walk + white) filter on residuals ``e`` (n, s), one series per column.
 
-    ``r`` (s,) white variance, ``q_rel`` (s,) walk variance per sample interval as a
-    fraction of r. Returns filtered mean, variance, predicted variance (n, s) and the
-    log-likelihood of the observed samples (s,).
+    ``r`` (s,) white variance, ``q_rel`` (s,) or (grid, s) walk variance per sample interval
+    as a fraction of r (a grid runs every value at once without copying the data).
+    Returns filtered mean, variance, predicted variance (n, s) and the log-likelihood of
+    the observed samples (s,) or (grid, s).
     """
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(t)), 1e-12)
     q = q_rel * r / dt0
@@ -414,8 +415,8 @@ def _local_level(e, obs, t, r, q_rel, p0, keep: bool = True):
         ll = ll + jnp.where(ok, -0.5 * (jnp.log(f) + innov**2 / f), 0.0)
         return (a, p, tk, ll), ((a, p, pp) if keep else None)
 
-    s = e.shape[1]
-    init = (jnp.zeros((s,), e.dtype), jnp.full((s,), p0, e.dtype), t[0], jnp.zeros((s,), e.dtype))
+    shape = jnp.broadcast_shapes(jnp.shape(q), (e.shape[1],))  # (s,) or (grid, s)
+    init = (jnp.zeros(shape, e.dtype), jnp.full(shape, p0, e.dtype), t[0], jnp.zeros(shape, e.dtype))
     (_, _, _, ll), outs = jax.lax.scan(step, init, (e, obs, t))
     if not keep:
         return None, None, None, ll
@@ -479,13 +480,17 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     base_blk = per_block(jnp.sum(r_base**2, -1))
 
     eetr = train(ee)  # (f, 3)
+    xw = oh.T[:, :, None, None] * xb[None]  # (f, n, 3, p)
+    ew = oh.T[:, :, None] * e[None]  # (f, n, 3)
 
     def score(z):
         """Per-fold training and held-out SSE of base + z for every column set (g, n, 3, k)."""
         z = jnp.where(jnp.isfinite(z), z, 0.0) * w[None, :, None, None]
-        zx = jnp.einsum("nf,gnik,nip->gfikp", oh, z, xb)
-        zz = jnp.einsum("nf,gnik,gnil->gfikl", oh, z, z)
-        ze = jnp.einsum("nf,gnik,ni->gfik", oh, z, e)
+        # fold weights go on the small operands, so no (g, n, folds) temporary is formed
+        zx = jnp.einsum("fnip,gnik->gfikp", xw, z)
+        ze = jnp.einsum("fni,gnik->gfik", ew, z)
+        zz = jnp.stack([jnp.einsum("gnik,gnil->gikl", z * oh[None, :, f, None, None], z)
+                        for f in range(n_folds)], axis=1)
         g_n = z.shape[0]
         xxg = jnp.broadcast_to(xx, (g_n,) + xx.shape)
         top = jnp.concatenate([xxg, jnp.swapaxes(zx, -1, -2)], axis=-1)
@@ -587,17 +592,15 @@ def _device_engine(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     s_f = n_folds + 1
     qg = jnp.asarray(RW_GRID, dtype)
     n_q = qg.shape[0]
-    ser = jnp.broadcast_to(e_all.transpose(1, 0, 2)[:, None], (e.shape[0], n_q, s_f, 3)).reshape(e.shape[0], -1)
-    obs_s = jnp.broadcast_to(obs.T[:, None, :, None], (e.shape[0], n_q, s_f, 3)).reshape(e.shape[0], -1)
-    r_s = jnp.broadcast_to(r, (n_q, s_f, 3)).reshape(-1)
-    q_s = jnp.broadcast_to(qg[:, None, None], (n_q, s_f, 3)).reshape(-1)
+    e2 = e_all.transpose(1, 0, 2).reshape(e.shape[0], -1)  # (n, (f+1)·3)
+    o2 = jnp.broadcast_to(obs.T[:, :, None], (e.shape[0], s_f, 3)).reshape(e.shape[0], -1)
+    r2 = jnp.broadcast_to(r, (s_f, 3)).reshape(-1)
     p0 = 10.0 * jnp.maximum(jnp.sum(e * e) / jnp.maximum(3 * jnp.sum(w), 1.0), jnp.max(r))
-    _, _, _, ll = _local_level(ser, obs_s, sig.t, r_s, q_s, p0, keep=False)
+    _, _, _, ll = _local_level(e2, o2, sig.t, r2, jnp.broadcast_to(qg[:, None], (n_q, r2.shape[0])),
+                               p0, keep=False)
     qi = jnp.argmax(ll.reshape(n_q, s_f, 3), axis=0)  # (f+1, 3)
     q_best = qg[qi].reshape(-1)
-    e2 = e_all.transpose(1, 0, 2).reshape(e.shape[0], -1)
-    o2 = jnp.broadcast_to(obs.T[:, :, None], (e.shape[0], s_f, 3)).reshape(e.shape[0], -1)
-    mf, pf, pp, _ = _local_level(e2, o2, sig.t, jnp.broadcast_to(r, (s_f, 3)).reshape(-1), q_best, p0)
+    mf, pf, pp, _ = _local_level(e2, o2, sig.t, r2, q_best, p0)
     ms = _rts(mf, pf, pp)
     held = (oh.T[:, :, None] > 0)  # (f, n, 1)
     ms3 = ms.reshape(e.shape[0], s_f, 3).transpose(1, 0, 2)
