@@ -341,3 +341,21 @@ def test_unfittable_device_and_stochastic_base(tmp_path):
     write_report(dg, batch, tmp_path)  # the report copes with it
     with pytest.raises(SpecError, match="random_walk"):
         diagnose("bias_poly(2)+random_walk", batch)
+
+
+@pytest.mark.slow
+def test_auto_ladder_on_a_rate_table_finds_two_missing_effects():
+    """The project's simulator: a rate table at two temperatures whose scale factor drifts with
+    temperature and whose axes are misaligned. From bias_poly(1), --auto adds scale_poly(1)
+    (a constant scale factor alone predicts worse than none here) and misalignment, and the
+    held-out RMS falls to the floor."""
+    from diffgyro.diagnose import diagnose_auto
+    from diffgyro.simulate import simulate
+
+    batch, truth = simulate("rate_table", 2, effects="bias_poly(1)+scale_poly(1)+misalignment",
+                            seed=4, temps=(20.0, 60.0), rates=(30.0, 300.0))
+    ladder = diagnose_auto("bias_poly(1)", batch)
+    assert sorted(s.added for s in ladder.steps[1:]) == ["misalignment", "scale_poly(1)"]
+    assert all(v == "adequate" for v in ladder.steps[-1].verdicts)
+    for h, f in zip(ladder.steps[-1].heldout_rms, ladder.steps[-1].noise_floor):
+        assert h < 1.1 * f
