@@ -246,3 +246,27 @@ def test_reference_rate_is_subtracted_for_bias_only_models():
     sums = fit("bias_poly(1)", batch, path="sums")
     assert_same(fit("bias_poly(1)", batch, path="direct"), sums)
     assert float(np.max(np.asarray(sums.rms))) < 1e-4
+
+
+@pytest.mark.parametrize("n,n_blocks", [(1000, 100), (1024, 100), (97, 7), (64, 100), (10, 3)])
+def test_block_windows_equal_chunked_sums(n, n_blocks):
+    """The window sums of devices whose valid samples come first (block starts from the
+    host) equal the chunked sums that handle any mask, for every length down to
+    fewer samples than blocks and windows clamped at the recording's end."""
+    rng = np.random.default_rng(n)
+    lengths = np.unique(np.clip([n, n - 1, n - n_blocks + 1, (3 * n) // 4, 2, 0], 0, n))
+    x = jnp.asarray(rng.normal(size=(n, 3)))
+
+    def products(src, mask):
+        return [jnp.where(mask, src[:, 0], 0.0), jnp.where(mask, src[:, 1] * src[:, 2], 0.0),
+                mask.astype(src.dtype)]
+
+    for nv in lengths:
+        mask = jnp.arange(n) < nv
+        pos = jnp.asarray(fs.block_starts([nv], n_blocks)[0])
+        c = fs.chunk_size(max(int(nv), 1), n_blocks, n)
+        t1, f1 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, False)
+        t2, f2 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, True, pos)
+        np.testing.assert_allclose(np.asarray(t2), np.asarray(t1), rtol=1e-12, atol=1e-12)
+        np.testing.assert_allclose(np.asarray(f2), np.asarray(f1), rtol=1e-12, atol=1e-12)
+        assert float(t2[-1]) == nv and float(jnp.sum(f2[:, -1])) == nv

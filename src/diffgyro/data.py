@@ -103,12 +103,39 @@ def _pad(arr: np.ndarray, length: int, mode: str) -> np.ndarray:
     return np.concatenate([arr, fill], axis=0)
 
 
+#: Alignment of batch arrays in bytes: XLA's CPU client reads aligned host memory in place.
+ALIGN = 64
+
+
+def aligned_empty(shape, dtype) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data starts on an :data:`ALIGN`-byte boundary."""
+    dtype = np.dtype(dtype)
+    nbytes = int(np.prod(shape)) * dtype.itemsize
+    buf = np.empty(nbytes + ALIGN, np.uint8)
+    off = (-buf.ctypes.data) % ALIGN
+    return buf[off:off + nbytes].view(dtype).reshape(shape)
+
+
+def _aligned(a):
+    """``a`` itself when it is a C-contiguous, aligned numpy array (or small, or broadcast),
+    otherwise an aligned copy: fits then hand device-sized slices to JAX without a copy."""
+    if not isinstance(a, np.ndarray) or a.nbytes < (1 << 16) or 0 in a.strides:
+        return a
+    if a.flags.c_contiguous and a.ctypes.data % ALIGN == 0:
+        return a
+    out = aligned_empty(a.shape, a.dtype)
+    out[...] = a
+    return out
+
+
 class Batch(eqx.Module):
     """Many devices stacked on a leading axis, padded with a sample mask.
 
     Padded samples have ``mask == False``; their time continues at the last
     sampling interval and other signals hold their last value so derived
-    signals (dT/dt, lags) stay finite.
+    signals (dT/dt, lags) stay finite. Sample arrays are stored C-contiguous
+    and 64-byte aligned (copied once here if they are not), so the fits read
+    them in place.
     """
 
     t: Float[np.ndarray, "d n"]
@@ -123,6 +150,10 @@ class Batch(eqx.Module):
     quat: Float[np.ndarray, "d n 4"] | None = None
     devices: tuple[str, ...] = eqx.field(static=True, default=())
     sources: tuple[str | None, ...] = eqx.field(static=True, default=())
+
+    def __post_init__(self):
+        for name in ("t", "gyro", "mask", "temp", "temp_ext", "accel", "mag", "rate", "quat"):
+            setattr(self, name, _aligned(getattr(self, name)))
 
     @property
     def n_devices(self) -> int:
@@ -176,11 +207,15 @@ class Batch(eqx.Module):
             for r, dt in zip(recordings, dts)
         ])
         fields["t"] = t
-        fields["gyro"] = np.stack([_pad(np.asarray(r.gyro, dtype), length, "zero") for r in recordings])
+        def stack(arrays):
+            out = aligned_empty((len(arrays), *arrays[0].shape), dtype)
+            return np.stack(arrays, out=out)
+
+        fields["gyro"] = stack([_pad(np.asarray(r.gyro, dtype), length, "zero") for r in recordings])
         for s in OPTIONAL_SIGNALS:
             if all(getattr(r, s) is not None for r in recordings):
-                fields[s] = np.stack([_pad(np.asarray(getattr(r, s), dtype), length, "hold")
-                                      for r in recordings])
+                fields[s] = stack([_pad(np.asarray(getattr(r, s), dtype), length, "hold")
+                                   for r in recordings])
             else:
                 fields[s] = None
         n_valid = np.array([r.n for r in recordings], dtype=np.int64)

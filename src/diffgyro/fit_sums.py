@@ -42,12 +42,12 @@ from jax.interpreters import partial_eval as pe
 
 from .data import Batch
 from .model import ErrorModel
-from .signals import Signals, TempNorm, make_signals, temp_norm_from
+from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
 CHUNK = 32
 #: About this many samples (devices × samples) go into one compiled call.
-GROUP_SAMPLES = 1 << 18
+GROUP_SAMPLES = 1 << 20
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 
@@ -235,7 +235,45 @@ def _block_positions(mask, nv, n_blocks: int, prefix: bool):
     return jnp.searchsorted(cm, rank + 1, side="left").astype(jnp.int32)
 
 
-def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, prefix: bool):
+def block_starts(nv, n_blocks: int) -> np.ndarray:
+    """First sample of every fold block (and the end), (devices, B + 1), when each
+    device's valid samples come first: block b starts at rank ceil(b·n/B)."""
+    b = np.arange(n_blocks + 1, dtype=np.int64)
+    nv = np.asarray(nv, np.int64)[:, None]
+    return ((b * nv + n_blocks - 1) // n_blocks).astype(np.int32)
+
+
+def _window_sums(products, src, pos, n_blocks: int, n_folds: int):
+    """Total and per-fold sums when the valid samples come first (``prefix``).
+
+    Block b is then the samples ceil(b·n/B) .. ceil((b+1)·n/B) − 1: a window of
+    ceil(length/B) samples from its start, masked past its end, covers it. One
+    variadic reduction over the (B, window) gathered samples gives every block's
+    sums exactly; a fold's sums are those of its blocks. The window depends only
+    on the padded length, so recordings of any length in a bucket share the
+    compiled function. ``pos`` (the B + 1 block starts, :func:`block_starts`) comes
+    from the host: computed in the graph, XLA would recompute it for every sample.
+    """
+    n = jax.tree.leaves(src)[0].shape[0]
+    w = -(-n // n_blocks)
+    start = jnp.minimum(pos[:-1], n - w)  # a window never runs past the recording
+    j = start[:, None] + jnp.arange(w, dtype=jnp.int32)[None, :]
+    inside = ((j >= pos[:-1, None]) & (j < pos[1:, None])).reshape(-1)
+
+    def windows(a):
+        if a.ndim >= 1 and a.shape[0] == n:
+            cut = jax.vmap(lambda s_: lax.dynamic_slice_in_dim(a, s_, w, axis=0))(start)
+            return cut.reshape(n_blocks * w, *a.shape[1:])
+        return a
+
+    blocks = _vsum([o.reshape(n_blocks, w) for o in products(jax.tree.map(windows, src), inside)])
+    b = jnp.arange(n_blocks, dtype=jnp.int32)
+    own = ((b % n_folds)[None, :] == jnp.arange(n_folds, dtype=jnp.int32)[:, None])
+    return jnp.sum(blocks, axis=0), own.astype(blocks.dtype) @ blocks
+
+
+def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, prefix: bool,
+               pos=None):
     """Total and per-fold sums of every product, reading the samples once.
 
     ``products(src, mask)`` gives the per-sample products of ``src`` (a pytree
@@ -245,6 +283,8 @@ def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, pre
     summed again up to the boundary (a second, small reduction over just those
     chunks, gathered from ``src``) and the rest is moved to the next block's fold.
     """
+    if pos is not None:
+        return _window_sums(products, src, pos, n_blocks, n_folds)
     n = mask.shape[0]
     nc = n // c
     ops = products(src, mask)
@@ -354,7 +394,7 @@ def _newton(f, theta0, max_steps: int, rtol):
 
 
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
-            temp, temp_ext, accel, centre, scale, dt, nv, theta0):
+            temp, temp_ext, accel, centre, scale, dt, nv, theta0, pos=None):
     from . import fit as F
 
     p, nq = layout.p, model.n_nonlinear
@@ -370,7 +410,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         sig = eqx.tree_at(lambda s_: s_.temp_s, sig, temp * inv - norm.centre * inv)
     y = sig.gyro - sig.rate
     if layout.const_col is not None:
-        y0 = y[jnp.argmax(mask)]
+        y0 = y[0] if prefix else y[jnp.argmax(mask)]
     else:
         y0 = jnp.zeros((3,), dtype)
     n_folds = opts.n_folds
@@ -378,10 +418,10 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     def sums_at(th):
         if layout.pointwise:
             return _fold_sums(_signal_products(layout, model, th, y0), sig, mask, nv,
-                              opts.n_blocks, n_folds, c, prefix)
+                              opts.n_blocks, n_folds, c, prefix, pos)
         x = model.design(sig, th)  # a column that reads other samples is formed once
         return _fold_sums(_design_products(layout), (x, y - y0), mask, nv, opts.n_blocks,
-                          n_folds, c, prefix)
+                          n_folds, c, prefix, pos)
 
     if nq == 0:
         theta = jnp.zeros((0,), dtype)
@@ -473,8 +513,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                status=jnp.asarray(status, jnp.int32), range_flags=range_flags,
                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
     if temp is not None:
-        out["temp_range"] = jnp.stack([jnp.min(jnp.where(mask, temp, jnp.inf)),
-                                       jnp.max(jnp.where(mask, temp, -jnp.inf))])
+        out["temp_range"] = jnp.stack(masked_range(temp, mask))
     if sig.norm is not None:
         out["norm_centre"], out["norm_scale"] = sig.norm.centre, sig.norm.scale
     return out
@@ -507,7 +546,7 @@ def _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2):
 
 @eqx.filter_jit
 def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel, centre,
-           scale, dt, nv, theta0):
+           scale, dt, nv, theta0, pos=None):
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
@@ -516,7 +555,7 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
         return _device(model, layout, opts, c, prefix, *args)
 
     return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv,
-                         theta0)
+                         theta0, pos)
 
 
 def _pow2_floor(x: int) -> int:
@@ -590,6 +629,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         args.append(jax.device_put(nv.astype(np.int32), dev))
         th0 = arrays["theta0"]
         args.append(None if th0 is None else jax.device_put(np.ascontiguousarray(th0[sl]), dev))
+        args.append(jax.device_put(block_starts(nv, opts.n_blocks), dev) if prefix else None)
         return stop - start, _group(model, layout, opts, c, prefix, *args)
 
     # dispatch every group, then collect (concurrent calls from several Python threads

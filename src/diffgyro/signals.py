@@ -122,10 +122,14 @@ def latched_heating(dtemp: Float[Array, " n"], mask: Bool[Array, " n"], threshol
     return jnp.where(jnp.any(active), state, 0.0)
 
 
+def masked_range(x: Float[Array, " n"], mask: Bool[Array, " n"]) -> tuple[Array, Array]:
+    """Smallest and largest valid value."""
+    return jnp.min(jnp.where(mask, x, jnp.inf)), jnp.max(jnp.where(mask, x, -jnp.inf))
+
+
 def temp_norm_from(temp: Float[Array, " n"], mask: Bool[Array, " n"]) -> TempNorm:
     """Centre and half-range of the masked temperature (half-range at least 0.5 °C)."""
-    lo = jnp.min(jnp.where(mask, temp, jnp.inf))
-    hi = jnp.max(jnp.where(mask, temp, -jnp.inf))
+    lo, hi = masked_range(temp, mask)
     return TempNorm(centre=0.5 * (lo + hi), scale=jnp.maximum(0.5 * (hi - lo), 0.5))
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from ..signals import Signals
+from ..signals import Signals, masked_range
 
 #: Temperature span (°C) needed per polynomial order before a fit is trusted.
 MIN_SPAN_PER_ORDER = 1.0
@@ -25,8 +25,7 @@ def powers(x: Float[Array, "..."], lo: int, hi: int) -> Float[Array, "... k"]:
 
 def temp_span(sig: Signals) -> Float[Array, ""]:
     """Span of the valid temperature samples (°C)."""
-    hi = jnp.max(jnp.where(sig.mask, sig.temp, -jnp.inf))
-    lo = jnp.min(jnp.where(sig.mask, sig.temp, jnp.inf))
+    lo, hi = masked_range(sig.temp, sig.mask)
     return hi - lo
 
 
