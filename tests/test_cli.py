@@ -95,3 +95,25 @@ def test_console_script_has_no_traceback(tmp_path):
     p = subprocess.run([sys.executable, "-m", "diffgyro", "fit", str(bad), "--model", "bias_poly(0)"],
                        capture_output=True, text=True)
     assert p.returncode == 2 and "Traceback" not in p.stderr and "row 2" in p.stderr
+
+
+def test_fit_widens_the_dtemp_window_for_a_coarse_read_out(tmp_path, capsys):
+    """Without --dtemp-window, fit picks the window diagnose would (wider than 60 s for a
+    0.5 °C read-out at 1 Hz); an explicit window is kept."""
+    from diffgyro import Batch
+    from diffgyro.diagnose import suggest_dtemp_window
+    from diffgyro.io import load, save
+    from diffgyro.simulate import simulate
+
+    batch, _ = simulate("thermal", 2, effects="bias_poly(1)+gradient", seed=3, duration=3600.0,
+                        sample_rate=1.0, temp_quantum=0.5)
+    path = tmp_path / "coarse.csv"
+    save(batch, path)
+    expected = suggest_dtemp_window(Batch.from_recordings(load(path)))
+    assert expected > 60.0
+    for extra, window in (([], expected), (["--dtemp-window", "90"], 90.0)):
+        cal = tmp_path / f"cal{len(extra)}.json"
+        assert main(["fit", str(path), "--model", "bias_poly(1)+gradient", "--json",
+                     "--out", str(cal), *extra]) == 0
+        capsys.readouterr()
+        assert json.loads(cal.read_text())["dtemp_window"] == window

@@ -56,7 +56,8 @@ def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_
         columns=parse_columns(columns),
         units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
         drop_invalid=drop_invalid, sampling_rate=sampling_rate,
-        fit_options={"dtemp_window": dtemp_window}, progress=True,
+        fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
+        progress=True,
         json_stream=sys.stdout if as_json else None)
     bad = ", ".join(f"{n} {s}" for s, n in sorted(summary.statuses.items()) if s != "ok")
     print(f"diffgyro fit: {summary.n_ok} of {summary.n_devices} devices ok"

@@ -25,9 +25,10 @@ from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec, e.g. 'bias_poly(2)+gradient' "
                                                          "(see 'diffgyro effects').")]
-DtempWindow = Annotated[float, typer.Option(
-    "--dtemp-window", help="Seconds of the centred slope that gives dT/dt (widen for coarse "
-                           "temperature read-outs).")]
+DtempWindow = Annotated[float | None, typer.Option(
+    "--dtemp-window", help="Seconds of the centred slope that gives dT/dt (default: 60 s, wider "
+                           "when the temperature read-out is noisy or coarsely quantised, as "
+                           "'diffgyro diagnose' chooses; streamed runs: 60 s).")]
 
 
 def samples_needed(model) -> int:
@@ -56,7 +57,7 @@ def fit_command(
     model: Model,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Calibration file to write (JSON).")] = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
-    dtemp_window: DtempWindow = 60.0,
+    dtemp_window: DtempWindow = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
@@ -82,7 +83,11 @@ def fit_command(
     em = ErrorModel.from_spec(model)
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                            sampling_rate, drop_invalid)
-    result = fit(em, batch, dtemp_window=dtemp_window)
+    if dtemp_window is None:
+        from diffgyro.diagnose import suggest_dtemp_window
+
+        dtemp_window = suggest_dtemp_window(batch)
+    result = fit(em, batch, dtemp_window=float(dtemp_window))
     if out is not None:
         calibration.save(calibration.from_fit(result, batch), out)
     records = result.records()
