@@ -112,12 +112,13 @@ def _prefix_sum(v: Float[Array, " n"]) -> Float[Array, " n"]:
 
 
 def _block_length(n: int, k: int) -> int:
-    """Samples per block: a power of two with k · block ≈ ``_BLOCK_TERMS``, at most n."""
+    """Samples per block: a power of two with k · block ≈ ``_BLOCK_TERMS`` (k: τ × series
+    summed together), at least 256, at most n."""
     target = max(_BLOCK_TERMS // max(k, 1), 256)
     return max(1, min(n, 1 << (target.bit_length() - 1)))
 
 
-def _oadev_one(y, n_valid, dt, m, stop_ratio):
+def _oadev_one(y, n_valid, dt, m, stop_ratio, batch=1):
     """Overlapping ADEV of one padded series; returns (adev, count) per m (NaN if too few).
 
     One prefix sum gives the phase x (mean removed first, as allantools does, so
@@ -126,11 +127,12 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio):
     all τ of a block at once: for τ = m the block's terms read three contiguous
     windows of x at offsets 0, m, 2m (a fused gather; no (τ, n) temporary).
     Only m ≤ n / stop_ratio can be defined, so x is zero-padded by 2·that.
+    ``batch`` series run together (vmapped), so their blocks share the term budget.
     """
     n = y.shape[0]
     k = m.shape[0]
     mmax = max(n // stop_ratio, 1)
-    blk = _block_length(n, k)
+    blk = _block_length(n, k * batch)
     nblocks = -(-n // blk)  # terms i < n suffice: count ≤ n − 1 for m ≥ 1
     valid = jax.lax.iota(jnp.int32, n) < n_valid
     mean = jnp.sum(jnp.where(valid, y, 0.0)) / jnp.maximum(n_valid, 1)
@@ -174,9 +176,9 @@ def oadev(
     nv = jnp.broadcast_to(jnp.asarray(n if n_valid is None else n_valid), lead)
     dtb = jnp.broadcast_to(jnp.asarray(dt, y.dtype), lead)
     m = jnp.asarray(m)
-    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio)  # noqa: E731
     flat = (y.reshape(-1, n), nv.reshape(-1), dtb.reshape(-1))
     batch = max(1, min(flat[0].shape[0], _CHUNK_SAMPLES // max(n, 1)))
+    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch)  # noqa: E731
     # batch_size=1 would copy the whole input into the loop state; a plain map does not
     adev, count = jax.lax.map(lambda a: f(*a), flat, batch_size=batch if batch > 1 else None)
     return adev.reshape(*lead, -1), count.reshape(*lead, -1)
