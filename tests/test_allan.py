@@ -67,16 +67,19 @@ def test_oadev_padded_batch_equals_allantools_per_device():
             assert np.max(np.abs(adev[d, a, keep] / ref - 1)) < 1e-10
 
 
-@pytest.mark.parametrize(("block_terms", "n"), [(None, 150_001), (4096, 60_007)])
-def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, n):
+@pytest.mark.parametrize(("block_terms", "chunk", "n"), [(None, None, 150_001), (4096, 1, 60_007)])
+def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n):
     """The sums run block by block of samples, all τ of a block at once. Series longer than a
     block, lengths that are not a multiple of it, padding that ends inside a block and τ past
-    the stop ratio (NaN) all give allantools' values; 4096 terms forces blocks of 256 samples
-    (a different n, so that no compiled version with the default blocks is reused)."""
+    the stop ratio (NaN) all give allantools' values. The second case forces blocks of 256
+    samples and one series per loop step (the path of 1M-sample series); its different n
+    keeps a version compiled with the defaults from being reused."""
     from diffgyro import allan as allan_mod
 
     if block_terms is not None:
         monkeypatch.setattr(allan_mod, "_BLOCK_TERMS", block_terms)
+    if chunk is not None:
+        monkeypatch.setattr(allan_mod, "_CHUNK_SAMPLES", chunk)
     rng = np.random.default_rng(21)
     dt = 0.02
     lengths = [n, n - 1001, n // 3 + 7]
