@@ -67,15 +67,19 @@ def test_oadev_padded_batch_equals_allantools_per_device():
             assert np.max(np.abs(adev[d, a, keep] / ref - 1)) < 1e-10
 
 
-@pytest.mark.parametrize(("block_terms", "chunk", "n"), [(None, None, 150_001), (4096, 1, 60_007)])
+@pytest.mark.parametrize(("block_terms", "chunk", "n"),
+                         [(None, None, 150_001), (4096, 1, 60_007), ("accel", "accel", 30_011)])
 def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n):
     """The sums run block by block of samples, all τ of a block at once. Series longer than a
     block, lengths that are not a multiple of it, padding that ends inside a block and τ past
     the stop ratio (NaN) all give allantools' values. The second case forces blocks of 256
-    samples and one series per loop step (the path of 1M-sample series); its different n
-    keeps a version compiled with the defaults from being reused."""
+    samples and one series per loop step (the path of 1M-sample series), the third the sizes
+    used on an accelerator (all series and samples in one step); the different n keep a
+    version compiled with other sizes from being reused."""
     from diffgyro import allan as allan_mod
 
+    block_terms = allan_mod._ACCEL_BLOCK_TERMS if block_terms == "accel" else block_terms
+    chunk = allan_mod._ACCEL_CHUNK_SAMPLES if chunk == "accel" else chunk
     if block_terms is not None:
         monkeypatch.setattr(allan_mod, "_BLOCK_TERMS", block_terms)
     if chunk is not None:
@@ -87,7 +91,8 @@ def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n)
     for d, nd in enumerate(lengths):
         y[d, :nd] = _white_plus_walk(rng, (), nd, dt, 3e-4, 2e-5, offset=0.05 * (d + 1))
     m = np.concatenate([default_m(n), [n // 4 + 1, n]])  # the last two are past the stop ratio
-    assert allan_mod._block_length(n, len(m)) < n // 4
+    one_block = allan_mod._block_length(n, len(m), allan_mod._BLOCK_TERMS) == n
+    assert one_block == (chunk == allan_mod._ACCEL_CHUNK_SAMPLES)
     adev, count = allan_mod.oadev(y, dt, m, np.array(lengths))
     adev, count = np.asarray(adev), np.asarray(count)
     for d, nd in enumerate(lengths):

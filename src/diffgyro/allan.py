@@ -87,6 +87,12 @@ _CHUNK_SAMPLES = 1 << 20
 #: cache and the (τ, block) temporary stays a few MB. Blocks of 16 384 samples for 51 τ
 #: were ~1.2-1.7× faster than one whole-series pass per τ (measured; 65 536 was slower).
 _BLOCK_TERMS = 1 << 20
+#: The same two budgets on a GPU or TPU, where each loop step must carry far more work (one
+#: step per series and block would leave the device mostly idle): up to 128 series of 1M
+#: samples per step, a (τ, series, block) temporary of at most 512 MB. Not measured (no
+#: accelerator was available when they were set); the code path is the CPU one.
+_ACCEL_CHUNK_SAMPLES = 1 << 27
+_ACCEL_BLOCK_TERMS = 1 << 26
 #: Block length of the prefix sum: sums inside blocks of this many samples are one matrix
 #: product with a triangular matrix of ones.
 _PREFIX_BLOCK = 16
@@ -111,14 +117,14 @@ def _prefix_sum(v: Float[Array, " n"]) -> Float[Array, " n"]:
     return (within + before[:, None]).reshape(-1)[:n]
 
 
-def _block_length(n: int, k: int) -> int:
-    """Samples per block: a power of two with k · block ≈ ``_BLOCK_TERMS`` (k: τ × series
-    summed together), at least 256, at most n."""
-    target = max(_BLOCK_TERMS // max(k, 1), 256)
+def _block_length(n: int, k: int, terms: int) -> int:
+    """Samples per block: a power of two with k · block ≈ ``terms`` (k: τ × series summed
+    together), at least 256, at most n."""
+    target = max(terms // max(k, 1), 256)
     return max(1, min(n, 1 << (target.bit_length() - 1)))
 
 
-def _oadev_one(y, n_valid, dt, m, stop_ratio, batch=1):
+def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms):
     """Overlapping ADEV of one padded series; returns (adev, count) per m (NaN if too few).
 
     One prefix sum gives the phase x (mean removed first, as allantools does, so
@@ -127,12 +133,12 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch=1):
     all τ of a block at once: for τ = m the block's terms read three contiguous
     windows of x at offsets 0, m, 2m (a fused gather; no (τ, n) temporary).
     Only m ≤ n / stop_ratio can be defined, so x is zero-padded by 2·that.
-    ``batch`` series run together (vmapped), so their blocks share the term budget.
+    ``batch`` series run together (vmapped), so their blocks share ``block_terms``.
     """
     n = y.shape[0]
     k = m.shape[0]
     mmax = max(n // stop_ratio, 1)
-    blk = _block_length(n, k * batch)
+    blk = _block_length(n, k * batch, block_terms)
     nblocks = -(-n // blk)  # terms i < n suffice: count ≤ n − 1 for m ≥ 1
     valid = jax.lax.iota(jnp.int32, n) < n_valid
     mean = jnp.sum(jnp.where(valid, y, 0.0)) / jnp.maximum(n_valid, 1)
@@ -177,8 +183,11 @@ def oadev(
     dtb = jnp.broadcast_to(jnp.asarray(dt, y.dtype), lead)
     m = jnp.asarray(m)
     flat = (y.reshape(-1, n), nv.reshape(-1), dtb.reshape(-1))
-    batch = max(1, min(flat[0].shape[0], _CHUNK_SAMPLES // max(n, 1)))
-    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch)  # noqa: E731
+    cpu = jax.default_backend() == "cpu"
+    chunk, terms = ((_CHUNK_SAMPLES, _BLOCK_TERMS) if cpu
+                    else (_ACCEL_CHUNK_SAMPLES, _ACCEL_BLOCK_TERMS))
+    batch = max(1, min(flat[0].shape[0], chunk // max(n, 1)))
+    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch, terms)  # noqa: E731
     # batch_size=1 would copy the whole input into the loop state; a plain map does not
     adev, count = jax.lax.map(lambda a: f(*a), flat, batch_size=batch if batch > 1 else None)
     return adev.reshape(*lead, -1), count.reshape(*lead, -1)
