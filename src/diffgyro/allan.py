@@ -124,7 +124,7 @@ def _block_length(n: int, k: int, terms: int) -> int:
     return max(1, min(n, 1 << (target.bit_length() - 1)))
 
 
-def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms):
+def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     """Overlapping ADEV of one padded series; returns (adev, count) per m (NaN if too few).
 
     One prefix sum gives the phase x (mean removed first, as allantools does, so
@@ -133,16 +133,21 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms):
     all τ of a block at once: for τ = m the block's terms read three contiguous
     windows of x at offsets 0, m, 2m (a fused gather; no (τ, n) temporary).
     Only m ≤ n / stop_ratio can be defined, so x is zero-padded by 2·that.
-    ``batch`` series run together (vmapped), so their blocks share ``block_terms``.
+    ``batch`` series run together (vmapped), so their blocks share ``block_terms``;
+    ``padded=False`` (static) says that all n samples are real.
     """
     n = y.shape[0]
     k = m.shape[0]
     mmax = max(n // stop_ratio, 1)
     blk = _block_length(n, k * batch, block_terms)
     nblocks = -(-n // blk)  # terms i < n suffice: count ≤ n − 1 for m ≥ 1
-    valid = jax.lax.iota(jnp.int32, n) < n_valid
-    mean = jnp.sum(jnp.where(valid, y, 0.0)) / jnp.maximum(n_valid, 1)
-    yc = jnp.where(valid, y - mean, 0.0)
+    if padded:
+        valid = jax.lax.iota(jnp.int32, n) < n_valid
+        mean = jnp.sum(jnp.where(valid, y, 0.0)) / jnp.maximum(n_valid, 1)
+        yc = jnp.where(valid, y - mean, 0.0)
+    else:  # every sample real (n_valid not given): no masked copy of y for the mean
+        mean = jnp.sum(y) / n
+        yc = y - mean
     # phase x[0..n] (x[0] = 0), then zeros so that every window below stays in bounds
     x = jnp.concatenate([jnp.zeros((1,), y.dtype), _prefix_sum(yc) * dt,
                          jnp.zeros((nblocks * blk - n - 1 + 2 * mmax,), y.dtype)])
@@ -187,7 +192,8 @@ def oadev(
     chunk, terms = ((_CHUNK_SAMPLES, _BLOCK_TERMS) if cpu
                     else (_ACCEL_CHUNK_SAMPLES, _ACCEL_BLOCK_TERMS))
     batch = max(1, min(flat[0].shape[0], chunk // max(n, 1)))
-    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch, terms)  # noqa: E731
+    f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch, terms,  # noqa: E731
+                                      n_valid is not None)
     # batch_size=1 would copy the whole input into the loop state; a plain map does not
     adev, count = jax.lax.map(lambda a: f(*a), flat, batch_size=batch if batch > 1 else None)
     return adev.reshape(*lead, -1), count.reshape(*lead, -1)
