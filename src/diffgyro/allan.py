@@ -79,8 +79,9 @@ def default_m(n: int, per_decade: int = 10, stop_ratio: int = STOP_RATIO) -> np.
 
 
 #: Samples per step of the loop over series: one 1M-sample series at a time keeps its padded
-#: phase (12 MB) in cache while all τ are summed; two at a time was ~1.6× slower per series
-#: (measured), all at once (the former vmap) slower still.
+#: phase (12 MB) in cache while all τ are summed (with one whole-series pass per τ, two
+#: series at a time were ~1.6× slower per series and all at once, the former vmap, slower
+#: still; measured).
 _CHUNK_SAMPLES = 1 << 20
 #: Terms (τ × samples) summed per step of the loop over blocks: all τ of one block of
 #: samples at once, so the three windows of a small-m τ are read from a block already in
@@ -138,7 +139,7 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     """
     n = y.shape[0]
     k = m.shape[0]
-    mmax = max(n // stop_ratio, 1)
+    mmax = max(n // stop_ratio, 1) if stop_ratio > 0 else n
     blk = _block_length(n, k * batch, block_terms)
     nblocks = -(-n // blk)  # terms i < n suffice: count ≤ n − 1 for m ≥ 1
     if padded:
