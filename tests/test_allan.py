@@ -67,6 +67,42 @@ def test_oadev_padded_batch_equals_allantools_per_device():
             assert np.max(np.abs(adev[d, a, keep] / ref - 1)) < 1e-10
 
 
+@pytest.mark.parametrize(("block_terms", "chunk", "n"),
+                         [(None, None, 150_001), (4096, 1, 60_007), ("accel", "accel", 30_011)])
+def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n):
+    """The sums run block by block of samples, all τ of a block at once. Series longer than a
+    block, lengths that are not a multiple of it, padding that ends inside a block and τ past
+    the stop ratio (NaN) all give allantools' values. The second case forces blocks of 256
+    samples and one series per loop step (the path of 1M-sample series), the third the sizes
+    used on an accelerator (all series and samples in one step); the different n keep a
+    version compiled with other sizes from being reused."""
+    from diffgyro import allan as allan_mod
+
+    block_terms = allan_mod._ACCEL_BLOCK_TERMS if block_terms == "accel" else block_terms
+    chunk = allan_mod._ACCEL_CHUNK_SAMPLES if chunk == "accel" else chunk
+    if block_terms is not None:
+        monkeypatch.setattr(allan_mod, "_BLOCK_TERMS", block_terms)
+    if chunk is not None:
+        monkeypatch.setattr(allan_mod, "_CHUNK_SAMPLES", chunk)
+    rng = np.random.default_rng(21)
+    dt = 0.02
+    lengths = [n, n - 1001, n // 3 + 7]
+    y = np.zeros((3, n))
+    for d, nd in enumerate(lengths):
+        y[d, :nd] = _white_plus_walk(rng, (), nd, dt, 3e-4, 2e-5, offset=0.05 * (d + 1))
+    m = np.concatenate([default_m(n), [n // 4 + 1, n]])  # the last two are past the stop ratio
+    one_block = allan_mod._block_length(n, len(m), allan_mod._BLOCK_TERMS) == n
+    assert one_block == (chunk == allan_mod._ACCEL_CHUNK_SAMPLES)
+    adev, count = allan_mod.oadev(y, dt, m, np.array(lengths))
+    adev, count = np.asarray(adev), np.asarray(count)
+    for d, nd in enumerate(lengths):
+        keep = m * 4 <= nd
+        assert np.all(np.isnan(adev[d, ~keep]))
+        _, ref, _, ns = allantools.oadev(y[d, :nd], rate=1 / dt, data_type="freq", taus=m[keep] * dt)
+        np.testing.assert_array_equal(count[d, keep], ns)
+        assert np.max(np.abs(adev[d, keep] / ref - 1)) < 1e-11
+
+
 @pytest.mark.parametrize("alpha", [2, 0, -1, -2])
 def test_edf_matches_sp1065_table(alpha):
     for n_phase, m in [(1001, 1), (1001, 7), (50_001, 300), (50_001, 12_000)]:
