@@ -47,7 +47,12 @@ from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_fr
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
 CHUNK = 32
 #: About this many samples (devices × samples) go into one compiled call.
-GROUP_SAMPLES = 1 << 20
+GROUP_SAMPLES = 1 << 18
+#: Models whose columns are all shared by the three axes and pointwise (temperature
+#: polynomials, gradient, temp_diff) sum in one fused pass with no group-sized
+#: temporaries: their groups are this many times larger (fewer calls). Others
+#: materialise per-axis columns and run fastest with the group in cache.
+FUSED_GROUP_FACTOR = 4
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 
@@ -562,10 +567,12 @@ def _pow2_floor(x: int) -> int:
     return 1 << (max(int(x), 1).bit_length() - 1)
 
 
-def group_size(n_devices: int, length: int) -> int:
-    """Devices per compiled call: a power of two, about GROUP_SAMPLES samples, ≥ 8 devices
-    only when the batch has them (5 and 7 devices share a group size of 8)."""
-    cap = _pow2_floor(max(GROUP_SAMPLES // max(length, 1), 1))
+def group_size(n_devices: int, length: int, samples: int | None = None) -> int:
+    """Devices per compiled call: a power of two, about ``samples`` (GROUP_SAMPLES)
+    samples, ≥ 8 devices only when the batch has them (5 and 7 devices share a group
+    size of 8). Independent of the device count beyond one group: no recompilation."""
+    samples = GROUP_SAMPLES if samples is None else samples
+    cap = _pow2_floor(max(samples // max(length, 1), 1))
     want = 1 << max(int(n_devices) - 1, 7).bit_length()  # next power of two ≥ n, at least 8
     return max(1, min(cap, want))
 
@@ -588,7 +595,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     present = frozenset(batch.signals)
     layout, need = layout_of(model, present)
     d, n = batch.n_devices, batch.length
-    g = group_size(d, n)
+    fused = layout.pointwise and all(layout.shared)
+    g = group_size(d, n, GROUP_SAMPLES * (FUSED_GROUP_FACTOR if fused else 1))
     dt = sampling_intervals(batch) if "dt" in need else np.ones(d)
     centre = scale = None
     if norm is not None and batch.temp is not None:
