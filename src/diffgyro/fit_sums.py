@@ -302,27 +302,19 @@ def _sse(a, c, q, beta):
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
-def _newton(f, theta0, max_steps: int, rtol):
+def _newton(evaluate, theta0, max_steps: int, rtol):
     """Minimise a smooth function of a few parameters (log time constants).
 
-    Newton steps with exact forward-mode gradient and Hessian; negative
-    curvature is flipped and a Levenberg term damps the step, which is
-    accepted only if ``f`` does not grow (and is at most 1 in log τ); near a
-    minimum (convex, Newton step below 1e-3) the plain Newton step is taken.
-    Converged when the Newton step is below ``rtol·(1 + |θ|)``.
-    Returns (theta, steps, converged).
+    ``evaluate(θ)`` gives the value, gradient, Hessian and an aux pytree in
+    one pass over the samples. Newton steps: negative curvature is flipped
+    and a Levenberg term damps the step, which is accepted only if the value
+    does not grow (and is at most 1 in log τ); near a minimum (convex, Newton
+    step below 1e-3) the plain Newton step is taken. A trial is evaluated
+    once — its gradient and Hessian come with its value, so an accepted step
+    needs no second pass. Converged when the Newton step at the current point
+    is below ``rtol·(1 + |θ|)``. Returns (theta, value, aux, steps, converged).
     """
-    def fa(t):
-        v = f(t)
-        return v, v
-
-    def ga(t):
-        g, v = jax.jacfwd(fa, has_aux=True)(t)
-        return g, (g, v)
-
-    def body(state):
-        th, lam, k, _ = state
-        h, (g, v) = jax.jacfwd(ga, has_aux=True)(th)
+    def proposal(th, g, h, lam):
         e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
         convex = jnp.all(e > 0)
         e = jnp.abs(e)
@@ -338,19 +330,76 @@ def _newton(f, theta0, max_steps: int, rtol):
         step = jnp.where(near, newton, step)
         size = jnp.linalg.norm(step)
         step = step * jnp.minimum(1.0, 1.0 / jnp.maximum(size, 1e-300))
-        v_new = f(th + step)
+        return step, near, size_n <= rtol * scale_th
+
+    def body(state):
+        th, v, g, h, aux, lam, k, _ = state
+        step, near, _ = proposal(th, g, h, lam)
+        v_new, g_new, h_new, aux_new = evaluate(th + step)
         ok = jnp.isfinite(v_new) & ((v_new <= v) | near)
-        done = jnp.isfinite(v) & (size_n <= rtol * scale_th)
-        th = jnp.where(ok & ~done, th + step, th)
+        th, v, g, h, aux = jax.tree.map(lambda a, b: jnp.where(ok, a, b),
+                                        (th + step, v_new, g_new, h_new, aux_new),
+                                        (th, v, g, h, aux))
         lam = jnp.where(ok, lam * 0.3, lam * 10.0)
-        return th, lam, k + 1, done
+        done = jnp.isfinite(v) & proposal(th, g, h, lam)[2]
+        return th, v, g, h, aux, lam, k + 1, done
 
     def cond(state):
-        return (state[2] < max_steps) & ~state[3]
+        return (state[6] < max_steps) & ~state[7]
 
-    init = (theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(0, jnp.int32), jnp.asarray(False))
-    th, _, k, done = lax.while_loop(cond, body, init)
-    return th, k, done
+    v, g, h, aux = evaluate(theta0)
+    lam = jnp.asarray(1e-3, theta0.dtype)
+    done = jnp.isfinite(v) & proposal(theta0, g, h, lam)[2]
+    init = (theta0, v, g, h, aux, lam, jnp.asarray(0, jnp.int32), done)
+    th, v, _, _, aux, _, k, done = lax.while_loop(cond, body, init)
+    return th, v, aux, k, done
+
+
+def _value_grad_hess(f):
+    """``θ ↦ (f, ∇f, ∇²f, aux)`` of ``f(θ) = (value, aux)`` by nested forward mode (one pass)."""
+    def fa(t):
+        v, aux = f(t)
+        return v, (v, aux)
+
+    def ga(t):
+        g, (v, aux) = jax.jacfwd(fa, has_aux=True)(t)
+        return g, (g, v, aux)
+
+    def vgh(t):
+        h, (g, v, aux) = jax.jacfwd(ga, has_aux=True)(t)
+        return v, g, h, aux
+
+    return vgh
+
+
+@functools.lru_cache(maxsize=256)
+def varying_products(model: ErrorModel, layout: Layout, present: frozenset[str]
+                     ) -> tuple[tuple, tuple]:
+    """Indices (in :meth:`Layout.index` order) of the products that move with the time
+    constants, and of those that do not.
+
+    A column moves if it differs at two sets of time constants on random
+    signals; a product moves if one of its columns does. The others are
+    summed once per device, not once per trial of the time constants.
+    """
+    n, q, p = 24, model.n_nonlinear, layout.p
+    with jax.ensure_compile_time_eval():  # concrete even when called inside a trace
+        sig = _random_signals(present, n, 4321)
+        x1, x2 = jax.jit(lambda s: [model.design(s, jnp.full((q,), v, s.gyro.dtype))
+                                    for v in (1.7, 3.9)])(sig)
+    moves = np.any(np.asarray(x1) != np.asarray(x2), axis=(0, 1))
+    var = [1 + j for j, (a, b, _) in enumerate(layout.xx) if moves[a] or moves[b]]
+    k = 1 + len(layout.xx)
+    var += [k + i * p + a for i in range(3) for a in range(p) if moves[a]]
+    fixed = [j for j in range(layout.n_products) if j not in var]
+    return tuple(var), tuple(fixed)
+
+
+def _chunked_sum(ops, c: int):
+    """Sums of the (n,) arrays ``ops`` in one loop, by chunks of ``c`` then over chunks
+    (a short sum per chunk keeps the rounding of a long sum down)."""
+    n = ops[0].shape[0]
+    return jnp.sum(_vsum([o.reshape(n // c, c) for o in ops]), axis=0)
 
 
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
@@ -390,33 +439,69 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         steps, converged = jnp.asarray(1, jnp.int32), jnp.asarray(True)
     else:
         # variable projection: the linear coefficients are solved from the sums for
-        # every trial of the time constants; Newton moves the time constants alone
-        def cost(th):
-            s_ = sums_at(th)[0]
+        # every trial of the time constants; Newton moves the time constants alone.
+        # Products that do not move with them are summed once (total and per fold);
+        # a trial forms only the moving columns and their products, and its value,
+        # gradient and Hessian come from one pass (nested forward mode).
+        present = frozenset(k for k, a in zip(INPUTS, (t, rate, temp, temp_ext, accel))
+                            if a is not None)
+        var_idx, fix_idx = varying_products(model, layout, present)
+        var_idx, fix_idx = np.asarray(var_idx, np.int32), np.asarray(fix_idx, np.int32)
+        n_prod = layout.n_products
+        ys = y - y0
+        x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
+
+        def fixed_products(src, m):
+            ops = _products(layout, src[0], src[1], m)
+            return [ops[j] for j in fix_idx]
+
+        fix_tot, fix_fold = _fold_sums(fixed_products, (x_any, ys), mask, nv, opts.n_blocks,
+                                       n_folds, c, prefix)
+
+        def moving_sums(th, masks):
+            x = model.design(sig, th)
+            out = []
+            for m in masks:
+                ops = _products(layout, x, ys, m)
+                out.append(_chunked_sum([ops[j] for j in var_idx], c))
+            return out
+
+        def assemble(fixed, moving):
+            return jnp.zeros(fixed.shape[:-1] + (n_prod,), dtype).at[..., fix_idx].set(
+                fixed).at[..., var_idx].set(moving)
+
+        def cost_of(s_):
             a_, c_, q_, _ = _unpack(layout, s_)
             return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
 
+        def cost(th):
+            (v_,) = moving_sums(th, [mask])
+            return cost_of(assemble(fix_tot, v_)), v_
+
         grid = model.nonlinear_grid(sig).astype(dtype)
-        costs = jax.vmap(cost)(grid)
+        costs = jax.vmap(lambda th: cost(th)[0])(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
-        theta, steps, converged = _newton(cost, start, opts.max_steps, opts.rtol)
-        tot, _ = sums_at(theta)
-        a_, c_, q_, _ = _unpack(layout, tot)
+        theta, full_cost, v_tot, steps, converged = _newton(_value_grad_hess(cost), start,
+                                                            opts.max_steps, opts.rtol)
+        tot = assemble(fix_tot, v_tot)
         # a local optimum worse than the best grid point is not the answer
-        full_cost = jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
         converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
 
-        def fold(k):  # refit the time constants without fold k, from the full optimum
-            def cost_k(th):
-                s_, pf = sums_at(th)
-                a_, c_, q_, _ = _unpack(layout, s_ - pf[k])
-                return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
+        fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)
 
-            th_k, _, _ = _newton(cost_k, theta, max(8, opts.max_steps // 4), opts.rtol)
-            s_, pf = sums_at(th_k)
-            return pf[k], s_ - pf[k]
+        def fold(k):  # refit the time constants without fold k, from the full optimum
+            fix_train = fix_tot - fix_fold[k]
+            train_m, held_m = mask & (fold_id != k), fold_id == k
+
+            def cost_k(th):
+                v_train, v_held = moving_sums(th, [train_m, held_m])
+                return cost_of(assemble(fix_train, v_train)), (v_train, v_held)
+
+            _, _, (v_train, v_held), _, _ = _newton(
+                _value_grad_hess(cost_k), theta, max(8, opts.max_steps // 4), opts.rtol)
+            return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
 
         held, train = jax.vmap(fold)(jnp.arange(n_folds))
     a, cc, q, n_valid = _unpack(layout, tot)
