@@ -355,21 +355,48 @@ def _newton(evaluate, theta0, max_steps: int, rtol):
     return th, v, aux, k, done
 
 
-def _value_grad_hess(f):
-    """``θ ↦ (f, ∇f, ∇²f, aux)`` of ``f(θ) = (value, aux)`` by nested forward mode (one pass)."""
+def _jet(f):
+    """``θ ↦ (f, ∂f, ∂²f, aux)`` of ``f(θ) = (sums (m,), aux)``: nested forward mode, one pass;
+    derivatives on leading axes, (q, m) and (q, q, m). ``aux`` is evaluated, not differentiated."""
     def fa(t):
         v, aux = f(t)
         return v, (v, aux)
 
     def ga(t):
-        g, (v, aux) = jax.jacfwd(fa, has_aux=True)(t)
-        return g, (g, v, aux)
+        j, (v, aux) = jax.jacfwd(fa, has_aux=True)(t)
+        return j, (j, v, aux)
 
-    def vgh(t):
-        h, (g, v, aux) = jax.jacfwd(ga, has_aux=True)(t)
-        return v, g, h, aux
+    def jet(t):
+        h, (j, v, aux) = jax.jacfwd(ga, has_aux=True)(t)
+        return v, jnp.moveaxis(j, -1, 0), jnp.moveaxis(h, (-2, -1), (0, 1)), aux
 
-    return vgh
+    return jet
+
+
+def _projected(layout: Layout, s, ds, dds):
+    """Value, gradient and Hessian of the projected cost ``Σ_i min_β Σ(y_i − x_iβ)²``
+    from the sums ``s`` and their derivatives ``ds`` (q, P) and ``dds`` (q, q, P).
+
+    With ``β = A⁻¹c`` stationary, ``f = Q − 2βᵀc + βᵀAβ`` has ``∂f = ∂Q − 2βᵀ∂c + βᵀ∂Aβ``
+    and ``∂²f = ∂²Q − 2βᵀ∂²c + βᵀ∂²Aβ − 2 r_kᵀA⁻¹r_l`` with ``r = ∂c − ∂Aβ``: one
+    factorisation of each A, no derivative of the factorisation itself.
+    """
+    a, c, q, _ = _unpack(layout, s)
+    da, dc, dq, _ = _unpack(layout, ds)
+    dda, ddc, ddq, _ = _unpack(layout, dds)
+    chol, d = _cholesky(a)
+    beta = _cho_solve(chol, d, c)
+
+    def first(a_, c_, q_):  # Σ_i ∂Q − 2βᵀ∂c + βᵀ∂Aβ over the leading axes
+        return jnp.sum(q_ - 2.0 * jnp.einsum("ip,...ip->...i", beta, c_)
+                       + jnp.einsum("ip,...ipr,ir->...i", beta, a_, beta), axis=-1)
+
+    r = dc - jnp.einsum("kipr,ir->kip", da, beta)  # (q, 3, p)
+    rhs = jnp.moveaxis(r, 0, -1) / d[..., None]  # (3, p, q)
+    ar = jax.scipy.linalg.cho_solve((chol, True), rhs) / d[..., None]
+    hess = first(dda, ddc, ddq) - 2.0 * jnp.einsum("ipk,ipl->kl", jnp.moveaxis(r, 0, -1), ar)
+    value = jnp.sum(_sse(a, c, q, beta))
+    return value, first(da, dc, dq), hess
 
 
 @functools.lru_cache(maxsize=256)
@@ -447,7 +474,6 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                             if a is not None)
         var_idx, fix_idx = varying_products(model, layout, present)
         var_idx, fix_idx = np.asarray(var_idx, np.int32), np.asarray(fix_idx, np.int32)
-        n_prod = layout.n_products
         ys = y - y0
         x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
 
@@ -466,9 +492,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                 out.append(_chunked_sum([ops[j] for j in var_idx], c))
             return out
 
-        def assemble(fixed, moving):
-            return jnp.zeros(fixed.shape[:-1] + (n_prod,), dtype).at[..., fix_idx].set(
-                fixed).at[..., var_idx].set(moving)
+        order = np.argsort(np.concatenate([fix_idx, var_idx]))
+
+        def assemble(fixed, moving):  # all products from the fixed and the moving ones
+            fixed = jnp.broadcast_to(fixed, moving.shape[:-1] + fixed.shape[-1:])
+            return jnp.concatenate([fixed, moving], axis=-1)[..., order]
 
         def cost_of(s_):
             a_, c_, q_, _ = _unpack(layout, s_)
@@ -478,13 +506,26 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             (v_,) = moving_sums(th, [mask])
             return cost_of(assemble(fix_tot, v_)), v_
 
+        def evaluator(fixed, f):  # value, gradient, Hessian and aux from one pass
+            jet = _jet(f)
+            zero = jnp.zeros_like(fixed)  # the fixed products do not move
+
+            def evaluate(th):
+                v_, dv, ddv, aux = jet(th)
+                out = _projected(layout, assemble(fixed, v_), assemble(zero, dv),
+                                 assemble(zero, ddv))
+                return (*out, (v_, aux))
+
+            return evaluate
+
         grid = model.nonlinear_grid(sig).astype(dtype)
         costs = jax.vmap(lambda th: cost(th)[0])(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
-        theta, full_cost, v_tot, steps, converged = _newton(_value_grad_hess(cost), start,
-                                                            opts.max_steps, opts.rtol)
+        theta, full_cost, (v_tot, _), steps, converged = _newton(
+            evaluator(fix_tot, lambda th: (moving_sums(th, [mask])[0], ())), start,
+            opts.max_steps, opts.rtol)
         tot = assemble(fix_tot, v_tot)
         # a local optimum worse than the best grid point is not the answer
         converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
@@ -495,12 +536,12 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             fix_train = fix_tot - fix_fold[k]
             train_m, held_m = mask & (fold_id != k), fold_id == k
 
-            def cost_k(th):
+            def sums_k(th):
                 v_train, v_held = moving_sums(th, [train_m, held_m])
-                return cost_of(assemble(fix_train, v_train)), (v_train, v_held)
+                return v_train, v_held
 
             _, _, (v_train, v_held), _, _ = _newton(
-                _value_grad_hess(cost_k), theta, max(8, opts.max_steps // 4), opts.rtol)
+                evaluator(fix_train, sums_k), theta, max(8, opts.max_steps // 4), opts.rtol)
             return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
 
         held, train = jax.vmap(fold)(jnp.arange(n_folds))
