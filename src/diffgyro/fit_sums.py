@@ -302,7 +302,7 @@ def _sse(a, c, q, beta):
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
-def _newton(evaluate, theta0, max_steps: int, rtol):
+def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
     """Minimise a smooth function of a few parameters (log time constants).
 
     ``evaluate(θ)`` gives the value, gradient, Hessian and an aux pytree in
@@ -312,7 +312,8 @@ def _newton(evaluate, theta0, max_steps: int, rtol):
     step below 1e-3) the plain Newton step is taken. A trial is evaluated
     once — its gradient and Hessian come with its value, so an accepted step
     needs no second pass. Converged when the Newton step at the current point
-    is below ``rtol·(1 + |θ|)``. Returns (theta, value, aux, steps, converged).
+    is below ``rtol·(1 + |θ|)``. ``first`` is ``evaluate(theta0)`` when already known.
+    Returns (theta, value, aux, steps, converged).
     """
     def proposal(th, g, h, lam):
         e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
@@ -347,7 +348,7 @@ def _newton(evaluate, theta0, max_steps: int, rtol):
     def cond(state):
         return (state[6] < max_steps) & ~state[7]
 
-    v, g, h, aux = evaluate(theta0)
+    v, g, h, aux = evaluate(theta0) if first is None else first
     lam = jnp.asarray(1e-3, theta0.dtype)
     done = jnp.isfinite(v) & proposal(theta0, g, h, lam)[2]
     init = (theta0, v, g, h, aux, lam, jnp.asarray(0, jnp.int32), done)
@@ -531,20 +532,34 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
 
         fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)
+        folds = jnp.arange(n_folds)
+        held_m = fold_id[None, :] == folds[:, None]  # (folds, n)
+        # the folds' training costs at the full optimum, from one pass: their first
+        # Newton step needs no pass of its own
+        v_held0, dv_held0, ddv_held0, _ = _jet(
+            lambda th: (jnp.stack(moving_sums(th, list(held_m)), axis=-1), ()))(theta)
+        v_tot0, dv_tot0, ddv_tot0, _ = _jet(lambda th: (moving_sums(th, [mask])[0], ()))(theta)
 
         def fold(k):  # refit the time constants without fold k, from the full optimum
             fix_train = fix_tot - fix_fold[k]
-            train_m, held_m = mask & (fold_id != k), fold_id == k
+            train_m = mask & (fold_id != k)
+            zero = jnp.zeros_like(fix_train)
+            held0 = v_held0[..., k], dv_held0[..., k], ddv_held0[..., k]
+            train0 = [u - w for u, w in zip((v_tot0, dv_tot0, ddv_tot0), held0)]
+            first = (*_projected(layout, assemble(fix_train, train0[0]),
+                                 assemble(zero, train0[1]), assemble(zero, train0[2])),
+                     (train0[0], held0[0]))
 
             def sums_k(th):
-                v_train, v_held = moving_sums(th, [train_m, held_m])
+                v_train, v_held = moving_sums(th, [train_m, held_m[k]])
                 return v_train, v_held
 
             _, _, (v_train, v_held), _, _ = _newton(
-                evaluator(fix_train, sums_k), theta, max(8, opts.max_steps // 4), opts.rtol)
+                evaluator(fix_train, sums_k), theta, max(8, opts.max_steps // 4), opts.rtol,
+                first)
             return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
 
-        held, train = jax.vmap(fold)(jnp.arange(n_folds))
+        held, train = jax.vmap(fold)(folds)
     a, cc, q, n_valid = _unpack(layout, tot)
     af, cf, qf, nf = _unpack(layout, held)
     at, ct, _, _ = _unpack(layout, train)
