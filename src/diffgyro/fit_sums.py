@@ -356,22 +356,23 @@ def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
     return th, v, aux, k, done
 
 
-def _jet(f):
-    """``θ ↦ (f, ∂f, ∂²f, aux)`` of ``f(θ) = (sums (m,), aux)``: nested forward mode, one pass;
-    derivatives on leading axes, (q, m) and (q, q, m). ``aux`` is evaluated, not differentiated."""
-    def fa(t):
-        v, aux = f(t)
-        return v, (v, aux)
+def _product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
+    """``u·v``, its first derivatives (q) and second derivatives (q·q, row-major) by the
+    product rule; a derivative given as None is zero (a factor that does not move)."""
+    def total(parts):
+        parts = [t for t in parts if t is not None]
+        return functools.reduce(lambda x, y: x + y, parts) if parts else jnp.zeros_like(u)
 
-    def ga(t):
-        j, (v, aux) = jax.jacfwd(fa, has_aux=True)(t)
-        return j, (j, v, aux)
+    def d1(k):
+        return total([None if du is None else du[k] * v, None if dv is None else u * dv[k]])
 
-    def jet(t):
-        h, (j, v, aux) = jax.jacfwd(ga, has_aux=True)(t)
-        return v, jnp.moveaxis(j, -1, 0), jnp.moveaxis(h, (-2, -1), (0, 1)), aux
+    def d2(k, r):
+        both = du is not None and dv is not None
+        return total([None if ddu is None else ddu[k, r] * v,
+                      None if ddv is None else u * ddv[k, r],
+                      du[k] * dv[r] if both else None, du[r] * dv[k] if both else None])
 
-    return jet
+    return [u * v] + [d1(k) for k in range(q)] + [d2(k, r) for k in range(q) for r in range(q)]
 
 
 def _projected(layout: Layout, s, ds, dds):
@@ -469,64 +470,104 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # variable projection: the linear coefficients are solved from the sums for
         # every trial of the time constants; Newton moves the time constants alone.
         # Products that do not move with them are summed once (total and per fold);
-        # a trial forms only the moving columns and their products, and its value,
-        # gradient and Hessian come from one pass (nested forward mode).
+        # a trial forms only the moving columns (with their first and second
+        # derivatives, :meth:`ErrorModel.design_jet`) and sums the moving products and
+        # their derivatives (product rule) in one pass.
         present = frozenset(k for k, a in zip(INPUTS, (t, rate, temp, temp_ext, accel))
                             if a is not None)
         var_idx, fix_idx = varying_products(model, layout, present)
-        var_idx, fix_idx = np.asarray(var_idx, np.int32), np.asarray(fix_idx, np.int32)
         ys = y - y0
         x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
+        fix_sel = np.asarray(fix_idx, np.int32)
 
         def fixed_products(src, m):
             ops = _products(layout, src[0], src[1], m)
-            return [ops[j] for j in fix_idx]
+            return [ops[j] for j in fix_sel]
 
         fix_tot, fix_fold = _fold_sums(fixed_products, (x_any, ys), mask, nv, opts.n_blocks,
                                        n_folds, c, prefix)
+        n_xx = len(layout.xx)
 
-        def moving_sums(th, masks):
-            x = model.design(sig, th)
-            out = []
-            for m in masks:
-                ops = _products(layout, x, ys, m)
-                out.append(_chunked_sum([ops[j] for j in var_idx], c))
+        def factors(j):  # a moving product j as (axis, column, other column or None for a rate)
+            if j <= n_xx:
+                a_, b_, i_ = layout.xx[j - 1]
+                return i_, a_, b_
+            k_ = j - 1 - n_xx
+            return k_ // p, k_ % p, None
+
+        # columns of the terms with time constants: only they are formed per trial
+        moving_terms = [(tm, sl, qs) for tm, sl, qs in model.slices() if tm.n_nonlinear]
+
+        def column_jets(th, derivatives):
+            """{column: (x (n, 3), dx (q, n, 3), ddx (q, q, n, 3))} of the moving terms'
+            columns, derivatives None without ``derivatives``."""
+            out = {}
+            for tm, sl, qs in moving_terms:
+                if derivatives:
+                    x, d, dd = tm.columns_jet(sig, th[qs])
+                else:
+                    x, d, dd = tm.columns(sig, th[qs]), None, None
+                for k_ in range(sl.stop - sl.start):
+                    dk = ddk = None
+                    if derivatives:  # this term's θ sit at qs of the model's θ
+                        dk = jnp.zeros((nq,) + x.shape[:-1], dtype).at[qs].set(d[..., k_])
+                        ddk = jnp.zeros((nq, nq) + x.shape[:-1], dtype).at[qs, qs].set(
+                            dd[..., k_])
+                    out[sl.start + k_] = (x[..., k_], dk, ddk)
             return out
+
+        def factor(jets, i_, a_):  # one column of axis i_ and its derivatives (None: fixed)
+            ax = 0 if layout.shared[a_] else i_
+            if a_ in jets:
+                x, d, dd = jets[a_]
+                return x[:, ax], None if d is None else d[:, :, ax], \
+                    None if dd is None else dd[:, :, :, ax]
+            return x_any[:, ax, a_], None, None
+
+        def moving(th, masks, derivatives=True):
+            """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
+            and second (q, q, m) derivatives in θ (product rule): one variadic reduction."""
+            jets = column_jets(th, derivatives)
+            streams = []
+            for j in var_idx:
+                i_, a_, b_ = factors(j)
+                u, du, ddu = factor(jets, i_, a_)
+                v, dv, ddv = (ys[:, i_], None, None) if b_ is None else factor(jets, i_, b_)
+                streams += _product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0)
+            sums = _chunked_sum([jnp.where(m, u, 0.0) for m in masks for u in streams], c)
+            w = 1 + nq + nq * nq if derivatives else 1
+            sums = sums.reshape(len(masks), len(var_idx), w)
+            if not derivatives:
+                return sums[..., 0]
+            return (sums[..., 0], jnp.moveaxis(sums[..., 1:1 + nq], -1, 1),
+                    jnp.moveaxis(sums[..., 1 + nq:].reshape(len(masks), -1, nq, nq), 1, -1))
 
         order = np.argsort(np.concatenate([fix_idx, var_idx]))
 
-        def assemble(fixed, moving):  # all products from the fixed and the moving ones
-            fixed = jnp.broadcast_to(fixed, moving.shape[:-1] + fixed.shape[-1:])
-            return jnp.concatenate([fixed, moving], axis=-1)[..., order]
+        def assemble(fixed, moving_):  # all products from the fixed and the moving ones
+            fixed = jnp.broadcast_to(fixed, moving_.shape[:-1] + fixed.shape[-1:])
+            return jnp.concatenate([fixed, moving_], axis=-1)[..., order]
 
         def cost_of(s_):
             a_, c_, q_, _ = _unpack(layout, s_)
             return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
 
-        def cost(th):
-            (v_,) = moving_sums(th, [mask])
-            return cost_of(assemble(fix_tot, v_)), v_
-
-        def evaluator(fixed, f):  # value, gradient, Hessian and aux from one pass
-            jet = _jet(f)
+        def projected(fixed, v_, dv, ddv):
             zero = jnp.zeros_like(fixed)  # the fixed products do not move
+            return _projected(layout, assemble(fixed, v_), assemble(zero, dv),
+                              assemble(zero, ddv))
 
-            def evaluate(th):
-                v_, dv, ddv, aux = jet(th)
-                out = _projected(layout, assemble(fixed, v_), assemble(zero, dv),
-                                 assemble(zero, ddv))
-                return (*out, (v_, aux))
-
-            return evaluate
+        def evaluate_full(th):
+            v_, dv, ddv = (u[0] for u in moving(th, [mask]))
+            return (*projected(fix_tot, v_, dv, ddv), v_)
 
         grid = model.nonlinear_grid(sig).astype(dtype)
-        costs = jax.vmap(lambda th: cost(th)[0])(grid)
+        costs = jax.vmap(lambda th: cost_of(assemble(fix_tot, moving(th, [mask], False)[0])))(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
-        theta, full_cost, (v_tot, _), steps, converged = _newton(
-            evaluator(fix_tot, lambda th: (moving_sums(th, [mask])[0], ())), start,
-            opts.max_steps, opts.rtol)
+        theta, full_cost, v_tot, steps, converged = _newton(evaluate_full, start,
+                                                            opts.max_steps, opts.rtol)
         tot = assemble(fix_tot, v_tot)
         # a local optimum worse than the best grid point is not the answer
         converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
@@ -536,27 +577,21 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         held_m = fold_id[None, :] == folds[:, None]  # (folds, n)
         # the folds' training costs at the full optimum, from one pass: their first
         # Newton step needs no pass of its own
-        v_held0, dv_held0, ddv_held0, _ = _jet(
-            lambda th: (jnp.stack(moving_sums(th, list(held_m)), axis=-1), ()))(theta)
-        v_tot0, dv_tot0, ddv_tot0, _ = _jet(lambda th: (moving_sums(th, [mask])[0], ()))(theta)
+        jet0 = moving(theta, [mask, *held_m])
 
         def fold(k):  # refit the time constants without fold k, from the full optimum
             fix_train = fix_tot - fix_fold[k]
             train_m = mask & (fold_id != k)
-            zero = jnp.zeros_like(fix_train)
-            held0 = v_held0[..., k], dv_held0[..., k], ddv_held0[..., k]
-            train0 = [u - w for u, w in zip((v_tot0, dv_tot0, ddv_tot0), held0)]
-            first = (*_projected(layout, assemble(fix_train, train0[0]),
-                                 assemble(zero, train0[1]), assemble(zero, train0[2])),
-                     (train0[0], held0[0]))
+            held0 = [u[1 + k] for u in jet0]
+            train0 = [u[0] - h_ for u, h_ in zip(jet0, held0)]
+            first = (*projected(fix_train, *train0), (train0[0], held0[0]))
 
-            def sums_k(th):
-                v_train, v_held = moving_sums(th, [train_m, held_m[k]])
-                return v_train, v_held
+            def evaluate(th):
+                (v_train, v_held), (dv, _), (ddv, _) = moving(th, [train_m, held_m[k]])
+                return (*projected(fix_train, v_train, dv, ddv), (v_train, v_held))
 
             _, _, (v_train, v_held), _, _ = _newton(
-                evaluator(fix_train, sums_k), theta, max(8, opts.max_steps // 4), opts.rtol,
-                first)
+                evaluate, theta, max(8, opts.max_steps // 4), opts.rtol, first)
             return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
 
         held, train = jax.vmap(fold)(folds)
