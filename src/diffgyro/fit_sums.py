@@ -316,7 +316,10 @@ def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
     Returns (theta, value, aux, steps, converged).
     """
     def proposal(th, g, h, lam):
-        e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
+        if th.shape[0] == 1:  # one time constant: the eigen-decomposition is the number
+            e, vec = h[0], jnp.ones((1, 1), h.dtype)
+        else:
+            e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
         convex = jnp.all(e > 0)
         e = jnp.abs(e)
         big = jnp.max(e) + 1e-300
