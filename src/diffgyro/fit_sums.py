@@ -527,23 +527,30 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                     None if dd is None else dd[:, :, :, ax]
             return x_any[:, ax, a_], None, None
 
-        def moving(th, masks, derivatives=True):
+        def moving(th, masks, derivatives=True, plain=()):
             """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
-            and second (q, q, m) derivatives in θ (product rule): one variadic reduction."""
+            and second (q, q, m) derivatives in θ (product rule), then the sums alone
+            under the ``plain`` masks: one variadic reduction."""
             jets = column_jets(th, derivatives)
             streams = []
             for j in var_idx:
                 i_, a_, b_ = factors(j)
                 u, du, ddu = factor(jets, i_, a_)
                 v, dv, ddv = (ys[:, i_], None, None) if b_ is None else factor(jets, i_, b_)
-                streams += _product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0)
-            sums = _chunked_sum([jnp.where(m, u, 0.0) for m in masks for u in streams], c)
+                streams.append(_product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0))
+            ops = [jnp.where(m, u, 0.0) for m in masks for st in streams for u in st]
+            ops += [jnp.where(m, st[0], 0.0) for m in plain for st in streams]
+            sums = _chunked_sum(ops, c)
             w = 1 + nq + nq * nq if derivatives else 1
-            sums = sums.reshape(len(masks), len(var_idx), w)
+            lead = len(masks) * len(var_idx) * w
+            out_plain = sums[lead:].reshape(len(plain), len(var_idx))
+            sums = sums[:lead].reshape(len(masks), len(var_idx), w)
             if not derivatives:
-                return sums[..., 0]
-            return (sums[..., 0], jnp.moveaxis(sums[..., 1:1 + nq], -1, 1),
-                    jnp.moveaxis(sums[..., 1 + nq:].reshape(len(masks), -1, nq, nq), 1, -1))
+                out = sums[..., 0]
+            else:
+                out = (sums[..., 0], jnp.moveaxis(sums[..., 1:1 + nq], -1, 1),
+                       jnp.moveaxis(sums[..., 1 + nq:].reshape(len(masks), -1, nq, nq), 1, -1))
+            return (out, out_plain) if plain else out
 
         order = np.argsort(np.concatenate([fix_idx, var_idx]))
 
@@ -590,7 +597,8 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             first = (*projected(fix_train, *train0), (train0[0], held0[0]))
 
             def evaluate(th):
-                (v_train, v_held), (dv, _), (ddv, _) = moving(th, [train_m, held_m[k]])
+                ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [train_m],
+                                                                plain=[held_m[k]])
                 return (*projected(fix_train, v_train, dv, ddv), (v_train, v_held))
 
             _, _, (v_train, v_held), _, _ = _newton(
