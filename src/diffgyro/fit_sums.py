@@ -66,6 +66,7 @@ class Layout(eqx.Module):
     shared: tuple = eqx.field(static=True)  # per column: equal on the three axes
     pointwise: bool = eqx.field(static=True)  # columns read only their own sample's signals
     const_col: int | None = eqx.field(static=True)
+    moving: tuple = eqx.field(static=True, default=())  # per column: moves with the time constants
 
     @property
     def n_products(self) -> int:
@@ -105,7 +106,8 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     """The model's product layout and the inputs its columns and range checks read.
 
     Evaluated once per model on random signals: which columns are equal on all
-    axes, which column products coincide (at two sets of time constants), and
+    axes, which column products coincide (at two sets of time constants), which
+    columns move with the time constants, and
     whether every column is a function of its own sample's signals (linear
     models that are not take the direct path). Which inputs are read — and whether the sampling
     interval (dT/dt) matters — comes from dead-code elimination of the trace.
@@ -143,8 +145,9 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
             const_col = sl.start
     shared = tuple(bool(np.array_equal(xall[:, 0, a], xall[:, 1, a]) and
                         np.array_equal(xall[:, 0, a], xall[:, 2, a])) for a in range(p))
+    moving = tuple(bool(np.any(xs[0][..., a] != xs[-2][..., a])) for a in range(p))
     layout = Layout(p=p, xx=tuple(reps[1:]), a_map=tuple(a_map.ravel().tolist()), shared=shared,
-                    const_col=const_col, pointwise=bool(pointwise))
+                    const_col=const_col, pointwise=bool(pointwise), moving=moving)
     # which inputs matter (and the sampling interval, through dT/dt)
     dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
     shapes = {"t": (n,), "rate": (n, 3), "temp": (n,), "temp_ext": (n,), "accel": (n, 3)}
@@ -404,27 +407,20 @@ def _projected(layout: Layout, s, ds, dds):
     return value, first(da, dc, dq), hess
 
 
-@functools.lru_cache(maxsize=256)
-def varying_products(model: ErrorModel, layout: Layout, present: frozenset[str]
-                     ) -> tuple[tuple, tuple]:
+def varying_products(layout: Layout) -> tuple[list, list]:
     """Indices (in :meth:`Layout.index` order) of the products that move with the time
     constants, and of those that do not.
 
-    A column moves if it differs at two sets of time constants on random
-    signals; a product moves if one of its columns does. The others are
-    summed once per device, not once per trial of the time constants.
+    A column moves if it differs at two sets of time constants (``Layout.moving``);
+    a product moves if one of its columns does. The others are summed once per
+    device, not once per trial of the time constants.
     """
-    n, q, p = 24, model.n_nonlinear, layout.p
-    with jax.ensure_compile_time_eval():  # concrete even when called inside a trace
-        sig = _random_signals(present, n, 4321)
-        x1, x2 = jax.jit(lambda s: [model.design(s, jnp.full((q,), v, s.gyro.dtype))
-                                    for v in (1.7, 3.9)])(sig)
-    moves = np.any(np.asarray(x1) != np.asarray(x2), axis=(0, 1))
+    p, moves = layout.p, layout.moving
     var = [1 + j for j, (a, b, _) in enumerate(layout.xx) if moves[a] or moves[b]]
     k = 1 + len(layout.xx)
     var += [k + i * p + a for i in range(3) for a in range(p) if moves[a]]
     fixed = [j for j in range(layout.n_products) if j not in var]
-    return tuple(var), tuple(fixed)
+    return var, fixed
 
 
 def _chunked_sum(ops, c: int):
@@ -476,9 +472,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # a trial forms only the moving columns (with their first and second
         # derivatives, :meth:`ErrorModel.design_jet`) and sums the moving products and
         # their derivatives (product rule) in one pass.
-        present = frozenset(k for k, a in zip(INPUTS, (t, rate, temp, temp_ext, accel))
-                            if a is not None)
-        var_idx, fix_idx = varying_products(model, layout, present)
+        var_idx, fix_idx = varying_products(layout)
         ys = y - y0
         x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
         fix_sel = np.asarray(fix_idx, np.int32)
