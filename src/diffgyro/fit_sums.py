@@ -24,6 +24,15 @@ is good; each axis' first valid sample is subtracted before summing when the
 model has a constant bias column, which leaves the cancellation to the scale
 of the rate's variation rather than of its offset.
 
+Time constants (variable projection): the linear coefficients are solved from
+the sums for every trial, Newton moves the log time constants alone. Products
+that do not move with them are summed once (total and per fold); a trial forms
+only the moving columns with their two derivatives (one recursion for
+thermal_lag, forward mode otherwise) and sums the moving products and their
+derivatives in one reduction, which gives the projected cost's value, gradient
+and Hessian from one pass. The held-out folds refit from the full optimum, their
+first step from one shared pass.
+
 Devices are processed in groups of a fixed size on the host (and spread over
 every local JAX device), so only the group size — not the number of devices —
 is part of the compiled shape.
