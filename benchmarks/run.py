@@ -414,7 +414,7 @@ def case_thermal_lag(devices, samples, subset, repeats, bw, also_direct=True):
                 tau_max_rel_diff=tau_rel,
                 note=f"{spec}; fit(path='sums'): Newton on the projected cost; also refits "
                      "the time constant on 5 held-out folds")]
-    if also_direct:  # fit()'s default for time constants: optimistix LM on the design
+    if also_direct:  # the direct path: optimistix LM on the design
         first_d, dg_d, _, ((b_d, tau_d), _) = measure(lambda: candidate("direct"), {},
                                                        max(3, repeats // 2))
         diff, rel = compare(b_d[:sub], b_s)

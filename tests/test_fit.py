@@ -167,14 +167,27 @@ def test_nonlinear_start_far_away_is_flagged_alone():
     batch, truth = _sim("warmup", spec, n=8, seed=4)
     theta0 = np.tile(np.asarray(truth.params.theta)[:, :1], 1)
     theta0[2] = 16.0  # τ ≈ 100 days: the start sees no transient at all
-    res = fit(spec, batch, theta0=theta0)
-    ref = fit(spec, batch, theta0=np.asarray(truth.params.theta))
+    # LM on the design (path="direct") stalls on that plateau: flagged, the others untouched
+    res = fit(spec, batch, theta0=theta0, path="direct")
+    ref = fit(spec, batch, theta0=np.asarray(truth.params.theta), path="direct")
     names = [res.status_name(i) for i in range(8)]
     assert names[2] == "not_converged", names  # stuck on a plateau worse than the grid
     others = [i for i in range(8) if i != 2]
     assert all(names[i] == "ok" for i in others)
     np.testing.assert_allclose(np.asarray(res.params.beta)[others],
                                np.asarray(ref.params.beta)[others], rtol=1e-12)
+    # Newton on the projected cost (the default sums path) leaves the plateau: the far
+    # start reaches the optimum of the true start, in more steps, and only it takes more
+    res = fit(spec, batch, theta0=theta0)
+    ref = fit(spec, batch, theta0=np.asarray(truth.params.theta))
+    assert [res.status_name(i) for i in range(8)] == ["ok"] * 8
+    np.testing.assert_allclose(np.asarray(res.params.beta), np.asarray(ref.params.beta),
+                               rtol=1e-9)
+    np.testing.assert_allclose(np.asarray(res.params.theta), np.asarray(ref.params.theta),
+                               rtol=1e-9)
+    steps = np.asarray(res.steps)
+    assert steps[2] > np.max(steps[others])
+    np.testing.assert_array_equal(steps[others], np.asarray(ref.steps)[others])
 
 
 @pytest.mark.parametrize("spec", ["bias_poly(2)+gradient", "bias_poly(1)+warmup"])

@@ -55,7 +55,8 @@ class FitOptions(eqx.Module):
     solver: str = eqx.field(static=True, default="closed")
     #: "sums" reads the samples once per trial of the time constants and never forms the
     #: design (fit_sums.py; Newton on the projected cost for time constants); "direct"
-    #: forms it (optimistix LM for time constants); "auto": "sums" for linear models.
+    #: forms it (optimistix LM for time constants); "auto": "sums" with the closed-form
+    #: solver (linear models and time constants alike), "direct" with ``solver="lm"``.
     path: str = eqx.field(static=True, default="auto")
     #: The model-free noise floor is a median (a sort per device and axis), the
     #: costliest part of a linear fit; False skips it (NaN) when only coefficients matter.
@@ -575,7 +576,7 @@ def fit(
         opts = _replace(opts, **option_overrides)
     if opts.path not in ("auto", "direct", "sums"):
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
-    if opts.solver != "lm" and (opts.path == "sums" or (opts.path == "auto" and model.is_linear)):
+    if opts.solver != "lm" and opts.path in ("sums", "auto"):
         return _fit_sums(model, batch, norm, opts, theta0)
     if opts.path == "sums":
         raise ValueError("path='sums' needs solver='closed'")

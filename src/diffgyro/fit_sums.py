@@ -24,6 +24,15 @@ is good; each axis' first valid sample is subtracted before summing when the
 model has a constant bias column, which leaves the cancellation to the scale
 of the rate's variation rather than of its offset.
 
+Time constants (variable projection): the linear coefficients are solved from
+the sums for every trial, Newton moves the log time constants alone. Products
+that do not move with them are summed once (total and per fold); a trial forms
+only the moving columns with their two derivatives (one recursion for
+thermal_lag, forward mode otherwise) and sums the moving products and their
+derivatives in one reduction, which gives the projected cost's value, gradient
+and Hessian from one pass. The held-out folds refit from the full optimum, their
+first step from one shared pass.
+
 Devices are processed in groups of a fixed size on the host (and spread over
 every local JAX device), so only the group size — not the number of devices —
 is part of the compiled shape.
@@ -71,6 +80,7 @@ class Layout(eqx.Module):
     shared: tuple = eqx.field(static=True)  # per column: equal on the three axes
     pointwise: bool = eqx.field(static=True)  # columns read only their own sample's signals
     const_col: int | None = eqx.field(static=True)
+    moving: tuple = eqx.field(static=True, default=())  # per column: moves with the time constants
 
     @property
     def n_products(self) -> int:
@@ -110,7 +120,8 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     """The model's product layout and the inputs its columns and range checks read.
 
     Evaluated once per model on random signals: which columns are equal on all
-    axes, which column products coincide (at two sets of time constants), and
+    axes, which column products coincide (at two sets of time constants), which
+    columns move with the time constants, and
     whether every column is a function of its own sample's signals (linear
     models that are not take the direct path). Which inputs are read — and whether the sampling
     interval (dT/dt) matters — comes from dead-code elimination of the trace.
@@ -148,8 +159,9 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
             const_col = sl.start
     shared = tuple(bool(np.array_equal(xall[:, 0, a], xall[:, 1, a]) and
                         np.array_equal(xall[:, 0, a], xall[:, 2, a])) for a in range(p))
+    moving = tuple(bool(np.any(xs[0][..., a] != xs[-2][..., a])) for a in range(p))
     layout = Layout(p=p, xx=tuple(reps[1:]), a_map=tuple(a_map.ravel().tolist()), shared=shared,
-                    const_col=const_col, pointwise=bool(pointwise))
+                    const_col=const_col, pointwise=bool(pointwise), moving=moving)
     # which inputs matter (and the sampling interval, through dT/dt)
     dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
     shapes = {"t": (n,), "rate": (n, 3), "temp": (n,), "temp_ext": (n,), "accel": (n, 3)}
@@ -347,28 +359,24 @@ def _sse(a, c, q, beta):
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
-def _newton(f, theta0, max_steps: int, rtol):
+def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
     """Minimise a smooth function of a few parameters (log time constants).
 
-    Newton steps with exact forward-mode gradient and Hessian; negative
-    curvature is flipped and a Levenberg term damps the step, which is
-    accepted only if ``f`` does not grow (and is at most 1 in log τ); near a
-    minimum (convex, Newton step below 1e-3) the plain Newton step is taken.
-    Converged when the Newton step is below ``rtol·(1 + |θ|)``.
-    Returns (theta, steps, converged).
+    ``evaluate(θ)`` gives the value, gradient, Hessian and an aux pytree in
+    one pass over the samples. Newton steps: negative curvature is flipped
+    and a Levenberg term damps the step, which is accepted only if the value
+    does not grow (and is at most 1 in log τ); near a minimum (convex, Newton
+    step below 1e-3) the plain Newton step is taken. A trial is evaluated
+    once — its gradient and Hessian come with its value, so an accepted step
+    needs no second pass. Converged when the Newton step at the current point
+    is below ``rtol·(1 + |θ|)``. ``first`` is ``evaluate(theta0)`` when already known.
+    Returns (theta, value, aux, steps, converged).
     """
-    def fa(t):
-        v = f(t)
-        return v, v
-
-    def ga(t):
-        g, v = jax.jacfwd(fa, has_aux=True)(t)
-        return g, (g, v)
-
-    def body(state):
-        th, lam, k, _ = state
-        h, (g, v) = jax.jacfwd(ga, has_aux=True)(th)
-        e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
+    def proposal(th, g, h, lam):
+        if th.shape[0] == 1:  # one time constant: the eigen-decomposition is the number
+            e, vec = h[0], jnp.ones((1, 1), h.dtype)
+        else:
+            e, vec = jnp.linalg.eigh(0.5 * (h + h.T))
         convex = jnp.all(e > 0)
         e = jnp.abs(e)
         big = jnp.max(e) + 1e-300
@@ -383,19 +391,97 @@ def _newton(f, theta0, max_steps: int, rtol):
         step = jnp.where(near, newton, step)
         size = jnp.linalg.norm(step)
         step = step * jnp.minimum(1.0, 1.0 / jnp.maximum(size, 1e-300))
-        v_new = f(th + step)
+        return step, near, size_n <= rtol * scale_th
+
+    def body(state):
+        th, v, g, h, aux, lam, k, _ = state
+        step, near, _ = proposal(th, g, h, lam)
+        v_new, g_new, h_new, aux_new = evaluate(th + step)
         ok = jnp.isfinite(v_new) & ((v_new <= v) | near)
-        done = jnp.isfinite(v) & (size_n <= rtol * scale_th)
-        th = jnp.where(ok & ~done, th + step, th)
+        th, v, g, h, aux = jax.tree.map(lambda a, b: jnp.where(ok, a, b),
+                                        (th + step, v_new, g_new, h_new, aux_new),
+                                        (th, v, g, h, aux))
         lam = jnp.where(ok, lam * 0.3, lam * 10.0)
-        return th, lam, k + 1, done
+        done = jnp.isfinite(v) & proposal(th, g, h, lam)[2]
+        return th, v, g, h, aux, lam, k + 1, done
 
     def cond(state):
-        return (state[2] < max_steps) & ~state[3]
+        return (state[6] < max_steps) & ~state[7]
 
-    init = (theta0, jnp.asarray(1e-3, theta0.dtype), jnp.asarray(0, jnp.int32), jnp.asarray(False))
-    th, _, k, done = lax.while_loop(cond, body, init)
-    return th, k, done
+    v, g, h, aux = evaluate(theta0) if first is None else first
+    lam = jnp.asarray(1e-3, theta0.dtype)
+    done = jnp.isfinite(v) & proposal(theta0, g, h, lam)[2]
+    init = (theta0, v, g, h, aux, lam, jnp.asarray(0, jnp.int32), done)
+    th, v, _, _, aux, _, k, done = lax.while_loop(cond, body, init)
+    return th, v, aux, k, done
+
+
+def _product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
+    """``u·v``, its first derivatives (q) and second derivatives (q·q, row-major) by the
+    product rule; a derivative given as None is zero (a factor that does not move)."""
+    def total(parts):
+        parts = [t for t in parts if t is not None]
+        return functools.reduce(lambda x, y: x + y, parts) if parts else jnp.zeros_like(u)
+
+    def d1(k):
+        return total([None if du is None else du[k] * v, None if dv is None else u * dv[k]])
+
+    def d2(k, r):
+        both = du is not None and dv is not None
+        return total([None if ddu is None else ddu[k, r] * v,
+                      None if ddv is None else u * ddv[k, r],
+                      du[k] * dv[r] if both else None, du[r] * dv[k] if both else None])
+
+    return [u * v] + [d1(k) for k in range(q)] + [d2(k, r) for k in range(q) for r in range(q)]
+
+
+def _projected(layout: Layout, s, ds, dds):
+    """Value, gradient and Hessian of the projected cost ``Σ_i min_β Σ(y_i − x_iβ)²``
+    from the sums ``s`` and their derivatives ``ds`` (q, P) and ``dds`` (q, q, P).
+
+    With ``β = A⁻¹c`` stationary, ``f = Q − 2βᵀc + βᵀAβ`` has ``∂f = ∂Q − 2βᵀ∂c + βᵀ∂Aβ``
+    and ``∂²f = ∂²Q − 2βᵀ∂²c + βᵀ∂²Aβ − 2 r_kᵀA⁻¹r_l`` with ``r = ∂c − ∂Aβ``: one
+    factorisation of each A, no derivative of the factorisation itself.
+    """
+    a, c, q, _ = _unpack(layout, s)
+    da, dc, dq, _ = _unpack(layout, ds)
+    dda, ddc, ddq, _ = _unpack(layout, dds)
+    chol, d = _cholesky(a)
+    beta = _cho_solve(chol, d, c)
+
+    def first(a_, c_, q_):  # Σ_i ∂Q − 2βᵀ∂c + βᵀ∂Aβ over the leading axes
+        return jnp.sum(q_ - 2.0 * jnp.einsum("ip,...ip->...i", beta, c_)
+                       + jnp.einsum("ip,...ipr,ir->...i", beta, a_, beta), axis=-1)
+
+    r = dc - jnp.einsum("kipr,ir->kip", da, beta)  # (q, 3, p)
+    rhs = jnp.moveaxis(r, 0, -1) / d[..., None]  # (3, p, q)
+    ar = jax.scipy.linalg.cho_solve((chol, True), rhs) / d[..., None]
+    hess = first(dda, ddc, ddq) - 2.0 * jnp.einsum("ipk,ipl->kl", jnp.moveaxis(r, 0, -1), ar)
+    value = jnp.sum(_sse(a, c, q, beta))
+    return value, first(da, dc, dq), hess
+
+
+def varying_products(layout: Layout) -> tuple[list, list]:
+    """Indices (in :meth:`Layout.index` order) of the products that move with the time
+    constants, and of those that do not.
+
+    A column moves if it differs at two sets of time constants (``Layout.moving``);
+    a product moves if one of its columns does. The others are summed once per
+    device, not once per trial of the time constants.
+    """
+    p, moves = layout.p, layout.moving
+    var = [1 + j for j, (a, b, _) in enumerate(layout.xx) if moves[a] or moves[b]]
+    k = 1 + len(layout.xx)
+    var += [k + i * p + a for i in range(3) for a in range(p) if moves[a]]
+    fixed = [j for j in range(layout.n_products) if j not in var]
+    return var, fixed
+
+
+def _chunked_sum(ops, c: int):
+    """Sums of the (n,) arrays ``ops`` in one loop, by chunks of ``c`` then over chunks
+    (a short sum per chunk keeps the rounding of a long sum down)."""
+    n = ops[0].shape[0]
+    return jnp.sum(_vsum([o.reshape(n // c, c) for o in ops]), axis=0)
 
 
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
@@ -435,35 +521,139 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         steps, converged = jnp.asarray(1, jnp.int32), jnp.asarray(True)
     else:
         # variable projection: the linear coefficients are solved from the sums for
-        # every trial of the time constants; Newton moves the time constants alone
-        def cost(th):
-            s_ = sums_at(th)[0]
+        # every trial of the time constants; Newton moves the time constants alone.
+        # Products that do not move with them are summed once (total and per fold);
+        # a trial forms only the moving columns (with their first and second
+        # derivatives, :meth:`ErrorModel.design_jet`) and sums the moving products and
+        # their derivatives (product rule) in one pass.
+        var_idx, fix_idx = varying_products(layout)
+        ys = y - y0
+        x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
+        fix_sel = np.asarray(fix_idx, np.int32)
+
+        def fixed_products(src, m):
+            ops = _products(layout, src[0], src[1], m)
+            return [ops[j] for j in fix_sel]
+
+        fix_tot, fix_fold = _fold_sums(fixed_products, (x_any, ys), mask, nv, opts.n_blocks,
+                                       n_folds, c, prefix, pos)
+        n_xx = len(layout.xx)
+
+        def factors(j):  # a moving product j as (axis, column, other column or None for a rate)
+            if j <= n_xx:
+                a_, b_, i_ = layout.xx[j - 1]
+                return i_, a_, b_
+            k_ = j - 1 - n_xx
+            return k_ // p, k_ % p, None
+
+        # columns of the terms with time constants: only they are formed per trial
+        moving_terms = [(tm, sl, qs) for tm, sl, qs in model.slices() if tm.n_nonlinear]
+
+        def column_jets(th, derivatives):
+            """{column: (x (n, 3), dx (q, n, 3), ddx (q, q, n, 3))} of the moving terms'
+            columns, derivatives None without ``derivatives``."""
+            out = {}
+            for tm, sl, qs in moving_terms:
+                if derivatives:
+                    x, d, dd = tm.columns_jet(sig, th[qs])
+                else:
+                    x, d, dd = tm.columns(sig, th[qs]), None, None
+                for k_ in range(sl.stop - sl.start):
+                    dk = ddk = None
+                    if derivatives:  # this term's θ sit at qs of the model's θ
+                        dk = jnp.zeros((nq,) + x.shape[:-1], dtype).at[qs].set(d[..., k_])
+                        ddk = jnp.zeros((nq, nq) + x.shape[:-1], dtype).at[qs, qs].set(
+                            dd[..., k_])
+                    out[sl.start + k_] = (x[..., k_], dk, ddk)
+            return out
+
+        def factor(jets, i_, a_):  # one column of axis i_ and its derivatives (None: fixed)
+            ax = 0 if layout.shared[a_] else i_
+            if a_ in jets:
+                x, d, dd = jets[a_]
+                return x[:, ax], None if d is None else d[:, :, ax], \
+                    None if dd is None else dd[:, :, :, ax]
+            return x_any[:, ax, a_], None, None
+
+        def moving(th, masks, derivatives=True, plain=()):
+            """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
+            and second (q, q, m) derivatives in θ (product rule), then the sums alone
+            under the ``plain`` masks: one variadic reduction."""
+            jets = column_jets(th, derivatives)
+            streams = []
+            for j in var_idx:
+                i_, a_, b_ = factors(j)
+                u, du, ddu = factor(jets, i_, a_)
+                v, dv, ddv = (ys[:, i_], None, None) if b_ is None else factor(jets, i_, b_)
+                streams.append(_product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0))
+            ops = [jnp.where(m, u, 0.0) for m in masks for st in streams for u in st]
+            ops += [jnp.where(m, st[0], 0.0) for m in plain for st in streams]
+            sums = _chunked_sum(ops, c)
+            w = 1 + nq + nq * nq if derivatives else 1
+            lead = len(masks) * len(var_idx) * w
+            out_plain = sums[lead:].reshape(len(plain), len(var_idx))
+            sums = sums[:lead].reshape(len(masks), len(var_idx), w)
+            if not derivatives:
+                out = sums[..., 0]
+            else:
+                out = (sums[..., 0], jnp.moveaxis(sums[..., 1:1 + nq], -1, 1),
+                       jnp.moveaxis(sums[..., 1 + nq:].reshape(len(masks), -1, nq, nq), 1, -1))
+            return (out, out_plain) if plain else out
+
+        order = np.argsort(np.concatenate([fix_idx, var_idx]))
+
+        def assemble(fixed, moving_):  # all products from the fixed and the moving ones
+            fixed = jnp.broadcast_to(fixed, moving_.shape[:-1] + fixed.shape[-1:])
+            return jnp.concatenate([fixed, moving_], axis=-1)[..., order]
+
+        def cost_of(s_):
             a_, c_, q_, _ = _unpack(layout, s_)
             return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
 
+        def projected(fixed, v_, dv, ddv):
+            zero = jnp.zeros_like(fixed)  # the fixed products do not move
+            return _projected(layout, assemble(fixed, v_), assemble(zero, dv),
+                              assemble(zero, ddv))
+
+        def evaluate_full(th):
+            v_, dv, ddv = (u[0] for u in moving(th, [mask]))
+            return (*projected(fix_tot, v_, dv, ddv), v_)
+
         grid = model.nonlinear_grid(sig).astype(dtype)
-        costs = jax.vmap(cost)(grid)
+        costs = jax.vmap(lambda th: cost_of(assemble(fix_tot, moving(th, [mask], False)[0])))(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
-        theta, steps, converged = _newton(cost, start, opts.max_steps, opts.rtol)
-        tot, _ = sums_at(theta)
-        a_, c_, q_, _ = _unpack(layout, tot)
+        theta, full_cost, v_tot, steps, converged = _newton(evaluate_full, start,
+                                                            opts.max_steps, opts.rtol)
+        tot = assemble(fix_tot, v_tot)
         # a local optimum worse than the best grid point is not the answer
-        full_cost = jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
         converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
 
+        fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)
+        folds = jnp.arange(n_folds)
+        held_m = fold_id[None, :] == folds[:, None]  # (folds, n)
+        # the folds' training costs at the full optimum, from one pass: their first
+        # Newton step needs no pass of its own
+        jet0 = moving(theta, [mask, *held_m])
+
         def fold(k):  # refit the time constants without fold k, from the full optimum
-            def cost_k(th):
-                s_, pf = sums_at(th)
-                a_, c_, q_, _ = _unpack(layout, s_ - pf[k])
-                return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
+            fix_train = fix_tot - fix_fold[k]
+            train_m = mask & (fold_id != k)
+            held0 = [u[1 + k] for u in jet0]
+            train0 = [u[0] - h_ for u, h_ in zip(jet0, held0)]
+            first = (*projected(fix_train, *train0), (train0[0], held0[0]))
 
-            th_k, _, _ = _newton(cost_k, theta, max(8, opts.max_steps // 4), opts.rtol)
-            s_, pf = sums_at(th_k)
-            return pf[k], s_ - pf[k]
+            def evaluate(th):
+                ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [train_m],
+                                                                plain=[held_m[k]])
+                return (*projected(fix_train, v_train, dv, ddv), (v_train, v_held))
 
-        held, train = jax.vmap(fold)(jnp.arange(n_folds))
+            _, _, (v_train, v_held), _, _ = _newton(
+                evaluate, theta, max(8, opts.max_steps // 4), opts.rtol, first)
+            return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
+
+        held, train = jax.vmap(fold)(folds)
     a, cc, q, n_valid = _unpack(layout, tot)
     af, cf, qf, nf = _unpack(layout, held)
     at, ct, _, _ = _unpack(layout, train)

@@ -20,6 +20,7 @@ import re
 from typing import ClassVar
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
@@ -86,6 +87,21 @@ class AbstractEffect(eqx.Module):
     @abc.abstractmethod
     def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         """Regressor columns per axis; ``theta`` holds this term's nonlinear parameters."""
+
+    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]):
+        """Columns and their first and second derivatives in ``theta``: arrays (n, 3, p),
+        (q, n, 3, p) and (q, q, n, 3, p). Forward mode by default; a term whose columns
+        come from a recursion can give a cheaper exact form (one pass for all three)."""
+        def f(th):
+            x = self.columns(sig, th)
+            return x, x
+
+        def df(th):
+            d, x = jax.jacfwd(f, has_aux=True)(th)
+            return d, (d, x)
+
+        dd, (d, x) = jax.jacfwd(df, has_aux=True)(theta)
+        return x, jnp.moveaxis(d, -1, 0), jnp.moveaxis(dd, (-2, -1), (0, 1))
 
     def range_problem(self, sig: Signals) -> Float[Array, ""]:
         """A positive number when the data cannot support this term (e.g. too small a

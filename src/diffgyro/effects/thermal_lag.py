@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._common import duration, log_grid, powers, span_problem, time_constant
+from ._common import LOG_TAU_RANGE, duration, log_grid, powers, span_problem, time_constant
 from .base import AbstractEffect, register
 
 
@@ -24,6 +24,38 @@ def first_order_lag(t, x, tau):
 
     _, ys = jax.lax.scan(step, x[0], (alpha, x[1:]))
     return jnp.concatenate([x[:1], ys])
+
+
+def first_order_lag_jet(t, x, log_tau):
+    """:func:`first_order_lag` at ``τ = time_constant(log_tau)`` and its first and second
+    derivatives in ``log_tau``, from one recursion.
+
+    With ``u = Δt/τ`` and ``a = 1 − e^(−u)``, ``∂a = −u e^(−u)`` and ``∂²a = u e^(−u)(1 − u)``
+    (zero outside the clip of log τ), and ``y_k = y_(k−1) + a_k (x_k − y_(k−1))`` gives
+    ``y′_k = (1 − a_k) y′_(k−1) + a′_k (x_k − y_(k−1))`` and
+    ``y″_k = (1 − a_k) y″_(k−1) − 2a′_k y′_(k−1) + a″_k (x_k − y_(k−1))``.
+    """
+    lo, hi = LOG_TAU_RANGE
+    inside = ((log_tau >= lo) & (log_tau <= hi)).astype(x.dtype)
+    rate = 1.0 / time_constant(log_tau)
+
+    def step(c, z):
+        y, y1, y2 = c
+        dk, xk = z
+        u = dk * rate
+        e = jnp.exp(-u)
+        a, a1 = -jnp.expm1(-u), -u * e * inside
+        a2 = -a1 * (1.0 - u)
+        r = xk - y
+        y2 = y2 - a * y2 - 2.0 * a1 * y1 + a2 * r
+        y1 = y1 - a * y1 + a1 * r
+        y = y + a * r
+        return (y, y1, y2), (y, y1, y2)
+
+    z0 = jnp.zeros((), x.dtype)
+    first = (x[0], z0, z0)
+    _, ys = jax.lax.scan(step, first, (jnp.diff(t), x[1:]))
+    return tuple(jnp.concatenate([f[None], y]) for f, y in zip(first, ys))
 
 
 @register
@@ -64,6 +96,23 @@ class ThermalLag(AbstractEffect):
         lag_s = (lag - sig.norm.centre) / sig.norm.scale
         d = powers(lag_s, 1, self.order) - powers(sig.temp_s, 1, self.order)
         return d[:, None, :].repeat(3, axis=1)
+
+    def columns_jet(self, sig, theta):
+        """Exact, one recursion for the lag and its two derivatives in log τ."""
+        lag, d1, d2 = first_order_lag_jet(sig.t, sig.temp, theta[0])
+        ls = (lag - sig.norm.centre) / sig.norm.scale
+        l1, l2 = d1 / sig.norm.scale, d2 / sig.norm.scale
+        j = jnp.arange(1, self.order + 1, dtype=lag.dtype)
+        x = powers(ls, 1, self.order) - powers(sig.temp_s, 1, self.order)
+        p0 = powers(ls, 0, self.order - 1)  # ls^(j-1)
+        pm = jnp.concatenate([jnp.zeros_like(ls)[:, None], p0[:, :-1]], axis=1)  # ls^(j-2)
+        d = j * p0 * l1[:, None]
+        dd = j * (j - 1.0) * pm * (l1**2)[:, None] + j * p0 * l2[:, None]
+
+        def axes(v):
+            return v[:, None, :].repeat(3, axis=1)
+
+        return axes(x), axes(d)[None], axes(dd)[None, None]
 
     def range_problem(self, sig):
         return span_problem(sig, 1)
