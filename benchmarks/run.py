@@ -594,6 +594,8 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path, help="write the rows to this file")
     p.add_argument("--cases", default=",".join(CASES), help="comma-separated: " + ",".join(CASES))
     p.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
+    p.add_argument("--direct-lag", action="store_true",
+                   help="thermal_lag: also time fit(path='direct') (optimistix LM; slow at full size)")
     p.add_argument("--host-devices", type=int, default=0,
                    help="force this many XLA host devices (CPU sharding); 0 = JAX default")
     args = p.parse_args(argv)
@@ -620,7 +622,7 @@ def main(argv=None) -> int:
         d, n = sizes[name]
         sub = SUBSET.get(name, (0, 0))[1 if args.quick else 0]
         t0 = now()
-        kw = {"also_direct": not args.quick} if name == "thermal_lag" else {}
+        kw = {"also_direct": args.direct_lag} if name == "thermal_lag" else {}
         new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"], **kw)
         for r in new:
             r.update(mode="quick" if args.quick else "full", backend=info["backend"],

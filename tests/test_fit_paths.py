@@ -108,6 +108,7 @@ def test_mask_with_holes():
 def test_many_groups(monkeypatch):
     # tiny groups: many compiled calls, the last one padded with repeats
     monkeypatch.setattr(fs, "GROUP_SAMPLES", 4096)
+    monkeypatch.setattr(fs, "FUSED_GROUP_FACTOR", 1)
     batch = Batch.from_recordings(_thermal_recordings([1800] * 11, seed=2))
     assert fs.group_size(batch.n_devices, batch.length) == 2
     spec = "bias_poly(1)"

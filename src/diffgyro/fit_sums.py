@@ -56,12 +56,14 @@ from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_fr
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
 CHUNK = 32
 #: About this many samples (devices × samples) go into one compiled call.
-GROUP_SAMPLES = 1 << 18
+GROUP_SAMPLES = 1 << 17
 #: Models whose columns are all shared by the three axes and pointwise (temperature
 #: polynomials, gradient, temp_diff) sum in one fused pass with no group-sized
 #: temporaries: their groups are this many times larger (fewer calls). Others
-#: materialise per-axis columns and run fastest with the group in cache.
-FUSED_GROUP_FACTOR = 4
+#: materialise per-axis columns and run fastest with the group in cache (measured on
+#: a 2-core EPYC, 32 MB L3: S2's regression 150 ms per 200 devices × 10k samples in
+#: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
+FUSED_GROUP_FACTOR = 8
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 

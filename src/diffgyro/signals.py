@@ -65,30 +65,47 @@ class Signals(eqx.Module):
         return eqx.tree_at(lambda s: (s.temp, s.temp_s), self, (temp, temp_s))
 
 
+#: Samples per block of :func:`prefix_sums` (a triangular matmul per block).
+PREFIX_BLOCK = 16
+
+
+def prefix_sums(x: Float[Array, "n k"]) -> Float[Array, "n+1 k"]:
+    """Exclusive-to-inclusive prefix sums of the columns of ``x``, with a leading row of 0.
+
+    Blocks of :data:`PREFIX_BLOCK` samples are summed by one matmul with a
+    triangular matrix of ones, then the block totals (n/16 rows) by a cumsum:
+    on XLA CPU several times faster than ``jnp.cumsum`` of each column, with
+    the rounding of an ordinary running sum.
+    """
+    n, k = x.shape
+    b = PREFIX_BLOCK
+    rows = -(-n // b)
+    blocks = jnp.pad(x, ((0, rows * b - n), (0, 0))).reshape(rows, b, k)
+    lower = jnp.tril(jnp.ones((b, b), x.dtype))
+    within = jnp.einsum("ij,rjk->rik", lower, blocks)
+    total = within[:, -1]
+    before = jnp.cumsum(total, axis=0) - total
+    out = (within + before[:, None]).reshape(rows * b, k)[:n]
+    return jnp.concatenate([jnp.zeros((1, k), x.dtype), out])
+
+
 def local_slope(
     t: Float[Array, " n"], y: Float[Array, " n"], mask: Bool[Array, " n"], half_width
 ) -> Float[Array, " n"]:
     """Least-squares slope of ``y`` against ``t`` over samples ``i-h .. i+h`` (masked).
 
-    Computed with cumulative sums in O(n); near the ends the window is clipped.
+    Computed with prefix sums in O(n); near the ends the window is clipped.
     """
     w = mask.astype(y.dtype)
     n = t.shape[0]
     tc = t - jnp.sum(t * w) / jnp.maximum(jnp.sum(w), 1.0)
     yc = y - jnp.sum(y * w) / jnp.maximum(jnp.sum(w), 1.0)
-
-    def csum(x):
-        return jnp.concatenate([jnp.zeros((1,), x.dtype), jnp.cumsum(x)])
-
-    c1, ct, cy, ctt, cty = (csum(w), csum(w * tc), csum(w * yc), csum(w * tc * tc), csum(w * tc * yc))
+    c = prefix_sums(jnp.stack([w, w * tc, w * yc, w * tc * tc, w * tc * yc], axis=-1))
     i = jnp.arange(n)
     lo = jnp.clip(i - half_width, 0, n)
     hi = jnp.clip(i + half_width + 1, 0, n)
-
-    def win(c):
-        return c[hi] - c[lo]
-
-    s1, st, sy, stt, sty = win(c1), win(ct), win(cy), win(ctt), win(cty)
+    s = c[hi] - c[lo]
+    s1, st, sy, stt, sty = (s[:, j] for j in range(5))
     s1 = jnp.maximum(s1, 1.0)
     var = stt - st * st / s1
     cov = sty - st * sy / s1
