@@ -98,7 +98,9 @@ def test_sharded_stream_equals_single_device(tmp_path):
     assert info["collectives"] == 0   # independent fits: nothing to wait on, nothing to hang
     sharded = load_outputs(tmp_path / "sharded" / "cal.json")
     single = load_outputs(tmp_path / "single" / "cal.json")
-    assert_close(sharded, single)
+    # held-out RMS comes from Q − 2βᵀc + βᵀAβ (a difference of sums): its last digits
+    # follow the summation order, which XLA's thread split of a reduction may change
+    assert_close(sharded, single, rel=1e-10)
     assert [r["device"] for r in sharded[1]] == [f"f0-{i:03d}" for i in range(4)] + \
         [f"f1-{i:03d}" for i in range(3)]
 
