@@ -64,6 +64,10 @@ GROUP_SAMPLES = 1 << 17
 #: a 2-core EPYC, 32 MB L3: S2's regression 150 ms per 200 devices × 10k samples in
 #: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
 FUSED_GROUP_FACTOR = 8
+#: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
+#: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff (all threads idle,
+#: reproducible); 512 ran. Short recordings would otherwise ask for such groups.
+MAX_GROUP_DEVICES = 256
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 
@@ -766,7 +770,7 @@ def group_size(n_devices: int, length: int, samples: int | None = None) -> int:
     samples = GROUP_SAMPLES if samples is None else samples
     cap = _pow2_floor(max(samples // max(length, 1), 1))
     want = 1 << max(int(n_devices) - 1, 7).bit_length()  # next power of two ≥ n, at least 8
-    return max(1, min(cap, want))
+    return max(1, min(cap, want, MAX_GROUP_DEVICES))
 
 
 def chunk_size(min_valid: int, n_blocks: int, length: int) -> int:
