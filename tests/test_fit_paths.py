@@ -315,3 +315,27 @@ def test_block_windows_equal_chunked_sums(n, n_blocks):
         np.testing.assert_allclose(np.asarray(t2), np.asarray(t1), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(f2), np.asarray(f1), rtol=1e-12, atol=1e-12)
         assert float(t2[-1]) == nv and float(jnp.sum(f2[:, -1])) == nv
+        if nv == n and n % n_blocks == 0:  # whole blocks: a reshape, no windows, no mask
+            t3, f3 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, True,
+                                   fs.ALIGNED)
+            np.testing.assert_allclose(np.asarray(t3), np.asarray(t1), rtol=1e-12, atol=1e-12)
+            np.testing.assert_allclose(np.asarray(f3), np.asarray(f1), rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("n", [0, 7, 8, 64, 100])
+def test_valid_counts(n):
+    """Counts and prefix flags equal the direct ones for prefix masks, masks with holes,
+    empty and full masks, lengths that are and are not whole 64-bit words."""
+    rng = np.random.default_rng(n)
+    d = 12
+    nv = rng.integers(0, n + 1, size=d)
+    nv[:2] = (0, n)
+    mask = np.arange(n)[None, :] < nv[:, None]
+    holes = rng.random((d, n)) < 0.2
+    mask[d // 2:] &= ~holes[d // 2:]
+    for m in (mask, np.asfortranarray(mask), mask[:, ::-1]):
+        count, prefix = fs.valid_counts(m)
+        want = np.count_nonzero(m, axis=1)
+        np.testing.assert_array_equal(count, want)
+        np.testing.assert_array_equal(prefix, [np.array_equal(r, np.arange(n) < k)
+                                               for r, k in zip(m, want)])

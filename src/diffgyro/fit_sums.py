@@ -48,8 +48,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.interpreters import partial_eval as pe
+from jaxtyping import Bool
 
 from .data import Batch
+from .jit import filter_jit
 from .model import ErrorModel
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
@@ -266,6 +268,12 @@ def block_starts(nv, n_blocks: int) -> np.ndarray:
     return ((b * nv + n_blocks - 1) // n_blocks).astype(np.int32)
 
 
+ALIGNED = "aligned"
+"""``pos`` for a group whose devices are all valid to the end of a length that the
+blocks divide: block b is the samples b·w .. (b + 1)·w − 1, a reshape (no gather,
+no mask)."""
+
+
 def _window_sums(products, src, pos, n_blocks: int, n_folds: int):
     """Total and per-fold sums when the valid samples come first (``prefix``).
 
@@ -278,6 +286,10 @@ def _window_sums(products, src, pos, n_blocks: int, n_folds: int):
     from the host: computed in the graph, XLA would recompute it for every sample.
     """
     n = jax.tree.leaves(src)[0].shape[0]
+    if isinstance(pos, str):  # ALIGNED
+        blocks = _vsum([o.reshape(n_blocks, n // n_blocks)
+                        for o in products(src, jnp.ones((n,), bool))])
+        return _fold_of_blocks(blocks, n_blocks, n_folds)
     w = -(-n // n_blocks)
     start = jnp.minimum(pos[:-1], n - w)  # a window never runs past the recording
     j = start[:, None] + jnp.arange(w, dtype=jnp.int32)[None, :]
@@ -290,6 +302,11 @@ def _window_sums(products, src, pos, n_blocks: int, n_folds: int):
         return a
 
     blocks = _vsum([o.reshape(n_blocks, w) for o in products(jax.tree.map(windows, src), inside)])
+    return _fold_of_blocks(blocks, n_blocks, n_folds)
+
+
+def _fold_of_blocks(blocks, n_blocks: int, n_folds: int):
+    """Total and per-fold sums from the sums of every block (B, F); block b is in fold b mod K."""
     b = jnp.arange(n_blocks, dtype=jnp.int32)
     own = ((b % n_folds)[None, :] == jnp.arange(n_folds, dtype=jnp.int32)[:, None])
     return jnp.sum(blocks, axis=0), own.astype(blocks.dtype) @ blocks
@@ -496,6 +513,8 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
 
     p, nq = layout.p, model.n_nonlinear
     dtype = gyro.dtype
+    if isinstance(pos, str):  # ALIGNED: every sample valid; a constant mask folds away
+        mask = jnp.ones(mask.shape, bool)
     norm = None
     if temp is not None:
         norm = temp_norm_from(temp, mask) if centre is None else TempNorm(centre=centre, scale=scale)
@@ -745,12 +764,19 @@ def _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2):
     return jnp.linalg.inv(info / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
 
 
-@eqx.filter_jit
+@filter_jit
 def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel, centre,
            scale, dt, nv, theta0, pos=None):
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
+
+    if isinstance(pos, str):  # ALIGNED: the same for every device
+        def one(*args):
+            return _device(model, layout, opts, c, prefix, *args, pos=pos)
+
+        return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv,
+                             theta0)
 
     def one(*args):
         return _device(model, layout, opts, c, prefix, *args)
@@ -778,6 +804,23 @@ def chunk_size(min_valid: int, n_blocks: int, length: int) -> int:
     shortest fold block (so a chunk holds at most one block boundary)."""
     c = min(CHUNK, _pow2_floor(max(min_valid // max(n_blocks, 1), 1)), length & -length)
     return max(c, 1)
+
+
+def valid_counts(mask: Bool[np.ndarray, "d n"]) -> tuple[np.ndarray, np.ndarray]:
+    """Valid samples of every device, and whether they come first (a prefix mask).
+
+    One pass of fast reads: counts by popcount of the mask's bytes read as
+    64-bit words; the valid samples come first when the first invalid one is
+    at the count.
+    """
+    mask = np.asarray(mask, bool)
+    d, n = mask.shape
+    if n % 8 == 0 and mask.flags.c_contiguous and mask.ctypes.data % 8 == 0:
+        nv = np.bitwise_count(mask.view(np.uint64)).sum(axis=1, dtype=np.int64)
+    else:
+        nv = np.count_nonzero(mask, axis=1).astype(np.int64)
+    first_invalid = np.argmin(mask, axis=1) if n else np.zeros(d, np.int64)
+    return nv, (nv == n) | (first_invalid == nv)
 
 
 def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, theta0=None,
@@ -809,35 +852,36 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         arrays["t"] = None
     devices = jax.local_devices()
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
-    ramp = np.arange(n)
+    nv_all, prefix_all = valid_counts(batch.mask)
 
     def run(j: int):
         start = j * g
         stop = min(start + g, d)
         sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
                                                                     stop - 1)
-        mask = np.asarray(batch.mask[sl], bool)
-        nv = np.count_nonzero(mask, axis=1)
-        prefix = bool(np.array_equal(mask, ramp[None, :] < nv[:, None]))
+        nv = nv_all[sl]
+        prefix = bool(np.all(prefix_all[sl]))
         c = chunk_size(int(nv.min()), opts.n_blocks, n)
-        dev = devices[j % len(devices)]
-        args = []
-        for k in order:
-            a = arrays[k]
-            if a is None:
-                args.append(None)
-            elif k == "mask":
-                args.append(jax.device_put(mask, dev))
-            else:
-                args.append(jax.device_put(np.ascontiguousarray(np.asarray(a[sl], dtype)), dev))
-        args.append(jax.device_put(nv.astype(np.int32), dev))
-        th0 = arrays["theta0"]
-        args.append(None if th0 is None else jax.device_put(np.ascontiguousarray(th0[sl]), dev))
-        args.append(jax.device_put(block_starts(nv, opts.n_blocks), dev) if prefix else None)
-        return stop - start, _group(model, layout, opts, c, prefix, *args)
+        host = {k: (np.asarray(batch.mask[sl], bool) if k == "mask"
+                    else np.ascontiguousarray(np.asarray(arrays[k][sl], dtype)))
+                for k in order if arrays[k] is not None}
+        host["nv"] = nv.astype(np.int32)
+        if arrays["theta0"] is not None:
+            host["theta0"] = np.ascontiguousarray(arrays["theta0"][sl])
+        if prefix and nv.min() == n and n % opts.n_blocks == 0:
+            pos = ALIGNED
+        elif prefix:
+            host["pos"] = block_starts(nv, opts.n_blocks)
+            pos = None
+        else:
+            pos = None
+        put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
+        args = [put.get(k) for k in (*order, "nv", "theta0")]
+        return stop - start, _group(model, layout, opts, c, prefix, *args, put.get("pos", pos))
 
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
     outs = [run(j) for j in range(-(-d // g))]
-    return {k: np.concatenate([np.asarray(o[k])[:m] for m, o in outs], axis=0)
-            for k in outs[0][1]}
+    got = jax.device_get([o for _, o in outs])  # one transfer call for every group
+    return {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
+            for k in got[0]}

@@ -1,0 +1,45 @@
+"""``filter_jit`` that returns as soon as the call is dispatched.
+
+``equinox.filter_jit`` waits for every call's result (so that its runtime
+errors carry a traceback). A loop over groups of devices then runs one group
+at a time: the host prepares the next group while the CPU is idle, and two
+groups never share the cores. diffgyro raises no runtime errors from inside
+compiled code (bad devices get a status), so it can let JAX dispatch
+asynchronously, as ``jax.jit`` does. Arrays (JAX or numpy) are traced;
+everything else is static, as in ``equinox.filter_jit``.
+"""
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+
+
+def filter_jit(fun: Callable[..., Any]) -> Callable[..., Any]:
+    """Compile ``fun``: array leaves of its arguments traced, other leaves static
+    (hashable); results are not waited for."""
+
+    @functools.partial(jax.jit, static_argnums=(0, 1))
+    def compiled(treedef, static, dynamic):
+        leaves = [s if d is None else d for s, d in zip(static, dynamic)]
+        args, kwargs = jax.tree.unflatten(treedef, leaves)
+        return fun(*args, **kwargs)
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        return compiled(*_split(args, kwargs))
+
+    call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
+    return call
+
+
+def _split(args, kwargs):
+    """(treedef, static leaves, array leaves) of the arguments; None marks the other kind."""
+    leaves, treedef = jax.tree.flatten((args, kwargs))
+    arrays = [eqx.is_array(x) for x in leaves]
+    static = tuple(None if a else x for x, a in zip(leaves, arrays, strict=True))
+    dynamic = [x if a else None for x, a in zip(leaves, arrays, strict=True)]
+    return treedef, static, dynamic
