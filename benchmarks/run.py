@@ -18,7 +18,7 @@ compared on that subset.
     python benchmarks/run.py --quick                   # < 3 minutes on 2 CPU cores
     python benchmarks/run.py --json results.json       # the issue's sizes
     python benchmarks/run.py --cases bias_poly3,allan  # a selection
-    python benchmarks/run.py --host-devices 2          # shard over 2 forced host devices
+    python benchmarks/run.py --host-devices 1          # one XLA CPU device (default: one per core)
 
 Runs unchanged on a GPU machine (the backend and device are printed).
 """
@@ -609,13 +609,12 @@ def main(argv=None) -> int:
     p.add_argument("--direct-lag", action="store_true",
                    help="thermal_lag: also time fit(path='direct') (optimistix LM; slow at full size)")
     p.add_argument("--host-devices", type=int, default=0,
-                   help="force this many XLA host devices (CPU sharding); 0 = JAX default")
+                   help="XLA CPU devices (fit() runs its device groups side by side over them); "
+                        "0 = one per core (diffgyro.use_cpu_cores), 1 = JAX's default")
     args = p.parse_args(argv)
-    if args.host_devices:
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                                   f" --xla_force_host_platform_device_count={args.host_devices}")
     import diffgyro
 
+    diffgyro.use_cpu_cores(args.host_devices or None)
     diffgyro.enable_x64()
     names = [c.strip() for c in args.cases.split(",") if c.strip()]
     unknown = set(names) - set(CASES)

@@ -140,3 +140,42 @@ def test_one_device_means_no_mesh():
     if jax.local_device_count() == 1:
         assert local_mesh() is None
     assert local_mesh(shard=False) is None
+
+
+@pytest.mark.parametrize("spec", ["bias_poly(2)", "bias_poly(1)+thermal_lag"])
+def test_groups_take_turns_on_cpu_devices(spec):
+    """fit()'s sums path with two CPU devices: groups alternate between them (the
+    program compiled for both at once), results equal to one device's, in order."""
+    script = f"""
+    import diffgyro.fit_sums as fs
+    from diffgyro.fit import fit
+    from diffgyro.simulate import simulate
+    fs.MAX_GROUP_DEVICES = 4   # 11 devices: 3 groups, the last one partial
+    batch, _ = simulate("thermal", 11, effects="bias_poly(2)+thermal_lag", seed=4,
+                        duration=1800.0)
+    seen = []
+    put = jax.device_put
+    jax.device_put = lambda x, d=None, **k: (seen.append(getattr(d, "id", None)), put(x, d, **k))[1]
+    r = fit({spec!r}, batch, path="sums")
+    jax.device_put = put
+    print(json.dumps({{"beta": r.params.beta.tolist(), "theta": r.params.theta.tolist(),
+                      "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist(),
+                      "devices": sorted(set(i for i in seen if i is not None))}}))
+    """
+    out = run_forced(script, timeout=300)
+    assert out.pop("devices") == [0, 1]
+    import diffgyro.fit_sums as fs
+    from diffgyro.fit import fit
+    from diffgyro.simulate import simulate
+
+    old = fs.MAX_GROUP_DEVICES
+    fs.MAX_GROUP_DEVICES = 4
+    try:
+        batch, _ = simulate("thermal", 11, effects="bias_poly(2)+thermal_lag", seed=4,
+                            duration=1800.0)
+        r = fit(spec, batch, path="sums")
+    finally:
+        fs.MAX_GROUP_DEVICES = old
+    single = {"beta": r.params.beta.tolist(), "theta": r.params.theta.tolist(),
+              "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist()}
+    assert_close(out, single, rel=1e-10)

@@ -39,10 +39,33 @@ def enable_compilation_cache(path: str | None = None) -> None:
         pass
 
 
+def use_cpu_cores(n: int | None = None) -> int:
+    """One XLA CPU device per core (``n``, default the cores this process may run on,
+    at most 16), so that fit() runs its groups of devices side by side: XLA runs one
+    compiled call at a time on a CPU device. Process-wide, and only possible before
+    JAX's first operation; a device count the user set (``XLA_FLAGS`` or
+    ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
+    """
+    import os
+
+    import jax
+
+    if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "") and \
+            jax.config.jax_num_cpu_devices in (-1, None):
+        if n is None:
+            cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+            n = min(len(cores) if cores else (os.cpu_count() or 1), 16)
+        try:
+            jax.config.update("jax_num_cpu_devices", max(int(n), 1))
+        except RuntimeError:  # JAX already started: its devices stay
+            pass
+    return len(jax.devices("cpu"))
+
+
 from . import effects  # noqa: E402,F401
 from .data import Batch, Recording  # noqa: E402
 from .errors import DataError, SpecError  # noqa: E402
 from .model import ErrorModel, Params  # noqa: E402
 
 __all__ = ["Batch", "DataError", "ErrorModel", "Params", "Recording", "SpecError",
-           "__version__", "effects", "enable_compilation_cache", "enable_x64"]
+           "__version__", "effects", "enable_compilation_cache", "enable_x64", "use_cpu_cores"]

@@ -46,9 +46,9 @@ class FitOptions(eqx.Module):
     n_folds: int = eqx.field(static=True, default=5)
     max_steps: int = eqx.field(static=True, default=100)
     chunk: int = eqx.field(static=True, default=64)
-    rtol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-10))
-    atol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-14))
-    rank_tol: Float[Array, ""] = eqx.field(default_factory=lambda: jnp.asarray(1e-10))
+    rtol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-10)))
+    atol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-14)))
+    rank_tol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-10)))
     dtemp_window: float = eqx.field(static=True, default=60.0)
     #: "closed": closed form (linear part) + variable projection (time constants);
     #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
@@ -633,12 +633,13 @@ def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitO
     out = solve_sums(model, batch, norm, opts, theta0)
     d = batch.n_devices
     if "norm_centre" in out:
-        norm_out = TempNorm(centre=jnp.asarray(out.pop("norm_centre")),
-                            scale=jnp.asarray(out.pop("norm_scale")))
+        norm_out = TempNorm(centre=jax.device_put(out.pop("norm_centre")),
+                            scale=jax.device_put(out.pop("norm_scale")))
     else:
         norm_out = TempNorm(centre=jnp.zeros(d), scale=jnp.ones(d))
-    temp_range = jnp.asarray(out.pop("temp_range")) if "temp_range" in out else None
-    out = {k: jnp.asarray(v) for k, v in out.items()}
+    # device_put, not jnp.asarray: that compiles a copy for every new shape (~10 ms each)
+    temp_range = jax.device_put(out.pop("temp_range")) if "temp_range" in out else None
+    out = jax.device_put(out)
     return FitResult(
         model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
         norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
@@ -653,5 +654,5 @@ def _replace(opts: FitOptions, **kw) -> FitOptions:
     for k, v in kw.items():
         if k not in fields:
             raise TypeError(f"unknown fit option {k!r}; options: {', '.join(fields)}")
-        fields[k] = jnp.asarray(v) if k in ("rtol", "atol", "rank_tol") else v
+        fields[k] = jax.device_put(np.asarray(v)) if k in ("rtol", "atol", "rank_tol") else v
     return FitOptions(**fields)

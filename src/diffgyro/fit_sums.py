@@ -104,22 +104,21 @@ class Layout(eqx.Module):
 
 
 def _random_signals(present: frozenset[str], n: int, seed: int) -> Signals:
-    """Signals of n samples with every field random (no derived-signal computation)."""
+    """Signals of n samples with every field random (no derived-signal computation).
+
+    numpy arrays: JAX operations on them one by one would each compile (tens of ms)."""
     rng = np.random.default_rng(seed)
-
-    def r(*shape):
-        return jnp.asarray(rng.normal(size=shape))
-
+    r = rng.normal
     has = {k: k in present for k in INPUTS}
-    temp = jnp.asarray(rng.uniform(10, 40, n)) if has["temp"] else None
+    temp = rng.uniform(10, 40, n) if has["temp"] else None
     return Signals(
-        t=jnp.asarray(np.cumsum(rng.uniform(0.5, 1.5, n))), gyro=r(n, 3), mask=jnp.ones(n, bool),
-        rate=r(n, 3), temp=temp, temp_s=r(n) if has["temp"] else None,
-        dtemp=r(n) if has["temp"] else None,
-        heating=jnp.asarray(np.sign(rng.normal(size=n))) if has["temp"] else None,
-        temp_ext=jnp.asarray(rng.uniform(0, 30, n)) if has["temp_ext"] else None,
-        accel=r(n, 3) if has["accel"] else None,
-        norm=TempNorm(centre=jnp.asarray(25.0), scale=jnp.asarray(15.0)) if has["temp"] else None,
+        t=np.cumsum(rng.uniform(0.5, 1.5, n)), gyro=r(size=(n, 3)), mask=np.ones(n, bool),
+        rate=r(size=(n, 3)), temp=temp, temp_s=r(size=n) if has["temp"] else None,
+        dtemp=r(size=n) if has["temp"] else None,
+        heating=np.sign(r(size=n)) if has["temp"] else None,
+        temp_ext=rng.uniform(0, 30, n) if has["temp_ext"] else None,
+        accel=r(size=(n, 3)) if has["accel"] else None,
+        norm=TempNorm(centre=np.asarray(25.0), scale=np.asarray(15.0)) if has["temp"] else None,
         has_rate=has["rate"])
 
 
@@ -139,7 +138,7 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     perm = np.random.default_rng(1).permutation(n)
     sig_p = jax.tree.map(lambda a: a[perm] if (a.ndim >= 1 and a.shape[0] == n) else a, sig)
     # two sets of time constants (log s): a coincidence at one is not at the other
-    thetas = [jnp.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
+    thetas = [np.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
     xs = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)])(sig, sig_p)
     xs = [np.asarray(v) for v in xs]
     p = xs[0].shape[-1]
@@ -770,19 +769,15 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
-
-    if isinstance(pos, str):  # ALIGNED: the same for every device
-        def one(*args):
-            return _device(model, layout, opts, c, prefix, *args, pos=pos)
-
-        return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv,
-                             theta0)
+    aligned = isinstance(pos, str)  # ALIGNED: the same for every device, not an array
 
     def one(*args):
+        if aligned:
+            return _device(model, layout, opts, c, prefix, *args, pos=pos)
         return _device(model, layout, opts, c, prefix, *args)
 
-    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv,
-                         theta0, pos)
+    args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
+    return jax.vmap(one)(*(args if aligned else (*args, pos)))
 
 
 def _pow2_floor(x: int) -> int:
@@ -854,7 +849,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
-    def run(j: int):
+    def prepare(j: int):
         start = j * g
         stop = min(start + g, d)
         sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
@@ -875,13 +870,23 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
             pos = None
         else:
             pos = None
-        put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
+        # groups take turns on the local devices (one XLA CPU device runs one call at a
+        # time; diffgyro.use_cpu_cores makes one per core); one transfer call per group
+        put = jax.device_put(host, devices[j % len(devices)])
         args = [put.get(k) for k in (*order, "nv", "theta0")]
-        return stop - start, _group(model, layout, opts, c, prefix, *args, put.get("pos", pos))
+        return stop - start, (model, layout, opts, c, prefix, *args, put.get("pos", pos))
 
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
-    outs = [run(j) for j in range(-(-d // g))]
+    n_groups = -(-d // g)
+    if len(devices) == 1:
+        outs = [(m, _group(*a)) for m, a in map(prepare, range(n_groups))]
+    else:  # the program compiled for every device at once, then reused
+        first = [prepare(j) for j in range(min(len(devices), n_groups))]
+        outs = [(m, f()) for (m, _), f in zip(first, _group.on_devices([(a, {}) for _, a in first]))]
+        for j in range(len(first), n_groups):
+            m, a = prepare(j)
+            outs.append((m, _group.on_devices([(a, {})])[0]()))
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
     return {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
             for k in got[0]}
