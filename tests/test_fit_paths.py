@@ -310,13 +310,13 @@ def test_block_windows_equal_chunked_sums(n, n_blocks):
         mask = jnp.arange(n) < nv
         pos = jnp.asarray(fs.block_starts([nv], n_blocks)[0])
         c = fs.chunk_size(max(int(nv), 1), n_blocks, n)
-        t1, f1 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, False)
-        t2, f2 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, True, pos)
+        t1, f1 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c)
+        t2, f2 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, pos)
         np.testing.assert_allclose(np.asarray(t2), np.asarray(t1), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(f2), np.asarray(f1), rtol=1e-12, atol=1e-12)
         assert float(t2[-1]) == nv and float(jnp.sum(f2[:, -1])) == nv
         if nv == n and n % n_blocks == 0:  # whole blocks: a reshape, no windows, no mask
-            t3, f3 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, True,
+            t3, f3 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c,
                                    fs.ALIGNED)
             np.testing.assert_allclose(np.asarray(t3), np.asarray(t1), rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(np.asarray(f3), np.asarray(f1), rtol=1e-12, atol=1e-12)

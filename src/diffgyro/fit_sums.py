@@ -244,17 +244,15 @@ def _vsum(ops):
     return _vsum_stacked(list(ops))
 
 
-def _block_positions(mask, nv, n_blocks: int, prefix: bool):
+def _block_positions(mask, nv, n_blocks: int):
     """First sample index of every time block of the folds (n_blocks + 1 values).
 
     Block b holds the valid samples of rank ceil(b·n/B) .. ceil((b+1)·n/B) − 1,
-    the blocks of :func:`diffgyro.fit._fold_ids`. With the valid samples first
-    (``prefix``), a rank is its index; otherwise ranks come from a cumulative count.
+    the blocks of :func:`diffgyro.fit._fold_ids`; ranks come from a cumulative count
+    (devices whose valid samples come first get the starts from the host instead).
     """
     b = jnp.arange(n_blocks + 1, dtype=jnp.int32)
     rank = (b * nv + n_blocks - 1) // n_blocks
-    if prefix:
-        return rank
     cm = jnp.cumsum(mask.astype(jnp.int32))
     return jnp.searchsorted(cm, rank + 1, side="left").astype(jnp.int32)
 
@@ -311,8 +309,7 @@ def _fold_of_blocks(blocks, n_blocks: int, n_folds: int):
     return jnp.sum(blocks, axis=0), own.astype(blocks.dtype) @ blocks
 
 
-def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, prefix: bool,
-               pos=None):
+def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, pos=None):
     """Total and per-fold sums of every product, reading the samples once.
 
     ``products(src, mask)`` gives the per-sample products of ``src`` (a pytree
@@ -321,6 +318,8 @@ def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, pre
     to the fold of their first sample. The chunks a block boundary cuts are
     summed again up to the boundary (a second, small reduction over just those
     chunks, gathered from ``src``) and the rest is moved to the next block's fold.
+    Given the block starts ``pos`` (valid samples first), the blocks are summed in
+    windows instead (:func:`_window_sums`).
     """
     if pos is not None:
         return _window_sums(products, src, pos, n_blocks, n_folds)
@@ -328,12 +327,9 @@ def _fold_sums(products, src, mask, nv, n_blocks: int, n_folds: int, c: int, pre
     nc = n // c
     ops = products(src, mask)
     tot = _vsum([o.reshape(nc, c) for o in ops])  # (nc, F)
-    pos = _block_positions(mask, nv, n_blocks, prefix)
+    pos = _block_positions(mask, nv, n_blocks)
     starts = jnp.arange(nc, dtype=jnp.int32) * c
-    if prefix:
-        blk = (starts * n_blocks) // jnp.maximum(nv, 1)
-    else:
-        blk = jnp.searchsorted(pos, starts, side="right").astype(jnp.int32) - 1
+    blk = jnp.searchsorted(pos, starts, side="right").astype(jnp.int32) - 1
     folds = jnp.arange(n_folds, dtype=jnp.int32)
     per_fold = ((blk % n_folds)[None, :] == folds[:, None]).astype(tot.dtype) @ tot
     # chunks cut by a block's start: sum the part before it once more
@@ -533,10 +529,10 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     def sums_at(th):
         if layout.pointwise:
             return _fold_sums(_signal_products(layout, model, th, y0), sig, mask, nv,
-                              opts.n_blocks, n_folds, c, prefix, pos)
+                              opts.n_blocks, n_folds, c, pos)
         x = model.design(sig, th)  # a column that reads other samples is formed once
         return _fold_sums(_design_products(layout), (x, y - y0), mask, nv, opts.n_blocks,
-                          n_folds, c, prefix, pos)
+                          n_folds, c, pos)
 
     if nq == 0:
         theta = jnp.zeros((0,), dtype)
@@ -560,7 +556,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             return [ops[j] for j in fix_sel]
 
         fix_tot, fix_fold = _fold_sums(fixed_products, (x_any, ys), mask, nv, opts.n_blocks,
-                                       n_folds, c, prefix, pos)
+                                       n_folds, c, pos)
         n_xx = len(layout.xx)
 
         def factors(j):  # a moving product j as (axis, column, other column or None for a rate)
