@@ -637,7 +637,8 @@ def main(argv=None) -> int:
         new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"], **kw)
         for r in new:
             r.update(mode="quick" if args.quick else "full", backend=info["backend"],
-                     device=info["device"], cpu=info["cpu"], cores=info["cores"],
+                     device=info["device"], n_devices=info["n_devices"], cpu=info["cpu"],
+                     cores=info["cores"],
                      bandwidth_GBps=bw["bytes_per_s"] / 1e9)
         rows += new
         print(f"  {name}: {now() - t0:.1f} s", flush=True)
