@@ -179,3 +179,25 @@ def test_groups_take_turns_on_cpu_devices(spec):
     single = {"beta": r.params.beta.tolist(), "theta": r.params.theta.tolist(),
               "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist()}
     assert_close(out, single, rel=1e-10)
+
+
+def test_largest_groups_on_two_cpu_devices_finish():
+    """Groups at the cap (MAX_GROUP_DEVICES) of short recordings, side by side on two CPU
+    devices: two groups of 256 never finished in XLA's CPU runtime; 128 must."""
+    script = """
+    import diffgyro.fit_sums as fs
+    from diffgyro import Batch
+    from diffgyro.fit import fit
+    d, n = 3 * fs.MAX_GROUP_DEVICES, 640
+    rng = np.random.default_rng(0)
+    temp = 20 + 10 * np.sin(np.linspace(0, 3, n))[None, :] + rng.normal(size=(d, 1))
+    gyro = 1e-3 * (temp[..., None] - 20) * 0.01 + 1e-5 * rng.normal(size=(d, n, 3))
+    batch = Batch(t=np.broadcast_to(np.arange(n, dtype=float), (d, n)).copy(), gyro=gyro,
+                  mask=np.ones((d, n), bool), n_valid=np.full(d, n), temp=temp,
+                  devices=tuple(f"u{i}" for i in range(d)))
+    assert fs.group_size(d, n, fs.GROUP_SAMPLES * fs.FUSED_GROUP_FACTOR) == fs.MAX_GROUP_DEVICES
+    r = fit("bias_poly(3)", batch, path="sums")
+    print(json.dumps({"ok": int(np.sum(np.asarray(r.status) == 0)), "d": d}))
+    """
+    out = run_forced(script, timeout=240)
+    assert out["ok"] == out["d"]

@@ -67,9 +67,12 @@ GROUP_SAMPLES = 1 << 17
 #: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
 FUSED_GROUP_FACTOR = 8
 #: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
-#: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff (all threads idle,
-#: reproducible); 512 ran. Short recordings would otherwise ask for such groups.
-MAX_GROUP_DEVICES = 256
+#: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff on one CPU device (all
+#: threads idle, reproducible; 512 ran), nor two groups of 256 running side by side on
+#: two CPU devices (bias_poly(3), 1000 or 10 000 samples). Groups of 128 ran at every
+#: length from 200 to 10 000 samples on two devices. Short recordings would otherwise
+#: ask for such groups.
+MAX_GROUP_DEVICES = 128
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 
