@@ -51,7 +51,7 @@ def use_cpu_cores(n: int | None = None) -> int:
     import jax
 
     if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "") and \
-            jax.config.jax_num_cpu_devices in (-1, None):
+            getattr(jax.config, "jax_num_cpu_devices", 0) in (-1, None):  # 0: an older JAX
         if n is None:
             cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
             n = min(len(cores) if cores else (os.cpu_count() or 1), 16)

@@ -829,7 +829,8 @@ def valid_counts(mask: Bool[np.ndarray, "d n"]) -> tuple[np.ndarray, np.ndarray]
     """
     mask = np.asarray(mask, bool)
     d, n = mask.shape
-    if n % 8 == 0 and mask.flags.c_contiguous and mask.ctypes.data % 8 == 0:
+    if (hasattr(np, "bitwise_count") and n % 8 == 0 and mask.flags.c_contiguous
+            and mask.ctypes.data % 8 == 0):  # numpy ≥ 2.0
         nv = np.bitwise_count(mask.view(np.uint64)).sum(axis=1, dtype=np.int64)
     else:
         nv = np.count_nonzero(mask, axis=1).astype(np.int64)
