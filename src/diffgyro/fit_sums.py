@@ -547,7 +547,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # every trial of the time constants; Newton moves the time constants alone.
         # Products that do not move with them are summed once (total and per fold);
         # a trial forms only the moving columns (with their first and second
-        # derivatives, :meth:`ErrorModel.design_jet`) and sums the moving products and
+        # derivatives, each term's ``columns_jet``) and sums the moving products and
         # their derivatives (product rule) in one pass.
         var_idx, fix_idx = varying_products(layout)
         ys = y - y0

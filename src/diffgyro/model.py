@@ -104,25 +104,6 @@ class ErrorModel(eqx.Module):
         cols = [t.columns(sig, theta[qs]) for t, _, qs in self.slices()]
         return jnp.concatenate(cols, axis=-1)
 
-    def design_jet(self, sig: Signals, theta: Float[Array, " q"]):
-        """The design and its first and second derivatives in ``theta``: (n, 3, p),
-        (q, n, 3, p) and (q, q, n, 3, p); each term's own :meth:`columns_jet`."""
-        q = theta.shape[0]
-        xs, ds, dds = [], [], []
-        for t, _, qs in self.slices():
-            if t.n_nonlinear:
-                x, d, dd = t.columns_jet(sig, theta[qs])
-                d = jnp.zeros((q,) + x.shape, x.dtype).at[qs].set(d)
-                dd = jnp.zeros((q, q) + x.shape, x.dtype).at[qs, qs].set(dd)
-            else:
-                x = t.columns(sig, theta[qs])
-                d, dd = jnp.zeros((q,) + x.shape, x.dtype), jnp.zeros((q, q) + x.shape, x.dtype)
-            xs.append(x)
-            ds.append(d)
-            dds.append(dd)
-        return (jnp.concatenate(xs, axis=-1), jnp.concatenate(ds, axis=-1),
-                jnp.concatenate(dds, axis=-1))
-
     def nonlinear_init(self, sig: Signals) -> Float[Array, " q"]:
         parts = [t.nonlinear_init(sig) for t in self.deterministic]
         return jnp.concatenate(parts) if parts else jnp.zeros((0,))
