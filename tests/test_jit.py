@@ -55,20 +55,3 @@ def test_returns_jax_arrays_and_lowers():
     np.testing.assert_array_equal(np.asarray(out), [0.0, 2.0, 6.0, 12.0])
     assert "func.func" in f.lower(np.arange(4.0), 2).as_text()  # the same arguments lower
 
-
-def test_on_devices_compiles_once_per_placement():
-    traces = []
-
-    @filter_jit
-    def f(x, k):
-        traces.append(k)
-        return x * k
-
-    dev = jax.devices()[0]
-    xs = [jax.device_put(np.arange(3.0) + i, dev) for i in range(3)]
-    calls = f.on_devices([((x, 2), {}) for x in xs])
-    for i, c in enumerate(calls):
-        np.testing.assert_array_equal(np.asarray(c()), 2 * (np.arange(3.0) + i))
-    assert traces == [2]
-    again = f.on_devices([((xs[0], 2), {}), ((xs[0], 3), {})])  # one new static value
-    assert [float(c()[1]) for c in again] == [2.0, 3.0] and traces == [2, 3]

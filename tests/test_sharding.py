@@ -144,8 +144,8 @@ def test_one_device_means_no_mesh():
 
 @pytest.mark.parametrize("spec", ["bias_poly(2)", "bias_poly(1)+thermal_lag"])
 def test_groups_take_turns_on_cpu_devices(spec):
-    """fit()'s sums path with two CPU devices: groups alternate between them (the
-    program compiled for both at once), results equal to one device's, in order."""
+    """fit()'s sums path with two CPU devices: groups alternate between them, results
+    equal to one device's, in order."""
     script = f"""
     import diffgyro.fit_sums as fs
     from diffgyro.fit import fit

@@ -898,15 +898,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
 
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
-    n_groups = -(-d // g)
-    if len(devices) == 1:
-        outs = [(m, _group(*a)) for m, a in map(prepare, range(n_groups))]
-    else:  # the program compiled for every device at once, then reused
-        first = [prepare(j) for j in range(min(len(devices), n_groups))]
-        outs = [(m, f()) for (m, _), f in zip(first, _group.on_devices([(a, {}) for _, a in first]))]
-        for j in range(len(first), n_groups):
-            m, a = prepare(j)
-            outs.append((m, _group.on_devices([(a, {})])[0]()))
+    outs = [(m, _group(*a)) for m, a in map(prepare, range(-(-d // g)))]
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
     return {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
             for k in got[0]}
