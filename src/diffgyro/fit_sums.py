@@ -681,24 +681,19 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     af, cf, qf, nf = _unpack(layout, held)
     at, ct, _, _ = _unpack(layout, train)
 
-    # with every column shared by the axes the three Gram matrices are one: factor and
-    # check it once
-    one = all(layout.shared)
+    # with every column shared by the axes the three Gram matrices are one: factor,
+    # check and invert the first axis' only and broadcast
+    n_gram = 1 if all(layout.shared) else 3
 
-    def factor(m):
-        if not one:
-            return _cholesky(m)
-        chol_, d_ = _cholesky(m[..., :1, :, :])
-        return (jnp.broadcast_to(chol_, m.shape),
-                jnp.broadcast_to(d_, m.shape[:-1]))
+    def gram_factor(m):  # Cholesky factors and column scales of m (..., 3, p, p)
+        chol_, d_ = _cholesky(m[..., :n_gram, :, :])
+        return jnp.broadcast_to(chol_, m.shape), jnp.broadcast_to(d_, m.shape[:-1])
 
     # full fit
-    chol, dsc = factor(a)
+    chol, dsc = gram_factor(a)
     beta_s = _cho_solve(chol, dsc, cc)
-    ratio, direction, rank_ok = F.rank_check(a[:1] if one else a, opts.rank_tol)
-    if one:
-        ratio, rank_ok = jnp.broadcast_to(ratio, (3,)), jnp.broadcast_to(rank_ok, (3,))
-        direction = jnp.broadcast_to(direction, (3, p))
+    ratio, direction, rank_ok = (jnp.broadcast_to(v, (3,) + v.shape[1:])
+                                 for v in F.rank_check(a[:n_gram], opts.rank_tol))
     sse = jnp.maximum(_sse(a, cc, q, beta_s), 0.0)
     shift = jnp.zeros((3, p), dtype)
     if layout.const_col is not None:
@@ -707,7 +702,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * n_valid, 1.0))
 
     # held-out folds: train on total − fold, score on the fold's own sums
-    beta_f = _cho_solve(*factor(at), ct)
+    beta_f = _cho_solve(*gram_factor(at), ct)
     sse_f = jnp.sum(jnp.maximum(_sse(af, cf, qf, beta_f), 0.0), axis=-1)
     heldout_rms = jnp.sqrt(jnp.sum(sse_f) / jnp.maximum(3 * jnp.sum(nf), 1.0))
     fold_mse = sse_f / jnp.maximum(3 * nf, 1.0)
@@ -716,13 +711,9 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     sigma2 = jnp.maximum(sse / dof, 1e-300)
     if nq == 0:  # block diagonal: σ_i² (X_iᵀX_i)⁻¹ per axis
         eye = jnp.broadcast_to(jnp.eye(p, dtype=dtype), (3, p, p))
-        if one:
-            inv = jax.scipy.linalg.cho_solve((chol[:1], True), eye[:1]) / (
-                dsc[:1, :, None] * dsc[:1, None, :])
-            inv = jnp.broadcast_to(inv, (3, p, p))
-        else:
-            inv = jax.scipy.linalg.cho_solve((chol, True), eye) / (
-                dsc[:, :, None] * dsc[:, None, :])
+        inv = jax.scipy.linalg.cho_solve((chol[:n_gram], True), eye[:n_gram]) / (
+            dsc[:n_gram, :, None] * dsc[:n_gram, None, :])
+        inv = jnp.broadcast_to(inv, (3, p, p))
         cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
     else:
         cov = _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2)
