@@ -143,37 +143,32 @@ def machine_info() -> dict:
 
 
 def bandwidth(gigabytes: float = 1.0, repeats: int = 5) -> dict:
-    """Memory read bandwidth (bytes/s): numpy and XLA sums over one large array."""
+    """Memory read bandwidth (bytes/s): numpy and XLA sums over one large array, and XLA
+    with every CPU device reading its share at once (with use_cpu_cores, one device's
+    sum may not reach what the machine can read)."""
     import jax
     import jax.numpy as jnp
 
     a = np.ones(int(gigabytes * 1e9) // 8)
-    t_np = []
-    for _ in range(repeats):
-        t0 = now()
-        a.sum()
-        t_np.append(now() - t0)
-    b = jax.device_put(a)
     f = jax.jit(jnp.sum)
-    block(f(b))
-    t_jx = []
-    for _ in range(repeats):
-        t0 = now()
-        block(f(b))
-        t_jx.append(now() - t0)
+
+    def rate(read):  # bytes/s: median of ``repeats`` after a warm-up
+        block(read())
+        times = []
+        for _ in range(repeats):
+            t0 = now()
+            block(read())
+            times.append(now() - t0)
+        return a.nbytes / statistics.median(times)
+
+    bw_np = rate(a.sum)
+    b = jax.device_put(a)
+    bw_jx = rate(lambda: f(b))
     del b
-    # every CPU device reading its share at once (with use_cpu_cores, one device's sum
-    # may not reach what the machine can read)
     devs = jax.local_devices()
     parts = [jax.device_put(p, d) for p, d in zip(np.array_split(a, len(devs)), devs)]
-    block([f(p) for p in parts])
-    t_all = []
-    for _ in range(repeats):
-        t0 = now()
-        block([f(p) for p in parts])
-        t_all.append(now() - t0)
+    bw_all = rate(lambda: [f(p) for p in parts])
     del parts
-    bw_np, bw_jx, bw_all = (a.nbytes / statistics.median(t) for t in (t_np, t_jx, t_all))
     return {"numpy_GBps": bw_np / 1e9, "jax_GBps": bw_jx / 1e9, "jax_all_devices_GBps": bw_all / 1e9,
             "bytes_per_s": max(bw_np, bw_jx, bw_all)}
 
