@@ -144,12 +144,14 @@ def test_one_device_means_no_mesh():
 
 @pytest.mark.parametrize("spec", ["bias_poly(2)", "bias_poly(1)+thermal_lag"])
 def test_groups_take_turns_on_cpu_devices(spec):
-    """fit()'s sums path with two CPU devices: groups alternate between them, results
-    equal to one device's, in order."""
+    """fit()'s sums path with two CPU devices: groups alternate between them, the program
+    is compiled once and loaded on the other device, results equal to one device's, in
+    order."""
     script = f"""
     import diffgyro.fit_sums as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate
+    jax.config.update("jax_compilation_cache_dir", None)  # a fresh compile, to be copied
     fs.MAX_GROUP_DEVICES = 4   # 11 devices: 3 groups, the last one partial
     batch, _ = simulate("thermal", 11, effects="bias_poly(2)+thermal_lag", seed=4,
                         duration=1800.0)
@@ -160,10 +162,13 @@ def test_groups_take_turns_on_cpu_devices(spec):
     jax.device_put = put
     print(json.dumps({{"beta": r.params.beta.tolist(), "theta": r.params.theta.tolist(),
                       "heldout_rms": r.heldout_rms.tolist(), "status": r.status.tolist(),
-                      "devices": sorted(set(i for i in seen if i is not None))}}))
+                      "devices": sorted(set(i for i in seen if i is not None)),
+                      "events": {{k[1]: v for k, v in diffgyro.jit.EVENTS.items() if k[0] == "_group"}}}}))
     """
     out = run_forced(script, timeout=300)
     assert out.pop("devices") == [0, 1]
+    # compiled once, loaded on the second device: one compile per model spec
+    assert out.pop("events") == {"compile": 1, "copy": 1}
     import diffgyro.fit_sums as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate

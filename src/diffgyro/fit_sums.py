@@ -430,9 +430,13 @@ def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
         return (state[6] < max_steps) & ~state[7]
 
     v, g, h, aux = evaluate(theta0) if first is None else first
-    lam = jnp.asarray(1e-3, theta0.dtype)
+    # the damping and the step count start as functions of v (the same values): under
+    # vmap every carry is then batched from the start, and the loop's batching rule
+    # traces the body once instead of twice
+    any_v = jnp.isnan(v)
+    lam = jnp.where(any_v, 1e-3, 1e-3).astype(theta0.dtype)
     done = jnp.isfinite(v) & proposal(theta0, g, h, lam)[2]
-    init = (theta0, v, g, h, aux, lam, jnp.asarray(0, jnp.int32), done)
+    init = (theta0, v, g, h, aux, lam, jnp.where(any_v, 0, 0).astype(jnp.int32), done)
     th, v, _, _, aux, _, k, done = lax.while_loop(cond, body, init)
     return th, v, aux, k, done
 
@@ -551,7 +555,10 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # their derivatives (product rule) in one pass.
         var_idx, fix_idx = varying_products(layout)
         ys = y - y0
-        x_any = model.design(sig, jnp.zeros((nq,), dtype))  # the fixed columns, any θ
+        # the fixed columns (the moving ones zero here: never read from x_any)
+        x_any = jnp.concatenate([jnp.zeros(y.shape + (tm.n_params,), dtype) if tm.n_nonlinear
+                                 else tm.columns(sig, jnp.zeros((0,), dtype))
+                                 for tm, _, _ in model.slices()], axis=-1)
         fix_sel = np.asarray(fix_idx, np.int32)
 
         def fixed_products(src, m):
@@ -598,11 +605,12 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                     None if dd is None else dd[:, :, :, ax]
             return x_any[:, ax, a_], None, None
 
-        def moving(th, masks, derivatives=True, plain=()):
+        def moving(th, masks, derivatives=True, plain=(), jets=None):
             """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
             and second (q, q, m) derivatives in θ (product rule), then the sums alone
-            under the ``plain`` masks: one variadic reduction."""
-            jets = column_jets(th, derivatives)
+            under the ``plain`` masks: one variadic reduction (``jets``: the columns at
+            ``th`` if already formed)."""
+            jets = column_jets(th, derivatives) if jets is None else jets
             streams = []
             for j in var_idx:
                 i_, a_, b_ = factors(j)
@@ -658,7 +666,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         held_m = fold_id[None, :] == folds[:, None]  # (folds, n)
         # the folds' training costs at the full optimum, from one pass: their first
         # Newton step needs no pass of its own
-        jet0 = moving(theta, [mask, *held_m])
+        jets_opt = column_jets(theta, True)  # also the covariance's columns and slopes
+        jet0 = moving(theta, [mask, *held_m], jets=jets_opt)
+        x_opt, dx_opt = x_any, jnp.zeros((nq,) + x_any.shape, dtype)  # X and ∂X/∂θ at θ̂
+        for col, (xc, dc, _) in jets_opt.items():
+            x_opt, dx_opt = x_opt.at[..., col].set(xc), dx_opt.at[..., col].set(dc)
 
         def fold(k):  # refit the time constants without fold k, from the full optimum
             fix_train = fix_tot - fix_fold[k]
@@ -716,12 +728,9 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         inv = jnp.broadcast_to(inv, (3, p, p))
         cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
     else:
-        cov = _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2)
+        g = jnp.einsum("qnip,ip->niq", dx_opt, beta)  # ∂(Xβ)/∂θ
+        cov = _covariance_separable(layout, x_opt, g, mask, a, sigma2)
 
-    if opts.noise_floor:
-        noise_axes = F._noise_floor(y, mask)
-    else:
-        noise_axes = jnp.full((3,), jnp.nan, dtype)
     terms = model.deterministic
     range_flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
     owner = jnp.asarray([terms.index(tm) for tm in model.column_terms()], jnp.int32)
@@ -737,7 +746,6 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                                       jnp.where(finite, F.OK, F.FAILED)))))
     out = dict(beta=beta, theta=theta, cov=cov, rms=rms,
                heldout_rms=heldout_rms, fold_mse=fold_mse,
-               noise_floor=jnp.sqrt(jnp.mean(noise_axes**2)), noise_axes=noise_axes,
                sigma=jnp.sqrt(sigma2), steps=jnp.asarray(steps, jnp.int32),
                status=jnp.asarray(status, jnp.int32), range_flags=range_flags,
                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
@@ -748,12 +756,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     return out
 
 
-def _covariance_separable(model, layout, sig, mask, theta, beta, a, sigma2):
+def _covariance_separable(layout, x, g, mask, a, sigma2):
     """Gauss–Newton covariance of (β per axis, θ), each axis weighted by 1/σ_i², as
-    :func:`diffgyro.fit._covariance` forms it, from one more pass of sums."""
-    p, nq = layout.p, theta.shape[0]
-    x = model.design(sig, theta)
-    g = jax.jacfwd(lambda th: jnp.einsum("nip,ip->ni", model.design(sig, th), beta))(theta)
+    :func:`diffgyro.fit._covariance` forms it, from one more pass of sums (``x`` the
+    design (n, 3, p) and ``g`` = ∂(Xβ)/∂θ (n, 3, q) at the optimum)."""
+    p, nq = layout.p, g.shape[-1]
     ops = [jnp.where(mask, x[:, i, pp] * g[:, i, k], 0.0)
            for i in range(3) for pp in range(p) for k in range(nq)]
     ops += [jnp.where(mask, g[:, i, k] * g[:, i, r], 0.0)
@@ -788,6 +795,21 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
 
     args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
     return jax.vmap(one)(*(args if aligned else (*args, pos)))
+
+
+@filter_jit
+def _group_noise(gyro, rate, mask):
+    """Model-free white-noise σ per axis of every device (:func:`diffgyro.fit._noise_floor`).
+
+    A program of its own: the same for every model spec, so compiled once per shape
+    however many specs are fitted; its sort cannot be serialized by XLA, which would
+    keep the model's program from being loaded on other devices without compiling
+    (:mod:`diffgyro.jit`).
+    """
+    from . import fit as F
+
+    axes = jax.vmap(F._noise_floor)(gyro if rate is None else gyro - rate, mask)
+    return dict(noise_floor=jnp.sqrt(jnp.mean(axes**2, axis=-1)), noise_axes=axes)
 
 
 def _pow2_floor(x: int) -> int:
@@ -887,9 +909,19 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         args = [put.get(k) for k in (*order, "nv", "theta0")]
         return stop - start, (model, layout, opts, c, prefix, *args, put.get("pos", pos))
 
+    def run(m, args):
+        out = _group(*args)
+        gyro, mask, rate = args[6], args[7], args[8]
+        if opts.noise_floor:
+            out = {**out, **_group_noise(gyro, rate, mask)}
+        else:
+            out = {**out, "noise_floor": np.full(g, np.nan, dtype),
+                   "noise_axes": np.full((g, 3), np.nan, dtype)}
+        return m, out
+
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
-    outs = [(m, _group(*a)) for m, a in map(prepare, range(-(-d // g)))]
+    outs = [run(m, a) for m, a in map(prepare, range(-(-d // g)))]
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
     return {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
             for k in got[0]}
