@@ -18,7 +18,7 @@ compared on that subset.
     python benchmarks/run.py --quick                   # < 3 minutes on 2 CPU cores
     python benchmarks/run.py --json results.json       # the issue's sizes
     python benchmarks/run.py --cases bias_poly3,allan  # a selection
-    python benchmarks/run.py --host-devices 1          # one XLA CPU device (default: one per core)
+    python benchmarks/run.py --host-devices 0          # one XLA CPU device per core (default: 1)
 
 Runs unchanged on a GPU machine (the backend and device are printed).
 """
@@ -48,6 +48,7 @@ FULL = {
     "kalman": (1_000, 100_000),
     "allan": (100, 1_000_000),
     "diagnose": (100, 20_000),
+    "compile": (256, 2_000),
 }
 QUICK = {
     "bias_poly3": (1_000, 10_000),
@@ -56,6 +57,7 @@ QUICK = {
     "kalman": (200, 50_000),
     "allan": (4, 1_000_000),
     "diagnose": (8, 5_000),
+    "compile": (256, 2_000),
 }
 #: How many devices (series) the per-device Python baselines run, full / quick.
 SUBSET = {
@@ -72,6 +74,7 @@ GOALS = {
     "kalman": "≥100× faster than a filterpy loop, same estimates",
     "allan": "≥3× faster than allantools oadev, same values",
     "diagnose": "report devices/s",
+    "compile": "≤2 s per model spec",
 }
 
 
@@ -574,6 +577,68 @@ def case_diagnose(devices, samples, subset, repeats, bw):
                 note="diagnose('bias_poly(2)') with every candidate; thermal plan")]
 
 
+COMPILE_SPECS = ("bias_poly(3)", "bias_poly(2)+scale_poly(2)+gradient+temp_diff",
+                 "bias_poly(1)+thermal_lag")
+
+COMPILE_CHILD = """
+import json, sys, time
+import numpy as np
+sys.path.insert(0, {here!r})
+import diffgyro
+diffgyro.use_cpu_cores({host_devices})
+diffgyro.enable_x64()
+if {cache!r}:
+    diffgyro.enable_compilation_cache({cache!r})
+import jax
+import run as B
+from diffgyro.fit import fit
+rng = np.random.default_rng(5)
+d, n = {devices}, {samples}
+t, temp = B.thermal_profiles(rng, d, n)
+temp_ext = 0.7 * temp + 5 + 0.5 * rng.normal(size=temp.shape)
+rate = np.repeat(rng.choice([-1.0, 0.0, 1.0], size=(d, n // 200 + 1, 3)), 200, axis=1)[:, :n]
+gyro = rate * 1.001 + 1e-3 * (temp - 20)[..., None] + 1e-4 * rng.normal(size=rate.shape)
+batch = B.make_batch(t, gyro, temp=temp, temp_ext=temp_ext, rate=rate)
+times = []
+for _ in range(3):
+    t0 = time.perf_counter()
+    jax.block_until_ready(fit({spec!r}, batch).params.beta)
+    times.append(time.perf_counter() - t0)
+print(json.dumps({{"first": times[0], "run": float(np.median(times[1:])),
+                  "n_devices": len(jax.devices())}}))
+"""
+
+
+def case_compile(devices, samples, subset, repeats, bw, host_devices=0):
+    """Compile time per model spec: the first fit() in a fresh process minus a later one,
+    cold (no persistent compilation cache) and with the cache filled by an earlier
+    process (``diffgyro.enable_compilation_cache``, on in the command line)."""
+    import subprocess
+    import tempfile
+
+    def child(spec, cache):
+        code = COMPILE_CHILD.format(here=str(Path(__file__).parent), cache=cache, spec=spec,
+                                    devices=devices, samples=samples,
+                                    host_devices=host_devices if host_devices else None)
+        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=600, check=True)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    rows = []
+    for spec in COMPILE_SPECS:
+        cold = child(spec, "")
+        with tempfile.TemporaryDirectory() as cache:
+            child(spec, cache)  # fills the cache
+            warm = child(spec, cache)
+        rows.append(row(f"compile:{spec}", devices, samples, cold["run"], cold["first"], None, None,
+                        None, None, 0, bw, spec=spec,
+                        compile_cached_s=max(warm["first"] - warm["run"], 0.0),
+                        note="fit(spec) with defaults (noise floor included) in a fresh "
+                             f"process on {cold['n_devices']} JAX devices; compile_s cold, "
+                             "compile_cached_s with the persistent compilation cache filled"))
+    return rows
+
+
 CASES = {
     "bias_poly3": case_bias_poly3,
     "s2_regression": case_s2,
@@ -581,6 +646,7 @@ CASES = {
     "kalman": case_kalman,
     "allan": case_allan,
     "diagnose": case_diagnose,
+    "compile": case_compile,
 }
 
 
@@ -598,6 +664,7 @@ def fmt(x, spec=".3g"):
 def table(rows) -> str:
     cols = [("case", "case", "s"), ("devices", "devices", "d"), ("samples", "samples", "d"),
             ("diffgyro_s", "diffgyro s", ".3g"), ("compile_s", "compile s", ".2g"),
+            ("compile_cached_s", "from cache", ".2g"),
             ("baseline_s", "baseline s", ".3g"), ("speedup", "speedup", ".3g"),
             ("max_rel_diff", "max rel diff", ".1e"),
             ("fraction_of_bandwidth_limit", "of BW limit", ".1%"), ("baseline", "baseline", "s")]
@@ -615,9 +682,10 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
     p.add_argument("--direct-lag", action="store_true",
                    help="thermal_lag: also time fit(path='direct') (optimistix LM; slow at full size)")
-    p.add_argument("--host-devices", type=int, default=0,
-                   help="XLA CPU devices (fit() runs its device groups side by side over them); "
-                        "0 = one per core (diffgyro.use_cpu_cores), 1 = JAX's default")
+    p.add_argument("--host-devices", type=int, default=1,
+                   help="XLA CPU devices: 1 = JAX's default, 0 = one per core "
+                        "(diffgyro.use_cpu_cores; fit() still runs on the first, Kalman and "
+                        "Allan on one)")
     args = p.parse_args(argv)
     import diffgyro
 
@@ -640,7 +708,8 @@ def main(argv=None) -> int:
         d, n = sizes[name]
         sub = SUBSET.get(name, (0, 0))[1 if args.quick else 0]
         t0 = now()
-        kw = {"also_direct": args.direct_lag} if name == "thermal_lag" else {}
+        kw = {"also_direct": args.direct_lag} if name == "thermal_lag" else \
+            {"host_devices": args.host_devices} if name == "compile" else {}
         new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"], **kw)
         for r in new:
             r.update(mode="quick" if args.quick else "full", backend=info["backend"],

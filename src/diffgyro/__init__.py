@@ -41,10 +41,12 @@ def enable_compilation_cache(path: str | None = None) -> None:
 
 def use_cpu_cores(n: int | None = None) -> int:
     """One XLA CPU device per core (``n``, default the cores this process may run on,
-    at most 16), so that fit() runs its groups of devices side by side: XLA runs one
-    compiled call at a time on a CPU device. Process-wide, and only possible before
-    JAX's first operation; a device count the user set (``XLA_FLAGS`` or
-    ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
+    at most 16): the streaming pipeline shards its chunks over them
+    (:mod:`diffgyro.pipeline.chunkfit`), and user code can ``pmap`` over them. fit()
+    keeps to the first CPU device: its groups run side by side on two deadlocked in
+    XLA's CPU runtime. Process-wide, and only possible before JAX's first operation;
+    a device count the user set (``XLA_FLAGS`` or ``jax_num_cpu_devices``) is kept.
+    Returns the number of CPU devices.
     """
     import os
 

@@ -801,10 +801,8 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
 def _group_noise(gyro, rate, mask):
     """Model-free white-noise σ per axis of every device (:func:`diffgyro.fit._noise_floor`).
 
-    A program of its own: the same for every model spec, so compiled once per shape
-    however many specs are fitted; its sort cannot be serialized by XLA, which would
-    keep the model's program from being loaded on other devices without compiling
-    (:mod:`diffgyro.jit`).
+    A program of its own: it does not depend on the model, so it is compiled once per
+    shape however many model specs are fitted (diagnose fits many).
     """
     from . import fit as F
 
@@ -879,6 +877,13 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     if "t" not in need:
         arrays["t"] = None
     devices = jax.local_devices()
+    if devices[0].platform == "cpu":
+        # groups running side by side on two XLA CPU devices deadlocked (jaxlib 0.10.2:
+        # S2's regression, 256 devices of 2000 samples, every run; all worker threads idle,
+        # the caller waiting on a result; also with transfers finished before dispatch,
+        # without the thunk runtime and with single-threaded Eigen). One CPU device runs
+        # every group; the host still prepares the next group while XLA runs the last.
+        devices = devices[:1]
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
@@ -903,8 +908,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
             pos = None
         else:
             pos = None
-        # groups take turns on the local devices (one XLA CPU device runs one call at a
-        # time; diffgyro.use_cpu_cores makes one per core); one transfer call per group
+        # groups take turns on the local accelerators; one transfer call per group
         put = jax.device_put(host, devices[j % len(devices)])
         args = [put.get(k) for k in (*order, "nv", "theta0")]
         return stop - start, (model, layout, opts, c, prefix, *args, put.get("pos", pos))
