@@ -609,7 +609,7 @@ print(json.dumps({{"first": times[0], "run": float(np.median(times[1:])),
 """
 
 
-def case_compile(devices, samples, subset, repeats, bw, host_devices=0):
+def case_compile(devices, samples, subset, repeats, bw, host_devices=1, specs=COMPILE_SPECS):
     """Compile time per model spec: the first fit() in a fresh process minus a later one,
     cold (no persistent compilation cache) and with the cache filled by an earlier
     process (``diffgyro.enable_compilation_cache``, on in the command line)."""
@@ -625,7 +625,7 @@ def case_compile(devices, samples, subset, repeats, bw, host_devices=0):
         return json.loads(out.stdout.strip().splitlines()[-1])
 
     rows = []
-    for spec in COMPILE_SPECS:
+    for spec in specs:
         cold = child(spec, "")
         with tempfile.TemporaryDirectory() as cache:
             child(spec, cache)  # fills the cache

@@ -33,3 +33,11 @@ def test_case_runs_and_agrees(bench, case, args):
         assert r["max_rel_diff"] < 1e-8, (case, r["baseline"], r["max_rel_diff"])
         assert 0 < r["fraction_of_bandwidth_limit"]
     assert "| " + case in bench.table(rows)
+
+
+def test_compile_case_runs_in_fresh_processes(bench):
+    """The compile case: cold and cached first calls of fit() in child processes."""
+    (r,) = bench.case_compile(4, 400, 0, 1, 1e10, specs=("bias_poly(1)",))
+    assert KEYS <= set(r) and r["case"] == "compile:bias_poly(1)"
+    assert r["compile_s"] > 0 and r["compile_cached_s"] >= 0 and r["diffgyro_s"] > 0
+    assert "compile:bias_poly(1)" in bench.table([r])
