@@ -66,10 +66,10 @@ def test_sharded_stream_equals_single_device(tmp_path):
     from diffgyro.pipeline import fit_dataset
     from diffgyro.pipeline import chunkfit
     fit_dataset([{str(data)!r}], {MODEL!r}, out={str(tmp_path)!r} + "/sharded/cal.json",
-                chunk_devices={CHUNK}, progress=False)
+                chunk_devices={CHUNK}, progress=False, shard=True)
     # the sharded direct path (linear models the sums path cannot take): split over both
     # devices, and no collective operation in the compiled program
-    fitter = chunkfit.ChunkFitter({MODEL!r}, {CHUNK})
+    fitter = chunkfit.ChunkFitter({MODEL!r}, {CHUNK}, shard=True)
     from diffgyro.io import load
     from diffgyro.data import Batch
     batch = Batch.from_recordings(load({str(data)!r} + "/part-00.parquet")[:{CHUNK}])
@@ -116,7 +116,7 @@ def test_sharded_variable_projection_does_not_hang(tmp_path):
     batch, truth = simulate("warmup", 5, effects="bias_poly(0)+warmup", seed=3,
                             sample_rate=0.5, duration=1800.0)
     out = {}
-    for name, shard in (("sharded", None), ("single", False)):
+    for name, shard in (("sharded", True), ("single", False)):
         fitter = ChunkFitter("bias_poly(0)+warmup", 5, {"n_folds": 2},
                              shard=shard)
         r = fitter.fit_direct(batch)
@@ -201,6 +201,18 @@ def test_largest_groups_on_two_cpu_devices_finish():
     """
     out = run_forced(script, timeout=240)
     assert out["ok"] == out["d"]
+
+
+def test_cpu_devices_are_not_sharded_by_default():
+    """Two CPU devices: the streaming path keeps each chunk on one (no mesh) unless
+    asked; with shard=True it takes both."""
+    out = run_forced("""
+    from diffgyro.pipeline.chunkfit import ChunkFitter, local_mesh
+    print(json.dumps({"default": local_mesh() is None,
+                      "fitter": ChunkFitter("bias_poly(1)", 4).n_shards,
+                      "forced": ChunkFitter("bias_poly(1)", 4, shard=True).n_shards}))
+    """, timeout=120)
+    assert out == {"default": True, "fitter": 1, "forced": 2}
 
 
 def test_s2_regression_with_two_cpu_devices_finishes():

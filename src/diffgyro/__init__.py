@@ -41,12 +41,12 @@ def enable_compilation_cache(path: str | None = None) -> None:
 
 def use_cpu_cores(n: int | None = None) -> int:
     """One XLA CPU device per core (``n``, default the cores this process may run on,
-    at most 16): the streaming pipeline shards its chunks over them
-    (:mod:`diffgyro.pipeline.chunkfit`), and user code can ``pmap`` over them. fit()
-    keeps to the first CPU device: its groups run side by side on two deadlocked in
-    XLA's CPU runtime. Process-wide, and only possible before JAX's first operation;
-    a device count the user set (``XLA_FLAGS`` or ``jax_num_cpu_devices``) is kept.
-    Returns the number of CPU devices.
+    at most 16), for user code that maps over devices. diffgyro itself keeps to one
+    CPU device: programs running side by side on two XLA CPU devices deadlocked
+    (fit()'s groups, and the streaming path's sharded chunks; the latter shard over
+    CPU devices only with ``shard=True``). Process-wide, and only possible before
+    JAX's first operation; a device count the user set (``XLA_FLAGS`` or
+    ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
     """
     import os
 

@@ -9,8 +9,9 @@ path of this module (:func:`diffgyro.fit.solve_device` per device):
 Each chunk is padded on the device axis to a fixed size (copies of its last
 device, whose results are dropped) and on the sample axis to a bucket length,
 so every chunk of a run reuses one compiled function. With several local JAX
-devices (GPUs, or CPU devices forced with
-``XLA_FLAGS=--xla_force_host_platform_device_count=N``) the device axis is
+devices (GPUs; CPU devices, forced with
+``XLA_FLAGS=--xla_force_host_platform_device_count=N``, only with ``shard=True``:
+see :func:`local_mesh`) the device axis is
 laid out as (shards, blocks, block) with the shard axis placed on a one-axis
 mesh (``NamedSharding``): XLA partitions the vmap over shards, so each JAX
 device fits its own slice. Linear models compile to a program without any
@@ -74,9 +75,15 @@ def _solve(model: ErrorModel, sig, opts: FitOptions, block: int, mesh: Mesh | No
 
 
 def local_mesh(shard: bool | None = None) -> Mesh | None:
-    """A one-axis mesh over the local JAX devices, or None for one device / ``shard=False``."""
+    """A one-axis mesh over the local JAX devices; None for one device, for
+    ``shard=False``, and by default (``None``) for CPU devices: programs running
+    side by side on two XLA CPU devices deadlocked (S2's regression, 256 devices ×
+    2000 samples, on this path and on fit()'s). ``shard=True`` shards over CPU
+    devices anyway (the tests do, on models that finish)."""
     devices = jax.local_devices()
     if shard is False or len(devices) < 2:
+        return None
+    if shard is None and devices[0].platform == "cpu":
         return None
     return Mesh(np.asarray(devices), (AXIS,))
 
