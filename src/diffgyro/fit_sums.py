@@ -51,7 +51,7 @@ from jax.interpreters import partial_eval as pe
 from jaxtyping import Bool
 
 from .data import Batch
-from .jit import filter_jit
+from .jit import filter_jit, parallel_devices
 from .model import ErrorModel
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
@@ -876,18 +876,13 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         arrays[k] = arr if (arr is not None and (k in need or k in ("temp", "rate"))) else None
     if "t" not in need:
         arrays["t"] = None
-    devices = jax.local_devices()
-    if devices[0].platform == "cpu":
-        # groups running side by side on two XLA CPU devices deadlocked (jaxlib 0.10.2:
-        # S2's regression, 256 devices of 2000 samples, every run; all worker threads idle,
-        # the caller waiting on a result; also with transfers finished before dispatch,
-        # without the thunk runtime and with single-threaded Eigen). One CPU device runs
-        # every group; the host still prepares the next group while XLA runs the last.
-        devices = devices[:1]
+    # groups take turns on the accelerators; on a CPU one device runs every group, the
+    # host preparing the next group while XLA runs the last
+    devices = parallel_devices()
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
-    def prepare(j: int):
+    def run(j: int):
         start = j * g
         stop = min(start + g, d)
         sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
@@ -908,24 +903,20 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
             pos = None
         else:
             pos = None
-        # groups take turns on the local accelerators; one transfer call per group
-        put = jax.device_put(host, devices[j % len(devices)])
+        put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
         args = [put.get(k) for k in (*order, "nv", "theta0")]
-        return stop - start, (model, layout, opts, c, prefix, *args, put.get("pos", pos))
-
-    def run(m, args):
-        out = _group(*args)
-        gyro, mask, rate = args[6], args[7], args[8]
+        out = _group(model, layout, opts, c, prefix, *args, put.get("pos", pos))
         if opts.noise_floor:
-            out = {**out, **_group_noise(gyro, rate, mask)}
-        else:
-            out = {**out, "noise_floor": np.full(g, np.nan, dtype),
-                   "noise_axes": np.full((g, 3), np.nan, dtype)}
-        return m, out
+            out = {**out, **_group_noise(put["gyro"], put.get("rate"), put["mask"])}
+        return stop - start, out
 
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
-    outs = [run(m, a) for m, a in map(prepare, range(-(-d // g)))]
+    outs = [run(j) for j in range(-(-d // g))]
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
-    return {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
-            for k in got[0]}
+    out = {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
+           for k in got[0]}
+    if not opts.noise_floor:
+        out["noise_floor"] = np.full(d, np.nan, dtype)
+        out["noise_axes"] = np.full((d, 3), np.nan, dtype)
+    return out

@@ -36,6 +36,18 @@ def filter_jit(fun: Callable[..., Any]) -> Callable[..., Any]:
     return call
 
 
+def parallel_devices() -> list:
+    """The local JAX devices that compiled calls may run on side by side: every
+    accelerator, but one CPU device. Programs running side by side on two XLA CPU
+    devices deadlocked (jaxlib 0.10.2: S2's regression, 256 devices × 2000 samples,
+    every run, both as fit()'s groups taking turns and as one program sharded over a
+    mesh; all worker threads idle, the caller waiting on a result; also with
+    transfers finished before dispatch, without the thunk runtime and with
+    single-threaded Eigen)."""
+    devices = jax.local_devices()
+    return devices[:1] if devices[0].platform == "cpu" else devices
+
+
 def _split(args, kwargs):
     """(treedef, static leaves, array leaves) of the arguments; None marks the other kind."""
     leaves, treedef = jax.tree.flatten((args, kwargs))
@@ -43,4 +55,3 @@ def _split(args, kwargs):
     static = tuple(None if a else x for x, a in zip(leaves, arrays, strict=True))
     dynamic = [x if a else None for x, a in zip(leaves, arrays, strict=True)]
     return treedef, static, dynamic
-

@@ -35,6 +35,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 from ..data import Batch
 from ..errors import SpecError
 from ..fit import FitOptions, FitResult, sampling_intervals, solve_device
+from ..jit import parallel_devices
 from ..model import ErrorModel, Params
 from ..signals import TempNorm, make_signals
 
@@ -75,15 +76,12 @@ def _solve(model: ErrorModel, sig, opts: FitOptions, block: int, mesh: Mesh | No
 
 
 def local_mesh(shard: bool | None = None) -> Mesh | None:
-    """A one-axis mesh over the local JAX devices; None for one device, for
-    ``shard=False``, and by default (``None``) for CPU devices: programs running
-    side by side on two XLA CPU devices deadlocked (S2's regression, 256 devices ×
-    2000 samples, on this path and on fit()'s). ``shard=True`` shards over CPU
-    devices anyway (the tests do, on models that finish)."""
-    devices = jax.local_devices()
+    """A one-axis mesh over the devices that may run side by side
+    (:func:`diffgyro.jit.parallel_devices`: one CPU device, so no mesh on a CPU), or
+    over every local device with ``shard=True`` (the tests do, on models that
+    finish); None for one device or ``shard=False``."""
+    devices = jax.local_devices() if shard else parallel_devices()
     if shard is False or len(devices) < 2:
-        return None
-    if shard is None and devices[0].platform == "cpu":
         return None
     return Mesh(np.asarray(devices), (AXIS,))
 
