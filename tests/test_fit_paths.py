@@ -10,6 +10,7 @@ batches split over many compiled groups.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -339,3 +340,17 @@ def test_valid_counts(n):
         np.testing.assert_array_equal(count, want)
         np.testing.assert_array_equal(prefix, [np.array_equal(r, np.arange(n) < k)
                                                for r, k in zip(m, want)])
+
+
+def test_group_results_pack_into_one_array_and_back_exactly():
+    from diffgyro.fit_sums import _pack, _unpack_results
+
+    rng = np.random.default_rng(0)
+    out = {"beta": rng.normal(size=(4, 3, 2)), "status": np.array([0, 3, 7, 2**20], np.int32),
+           "flags": rng.random((4, 2)) > 0.5, "rms": rng.normal(size=4)}
+    packed, spec = jax.jit(lambda o: _pack(o, jnp.float64))(out)
+    assert packed.shape == (4, 6 + 1 + 2 + 1)
+    back = _unpack_results(np.asarray(packed), spec)
+    for k, v in out.items():
+        assert back[k].dtype == v.dtype and back[k].shape == v.shape
+        np.testing.assert_array_equal(back[k], v)

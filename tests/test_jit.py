@@ -6,6 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from diffgyro.jit import filter_jit
 
@@ -54,3 +55,26 @@ def test_returns_jax_arrays_and_lowers():
     assert isinstance(out, jax.Array)
     np.testing.assert_array_equal(np.asarray(out), [0.0, 2.0, 6.0, 12.0])
     assert "func.func" in f.lower(np.arange(4.0), 2).as_text()  # the same arguments lower
+
+
+def test_compiler_options_reach_xla_and_eval_shape_reuses_the_trace():
+    traces = []
+
+    def body(x, n):
+        traces.append(n)
+        return {"s": jnp.sum(x.reshape(n, -1), axis=1), "k": jnp.zeros((), jnp.int32) + n}
+
+    plain = filter_jit(body)
+    fast = filter_jit(compiler_options={"xla_cpu_enable_fast_math": True,
+                                        "xla_cpu_fast_math_honor_nans": True})(body)
+    x = np.random.default_rng(0).normal(size=4096)
+    a, b = plain(x, 4), fast(x, 4)
+    np.testing.assert_allclose(b["s"], a["s"], rtol=1e-12)  # reassociated sums, to rounding
+    assert int(b["k"]) == 4
+    shapes = fast.eval_shape(x, 4)
+    assert shapes["s"].shape == (4,) and shapes["k"].dtype == jnp.int32
+    assert traces == [4, 4]  # eval_shape after the call: no third trace
+    # an option XLA does not know is an error, so the options are not silently dropped
+    bad = filter_jit(compiler_options={"xla_no_such_option": True})(body)
+    with pytest.raises(Exception, match="xla_no_such_option"):
+        bad(x, 4)

@@ -18,11 +18,15 @@ import equinox as eqx
 import jax
 
 
-def filter_jit(fun: Callable[..., Any]) -> Callable[..., Any]:
+def filter_jit(fun: Callable[..., Any] | None = None, *,
+               compiler_options: dict[str, Any] | None = None) -> Callable[..., Any]:
     """Compile ``fun``: array leaves of its arguments traced, other leaves static
-    (hashable); results are not waited for."""
+    (hashable); results are not waited for. ``compiler_options`` go to XLA for this
+    program only (``filter_jit(compiler_options=...)`` decorates)."""
+    if fun is None:
+        return functools.partial(filter_jit, compiler_options=compiler_options)
 
-    @functools.partial(jax.jit, static_argnums=(0, 1))
+    @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=compiler_options)
     def compiled(treedef, static, dynamic):
         leaves = [s if d is None else d for s, d in zip(static, dynamic)]
         args, kwargs = jax.tree.unflatten(treedef, leaves)
@@ -33,6 +37,8 @@ def filter_jit(fun: Callable[..., Any]) -> Callable[..., Any]:
         return compiled(*_split(args, kwargs))
 
     call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
+    # shapes and dtypes of the results, from the same (cached) trace as a call
+    call.eval_shape = lambda *a, **k: compiled.eval_shape(*_split(a, k))  # type: ignore[attr-defined]
     return call
 
 
