@@ -354,3 +354,29 @@ def test_group_results_pack_into_one_array_and_back_exactly():
     for k, v in out.items():
         assert back[k].dtype == v.dtype and back[k].shape == v.shape
         np.testing.assert_array_equal(back[k], v)
+
+
+
+def test_models_with_time_constants_run_in_small_groups(monkeypatch):
+    """Batched Newton loops run in lockstep (a group takes as many steps as its slowest
+    device), so a model with time constants gets smaller groups than a linear one."""
+    sizes = {}
+
+    class Seen(Exception):
+        pass
+
+    def spy(model, layout, opts, c, prefix, t, gyro, *rest):
+        sizes[model.n_nonlinear > 0] = gyro.shape[0]
+        raise Seen  # the group size is all this test needs: nothing is compiled
+
+    monkeypatch.setattr(fs._group, "eval_shape", spy)
+    n, d = 10_000, 40
+    rng = np.random.default_rng(0)
+    temp = np.linspace(-10.0, 50.0, n)[None].repeat(d, 0)
+    batch = Batch(t=np.arange(n, dtype=float)[None].repeat(d, 0),
+                  gyro=1e-4 * rng.normal(size=(d, n, 3)), mask=np.ones((d, n), bool),
+                  n_valid=np.full(d, n), temp=temp, devices=tuple(f"u{i}" for i in range(d)))
+    for spec in ("bias_poly(1)", "bias_poly(1)+thermal_lag"):
+        with pytest.raises(Seen):
+            fit(spec, batch, noise_floor=False)
+    assert sizes[True] == 2 < sizes[False]

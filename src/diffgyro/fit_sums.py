@@ -66,6 +66,12 @@ GROUP_SAMPLES = 1 << 17
 #: a 2-core EPYC, 32 MB L3: S2's regression 150 ms per 200 devices × 10k samples in
 #: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
 FUSED_GROUP_FACTOR = 8
+#: Models with time constants run batched Newton loops in lockstep: a group takes as
+#: many steps as its slowest device and fold. Their groups hold this many times fewer
+#: samples (at least 2 devices). Measured on the 2-core EPYC, bias_poly(1)+thermal_lag,
+#: 256 devices × 10 000 samples: groups of 2 devices 1.47 s, of 8 (the linear size)
+#: 1.95 s, of 1 device 1.85 s; at 2000 samples groups of 2 to 64 ran alike (0.8 s).
+NONLINEAR_GROUP_DIVISOR = 4
 #: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
 #: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff on one CPU device (all
 #: threads idle, reproducible; 512 ran), nor two groups of 256 running side by side on
@@ -890,7 +896,10 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     layout, need = layout_of(model, present)
     d, n = batch.n_devices, batch.length
     fused = layout.pointwise and all(layout.shared)
-    g = group_size(d, n, GROUP_SAMPLES * (FUSED_GROUP_FACTOR if fused else 1))
+    if model.n_nonlinear:
+        g = max(group_size(d, n, GROUP_SAMPLES // NONLINEAR_GROUP_DIVISOR), min(2, d))
+    else:
+        g = group_size(d, n, GROUP_SAMPLES * (FUSED_GROUP_FACTOR if fused else 1))
     dt = sampling_intervals(batch) if "dt" in need else np.ones(d)
     centre = scale = None
     if norm is not None and batch.temp is not None:
