@@ -34,8 +34,11 @@ and Hessian from one pass. The held-out folds refit from the full optimum, their
 first step from one shared pass.
 
 Devices are processed in groups of a fixed size on the host (and spread over
-every local JAX device), so only the group size — not the number of devices —
-is part of the compiled shape.
+every local accelerator), so only the group size — not the number of devices —
+is part of the compiled shape. Models with time constants take smaller groups:
+their batched Newton loops step in lockstep with the group's slowest device.
+The group program may reassociate its sums (:data:`REASSOCIATE`), and returns its
+results packed in one array per group.
 """
 
 from __future__ import annotations

@@ -6,7 +6,9 @@ at a time: the host prepares the next group while the CPU is idle, and two
 groups never share the cores. diffgyro raises no runtime errors from inside
 compiled code (bad devices get a status), so it can let JAX dispatch
 asynchronously, as ``jax.jit`` does. Arrays (JAX or numpy) are traced;
-everything else is static, as in ``equinox.filter_jit``.
+everything else is static, as in ``equinox.filter_jit``. XLA options can be
+given per program (``filter_jit(compiler_options=...)``), and ``eval_shape``
+gives a call's result shapes from its cached trace.
 """
 from __future__ import annotations
 
