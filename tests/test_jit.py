@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.jit import filter_jit
+from diffgyro.jit import filter_jit, map_limit, mapped_regions, release_compiled_if_crowded
 
 
 class Poly(eqx.Module):
@@ -78,3 +78,38 @@ def test_compiler_options_reach_xla_and_eval_shape_reuses_the_trace():
     bad = filter_jit(compiler_options={"xla_no_such_option": True})(body)
     with pytest.raises(Exception, match="xla_no_such_option"):
         bad(x, 4)
+
+
+def test_compiled_programs_are_released_near_the_mapping_limit():
+    held = mapped_regions()
+    if held is None or map_limit() is None:
+        pytest.skip("no /proc/self/maps or vm.max_map_count here")
+    traces = []
+
+    @filter_jit
+    def f(x, k):
+        traces.append(k)
+        return jnp.cumsum(jnp.sin(x) * k)
+
+    x = np.linspace(0.0, 1.0, 33)
+    for k in range(4):  # a few programs, each holding its own mappings
+        f(x, k)
+    assert not release_compiled_if_crowded(limit=10 * map_limit())  # far from the limit: kept
+    f(x, 0)
+    assert traces == [0, 1, 2, 3]
+    held = mapped_regions()
+    assert release_compiled_if_crowded(fraction=0.5, limit=held)  # over half a limit this low
+    assert mapped_regions() < held  # the programs' mappings are gone
+    f(x, 0)
+    assert traces == [0, 1, 2, 3, 0]  # traced and compiled again
+
+
+def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
+    import diffgyro.fit as F
+    from diffgyro.simulate import demo_batch
+
+    calls = []
+    monkeypatch.setattr(F, "release_compiled_if_crowded", lambda: calls.append(1) or False)
+    batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=600.0)
+    F.fit("bias_poly(1)", batch)
+    assert calls == [1]

@@ -27,6 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from .data import Batch, Recording
 from .errors import DataError
+from .jit import release_compiled_if_crowded
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 
@@ -560,6 +561,7 @@ def fit(
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
+    release_compiled_if_crowded()  # before this fit compiles its programs
     missing = model.requires() - set(batch.signals) - {"t"}
     if missing:
         col = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az",

@@ -9,10 +9,15 @@ asynchronously, as ``jax.jit`` does. Arrays (JAX or numpy) are traced;
 everything else is static, as in ``equinox.filter_jit``. XLA options can be
 given per program (``filter_jit(compiler_options=...)``), and ``eval_shape``
 gives a call's result shapes from its cached trace.
+
+:func:`release_compiled_if_crowded` drops compiled programs before a process
+runs out of memory mappings (XLA's CPU JIT maps every kernel separately).
 """
 from __future__ import annotations
 
 import functools
+import gc
+import logging
 from collections.abc import Callable
 from typing import Any
 
@@ -54,6 +59,54 @@ def parallel_devices() -> list:
     single-threaded Eigen)."""
     devices = jax.local_devices()
     return devices[:1] if devices[0].platform == "cpu" else devices
+
+
+MAP_HEADROOM = 0.5  # share of vm.max_map_count past which compiled programs are dropped
+
+
+@functools.cache
+def map_limit() -> int | None:
+    """The kernel's limit on a process's memory mappings (``vm.max_map_count``), or None
+    where it can not be read (not Linux)."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return None
+
+
+def mapped_regions() -> int | None:
+    """How many memory mappings this process holds now (None where it can not be read)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return f.read().count(b"\n")
+    except OSError:
+        return None
+
+
+def release_compiled_if_crowded(fraction: float = MAP_HEADROOM, limit: int | None = None) -> bool:
+    """Drop JAX's compiled programs if this process holds more than ``fraction`` of the
+    mappings the kernel allows (``limit``, default ``vm.max_map_count``); True if it did.
+
+    XLA's CPU JIT maps each compiled kernel's sections on their own: the programs
+    of one thermal_lag fit hold about 1000 mappings, bias_poly(3)'s about 270, and
+    they stay while the program is cached. A process that compiles a few hundred
+    programs (a test worker, a service calibrating many model specs) reaches the
+    limit (65530 by default); the JIT then can not load new kernels ("Failed to
+    materialize symbols") and jaxlib 0.10.2 segfaulted unwinding that error.
+    Clearing JAX's caches unmaps them; later calls compile again, or load from the
+    persistent compilation cache.
+    """
+    limit = map_limit() if limit is None else limit
+    held = mapped_regions()
+    if limit is None or held is None or held <= fraction * limit:
+        return False
+    jax.clear_caches()
+    gc.collect()
+    logging.getLogger("diffgyro").info(
+        "released compiled programs: %d memory mappings of %d allowed, now %s",
+        held, limit, mapped_regions())
+    return True
 
 
 def _split(args, kwargs):
