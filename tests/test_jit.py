@@ -102,6 +102,9 @@ def test_compiled_programs_are_released_near_the_mapping_limit():
     assert mapped_regions() < held  # the programs' mappings are gone
     f(x, 0)
     assert traces == [0, 1, 2, 3, 0]  # traced and compiled again
+    # within ``interval`` of the last check nothing is counted, so nothing is released
+    assert release_compiled_if_crowded(fraction=0.0, limit=1)
+    assert not release_compiled_if_crowded(fraction=0.0, limit=1, interval=60.0)
 
 
 def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
@@ -109,7 +112,7 @@ def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
     from diffgyro.simulate import demo_batch
 
     calls = []
-    monkeypatch.setattr(F, "release_compiled_if_crowded", lambda: calls.append(1) or False)
+    monkeypatch.setattr(F, "release_compiled_if_crowded", lambda **kw: calls.append(kw) or False)
     batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=600.0)
     F.fit("bias_poly(1)", batch)
-    assert calls == [1]
+    assert calls == [{"interval": 1.0}]  # at most one count of the mappings a second

@@ -561,7 +561,7 @@ def fit(
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
-    release_compiled_if_crowded()  # before this fit compiles its programs
+    release_compiled_if_crowded(interval=1.0)  # before this fit compiles its programs
     missing = model.requires() - set(batch.signals) - {"t"}
     if missing:
         col = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az",
