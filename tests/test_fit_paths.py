@@ -356,7 +356,6 @@ def test_group_results_pack_into_one_array_and_back_exactly():
         np.testing.assert_array_equal(back[k], v)
 
 
-
 def test_models_with_time_constants_run_in_small_groups(monkeypatch):
     """Batched Newton loops run in lockstep (a group takes as many steps as its slowest
     device), so a model with time constants gets smaller groups than a linear one."""
