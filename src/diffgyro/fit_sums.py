@@ -398,18 +398,22 @@ def _sse(a, c, q, beta):
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
-def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
-    """Minimise a smooth function of a few parameters (log time constants).
+def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
+    """Minimise smooth functions of a few parameters (log time constants), one after another.
 
-    ``evaluate(θ)`` gives the value, gradient, Hessian and an aux pytree in
-    one pass over the samples. Newton steps: negative curvature is flipped
-    and a Levenberg term damps the step, which is accepted only if the value
-    does not grow (and is at most 1 in log τ); near a minimum (convex, Newton
-    step below 1e-3) the plain Newton step is taken. A trial is evaluated
-    once — its gradient and Hessian come with its value, so an accepted step
-    needs no second pass. Converged when the Newton step at the current point
-    is below ``rtol·(1 + |θ|)``. ``first`` is ``evaluate(theta0)`` when already known.
-    Returns (theta, value, aux, steps, converged).
+    ``evaluate(j, θ)`` gives problem j's value, gradient, Hessian and an aux pytree
+    in one pass over the samples. Problem 0 starts at ``theta0``, every later one at
+    problem 0's optimum (the folds' refits start from the full fit's); problem j takes
+    at most ``caps[j]`` steps. The problems share one loop, so ``evaluate`` is traced
+    and compiled once, and each pass evaluates one problem, as many passes as steps.
+
+    Newton steps: negative curvature is flipped and a Levenberg term damps the step,
+    which is accepted only if the value does not grow (and is at most 1 in log τ);
+    near a minimum (convex, Newton step below 1e-3) the plain Newton step is taken. A
+    trial is evaluated once — its gradient and Hessian come with its value, so an
+    accepted step needs no second pass. Converged when the Newton step at the current
+    point is below ``rtol·(1 + |θ|)``. A problem's first pass evaluates its start.
+    Returns per problem (theta, value, aux, steps, converged), stacked.
     """
     def proposal(th, g, h, lam):
         if th.shape[0] == 1:  # one time constant: the eigen-decomposition is the number
@@ -432,31 +436,52 @@ def _newton(evaluate, theta0, max_steps: int, rtol, first=None):
         step = step * jnp.minimum(1.0, 1.0 / jnp.maximum(size, 1e-300))
         return step, near, size_n <= rtol * scale_th
 
+    n_problems = len(caps)
+    caps_ = jnp.asarray(caps, jnp.int32)
+
     def body(state):
-        th, v, g, h, aux, lam, k, _ = state
+        j, th, v, g, h, aux, lam, k, out = state
+        first = k == 0
         step, near, _ = proposal(th, g, h, lam)
-        v_new, g_new, h_new, aux_new = evaluate(th + step)
-        ok = jnp.isfinite(v_new) & ((v_new <= v) | near)
+        step = jnp.where(first, 0.0, step)
+        v_new, g_new, h_new, aux_new = evaluate(j, th + step)
+        ok = jnp.isfinite(v_new) & ((v_new <= v) | near | first)
         th, v, g, h, aux = jax.tree.map(lambda a, b: jnp.where(ok, a, b),
                                         (th + step, v_new, g_new, h_new, aux_new),
                                         (th, v, g, h, aux))
-        lam = jnp.where(ok, lam * 0.3, lam * 10.0)
-        done = jnp.isfinite(v) & proposal(th, g, h, lam)[2]
-        return th, v, g, h, aux, lam, k + 1, done
+        lam = jnp.where(first, lam, jnp.where(ok, lam * 0.3, lam * 10.0))
+        # a start where the function is not finite ends the problem there
+        done = (jnp.isfinite(v) & proposal(th, g, h, lam)[2]) | ~jnp.isfinite(v)
+        k = k + 1
+        end = done | (k > caps_[j])
+        out = jax.tree.map(lambda o, a: o.at[j].set(jnp.where(end, a, o[j])), out,
+                           (th, v, aux, k - 1, done))
+        # the next problem starts afresh from problem 0's optimum
+        restart = (out[0][0], jnp.inf, jnp.zeros_like(g), jnp.eye(g.shape[0], dtype=h.dtype),
+                   aux, 1e-3, 0)
+        th, v, g, h, aux, lam, k = jax.tree.map(lambda a, b: jnp.where(end, a, b), restart,
+                                                (th, v, g, h, aux, lam, k))
+        return j + end.astype(j.dtype), th, v, g, h, aux, lam, k, out
 
     def cond(state):
-        return (state[6] < max_steps) & ~state[7]
+        return state[0] < n_problems
 
-    v, g, h, aux = evaluate(theta0) if first is None else first
-    # the damping and the step count start as functions of v (the same values): under
-    # vmap every carry is then batched from the start, and the loop's batching rule
-    # traces the body once instead of twice
-    any_v = jnp.isnan(v)
-    lam = jnp.where(any_v, 1e-3, 1e-3).astype(theta0.dtype)
-    done = jnp.isfinite(v) & proposal(theta0, g, h, lam)[2]
-    init = (theta0, v, g, h, aux, lam, jnp.where(any_v, 0, 0).astype(jnp.int32), done)
-    th, v, _, _, aux, _, k, done = lax.while_loop(cond, body, init)
-    return th, v, aux, k, done
+    # every carry starts as a function of θ0 (the same values): under vmap each is then
+    # batched from the start, and the loop's batching rule traces the body once, not twice
+    nan0 = jnp.isnan(theta0[0])
+
+    def batched(x):
+        return jnp.where(nan0, x, x)
+
+    q, dtype = theta0.shape[0], theta0.dtype
+    aux0 = jax.tree.map(lambda a: batched(jnp.zeros(a.shape, a.dtype)),
+                        jax.eval_shape(lambda th: evaluate(jnp.int32(0), th), theta0)[3])
+    out0 = jax.tree.map(lambda a: batched(jnp.zeros((n_problems,) + a.shape, a.dtype)),
+                        (theta0, theta0[0], aux0, jnp.int32(0), jnp.asarray(False)))
+    init = (batched(jnp.asarray(0, jnp.int32)), theta0, batched(jnp.asarray(jnp.inf, dtype)),
+            batched(jnp.zeros((q,), dtype)), batched(jnp.eye(q, dtype=dtype)), aux0,
+            batched(jnp.asarray(1e-3, dtype)), batched(jnp.asarray(0, jnp.int32)), out0)
+    return lax.while_loop(cond, body, init)[-1]
 
 
 def _product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
@@ -664,49 +689,38 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             return _projected(layout, assemble(fixed, v_), assemble(zero, dv),
                               assemble(zero, ddv))
 
-        def evaluate_full(th):
-            v_, dv, ddv = (u[0] for u in moving(th, [mask]))
-            return (*projected(fix_tot, v_, dv, ddv), v_)
-
         grid = model.nonlinear_grid(sig).astype(dtype)
         costs = jax.vmap(lambda th: cost_of(assemble(fix_tot, moving(th, [mask], False)[0])))(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
-        theta, full_cost, v_tot, steps, converged = _newton(evaluate_full, start,
-                                                            opts.max_steps, opts.rtol)
-        tot = assemble(fix_tot, v_tot)
-        # a local optimum worse than the best grid point is not the answer
-        converged = converged & (full_cost <= costs[best] * (1.0 + 1e-9) + 1e-300)
 
+        # problem 0 is the full fit, problem 1 + k the fit without fold k (scored on
+        # fold k's own sums), refitted from the full optimum: one Newton loop solves
+        # them in turn, so its body is traced and compiled once
         fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)
-        folds = jnp.arange(n_folds)
-        held_m = fold_id[None, :] == folds[:, None]  # (folds, n)
-        # the folds' training costs at the full optimum, from one pass: their first
-        # Newton step needs no pass of its own
-        jets_opt = column_jets(theta, True)  # also the covariance's columns and slopes
-        jet0 = moving(theta, [mask, *held_m], jets=jets_opt)
+        held_m = fold_id[None, :] == jnp.arange(n_folds)[:, None]  # (folds, n)
+        train_m = jnp.concatenate([mask[None], mask[None] & ~held_m])
+        held_p = jnp.concatenate([jnp.zeros_like(mask)[None], held_m])
+        fix_train = jnp.concatenate([fix_tot[None], fix_tot[None] - fix_fold])
+
+        def evaluate(j, th):
+            ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [train_m[j]], plain=[held_p[j]])
+            return (*projected(fix_train[j], v_train, dv, ddv), (v_train, v_held))
+
+        caps = (opts.max_steps,) + (max(8, opts.max_steps // 4),) * n_folds
+        th_all, cost_all, (v_train, v_held), steps_all, conv_all = _newton(evaluate, start, caps,
+                                                                           opts.rtol)
+        theta, steps = th_all[0], steps_all[0]
+        tot = assemble(fix_tot, v_train[0])
+        # a local optimum worse than the best grid point is not the answer
+        converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
+        held, train = assemble(fix_fold, v_held[1:]), assemble(fix_train[1:], v_train[1:])
+
+        jets_opt = column_jets(theta, True)  # the covariance's columns and slopes at θ̂
         x_opt, dx_opt = x_any, jnp.zeros((nq,) + x_any.shape, dtype)  # X and ∂X/∂θ at θ̂
         for col, (xc, dc, _) in jets_opt.items():
             x_opt, dx_opt = x_opt.at[..., col].set(xc), dx_opt.at[..., col].set(dc)
-
-        def fold(k):  # refit the time constants without fold k, from the full optimum
-            fix_train = fix_tot - fix_fold[k]
-            train_m = mask & (fold_id != k)
-            held0 = [u[1 + k] for u in jet0]
-            train0 = [u[0] - h_ for u, h_ in zip(jet0, held0)]
-            first = (*projected(fix_train, *train0), (train0[0], held0[0]))
-
-            def evaluate(th):
-                ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [train_m],
-                                                                plain=[held_m[k]])
-                return (*projected(fix_train, v_train, dv, ddv), (v_train, v_held))
-
-            _, _, (v_train, v_held), _, _ = _newton(
-                evaluate, theta, max(8, opts.max_steps // 4), opts.rtol, first)
-            return assemble(fix_fold[k], v_held), assemble(fix_train, v_train)
-
-        held, train = jax.vmap(fold)(folds)
     a, cc, q, n_valid = _unpack(layout, tot)
     af, cf, qf, nf = _unpack(layout, held)
     at, ct, _, _ = _unpack(layout, train)
