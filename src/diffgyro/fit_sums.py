@@ -388,8 +388,13 @@ def _cho_solve(chol, d, c):
 
 
 def _unpack(layout: Layout, s):
+    """A, c, Q and the count from the product vector(s) ``s`` (..., P); c and Q by static
+    slices (an index array is a gather, a kernel of its own)."""
     a_idx, c_idx, q_idx = layout.index()
-    return s[..., a_idx], s[..., c_idx], s[..., q_idx], s[..., 0]
+    lead = s.shape[:-1]
+    a = s[..., a_idx]
+    c = s[..., int(c_idx[0, 0]):int(c_idx[-1, -1]) + 1].reshape(lead + c_idx.shape)
+    return a, c, s[..., int(q_idx[0]):int(q_idx[-1]) + 1], s[..., 0]
 
 
 def _sse(a, c, q, beta):
@@ -718,9 +723,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         held, train = assemble(fix_fold, v_held[1:]), assemble(fix_train[1:], v_train[1:])
 
         jets_opt = column_jets(theta, True)  # the covariance's columns and slopes at θ̂
-        x_opt, dx_opt = x_any, jnp.zeros((nq,) + x_any.shape, dtype)  # X and ∂X/∂θ at θ̂
-        for col, (xc, dc, _) in jets_opt.items():
-            x_opt, dx_opt = x_opt.at[..., col].set(xc), dx_opt.at[..., col].set(dc)
+        # X and ∂X/∂θ at θ̂, column by column
+        x_opt = jnp.stack([jets_opt[j][0] if j in jets_opt else x_any[..., j] for j in range(p)],
+                          axis=-1)
+        dx_opt = jnp.stack([jets_opt[j][1] if j in jets_opt else jnp.zeros((nq,) + y.shape, dtype)
+                            for j in range(p)], axis=-1)
     a, cc, q, n_valid = _unpack(layout, tot)
     af, cf, qf, nf = _unpack(layout, held)
     at, ct, _, _ = _unpack(layout, train)
@@ -733,9 +740,10 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         chol_, d_ = _cholesky(m[..., :n_gram, :, :])
         return jnp.broadcast_to(chol_, m.shape), jnp.broadcast_to(d_, m.shape[:-1])
 
-    # full fit
-    chol, dsc = gram_factor(a)
-    beta_s = _cho_solve(chol, dsc, cc)
+    # the full fit and the folds' training fits, factored and solved together
+    chol_all, d_all = gram_factor(jnp.concatenate([a[None], at]))
+    beta_all = _cho_solve(chol_all, d_all, jnp.concatenate([cc[None], ct]))
+    chol, dsc, beta_s, beta_f = chol_all[0], d_all[0], beta_all[0], beta_all[1:]
     ratio, direction, rank_ok = (jnp.broadcast_to(v, (3,) + v.shape[1:])
                                  for v in F.rank_check(a[:n_gram], opts.rank_tol))
     sse = jnp.maximum(_sse(a, cc, q, beta_s), 0.0)
@@ -746,7 +754,6 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * n_valid, 1.0))
 
     # held-out folds: train on total − fold, score on the fold's own sums
-    beta_f = _cho_solve(*gram_factor(at), ct)
     sse_f = jnp.sum(jnp.maximum(_sse(af, cf, qf, beta_f), 0.0), axis=-1)
     heldout_rms = jnp.sqrt(jnp.sum(sse_f) / jnp.maximum(3 * jnp.sum(nf), 1.0))
     fold_mse = sse_f / jnp.maximum(3 * nf, 1.0)
@@ -800,16 +807,15 @@ def _covariance_separable(layout, x, g, mask, a, sigma2):
     sums = _vsum(ops)
     i_bt = sums[:3 * p * nq].reshape(3, p, nq) / sigma2[:, None, None]
     i_tt = jnp.sum(sums[3 * p * nq:].reshape(3, nq, nq) / sigma2[:, None, None], axis=0)
-    k = 3 * p + nq
-    info = jnp.zeros((k, k), a.dtype)
-    for i in range(3):
-        info = info.at[i * p:(i + 1) * p, i * p:(i + 1) * p].set(a[i] / sigma2[i])
-        info = info.at[i * p:(i + 1) * p, 3 * p:].set(i_bt[i])
-        info = info.at[3 * p:, i * p:(i + 1) * p].set(i_bt[i].T)
-    info = info.at[3 * p:, 3 * p:].set(i_tt)
+    zero = jnp.zeros((p, p), a.dtype)
+    info = jnp.block([[*(a[i] / sigma2[i] if j == i else zero for j in range(3)), i_bt[i]]
+                      for i in range(3)] + [[*(i_bt[i].T for i in range(3)), i_tt]])
     d = jnp.sqrt(jnp.diagonal(info))
     d = jnp.where(d > 0, d, 1.0)
-    return jnp.linalg.inv(info / (d[:, None] * d[None, :])) / (d[:, None] * d[None, :])
+    # positive definite where the fit is identified (NaN where not: the status says why)
+    chol = jnp.linalg.cholesky(info / (d[:, None] * d[None, :]))
+    inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(info.shape[0], dtype=a.dtype))
+    return inv / (d[:, None] * d[None, :])
 
 
 @filter_jit(compiler_options=REASSOCIATE)
