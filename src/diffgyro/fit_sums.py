@@ -91,6 +91,15 @@ MAX_GROUP_DEVICES = 128
 REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=True,
                    xla_cpu_fast_math_honor_infs=True, xla_cpu_fast_math_honor_division=True,
                    xla_cpu_fast_math_honor_functions=True)
+#: XLA options for a model with time constants: XLA's older loop emitters instead of its
+#: MLIR fusion emitters. Such a group program has ~200 kernels (a Newton loop, the lag
+#: recursions, small factorisations) and XLA spends most of its compile time emitting
+#: and optimising them one by one. Measured on the 2-core EPYC, bias_poly(1)+thermal_lag,
+#: 256 × 2000: XLA compile 2.6 → 1.5 s; the fit of 1000 × 10 000 ~9 % slower in one
+#: process (6.3 → 6.9 s). Linear models keep the emitters (their sums are the hot path).
+FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
+#: XLA options of a tiny program run once (LLVM without optimisation passes).
+ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")
 
@@ -160,7 +169,9 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     sig_p = jax.tree.map(lambda a: a[perm] if (a.ndim >= 1 and a.shape[0] == n) else a, sig)
     # two sets of time constants (log s): a coincidence at one is not at the other
     thetas = [np.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
-    xs = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)])(sig, sig_p)
+    # 24 samples, run once per model: compiled for compile time, not speed
+    xs = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)],
+                 compiler_options=ONCE)(sig, sig_p)
     xs = [np.asarray(v) for v in xs]
     p = xs[0].shape[-1]
     # pointwise: the columns of a reordered recording are the reordered columns
@@ -818,9 +829,8 @@ def _covariance_separable(layout, x, g, mask, a, sigma2):
     return inv / (d[:, None] * d[None, :])
 
 
-@filter_jit(compiler_options=REASSOCIATE)
-def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel, centre,
-           scale, dt, nv, theta0, pos=None):
+def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
+                   centre, scale, dt, nv, theta0, pos=None):
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
@@ -833,6 +843,23 @@ def _group(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, 
 
     args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
     return _pack(jax.vmap(one)(*(args if aligned else (*args, pos))), gyro.dtype)
+
+
+_group_linear = filter_jit(compiler_options=REASSOCIATE)(_group_program)
+_group_separable = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
+
+
+def _group(model, *args):
+    """One group's fit: the compiled program for the model's kind (with time constants
+    or not, :data:`FAST_COMPILE`)."""
+    return (_group_separable if model.n_nonlinear else _group_linear)(model, *args)
+
+
+def _group_eval_shape(model, *args):
+    return (_group_separable if model.n_nonlinear else _group_linear).eval_shape(model, *args)
+
+
+_group.eval_shape = _group_eval_shape  # type: ignore[attr-defined]
 
 
 def _pack(out, dtype):
