@@ -80,6 +80,32 @@ def test_compiler_options_reach_xla_and_eval_shape_reuses_the_trace():
         bad(x, 4)
 
 
+def test_compile_ahead_leaves_the_call_nothing_to_compile():
+    compiles = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    def body(x, k):
+        return jnp.cumsum(x * k) - jnp.sort(x)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        f = filter_jit(body)
+        x = np.random.default_rng(1).normal(size=1000)
+        f.compile_ahead(x, 3.0).join()
+        assert len(compiles) == 1  # compiled on the other thread
+        np.testing.assert_allclose(f(x, 3.0), np.cumsum(3.0 * x) - np.sort(x), rtol=1e-12)
+        assert len(compiles) == 1  # the call found it compiled
+        # an argument the program cannot take: the thread swallows the error, the call raises it
+        f.compile_ahead(x, "three").join()
+        with pytest.raises(TypeError):
+            f(x, "three")
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
 def test_compiled_programs_are_released_near_the_mapping_limit():
     held = mapped_regions()
     if held is None or map_limit() is None:

@@ -994,11 +994,17 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
         args = (model, layout, opts, c, prefix, *[put.get(k) for k in (*order, "nv", "theta0")],
                 put.get("pos", pos))
-        if j == 0:  # the results' shapes, from the trace the call makes anyway
+        noise_args = (put["gyro"], put.get("rate"), put["mask"])
+        if j == 0:
+            # the noise floor's program compiles while this thread traces the group's
+            ahead = _group_noise.compile_ahead(*noise_args) if opts.noise_floor else None
+            # the results' shapes, from the trace the call makes anyway
             specs.append(_group.eval_shape(*args)[1])
         out = {"sums": _group(*args)[0]}
         if opts.noise_floor:
-            out.update(_group_noise(put["gyro"], put.get("rate"), put["mask"]))
+            if j == 0:
+                ahead.join()
+            out.update(_group_noise(*noise_args))
         return stop - start, out
 
     # dispatch every group, then collect (concurrent calls from several Python threads

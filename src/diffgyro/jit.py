@@ -7,8 +7,9 @@ groups never share the cores. diffgyro raises no runtime errors from inside
 compiled code (bad devices get a status), so it can let JAX dispatch
 asynchronously, as ``jax.jit`` does. Arrays (JAX or numpy) are traced;
 everything else is static, as in ``equinox.filter_jit``. XLA options can be
-given per program (``filter_jit(compiler_options=...)``), and ``eval_shape``
-gives a call's result shapes from its cached trace.
+given per program (``filter_jit(compiler_options=...)``), ``eval_shape``
+gives a call's result shapes from its cached trace, and ``compile_ahead``
+compiles a call on another thread.
 
 :func:`release_compiled_if_crowded` drops compiled programs before a process
 runs out of memory mappings (XLA's CPU JIT maps every kernel separately).
@@ -18,6 +19,7 @@ from __future__ import annotations
 import functools
 import gc
 import logging
+import threading
 import time
 from collections.abc import Callable
 from typing import Any
@@ -45,6 +47,23 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         return compiled(*_split(args, kwargs))
 
     call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
+
+    def compile_ahead(*a, **k) -> threading.Thread:
+        """Compile the call for these arguments on a thread of its own; join it before
+        the call (which then finds the program compiled). XLA compiles without the
+        GIL, so this overlaps with Python tracing another program. An error is left
+        for the call itself to raise."""
+        def work():
+            try:
+                compiled.lower(*_split(a, k)).compile()
+            except Exception:  # noqa: BLE001 - the call compiles again and raises it
+                logging.getLogger("diffgyro").debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+
+        thread = threading.Thread(target=work, name=f"compile {fun.__name__}", daemon=True)
+        thread.start()
+        return thread
+
+    call.compile_ahead = compile_ahead  # type: ignore[attr-defined]
     # shapes and dtypes of the results, from the same (cached) trace as a call
     call.eval_shape = lambda *a, **k: compiled.eval_shape(*_split(a, k))  # type: ignore[attr-defined]
     return call
