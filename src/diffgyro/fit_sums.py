@@ -30,15 +30,18 @@ that do not move with them are summed once (total and per fold); a trial forms
 only the moving columns with their two derivatives (one recursion for
 thermal_lag, forward mode otherwise) and sums the moving products and their
 derivatives in one reduction, which gives the projected cost's value, gradient
-and Hessian from one pass. The held-out folds refit from the full optimum, their
-first step from one shared pass.
+and Hessian from one pass. The held-out folds refit from the full optimum; the
+full fit and the folds are problems of one Newton loop, solved in turn, so the
+evaluation is compiled once.
 
 Devices are processed in groups of a fixed size on the host (and spread over
 every local accelerator), so only the group size — not the number of devices —
 is part of the compiled shape. Models with time constants take smaller groups:
 their batched Newton loops step in lockstep with the group's slowest device.
-The group program may reassociate its sums (:data:`REASSOCIATE`), and returns its
-results packed in one array per group.
+The group program may reassociate its sums (:data:`REASSOCIATE`), is compiled for
+compile time when the model has time constants (:data:`FAST_COMPILE`), and returns
+its results packed in one array per group; the noise floor's program compiles on
+a second thread meanwhile.
 """
 
 from __future__ import annotations
@@ -70,10 +73,11 @@ GROUP_SAMPLES = 1 << 17
 #: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
 FUSED_GROUP_FACTOR = 8
 #: Models with time constants run batched Newton loops in lockstep: a group takes as
-#: many steps as its slowest device and fold. Their groups hold this many times fewer
-#: samples (at least 2 devices). Measured on the 2-core EPYC, bias_poly(1)+thermal_lag,
-#: 256 devices × 10 000 samples: groups of 2 devices 1.47 s, of 8 (the linear size)
-#: 1.95 s, of 1 device 1.85 s; at 2000 samples groups of 2 to 64 ran alike (0.8 s).
+#: many passes as its slowest device needs for the full fit and the folds' refits.
+#: Their groups hold this many times fewer samples (at least 2 devices). Measured on
+#: the 2-core EPYC, bias_poly(1)+thermal_lag, 256 devices × 10 000 samples (session 5,
+#: when the folds had a loop of their own): groups of 2 devices 1.47 s, of 8 (the
+#: linear size) 1.95 s, of 1 device 1.85 s; at 2000 samples groups of 2 to 64 ran alike.
 NONLINEAR_GROUP_DIVISOR = 4
 #: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
 #: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff on one CPU device (all
