@@ -36,8 +36,10 @@ def test_case_runs_and_agrees(bench, case, args):
 
 
 def test_compile_case_runs_in_fresh_processes(bench):
-    """The compile case: cold and cached first calls of fit() in child processes."""
+    """The compile case: cold, cached and after-another-spec first calls of fit() in
+    child processes."""
     (r,) = bench.case_compile(4, 400, 0, 1, 1e10, specs=("bias_poly(1)",))
     assert KEYS <= set(r) and r["case"] == "compile:bias_poly(1)"
     assert r["compile_s"] > 0 and r["compile_cached_s"] >= 0 and r["diffgyro_s"] > 0
+    assert r["compile_after_other_spec_s"] >= 0 and len(r["compile_s_all"]) == 1
     assert "compile:bias_poly(1)" in bench.table([r])
