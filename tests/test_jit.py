@@ -142,3 +142,31 @@ def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
     batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=600.0)
     F.fit("bias_poly(1)", batch)
     assert calls == [{"interval": 1.0}]  # at most one count of the mappings a second
+
+
+@pytest.mark.parametrize("module, call", [
+    ("diagnose", lambda m, b: m.diagnose("bias_poly(1)", b)),
+    ("allan", lambda m, b: m.allan_batch(b)),
+    ("kalman", lambda m, b: m.fit_random_walk("bias_poly(1)", b)),
+    ("sensitivity", lambda m, b: m.hac_covariance(None, b)),
+    ("sensitivity", lambda m, b: m.block_bootstrap(None, b)),
+])
+def test_entry_points_check_the_mappings_first(monkeypatch, module, call):
+    """Every entry point that compiles programs of its own checks the mappings before
+    anything else (stopped there: nothing is compiled)."""
+    import importlib
+
+    from diffgyro.simulate import demo_batch
+
+    class Checked(Exception):
+        pass
+
+    def check(**kw):
+        assert kw == {"interval": 1.0}
+        raise Checked
+
+    mod = importlib.import_module(f"diffgyro.{module}")
+    monkeypatch.setattr(mod, "release_compiled_if_crowded", check)
+    batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=60.0)
+    with pytest.raises(Checked):
+        call(mod, batch)

@@ -62,6 +62,7 @@ import numpy as np
 from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
+from .jit import release_compiled_if_crowded
 from .signals import prefix_sums
 
 #: Bias-instability factor: the flicker floor of ADEV is sqrt(2 ln 2 / π)·B.
@@ -497,6 +498,7 @@ def allan_batch(batch, m=None, **options) -> AllanResult:
     Leading axes of the result: (devices, 3). Each device's sample interval is
     the median spacing of its time stamps; rates are taken as recorded (rad/s).
     """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     gyro = np.asarray(batch.gyro, dtype=np.float64)
     y = np.moveaxis(gyro, -1, 1)  # (d, 3, n)
     nv = np.asarray(batch.n_valid, dtype=np.int64)

@@ -64,6 +64,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .data import Batch, Recording
 from .effects import AbstractEffect, registry
 from .effects.base import MAX_ORDER
+from .jit import release_compiled_if_crowded
 from .model import ErrorModel
 from .signals import Signals
 
@@ -1185,6 +1186,7 @@ def diagnose(
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     from . import allan as allan_mod
     from .fit import _as_batch
     from .fit import fit as fit_fn

@@ -40,6 +40,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .jit import release_compiled_if_crowded
 from .model import ErrorModel, Params
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -541,6 +542,7 @@ def fit_random_walk(
     β by GLS. ``options``/overrides: fields of ``fit.FitOptions`` (``n_blocks``,
     ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
     """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     from .fit import FitOptions, _as_batch, _replace, batch_signals
     from .signals import TempNorm
 

@@ -36,6 +36,7 @@ from jaxtyping import Array, Float
 
 from .data import Batch
 from .fit import FitOptions, FitResult, _projected, _varpro, normal_equations, solve_device
+from .jit import release_compiled_if_crowded
 from .model import ErrorModel, Params
 from .plan_design import compensation_error, flat, operating_signals, output_jacobian, unflat
 from .signals import Signals, TempNorm
@@ -289,6 +290,7 @@ def hac_covariance(result: FitResult, batch: Batch, method: str = "ar", kernel: 
     in :func:`device_hac`. Returns ``cov`` (d, k, k), ``cov_gn`` (plain, same
     residuals), ``bandwidth`` (d,), ``rho`` (d, k).
     """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     if kernel not in KERNELS:
         raise ValueError(f"unknown kernel {kernel!r}; choose from {KERNELS}")
     return _hac_batch(result.model, result.signals(batch), result.params, method, kernel,
@@ -368,6 +370,7 @@ def block_bootstrap(result: FitResult, batch: Batch, n_boot: int = 200, block=No
     replicate is refitted — one Cholesky factor for linear models, variable
     projection from the fitted time constants otherwise.
     """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     keys = jax.random.split(jax.random.PRNGKey(seed), result.n_devices)
     return _bootstrap_batch(result.model, result.signals(batch), result.params, keys,
                             n_boot, block, result.options, chunk)
