@@ -78,6 +78,8 @@ FUSED_GROUP_FACTOR = 8
 #: the 2-core EPYC, bias_poly(1)+thermal_lag, 256 devices × 10 000 samples (session 5,
 #: when the folds had a loop of their own): groups of 2 devices 1.47 s, of 8 (the
 #: linear size) 1.95 s, of 1 device 1.85 s; at 2000 samples groups of 2 to 64 ran alike.
+#: Re-measured in session 7 with one loop for the full fit and the folds: groups of 2
+#: devices 1.6–1.9 s, of 4 2.6–2.7 s, of 8 1.9–2.6 s.
 NONLINEAR_GROUP_DIVISOR = 4
 #: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
 #: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff on one CPU device (all
