@@ -670,12 +670,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                     None if dd is None else dd[:, :, :, ax]
             return x_any[:, ax, a_], None, None
 
-        def moving(th, masks, derivatives=True, plain=(), jets=None):
+        def moving(th, masks, derivatives=True, plain=()):
             """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
             and second (q, q, m) derivatives in θ (product rule), then the sums alone
-            under the ``plain`` masks: one variadic reduction (``jets``: the columns at
-            ``th`` if already formed)."""
-            jets = column_jets(th, derivatives) if jets is None else jets
+            under the ``plain`` masks: one variadic reduction."""
+            jets = column_jets(th, derivatives)
             streams = []
             for j in var_idx:
                 i_, a_, b_ = factors(j)
