@@ -399,6 +399,12 @@ def _cholesky(a):
     return jnp.where(ok, chol, jnp.nan), d
 
 
+def _cho_inverse(chol, d):
+    """Inverse of the matrix whose :func:`_cholesky` factors are ``chol`` and ``d``."""
+    eye = jnp.broadcast_to(jnp.eye(chol.shape[-1], dtype=chol.dtype), chol.shape)
+    return jax.scipy.linalg.cho_solve((chol, True), eye) / (d[..., :, None] * d[..., None, :])
+
+
 def _cho_solve(chol, d, c):
     z = jax.scipy.linalg.cho_solve((chol, True), (c / d)[..., None])[..., 0]
     return z / d
@@ -777,10 +783,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     dof = jnp.maximum(n_valid - p - nq, 1.0)
     sigma2 = jnp.maximum(sse / dof, 1e-300)
     if nq == 0:  # block diagonal: σ_i² (X_iᵀX_i)⁻¹ per axis
-        eye = jnp.broadcast_to(jnp.eye(p, dtype=dtype), (3, p, p))
-        inv = jax.scipy.linalg.cho_solve((chol[:n_gram], True), eye[:n_gram]) / (
-            dsc[:n_gram, :, None] * dsc[:n_gram, None, :])
-        inv = jnp.broadcast_to(inv, (3, p, p))
+        inv = jnp.broadcast_to(_cho_inverse(chol[:n_gram], dsc[:n_gram]), (3, p, p))
         cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
     else:
         g = jnp.einsum("qnip,ip->niq", dx_opt, beta)  # ∂(Xβ)/∂θ
@@ -826,12 +829,8 @@ def _covariance_separable(layout, x, g, mask, a, sigma2):
     zero = jnp.zeros((p, p), a.dtype)
     info = jnp.block([[*(a[i] / sigma2[i] if j == i else zero for j in range(3)), i_bt[i]]
                       for i in range(3)] + [[*(i_bt[i].T for i in range(3)), i_tt]])
-    d = jnp.sqrt(jnp.diagonal(info))
-    d = jnp.where(d > 0, d, 1.0)
     # positive definite where the fit is identified (NaN where not: the status says why)
-    chol = jnp.linalg.cholesky(info / (d[:, None] * d[None, :]))
-    inv = jax.scipy.linalg.cho_solve((chol, True), jnp.eye(info.shape[0], dtype=a.dtype))
-    return inv / (d[:, None] * d[None, :])
+    return _cho_inverse(*_cholesky(info))
 
 
 def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
