@@ -368,7 +368,8 @@ def test_models_with_time_constants_run_in_small_groups(monkeypatch):
         sizes[model.n_nonlinear > 0] = gyro.shape[0]
         raise Seen  # the group size is all this test needs: nothing is compiled
 
-    monkeypatch.setattr(fs._group, "eval_shape", spy)
+    for program in (fs._group_linear, fs._group_separable):
+        monkeypatch.setattr(program, "eval_shape", spy)
     n, d = 10_000, 40
     rng = np.random.default_rng(0)
     temp = np.linspace(-10.0, 50.0, n)[None].repeat(d, 0)

@@ -853,17 +853,10 @@ _group_linear = filter_jit(compiler_options=REASSOCIATE)(_group_program)
 _group_separable = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
 
 
-def _group(model, *args):
-    """One group's fit: the compiled program for the model's kind (with time constants
-    or not, :data:`FAST_COMPILE`)."""
-    return (_group_separable if model.n_nonlinear else _group_linear)(model, *args)
-
-
-def _group_eval_shape(model, *args):
-    return (_group_separable if model.n_nonlinear else _group_linear).eval_shape(model, *args)
-
-
-_group.eval_shape = _group_eval_shape  # type: ignore[attr-defined]
+def _group_for(model: ErrorModel):
+    """The compiled group program for the model's kind: with time constants or not
+    (:data:`FAST_COMPILE`)."""
+    return _group_separable if model.n_nonlinear else _group_linear
 
 
 def _pack(out, dtype):
@@ -971,6 +964,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
+    group = _group_for(model)
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
@@ -1003,8 +997,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
             # the noise floor's program compiles while this thread traces the group's
             ahead = _group_noise.compile_ahead(*noise_args) if opts.noise_floor else None
             # the results' shapes, from the trace the call makes anyway
-            specs.append(_group.eval_shape(*args)[1])
-        out = {"sums": _group(*args)[0]}
+            specs.append(group.eval_shape(*args)[1])
+        out = {"sums": group(*args)[0]}
         if opts.noise_floor:
             if j == 0:
                 ahead.join()
