@@ -482,8 +482,11 @@ def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
         done = (jnp.isfinite(v) & proposal(th, g, h, lam)[2]) | ~jnp.isfinite(v)
         k = k + 1
         end = done | (k > caps_[j])
-        out = jax.tree.map(lambda o, a: o.at[j].set(jnp.where(end, a, o[j])), out,
-                           (th, v, aux, k - 1, done))
+        # problem j's row of the results, by a select (an index set under vmap is a
+        # scatter, which XLA's CPU backend expands into a loop of its own)
+        here = end & (jnp.arange(n_problems) == j)
+        out = jax.tree.map(lambda o, a: jnp.where(here.reshape((-1,) + (1,) * a.ndim), a[None], o),
+                           out, (th, v, aux, k - 1, done))
         # the next problem starts afresh from problem 0's optimum
         restart = (out[0][0], jnp.inf, jnp.zeros_like(g), jnp.eye(g.shape[0], dtype=h.dtype),
                    aux, 1e-3, 0)
@@ -744,15 +747,55 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
         held, train = assemble(fix_fold, v_held[1:]), assemble(fix_train[1:], v_train[1:])
 
-        jets_opt = column_jets(theta, True)  # the covariance's columns and slopes at θ̂
-        # X and ∂X/∂θ at θ̂, column by column
+        # the covariance's sums at θ̂: products of the columns X with the slopes ∂X/∂θ of
+        # the moving columns, and of the slopes with each other (the finish weighs them
+        # by β: ∂(Xβ)/∂θ = Σ_m β_m ∂x_m/∂θ)
+        jets_opt = column_jets(theta, True)
+        cols = moving_columns(model)
         x_opt = jnp.stack([jets_opt[j][0] if j in jets_opt else x_any[..., j] for j in range(p)],
                           axis=-1)
-        dx_opt = jnp.stack([jets_opt[j][1] if j in jets_opt else jnp.zeros((nq,) + y.shape, dtype)
-                            for j in range(p)], axis=-1)
-    a, cc, q, n_valid = _unpack(layout, tot)
-    af, cf, qf, nf = _unpack(layout, held)
-    at, ct, _, _ = _unpack(layout, train)
+        slopes = [(jets_opt[m][1][k], m, k) for m in cols for k in range(nq)]  # (n, 3) each
+        ops = [jnp.where(mask, x_opt[:, i, a] * d_[:, i], 0.0)
+               for i in range(3) for a in range(p) for d_, _, _ in slopes]
+        ops += [jnp.where(mask, d_[:, i] * e_[:, i], 0.0)
+                for i in range(3) for d_, _, _ in slopes for e_, _, _ in slopes]
+        sums = _vsum(ops)
+        w = len(slopes)
+        raw_cov = dict(cross=sums[:3 * p * w].reshape(3, p, w),
+                       curvature=sums[3 * p * w:].reshape(3, w, w))
+    terms = model.deterministic
+    raw = dict(tot=tot, held=held, train=train, theta=theta, steps=jnp.asarray(steps, jnp.int32),
+               converged=jnp.asarray(converged), y0=y0,
+               range_flags=model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool))
+    if nq:
+        raw.update(raw_cov)
+    if temp is not None:
+        raw["temp_range"] = jnp.stack(masked_range(temp, mask))
+    if sig.norm is not None:
+        raw["norm_centre"], raw["norm_scale"] = sig.norm.centre, sig.norm.scale
+    return raw
+
+
+def moving_columns(model: ErrorModel) -> list[int]:
+    """The design columns of the terms with time constants (those that move with θ)."""
+    return [a for tm, sl, _ in model.slices() if tm.n_nonlinear for a in range(sl.start, sl.stop)]
+
+
+def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
+    """One device's results from its sums (:func:`_device`): the full and the folds'
+    solutions, residual and held-out errors, covariance, rank check and status.
+
+    Small dense algebra on (3, p, p) systems, no samples: a program of its own for
+    models with time constants (:func:`_group_finish`), inlined in linear models'.
+    """
+    from . import fit as F
+
+    p, nq = layout.p, model.n_nonlinear
+    theta, converged = raw["theta"], raw["converged"]
+    a, cc, q, n_valid = _unpack(layout, raw["tot"])
+    af, cf, qf, nf = _unpack(layout, raw["held"])
+    at, ct, _, _ = _unpack(layout, raw["train"])
+    dtype = a.dtype
 
     # with every column shared by the axes the three Gram matrices are one: factor,
     # check and invert the first axis' only and broadcast
@@ -771,7 +814,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     sse = jnp.maximum(_sse(a, cc, q, beta_s), 0.0)
     shift = jnp.zeros((3, p), dtype)
     if layout.const_col is not None:
-        shift = shift.at[:, layout.const_col].set(y0)
+        shift = shift.at[:, layout.const_col].set(raw["y0"])
     beta = beta_s + shift
     rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * n_valid, 1.0))
 
@@ -785,12 +828,15 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     if nq == 0:  # block diagonal: σ_i² (X_iᵀX_i)⁻¹ per axis
         inv = jnp.broadcast_to(_cho_inverse(chol[:n_gram], dsc[:n_gram]), (3, p, p))
         cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
-    else:
-        g = jnp.einsum("qnip,ip->niq", dx_opt, beta)  # ∂(Xβ)/∂θ
-        cov = _covariance_separable(layout, x_opt, g, mask, a, sigma2)
+    else:  # g = ∂(Xβ)/∂θ = Σ_m β_m ∂x_m/∂θ over the moving columns m
+        b_w = jnp.repeat(beta_s[:, moving_columns(model)], nq, axis=-1)  # (3, M·q), (m, k) order
+        k_of = np.tile(np.arange(nq), len(moving_columns(model)))
+        to_q = jnp.asarray(k_of[:, None] == np.arange(nq)[None, :], dtype)  # (M·q, q)
+        xg = jnp.einsum("iaw,iw,wk->iak", raw["cross"], b_w, to_q)
+        gg = jnp.einsum("ivw,iv,iw,vk,wr->ikr", raw["curvature"], b_w, b_w, to_q, to_q)
+        cov = _covariance_separable(a, xg, gg, sigma2)
 
     terms = model.deterministic
-    range_flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
     owner = jnp.asarray([terms.index(tm) for tm in model.column_terms()], jnp.int32)
     weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])
     collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
@@ -798,34 +844,28 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
     status = jnp.where(
         n_valid < max(2 * (p + nq), p + nq + 4), F.INSUFFICIENT_DATA,
-        jnp.where(jnp.any(range_flags), F.INSUFFICIENT_RANGE,
+        jnp.where(jnp.any(raw["range_flags"]), F.INSUFFICIENT_RANGE,
                   jnp.where(~jnp.all(rank_ok), F.RANK_DEFICIENT,
                             jnp.where(~converged, F.NOT_CONVERGED,
                                       jnp.where(finite, F.OK, F.FAILED)))))
     out = dict(beta=beta, theta=theta, cov=cov, rms=rms,
                heldout_rms=heldout_rms, fold_mse=fold_mse,
-               sigma=jnp.sqrt(sigma2), steps=jnp.asarray(steps, jnp.int32),
-               status=jnp.asarray(status, jnp.int32), range_flags=range_flags,
+               sigma=jnp.sqrt(sigma2), steps=raw["steps"],
+               status=jnp.asarray(status, jnp.int32), range_flags=raw["range_flags"],
                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
-    if temp is not None:
-        out["temp_range"] = jnp.stack(masked_range(temp, mask))
-    if sig.norm is not None:
-        out["norm_centre"], out["norm_scale"] = sig.norm.centre, sig.norm.scale
+    for k in ("temp_range", "norm_centre", "norm_scale"):
+        if k in raw:
+            out[k] = raw[k]
     return out
 
 
-def _covariance_separable(layout, x, g, mask, a, sigma2):
+def _covariance_separable(a, xg, gg, sigma2):
     """Gauss–Newton covariance of (β per axis, θ), each axis weighted by 1/σ_i², as
-    :func:`diffgyro.fit._covariance` forms it, from one more pass of sums (``x`` the
-    design (n, 3, p) and ``g`` = ∂(Xβ)/∂θ (n, 3, q) at the optimum)."""
-    p, nq = layout.p, g.shape[-1]
-    ops = [jnp.where(mask, x[:, i, pp] * g[:, i, k], 0.0)
-           for i in range(3) for pp in range(p) for k in range(nq)]
-    ops += [jnp.where(mask, g[:, i, k] * g[:, i, r], 0.0)
-            for i in range(3) for k in range(nq) for r in range(nq)]
-    sums = _vsum(ops)
-    i_bt = sums[:3 * p * nq].reshape(3, p, nq) / sigma2[:, None, None]
-    i_tt = jnp.sum(sums[3 * p * nq:].reshape(3, nq, nq) / sigma2[:, None, None], axis=0)
+    :func:`diffgyro.fit._covariance` forms it, from the Gram matrices ``a`` (3, p, p) and
+    the sums ``xg`` = Σ X ∂(Xβ)/∂θ (3, p, q) and ``gg`` = Σ (∂(Xβ)/∂θ)² (3, q, q)."""
+    p = a.shape[-1]
+    i_bt = xg / sigma2[:, None, None]
+    i_tt = jnp.sum(gg / sigma2[:, None, None], axis=0)
     zero = jnp.zeros((p, p), a.dtype)
     info = jnp.block([[*(a[i] / sigma2[i] if j == i else zero for j in range(3)), i_bt[i]]
                       for i in range(3)] + [[*(i_bt[i].T for i in range(3)), i_tt]])
@@ -835,6 +875,9 @@ def _covariance_separable(layout, x, g, mask, a, sigma2):
 
 def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
                    centre, scale, dt, nv, theta0, pos=None):
+    """Every device of a group through :func:`_device`; a linear model's results finished
+    and packed (:func:`_pack`), a model with time constants' sums as they are (finished
+    by :func:`_group_finish`)."""
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
@@ -846,11 +889,20 @@ def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, te
         return _device(model, layout, opts, c, prefix, *args)
 
     args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
-    return _pack(jax.vmap(one)(*(args if aligned else (*args, pos))), gyro.dtype)
+    raw = jax.vmap(one)(*(args if aligned else (*args, pos)))
+    return raw if model.n_nonlinear else _finished(model, layout, opts, raw)
+
+
+def _finished(model, layout, opts, raw):
+    """A group's results from its sums, packed (:func:`_pack`)."""
+    return _pack(jax.vmap(lambda r: _finish(model, layout, opts, r))(raw), raw["tot"].dtype)
 
 
 _group_linear = filter_jit(compiler_options=REASSOCIATE)(_group_program)
 _group_separable = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
+#: The finish of a model with time constants: a few dozen tiny kernels, compiled without
+#: optimisation (:data:`ONCE`) on a thread of its own while the group program compiles.
+_group_finish = filter_jit(compiler_options=ONCE)(_finished)
 
 
 def _group_for(model: ErrorModel):
@@ -993,15 +1045,28 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         args = (model, layout, opts, c, prefix, *[put.get(k) for k in (*order, "nv", "theta0")],
                 put.get("pos", pos))
         noise_args = (put["gyro"], put.get("rate"), put["mask"])
+        finish = (model, layout, opts)
         if j == 0:
             # the noise floor's program compiles while this thread traces the group's
-            ahead = _group_noise.compile_ahead(*noise_args) if opts.noise_floor else None
+            ahead = [_group_noise.compile_ahead(*noise_args)] if opts.noise_floor else []
             # the results' shapes, from the trace the call makes anyway
-            specs.append(group.eval_shape(*args)[1])
-        out = {"sums": group(*args)[0]}
+            shapes = group.eval_shape(*args)
+            # the group program compiles while this thread traces the finish
+            ahead.append(group.compile_ahead(*args))
+            if model.n_nonlinear:
+                on = jax.sharding.SingleDeviceSharding(devices[0])
+                raw = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on),
+                                   shapes)
+                shapes = _group_finish.eval_shape(*finish, raw)
+                ahead.append(_group_finish.compile_ahead(*finish, raw))
+            specs.append(shapes[1])
+            for thread in ahead:
+                thread.join()
+        out = group(*args)
+        if model.n_nonlinear:
+            out = _group_finish(*finish, out)
+        out = {"sums": out[0]}
         if opts.noise_floor:
-            if j == 0:
-                ahead.join()
             out.update(_group_noise(*noise_args))
         return stop - start, out
 

@@ -49,15 +49,24 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
 
     def compile_ahead(*a, **k) -> threading.Thread:
-        """Compile the call for these arguments on a thread of its own; join it before
-        the call (which then finds the program compiled). XLA compiles without the
-        GIL, so this overlaps with Python tracing another program. An error is left
-        for the call itself to raise."""
+        """Lower the call for these arguments here and compile it on a thread of its own;
+        join the thread before the call (which then finds the program compiled). XLA
+        compiles without the GIL, so this overlaps with Python tracing another program
+        (lowering is Python: done on the thread it would hold the GIL the other needs).
+        An error is left for the call itself to raise."""
+        log = logging.getLogger("diffgyro")
+        try:
+            lowered = compiled.lower(*_split(a, k))
+        except Exception:  # noqa: BLE001 - the call lowers again and raises it
+            log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+            lowered = None
+
         def work():
             try:
-                compiled.lower(*_split(a, k)).compile()
+                if lowered is not None:
+                    lowered.compile()
             except Exception:  # noqa: BLE001 - the call compiles again and raises it
-                logging.getLogger("diffgyro").debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+                log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
 
         thread = threading.Thread(target=work, name=f"compile {fun.__name__}", daemon=True)
         thread.start()
@@ -140,9 +149,10 @@ def release_compiled_if_crowded(fraction: float = MAP_HEADROOM, limit: int | Non
 
 
 def _split(args, kwargs):
-    """(treedef, static leaves, array leaves) of the arguments; None marks the other kind."""
+    """(treedef, static leaves, array leaves) of the arguments; None marks the other kind.
+    A ``jax.ShapeDtypeStruct`` stands for an array (``lower``, ``compile_ahead``)."""
     leaves, treedef = jax.tree.flatten((args, kwargs))
-    arrays = [eqx.is_array(x) for x in leaves]
+    arrays = [eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct) for x in leaves]
     static = tuple(None if a else x for x, a in zip(leaves, arrays, strict=True))
     dynamic = [x if a else None for x, a in zip(leaves, arrays, strict=True)]
     return treedef, static, dynamic
