@@ -465,54 +465,75 @@ def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
         return step, near, size_n <= rtol * scale_th
 
     n_problems = len(caps)
-    caps_ = jnp.asarray(caps, jnp.int32)
+    q, dtype = theta0.shape[0], theta0.dtype
+    aux_leaves, aux_tree = jax.tree.flatten(
+        jax.eval_shape(lambda th: evaluate(jnp.int32(0), th), theta0)[3])
+    aux_sizes = [int(np.prod(a.shape, dtype=np.int64)) for a in aux_leaves]
+    n_aux = sum(aux_sizes)
+    # the whole state is one vector (counters as exact floats): under vmap the loop
+    # keeps each device's state by one select, and XLA emits one kernel for it, not
+    # one per carry. The point: j (problem), k (pass), λ, then f, θ, g, H, aux at the
+    # current point; then per problem a row of θ, f, aux, steps, converged.
+    point = 1 + q + q + q * q + n_aux  # f, θ, g, H, aux
+    head = 3 + point
+    row = q + 1 + n_aux + 2
+    problems = jnp.arange(n_problems)
+    caps_ = jnp.asarray(caps, dtype)
+
+    def split_point(x):  # f, θ, g, H, aux of a point vector
+        cuts = np.cumsum([1, q, q, q * q])
+        f, th, g, h, aux = jnp.split(x, cuts)
+        return f[0], th, g, h.reshape(q, q), aux
+
+    def join_point(f, th, g, h, aux):
+        return jnp.concatenate([f[None], th, g, h.reshape(-1), aux])
+
+    def flat_aux(aux):
+        return jnp.concatenate([a.reshape(-1).astype(dtype) for a in jax.tree.leaves(aux)])
 
     def body(state):
-        j, th, v, g, h, aux, lam, k, out = state
+        j, k, lam = state[0], state[1], state[2]
+        cur = state[3:head]
+        out = state[head:].reshape(n_problems, row)
+        v, th, g, h, aux = split_point(cur)
         first = k == 0
         step, near, _ = proposal(th, g, h, lam)
         step = jnp.where(first, 0.0, step)
-        v_new, g_new, h_new, aux_new = evaluate(j, th + step)
+        v_new, g_new, h_new, aux_new = evaluate(j.astype(jnp.int32), th + step)
         ok = jnp.isfinite(v_new) & ((v_new <= v) | near | first)
-        th, v, g, h, aux = jax.tree.map(lambda a, b: jnp.where(ok, a, b),
-                                        (th + step, v_new, g_new, h_new, aux_new),
-                                        (th, v, g, h, aux))
+        cur = jnp.where(ok, join_point(v_new, th + step, g_new, h_new, flat_aux(aux_new)), cur)
+        v, th, g, h, aux = split_point(cur)
         lam = jnp.where(first, lam, jnp.where(ok, lam * 0.3, lam * 10.0))
         # a start where the function is not finite ends the problem there
         done = (jnp.isfinite(v) & proposal(th, g, h, lam)[2]) | ~jnp.isfinite(v)
         k = k + 1
-        end = done | (k > caps_[j])
-        # problem j's row of the results, by a select (an index set under vmap is a
-        # scatter, which XLA's CPU backend expands into a loop of its own)
-        here = end & (jnp.arange(n_problems) == j)
-        out = jax.tree.map(lambda o, a: jnp.where(here.reshape((-1,) + (1,) * a.ndim), a[None], o),
-                           out, (th, v, aux, k - 1, done))
+        end = done | (k > jnp.sum(jnp.where(problems == j, caps_, 0.0)))
+        here = end & (problems == j)
+        result = jnp.concatenate([th, v[None], aux, (k - 1)[None], done.astype(dtype)[None]])
+        out = jnp.where(here[:, None], result[None], out)
         # the next problem starts afresh from problem 0's optimum
-        restart = (out[0][0], jnp.inf, jnp.zeros_like(g), jnp.eye(g.shape[0], dtype=h.dtype),
-                   aux, 1e-3, 0)
-        th, v, g, h, aux, lam, k = jax.tree.map(lambda a, b: jnp.where(end, a, b), restart,
-                                                (th, v, g, h, aux, lam, k))
-        return j + end.astype(j.dtype), th, v, g, h, aux, lam, k, out
+        restart = join_point(jnp.asarray(jnp.inf, dtype), out[0, :q], jnp.zeros_like(g),
+                             jnp.eye(q, dtype=dtype), aux)
+        cur = jnp.where(end, restart, cur)
+        lam = jnp.where(end, 1e-3, lam)
+        k = jnp.where(end, 0.0, k)
+        return jnp.concatenate([jnp.stack([j + end, k, lam]), cur, out.reshape(-1)])
 
     def cond(state):
         return state[0] < n_problems
 
-    # every carry starts as a function of θ0 (the same values): under vmap each is then
-    # batched from the start, and the loop's batching rule traces the body once, not twice
-    nan0 = jnp.isnan(theta0[0])
-
-    def batched(x):
-        return jnp.where(nan0, x, x)
-
-    q, dtype = theta0.shape[0], theta0.dtype
-    aux0 = jax.tree.map(lambda a: batched(jnp.zeros(a.shape, a.dtype)),
-                        jax.eval_shape(lambda th: evaluate(jnp.int32(0), th), theta0)[3])
-    out0 = jax.tree.map(lambda a: batched(jnp.zeros((n_problems,) + a.shape, a.dtype)),
-                        (theta0, theta0[0], aux0, jnp.int32(0), jnp.asarray(False)))
-    init = (batched(jnp.asarray(0, jnp.int32)), theta0, batched(jnp.asarray(jnp.inf, dtype)),
-            batched(jnp.zeros((q,), dtype)), batched(jnp.eye(q, dtype=dtype)), aux0,
-            batched(jnp.asarray(1e-3, dtype)), batched(jnp.asarray(0, jnp.int32)), out0)
-    return lax.while_loop(cond, body, init)[-1]
+    # θ0 makes the state batched from the start under vmap: the loop's batching rule
+    # then traces the body once, not twice
+    init = jnp.concatenate([jnp.asarray([0.0, 0.0, 1e-3], dtype),
+                            join_point(jnp.asarray(jnp.inf, dtype), theta0, jnp.zeros((q,), dtype),
+                                       jnp.eye(q, dtype=dtype), jnp.zeros((n_aux,), dtype)),
+                            jnp.zeros((n_problems * row,), dtype)])
+    out = lax.while_loop(cond, body, init)[head:].reshape(n_problems, row)
+    cuts = np.cumsum([0] + aux_sizes)
+    aux = jax.tree.unflatten(aux_tree, [
+        out[:, q + 1 + a:q + 1 + b].reshape((n_problems,) + leaf.shape).astype(leaf.dtype)
+        for a, b, leaf in zip(cuts[:-1], cuts[1:], aux_leaves)])
+    return (out[:, :q], out[:, q], aux, out[:, -2].astype(jnp.int32), out[:, -1] > 0.5)
 
 
 def _product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
@@ -728,15 +749,17 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # problem 0 is the full fit, problem 1 + k the fit without fold k (scored on
         # fold k's own sums), refitted from the full optimum: one Newton loop solves
         # them in turn, so its body is traced and compiled once
-        fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)
-        held_m = fold_id[None, :] == jnp.arange(n_folds)[:, None]  # (folds, n)
-        train_m = jnp.concatenate([mask[None], mask[None] & ~held_m])
-        held_p = jnp.concatenate([jnp.zeros_like(mask)[None], held_m])
-        fix_train = jnp.concatenate([fix_tot[None], fix_tot[None] - fix_fold])
+        fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)  # -1 where not valid
 
         def evaluate(j, th):
-            ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [train_m[j]], plain=[held_p[j]])
-            return (*projected(fix_train[j], v_train, dv, ddv), (v_train, v_held))
+            # problem j trains without fold j − 1 (problem 0: on all) and scores on it; the
+            # masks and the fixed sums by arithmetic on j (indexing by j is a gather under
+            # vmap, a kernel of its own)
+            held = mask & (fold_id == j - 1)
+            without = jnp.sum(jnp.where((jnp.arange(n_folds) == j - 1)[:, None], fix_fold, 0.0),
+                              axis=0)
+            ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [mask & ~held], plain=[held])
+            return (*projected(fix_tot - without, v_train, dv, ddv), (v_train, v_held))
 
         caps = (opts.max_steps,) + (max(8, opts.max_steps // 4),) * n_folds
         th_all, cost_all, (v_train, v_held), steps_all, conv_all = _newton(evaluate, start, caps,
@@ -745,7 +768,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         tot = assemble(fix_tot, v_train[0])
         # a local optimum worse than the best grid point is not the answer
         converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
-        held, train = assemble(fix_fold, v_held[1:]), assemble(fix_train[1:], v_train[1:])
+        held, train = assemble(fix_fold, v_held[1:]), assemble(fix_tot[None] - fix_fold, v_train[1:])
 
         # the covariance's sums at θ̂: products of the columns X with the slopes ∂X/∂θ of
         # the moving columns, and of the slopes with each other (the finish weighs them
