@@ -57,7 +57,7 @@ from jax.interpreters import partial_eval as pe
 from jaxtyping import Bool
 
 from .data import Batch
-from .jit import filter_jit, parallel_devices
+from .jit import collector_paused, filter_jit, parallel_devices
 from .model import ErrorModel
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
@@ -1070,21 +1070,23 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         noise_args = (put["gyro"], put.get("rate"), put["mask"])
         finish = (model, layout, opts)
         if j == 0:
-            # the noise floor's program compiles while this thread traces the group's
-            ahead = [_group_noise.compile_ahead(*noise_args)] if opts.noise_floor else []
-            # the results' shapes, from the trace the call makes anyway
-            shapes = group.eval_shape(*args)
-            # the group program compiles while this thread traces the finish
-            ahead.append(group.compile_ahead(*args))
-            if model.n_nonlinear:
-                on = jax.sharding.SingleDeviceSharding(devices[0])
-                raw = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on),
-                                   shapes)
-                shapes = _group_finish.eval_shape(*finish, raw)
-                ahead.append(_group_finish.compile_ahead(*finish, raw))
-            specs.append(shapes[1])
-            for thread in ahead:
-                thread.join()
+            # the first group traces and compiles every program (the collector paused)
+            with collector_paused():
+                # the noise floor's program compiles while this thread traces the group's
+                ahead = [_group_noise.compile_ahead(*noise_args)] if opts.noise_floor else []
+                # the results' shapes, from the trace the call makes anyway
+                shapes = group.eval_shape(*args)
+                # the group program compiles while this thread traces the finish
+                ahead.append(group.compile_ahead(*args))
+                if model.n_nonlinear:
+                    on = jax.sharding.SingleDeviceSharding(devices[0])
+                    raw = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on),
+                                       shapes)
+                    shapes = _group_finish.eval_shape(*finish, raw)
+                    ahead.append(_group_finish.compile_ahead(*finish, raw))
+                specs.append(shapes[1])
+                for thread in ahead:
+                    thread.join()
         out = group(*args)
         if model.n_nonlinear:
             out = _group_finish(*finish, out)

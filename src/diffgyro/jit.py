@@ -16,6 +16,7 @@ runs out of memory mappings (XLA's CPU JIT maps every kernel separately).
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import gc
 import logging
@@ -76,6 +77,26 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     # shapes and dtypes of the results, from the same (cached) trace as a call
     call.eval_shape = lambda *a, **k: compiled.eval_shape(*_split(a, k))  # type: ignore[attr-defined]
     return call
+
+
+@contextlib.contextmanager
+def collector_paused():
+    """Pause Python's cyclic garbage collector while programs are traced and compiled.
+
+    Tracing allocates objects by the hundred thousand, so the collector runs
+    over and over and walks the whole heap each time it reaches the oldest
+    generation: 0.14 s of a 2.3 s first fit of bias_poly(1)+thermal_lag
+    (154 collections). Reference counting still frees what is not in a cycle;
+    the rest waits for the next collection after the block. Process-wide while
+    it lasts, so keep the block to the compile.
+    """
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
 
 
 def parallel_devices() -> list:
