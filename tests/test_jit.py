@@ -8,7 +8,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.jit import filter_jit, map_limit, mapped_regions, release_compiled_if_crowded
+from diffgyro.jit import (
+    collector_paused,
+    filter_jit,
+    map_limit,
+    mapped_regions,
+    release_compiled_if_crowded,
+)
 
 
 class Poly(eqx.Module):
@@ -104,6 +110,51 @@ def test_compile_ahead_leaves_the_call_nothing_to_compile():
             f(x, "three")
     finally:
         jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_compile_ahead_from_shapes_serves_a_call_with_arrays():
+    """fit() compiles a program from its arguments' shapes (``jax.ShapeDtypeStruct`` on
+    the device the call's arrays are on) before the arrays exist."""
+    compiles = []
+
+    def listen(event, duration, **kw):
+        if event == "/jax/core/compile/backend_compile_duration":
+            compiles.append(duration)
+
+    jax.monitoring.register_event_duration_secs_listener(listen)
+    try:
+        f = filter_jit(lambda x, y, k: jnp.cumsum(x * k) + y["b"])
+        device = jax.devices()[0]
+        x_np = np.linspace(0.0, 1.0, 17)
+        want = np.cumsum(2.0 * x_np) + 2.0 * x_np
+        x, b = (jax.device_put(x_np * i, device) for i in (1, 2))
+        on = jax.sharding.SingleDeviceSharding(device)
+        shape = jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on)
+        f.compile_ahead(shape, {"b": shape}, 2.0).join()
+        assert len(compiles) == 1
+        np.testing.assert_allclose(np.asarray(f(x, {"b": b}, 2.0)), want, rtol=1e-12)
+        assert len(compiles) == 1  # the call found it compiled
+    finally:
+        jax.monitoring.unregister_event_duration_listener(listen)
+
+
+def test_collector_paused_restores_the_collector():
+    import gc
+
+    assert gc.isenabled()
+    with collector_paused():
+        assert not gc.isenabled()
+    assert gc.isenabled()
+    with pytest.raises(ZeroDivisionError), collector_paused():
+        raise ZeroDivisionError
+    assert gc.isenabled()  # restored after an error too
+    gc.disable()
+    try:
+        with collector_paused():
+            pass
+        assert not gc.isenabled()  # left as the caller had it
+    finally:
+        gc.enable()
 
 
 def test_compiled_programs_are_released_near_the_mapping_limit():

@@ -41,7 +41,11 @@ their batched Newton loops step in lockstep with the group's slowest device.
 The group program may reassociate its sums (:data:`REASSOCIATE`), is compiled for
 compile time when the model has time constants (:data:`FAST_COMPILE`), and returns
 its results packed in one array per group; the noise floor's program compiles on
-a second thread meanwhile.
+a second thread meanwhile. With time constants the group program stops at the
+sums and the finish (:func:`_finish`: solves, covariance, rank check, status;
+small dense algebra) is a program of its own, compiled without optimisation on a
+thread while the group program compiles: the model-discovery loop compiles a
+program per spec, and each kernel costs compile time.
 """
 
 from __future__ import annotations
