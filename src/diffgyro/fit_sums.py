@@ -102,11 +102,12 @@ REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=T
                    xla_cpu_fast_math_honor_infs=True, xla_cpu_fast_math_honor_division=True,
                    xla_cpu_fast_math_honor_functions=True)
 #: XLA options for a model with time constants: XLA's older loop emitters instead of its
-#: MLIR fusion emitters. Such a group program has ~200 kernels (a Newton loop, the lag
+#: MLIR fusion emitters. Such a group program has ~100 kernels (a Newton loop, the lag
 #: recursions, small factorisations) and XLA spends most of its compile time emitting
 #: and optimising them one by one. Measured on the 2-core EPYC, bias_poly(1)+thermal_lag,
-#: 256 × 2000: XLA compile 2.6 → 1.5 s; the fit of 1000 × 10 000 ~9 % slower in one
-#: process (6.3 → 6.9 s). Linear models keep the emitters (their sums are the hot path).
+#: 256 × 2000 (session 7, ~200 kernels): XLA compile 2.6 → 1.5 s; the fit of 1000 × 10 000
+#: ~9 % slower in one process (6.3 → 6.9 s). Linear models keep the emitters (their sums
+#: are the hot path).
 FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: XLA options of a tiny program run once (LLVM without optimisation passes).
 ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
