@@ -477,8 +477,8 @@ def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
     n_aux = sum(aux_sizes)
     # the whole state is one vector (counters as exact floats): under vmap the loop
     # keeps each device's state by one select, and XLA emits one kernel for it, not
-    # one per carry. The point: j (problem), k (pass), λ, then f, θ, g, H, aux at the
-    # current point; then per problem a row of θ, f, aux, steps, converged.
+    # one per carry. It holds j (problem), k (pass) and λ; f, θ, g, H and aux at the
+    # current point; then per problem a row of θ, f, aux, steps and converged.
     point = 1 + q + q + q * q + n_aux  # f, θ, g, H, aux
     head = 3 + point
     row = q + 1 + n_aux + 2
@@ -782,11 +782,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         cols = moving_columns(model)
         x_opt = jnp.stack([jets_opt[j][0] if j in jets_opt else x_any[..., j] for j in range(p)],
                           axis=-1)
-        slopes = [(jets_opt[m][1][k], m, k) for m in cols for k in range(nq)]  # (n, 3) each
+        slopes = [jets_opt[m][1][k] for m in cols for k in range(nq)]  # (n, 3), (m, k) order
         ops = [jnp.where(mask, x_opt[:, i, a] * d_[:, i], 0.0)
-               for i in range(3) for a in range(p) for d_, _, _ in slopes]
+               for i in range(3) for a in range(p) for d_ in slopes]
         ops += [jnp.where(mask, d_[:, i] * e_[:, i], 0.0)
-                for i in range(3) for d_, _, _ in slopes for e_, _, _ in slopes]
+                for i in range(3) for d_ in slopes for e_ in slopes]
         sums = _vsum(ops)
         w = len(slopes)
         raw_cov = dict(cross=sums[:3 * p * w].reshape(3, p, w),
@@ -857,11 +857,12 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
         inv = jnp.broadcast_to(_cho_inverse(chol[:n_gram], dsc[:n_gram]), (3, p, p))
         cov = jax.scipy.linalg.block_diag(*[inv[i] * sigma2[i] for i in range(3)])
     else:  # g = ∂(Xβ)/∂θ = Σ_m β_m ∂x_m/∂θ over the moving columns m
-        b_w = jnp.repeat(beta_s[:, moving_columns(model)], nq, axis=-1)  # (3, M·q), (m, k) order
-        k_of = np.tile(np.arange(nq), len(moving_columns(model)))
-        to_q = jnp.asarray(k_of[:, None] == np.arange(nq)[None, :], dtype)  # (M·q, q)
-        xg = jnp.einsum("iaw,iw,wk->iak", raw["cross"], b_w, to_q)
-        gg = jnp.einsum("ivw,iv,iw,vk,wr->ikr", raw["curvature"], b_w, b_w, to_q, to_q)
+        cols = moving_columns(model)
+        b_m, n_m = beta_s[:, cols], len(cols)  # (3, M)
+        cross = raw["cross"].reshape(3, p, n_m, nq)  # Σ x_a ∂x_m/∂θ_k
+        curvature = raw["curvature"].reshape(3, n_m, nq, n_m, nq)  # Σ ∂x_m/∂θ_k ∂x_n/∂θ_r
+        xg = jnp.einsum("iamk,im->iak", cross, b_m)
+        gg = jnp.einsum("imknr,im,in->ikr", curvature, b_m, b_m)
         cov = _covariance_separable(a, xg, gg, sigma2)
 
     terms = model.deterministic
