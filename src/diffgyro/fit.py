@@ -59,8 +59,9 @@ class FitOptions(eqx.Module):
     #: forms it (optimistix LM for time constants); "auto": "sums" with the closed-form
     #: solver (linear models and time constants alike), "direct" with ``solver="lm"``.
     path: str = eqx.field(static=True, default="auto")
-    #: The model-free noise floor is a median (a sort per device and axis), the
-    #: costliest part of a linear fit; False skips it (NaN) when only coefficients matter.
+    #: The model-free noise floor: two medians per device and axis (on the host's
+    #: threads, :mod:`diffgyro.noise`), the costliest part of a linear fit; False
+    #: skips it (NaN) when only coefficients matter.
     noise_floor: bool = eqx.field(static=True, default=True)
 
 
@@ -265,10 +266,11 @@ def masked_median(x: Float[Array, "... n"], valid: Bool[Array, "... n"]) -> Floa
     return jnp.where(n > 0, 0.5 * (_at(s, (n - 1) // 2) + _at(s, n // 2)), jnp.nan)
 
 
-def _kth_deviation(s, n, med, split, k):
-    """k-th smallest |s_i − med| of sorted s (n valid) without sorting again: the
-    deviations below ``split`` and from it on are two ascending runs; a binary
-    search finds how many of the k+1 smallest come from the lower run."""
+def _middle_deviations(s, n, med, split, k):
+    """The k-th and (k+1)-th smallest |s_i − med| of sorted s (n valid) without sorting
+    again: the deviations below ``split`` and from it on are two ascending runs; a
+    binary search finds how many of the k+1 smallest come from the lower run, and the
+    next smallest is the lesser of the two runs' next ones."""
     def lower(i):  # i-th smallest deviation of the lower run
         return med - _at(s, split - 1 - i)
 
@@ -285,9 +287,11 @@ def _kth_deviation(s, n, med, split, k):
 
     lo, _ = jax.lax.fori_loop(0, max(1, int(s.shape[-1]).bit_length() + 1), step, (lo, hi))
     j = k + 1 - lo
-    a = jnp.where(lo > 0, lower(lo - 1), -jnp.inf)
-    b = jnp.where(j > 0, upper(j - 1), -jnp.inf)
-    return jnp.maximum(a, b)
+    kth = jnp.maximum(jnp.where(lo > 0, lower(lo - 1), -jnp.inf),
+                      jnp.where(j > 0, upper(j - 1), -jnp.inf))
+    after = jnp.minimum(jnp.where(lo < split, lower(lo), jnp.inf),
+                        jnp.where(j < n - split, upper(j), jnp.inf))
+    return kth, after
 
 
 def _noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
@@ -300,8 +304,9 @@ def _noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array
     s, n = _sorted_valid(dy, pair)  # one sort gives both medians
     med = 0.5 * (_at(s, (n - 1) // 2) + _at(s, n // 2))
     split = jnp.sum((s < med[:, None]) & (jnp.arange(s.shape[-1]) < n[:, None]), axis=-1)
-    mad = 0.5 * (_kth_deviation(s, n, med, split, (n - 1) // 2)
-                 + _kth_deviation(s, n, med, split, n // 2))
+    # the median deviation: the middle one, or the mean of the middle two (one search)
+    kth, after = _middle_deviations(s, n, med, split, (n - 1) // 2)
+    mad = jnp.where(n % 2 == 1, kth, 0.5 * (kth + after))
     return jnp.where(n > 0, 1.4826 * mad / jnp.sqrt(2.0), jnp.nan)
 
 

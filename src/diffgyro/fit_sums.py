@@ -40,8 +40,8 @@ is part of the compiled shape. Models with time constants take smaller groups:
 their batched Newton loops step in lockstep with the group's slowest device.
 The group program may reassociate its sums (:data:`REASSOCIATE`), is compiled for
 compile time when the model has time constants (:data:`FAST_COMPILE`), and returns
-its results packed in one array per group; the noise floor's program compiles on
-a second thread meanwhile. With time constants the group program stops at the
+its results packed in one array per group; the model-free noise floor is computed on
+the host's threads meanwhile (:mod:`diffgyro.noise`). With time constants the group program stops at the
 sums and the finish (:func:`_finish`: solves, covariance, rank check, status;
 small dense algebra) is a program of its own, compiled without optimisation on a
 thread while the group program compiles: the model-discovery loop compiles a
@@ -62,6 +62,7 @@ from jaxtyping import Bool
 
 from .data import Batch
 from .jit import collector_paused, filter_jit, parallel_devices
+from .noise import start as host_noise
 from .model import ErrorModel
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
@@ -960,19 +961,6 @@ def _unpack_results(packed: np.ndarray, spec) -> dict:
                                      for c, x in zip(cols, leaves)])
 
 
-@filter_jit
-def _group_noise(gyro, rate, mask):
-    """Model-free white-noise σ per axis of every device (:func:`diffgyro.fit._noise_floor`).
-
-    A program of its own: it does not depend on the model, so it is compiled once per
-    shape however many model specs are fitted (diagnose fits many).
-    """
-    from . import fit as F
-
-    axes = jax.vmap(F._noise_floor)(gyro if rate is None else gyro - rate, mask)
-    return dict(noise_floor=jnp.sqrt(jnp.mean(axes**2, axis=-1)), noise_axes=axes)
-
-
 def _pow2_floor(x: int) -> int:
     return 1 << (max(int(x), 1).bit_length() - 1)
 
@@ -1073,17 +1061,14 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
         args = (model, layout, opts, c, prefix, *[put.get(k) for k in (*order, "nv", "theta0")],
                 put.get("pos", pos))
-        noise_args = (put["gyro"], put.get("rate"), put["mask"])
         finish = (model, layout, opts)
         if j == 0:
             # the first group traces and compiles every program (the collector paused)
             with collector_paused():
-                # the noise floor's program compiles while this thread traces the group's
-                ahead = [_group_noise.compile_ahead(*noise_args)] if opts.noise_floor else []
                 # the results' shapes, from the trace the call makes anyway
                 shapes = group.eval_shape(*args)
                 # the group program compiles while this thread traces the finish
-                ahead.append(group.compile_ahead(*args))
+                ahead = [group.compile_ahead(*args)]
                 if model.n_nonlinear:
                     on = jax.sharding.SingleDeviceSharding(devices[0])
                     raw = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on),
@@ -1096,11 +1081,11 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         out = group(*args)
         if model.n_nonlinear:
             out = _group_finish(*finish, out)
-        out = {"sums": out[0]}
-        if opts.noise_floor:
-            out.update(_group_noise(*noise_args))
-        return stop - start, out
+        return stop - start, {"sums": out[0]}
 
+    # the model-free noise floor on threads of the host, beside the compiled programs
+    noise = (host_noise(batch.gyro, batch.rate, batch.mask, dtype) if opts.noise_floor
+             else None)
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller)
     specs: list = []
@@ -1109,7 +1094,9 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     got = [{**_unpack_results(o.pop("sums"), specs[0]), **o} for o in got]
     out = {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
            for k in got[0]}
-    if not opts.noise_floor:
+    if noise is None:
         out["noise_floor"] = np.full(d, np.nan, dtype)
         out["noise_axes"] = np.full((d, 3), np.nan, dtype)
+    else:
+        out["noise_floor"], out["noise_axes"] = noise()
     return out
