@@ -10,8 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro import noise
-from diffgyro import Batch, Recording
+from diffgyro import Batch, Recording, noise
 from diffgyro.fit import _noise_floor, fit
 
 

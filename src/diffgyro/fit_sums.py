@@ -62,8 +62,8 @@ from jaxtyping import Bool
 
 from .data import Batch
 from .jit import collector_paused, filter_jit, parallel_devices
-from .noise import start as host_noise
 from .model import ErrorModel
+from .noise import start as host_noise
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
 
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
