@@ -39,7 +39,7 @@ every local accelerator), so only the group size — not the number of devices �
 is part of the compiled shape. Models with time constants take smaller groups:
 their batched Newton loops step in lockstep with the group's slowest device.
 The group program may reassociate its sums (:data:`REASSOCIATE`), is compiled for
-compile time when the model has time constants (:data:`FAST_COMPILE`), and returns
+compile time unless it is a fused linear model's (:data:`FAST_COMPILE`), and returns
 its results packed in one array per group; the model-free noise floor is computed on
 the host's threads meanwhile (:mod:`diffgyro.noise`). With time constants the group program stops at the
 sums and the finish (:func:`_finish`: solves, covariance, rank check, status;
@@ -102,13 +102,16 @@ MAX_GROUP_DEVICES = 128
 REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=True,
                    xla_cpu_fast_math_honor_infs=True, xla_cpu_fast_math_honor_division=True,
                    xla_cpu_fast_math_honor_functions=True)
-#: XLA options for a model with time constants: XLA's older loop emitters instead of its
-#: MLIR fusion emitters. Such a group program has ~100 kernels (a Newton loop, the lag
-#: recursions, small factorisations) and XLA spends most of its compile time emitting
-#: and optimising them one by one. Measured on the 2-core EPYC, bias_poly(1)+thermal_lag,
-#: 256 × 2000 (session 7, ~200 kernels): XLA compile 2.6 → 1.5 s; the fit of 1000 × 10 000
-#: ~9 % slower in one process (6.3 → 6.9 s). Linear models keep the emitters (their sums
-#: are the hot path).
+#: XLA options of every group program but a fused linear model's: XLA's older loop
+#: emitters instead of its MLIR fusion emitters. Such a program has many kernels (a
+#: Newton loop, the lag recursions, per-axis columns, small factorisations) and XLA
+#: spends most of its compile time emitting and optimising them one by one. Measured on
+#: the 2-core EPYC at 256 × 2000: bias_poly(1)+thermal_lag (session 7, ~200 kernels)
+#: XLA compile 2.6 → 1.5 s, the fit of 1000 × 10 000 ~9 % slower (6.3 → 6.9 s); S2's
+#: regression (session 9) first fit 1.6 → 1.35 s, the fit of 1000 × 10 000 ~14 % slower
+#: (0.54 → 0.62 s, still 4.4× its numpy baseline). Fused linear models (every column
+#: shared by the axes: bias_poly and the like) keep the emitters: their one pass over
+#: the samples runs at memory speed.
 FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: XLA options of a tiny program run once (LLVM without optimisation passes).
 ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
@@ -928,17 +931,17 @@ def _finished(model, layout, opts, raw):
     return _pack(jax.vmap(lambda r: _finish(model, layout, opts, r))(raw), raw["tot"].dtype)
 
 
-_group_linear = filter_jit(compiler_options=REASSOCIATE)(_group_program)
-_group_separable = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
+_group_fused = filter_jit(compiler_options=REASSOCIATE)(_group_program)
+_group_compact = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
 #: The finish of a model with time constants: a few dozen tiny kernels, compiled without
 #: optimisation (:data:`ONCE`) on a thread of its own while the group program compiles.
 _group_finish = filter_jit(compiler_options=ONCE)(_finished)
 
 
-def _group_for(model: ErrorModel):
-    """The compiled group program for the model's kind: with time constants or not
-    (:data:`FAST_COMPILE`)."""
-    return _group_separable if model.n_nonlinear else _group_linear
+def _group_for(model: ErrorModel, fused: bool):
+    """The compiled group program: a fused linear model's with XLA's fusion emitters (its
+    sums at memory speed), any other compiled for compile time (:data:`FAST_COMPILE`)."""
+    return _group_fused if fused and not model.n_nonlinear else _group_compact
 
 
 def _pack(out, dtype):
@@ -1033,7 +1036,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
-    group = _group_for(model)
+    group = _group_for(model, fused)
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
