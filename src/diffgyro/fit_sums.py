@@ -41,11 +41,11 @@ their batched Newton loops step in lockstep with the group's slowest device.
 The group program may reassociate its sums (:data:`REASSOCIATE`), is compiled for
 compile time unless it is a fused linear model's (:data:`FAST_COMPILE`), and returns
 its results packed in one array per group; the model-free noise floor is computed on
-the host's threads meanwhile (:mod:`diffgyro.noise`). With time constants the group program stops at the
-sums and the finish (:func:`_finish`: solves, covariance, rank check, status;
-small dense algebra) is a program of its own, compiled without optimisation on a
-thread while the group program compiles: the model-discovery loop compiles a
-program per spec, and each kernel costs compile time.
+the host's threads meanwhile (:mod:`diffgyro.noise`). Unless the model is fused linear,
+the group program stops at the sums and the finish (:func:`_finish`: solves,
+covariance, rank check, status; small dense algebra) is a program of its own,
+compiled without optimisation on a thread while the group program compiles: the
+model-discovery loop compiles a program per spec, and each kernel costs compile time.
 """
 
 from __future__ import annotations
@@ -817,8 +817,8 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     """One device's results from its sums (:func:`_device`): the full and the folds'
     solutions, residual and held-out errors, covariance, rank check and status.
 
-    Small dense algebra on (3, p, p) systems, no samples: a program of its own for
-    models with time constants (:func:`_group_finish`), inlined in linear models'.
+    Small dense algebra on (3, p, p) systems, no samples: a program of its own
+    (:func:`_group_finish`), inlined in fused linear models' group programs.
     """
     from . import fit as F
 
@@ -907,10 +907,10 @@ def _covariance_separable(a, xg, gg, sigma2):
 
 
 def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
-                   centre, scale, dt, nv, theta0, pos=None):
-    """Every device of a group through :func:`_device`; a linear model's results finished
-    and packed (:func:`_pack`), a model with time constants' sums as they are (finished
-    by :func:`_group_finish`)."""
+                   centre, scale, dt, nv, theta0, pos=None, apart=False):
+    """Every device of a group through :func:`_device`: its results finished and packed
+    (:func:`_pack`), or with ``apart`` its sums as they are (finished by
+    :func:`_group_finish`)."""
     from . import fit as F
 
     F.TRACE_COUNTS["sums"] += 1
@@ -923,7 +923,7 @@ def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, te
 
     args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
     raw = jax.vmap(one)(*(args if aligned else (*args, pos)))
-    return raw if model.n_nonlinear else _finished(model, layout, opts, raw)
+    return raw if apart else _finished(model, layout, opts, raw)
 
 
 def _finished(model, layout, opts, raw):
@@ -933,8 +933,11 @@ def _finished(model, layout, opts, raw):
 
 _group_fused = filter_jit(compiler_options=REASSOCIATE)(_group_program)
 _group_compact = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
-#: The finish of a model with time constants: a few dozen tiny kernels, compiled without
-#: optimisation (:data:`ONCE`) on a thread of its own while the group program compiles.
+#: The finish of every model but a fused linear one: a few dozen tiny kernels, compiled
+#: without optimisation (:data:`ONCE`) on a thread of its own while the group program
+#: compiles. S2's regression at 256 × 2000: first fit 1.35 → 1.0 s; its fit of
+#: 1000 × 10 000 ~10 % slower (a second call per group, not the unoptimised code:
+#: compiled at XLA's default level it was as slow).
 _group_finish = filter_jit(compiler_options=ONCE)(_finished)
 
 
@@ -1037,6 +1040,10 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
     group = _group_for(model, fused)
+    # a program compiled for compile time finishes in a program of its own, compiled
+    # without optimisation beside it; a fused linear model's finishes inline
+    apart = group is _group_compact
+    finish = (model, layout, opts)
     order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
@@ -1063,8 +1070,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
             pos = None
         put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
         args = (model, layout, opts, c, prefix, *[put.get(k) for k in (*order, "nv", "theta0")],
-                put.get("pos", pos))
-        finish = (model, layout, opts)
+                put.get("pos", pos), apart)
         if j == 0:
             # the first group traces and compiles every program (the collector paused)
             with collector_paused():
@@ -1072,7 +1078,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
                 shapes = group.eval_shape(*args)
                 # the group program compiles while this thread traces the finish
                 ahead = [group.compile_ahead(*args)]
-                if model.n_nonlinear:
+                if apart:
                     on = jax.sharding.SingleDeviceSharding(devices[0])
                     raw = jax.tree.map(lambda x: jax.ShapeDtypeStruct(x.shape, x.dtype, sharding=on),
                                        shapes)
@@ -1082,7 +1088,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
                 for thread in ahead:
                     thread.join()
         out = group(*args)
-        if model.n_nonlinear:
+        if apart:
             out = _group_finish(*finish, out)
         return stop - start, {"sums": out[0]}
 
