@@ -51,6 +51,7 @@ model-discovery loop compiles a program per spec, and each kernel costs compile 
 from __future__ import annotations
 
 import functools
+import threading
 
 import equinox as eqx
 import jax
@@ -184,10 +185,17 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     sig_p = jax.tree.map(lambda a: a[perm] if (a.ndim >= 1 and a.shape[0] == n) else a, sig)
     # two sets of time constants (log s): a coincidence at one is not at the other
     thetas = [np.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
-    # 24 samples, run once per model: compiled for compile time, not speed
-    xs = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)],
-                 compiler_options=ONCE)(sig, sig_p)
-    xs = [np.asarray(v) for v in xs]
+    # 24 samples, run once per model: compiled for compile time, not speed, on a thread
+    # while this one finds the inputs the model reads (below)
+    lowered = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)],
+                      compiler_options=ONCE).lower(sig, sig_p)
+    compiled: list = []
+    thread = threading.Thread(target=lambda: compiled.append(lowered.compile()),
+                              name="compile layout probe", daemon=True)
+    thread.start()
+    need = _inputs_read(model, present, n, q)
+    thread.join()
+    xs = [np.asarray(v) for v in (compiled[0] if compiled else lowered.compile())(sig, sig_p)]
     p = xs[0].shape[-1]
     # pointwise: the columns of a reordered recording are the reordered columns
     pointwise = all(np.allclose(b, a[perm], rtol=1e-12, atol=0.0) for a, b in zip(xs[::2], xs[1::2]))
@@ -216,7 +224,12 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     moving = tuple(bool(np.any(xs[0][..., a] != xs[-2][..., a])) for a in range(p))
     layout = Layout(p=p, xx=tuple(reps[1:]), a_map=tuple(a_map.ravel().tolist()), shared=shared,
                     const_col=const_col, pointwise=bool(pointwise), moving=moving)
-    # which inputs matter (and the sampling interval, through dT/dt)
+    return layout, need
+
+
+def _inputs_read(model: ErrorModel, present: frozenset[str], n: int, q: int) -> frozenset[str]:
+    """The inputs the model's columns and range checks read (and "dt" when the sampling
+    interval matters, through dT/dt), by dead-code elimination of their trace."""
     dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
     shapes = {"t": (n,), "rate": (n, 3), "temp": (n,), "temp_ext": (n,), "accel": (n, 3)}
     names = [k for k in INPUTS if k in present or k == "t"]
@@ -232,8 +245,7 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     closed = jax.make_jaxpr(f)(jax.ShapeDtypeStruct((), dtype),
                                *[jax.ShapeDtypeStruct(shapes[k], dtype) for k in names])
     _, used = pe.dce_jaxpr(closed.jaxpr, [True] * len(closed.jaxpr.outvars))
-    need = {name for name, u in zip(["dt", *names], used) if u}
-    return layout, frozenset(need)
+    return frozenset(name for name, u in zip(["dt", *names], used) if u)
 
 
 def _products(layout: Layout, x, ys, mask):
