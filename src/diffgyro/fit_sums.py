@@ -1102,7 +1102,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         out = group(*args)
         if apart:
             out = _group_finish(*finish, out)
-        return stop - start, {"sums": out[0]}
+        return stop - start, out[0]  # the packed results (:func:`_pack`)
 
     # the model-free noise floor on threads of the host, beside the compiled programs
     noise = (host_noise(batch.gyro, batch.rate, batch.mask, dtype) if opts.noise_floor
@@ -1112,7 +1112,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     specs: list = []
     outs = [run(j) for j in range(-(-d // g))]
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
-    got = [{**_unpack_results(o.pop("sums"), specs[0]), **o} for o in got]
+    got = [_unpack_results(o, specs[0]) for o in got]
     out = {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
            for k in got[0]}
     if noise is None:
