@@ -51,7 +51,6 @@ model-discovery loop compiles a program per spec, and each kernel costs compile 
 from __future__ import annotations
 
 import functools
-import threading
 
 import equinox as eqx
 import jax
@@ -168,6 +167,12 @@ def _random_signals(present: frozenset[str], n: int, seed: int) -> Signals:
         has_rate=has["rate"])
 
 
+@filter_jit(compiler_options=ONCE)
+def _probe_designs(model: ErrorModel, thetas, sig: Signals, sig_p: Signals) -> list:
+    """The design at every trial θ on the probe's signals and on their reordering."""
+    return [model.design(z, th) for th in thetas for z in (sig, sig_p)]
+
+
 @functools.lru_cache(maxsize=256)
 def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, frozenset[str]]:
     """The model's product layout and the inputs its columns and range checks read.
@@ -186,16 +191,11 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
     # two sets of time constants (log s): a coincidence at one is not at the other
     thetas = [np.full((q,), v, sig.gyro.dtype) for v in ((2.3, 4.1) if q else (0.0,))]
     # 24 samples, run once per model: compiled for compile time, not speed, on a thread
-    # while this one finds the inputs the model reads (below)
-    lowered = jax.jit(lambda s, sp: [model.design(z, th) for th in thetas for z in (s, sp)],
-                      compiler_options=ONCE).lower(sig, sig_p)
-    compiled: list = []
-    thread = threading.Thread(target=lambda: compiled.append(lowered.compile()),
-                              name="compile layout probe", daemon=True)
-    thread.start()
+    # while this one finds the inputs the model reads
+    ahead = _probe_designs.compile_ahead(model, thetas, sig, sig_p)
     need = _inputs_read(model, present, n, q)
-    thread.join()
-    xs = [np.asarray(v) for v in (compiled[0] if compiled else lowered.compile())(sig, sig_p)]
+    ahead.join()
+    xs = [np.asarray(v) for v in _probe_designs(model, thetas, sig, sig_p)]
     p = xs[0].shape[-1]
     # pointwise: the columns of a reordered recording are the reordered columns
     pointwise = all(np.allclose(b, a[perm], rtol=1e-12, atol=0.0) for a, b in zip(xs[::2], xs[1::2]))
