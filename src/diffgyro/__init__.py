@@ -55,8 +55,9 @@ def use_cpu_cores(n: int | None = None) -> int:
     if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "") and \
             getattr(jax.config, "jax_num_cpu_devices", 0) in (-1, None):  # 0: an older JAX
         if n is None:
-            cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
-            n = min(len(cores) if cores else (os.cpu_count() or 1), 16)
+            from .jit import available_cores
+
+            n = min(available_cores(), 16)
         try:
             jax.config.update("jax_num_cpu_devices", max(int(n), 1))
         except RuntimeError:  # JAX already started: its devices stay

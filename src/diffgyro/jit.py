@@ -20,6 +20,7 @@ import contextlib
 import functools
 import gc
 import logging
+import os
 import threading
 import time
 from collections.abc import Callable
@@ -109,6 +110,12 @@ def parallel_devices() -> list:
     single-threaded Eigen)."""
     devices = jax.local_devices()
     return devices[:1] if devices[0].platform == "cpu" else devices
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS tells it)."""
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    return max(1, len(cores) if cores else (os.cpu_count() or 1))
 
 
 MAP_HEADROOM = 0.5  # share of vm.max_map_count past which compiled programs are dropped

@@ -16,12 +16,13 @@ Measured on the 2-core CPU (256 devices × 10 000 samples): XLA's program
 
 from __future__ import annotations
 
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from jaxtyping import Bool, Float
+
+from .jit import available_cores
 
 #: Device-samples per chunk of work (a few MB of differences: they stay in cache).
 CHUNK_SAMPLES = 1 << 18
@@ -63,14 +64,6 @@ def noise_floor(axes: Float[np.ndarray, "d 3"]) -> Float[np.ndarray, " d"]:
     return np.sqrt(np.mean(axes**2, axis=-1))
 
 
-def workers() -> int:
-    """Threads for the noise floor: the cores this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not Linux
-        return max(1, os.cpu_count() or 1)
-
-
 def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
           mask: Bool[np.ndarray, "d n"], dtype=np.float64,
           threads: int | None = None) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
@@ -82,7 +75,8 @@ def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | N
     """
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
-    pool = ThreadPoolExecutor(threads or workers(), thread_name_prefix="diffgyro-noise")
+    # a thread per core this process may run on
+    pool = ThreadPoolExecutor(threads or available_cores(), thread_name_prefix="diffgyro-noise")
     jobs = [pool.submit(noise_axes, gyro[a:a + step], None if rate is None else rate[a:a + step],
                         mask[a:a + step], dtype) for a in range(0, d, step)]
     pool.shutdown(wait=False)  # the threads end with the last chunk
