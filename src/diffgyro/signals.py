@@ -11,7 +11,6 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import lax
 from jaxtyping import Array, Bool, Float
 
 # |dT/dt| above which the sensor counts as heating or cooling (0.05 °C/min).
@@ -140,26 +139,15 @@ def latched_heating(dtemp: Float[Array, " n"], mask: Bool[Array, " n"], threshol
     return jnp.where(jnp.any(active), state, 0.0)
 
 
-def _range_by_parts(x, mask):
+def masked_range(x: Float[Array, " n"], mask: Bool[Array, " n"]) -> tuple[Array, Array]:
+    """Smallest and largest valid value.
+
+    Two reductions, each fused with its mask. One variadic min/max reduction (one
+    pass) compiled 10× slower on XLA CPU without fusion emitters: 100-170 ms for an
+    unmasked (16, 2000) input (an ALIGNED group's constant mask folds away), against
+    11 ms for the two."""
     return (jnp.min(jnp.where(mask, x, jnp.inf), axis=-1),
             jnp.max(jnp.where(mask, x, -jnp.inf), axis=-1))
-
-
-@jax.custom_jvp
-def masked_range(x: Float[Array, " n"], mask: Bool[Array, " n"]) -> tuple[Array, Array]:
-    """Smallest and largest valid value, in one pass over ``x`` (one variadic reduction:
-    separate min and max reductions each write the masked copy of ``x`` first)."""
-    inf = jnp.asarray(jnp.inf, x.dtype)
-    return lax.reduce((jnp.where(mask, x, inf), jnp.where(mask, x, -inf)), (inf, -inf),
-                      lambda a, b: (jnp.minimum(a[0], b[0]), jnp.maximum(a[1], b[1])),
-                      (x.ndim - 1,))
-
-
-@masked_range.defjvp
-def _masked_range_jvp(primals, tangents):
-    x, mask = primals
-    dx, _ = tangents
-    return masked_range(x, mask), jax.jvp(lambda x_: _range_by_parts(x_, mask), (x,), (dx,))[1]
 
 
 def temp_norm_from(temp: Float[Array, " n"], mask: Bool[Array, " n"]) -> TempNorm:
