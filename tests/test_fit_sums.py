@@ -25,9 +25,16 @@ def quartic(centres):
     return evaluate
 
 
+def newton(evaluate, theta0, caps):
+    """``_newton`` told the aux pytree of :func:`quartic`."""
+    aux = {"at": jax.ShapeDtypeStruct((2,), theta0.dtype),
+           "problem": jax.ShapeDtypeStruct((1,), theta0.dtype)}
+    return _newton(evaluate, theta0, caps, 1e-10, aux)
+
+
 def test_every_problem_reaches_its_minimum_in_turn():
     th, f, aux, steps, done = jax.jit(
-        lambda t0: _newton(quartic(CENTRES), t0, (40, 20, 20), 1e-10))(jnp.array([5.0, 5.0]))
+        lambda t0: newton(quartic(CENTRES), t0, (40, 20, 20)))(jnp.array([5.0, 5.0]))
     np.testing.assert_allclose(th, CENTRES, atol=1e-8)
     np.testing.assert_allclose(f, 1.0, atol=1e-14)
     assert np.all(done) and np.all(steps >= 1) and np.all(steps <= np.array([40, 20, 20]))
@@ -38,7 +45,7 @@ def test_every_problem_reaches_its_minimum_in_turn():
 
 def test_a_cap_ends_a_problem_unconverged():
     # problem 1 may take one step from problem 0's optimum: not enough to get there
-    th, _, _, steps, done = _newton(quartic(CENTRES), jnp.array([5.0, 5.0]), (40, 1, 20), 1e-10)
+    th, _, _, steps, done = newton(quartic(CENTRES), jnp.array([5.0, 5.0]), (40, 1, 20))
     assert done[0] and not done[1] and done[2]
     assert steps[1] == 1
     assert np.linalg.norm(np.asarray(th[1]) - CENTRES[1]) > 1e-3
@@ -51,7 +58,7 @@ def test_a_start_that_is_not_finite_ends_that_problem_only():
         bad = (j == 1) & (jnp.max(jnp.abs(th - jnp.asarray(CENTRES[0]))) < 1e-6)
         return jnp.where(bad, jnp.nan, f), g, h, aux
 
-    th, f, _, steps, done = _newton(evaluate, jnp.array([5.0, 5.0]), (40, 20, 20), 1e-10)
+    th, f, _, steps, done = newton(evaluate, jnp.array([5.0, 5.0]), (40, 20, 20))
     assert not np.isfinite(f[1]) and steps[1] == 0 and done[1]
     np.testing.assert_allclose(np.asarray(th)[[0, 2]], CENTRES[[0, 2]], atol=1e-8)
 
@@ -60,8 +67,8 @@ def test_a_start_that_is_not_finite_ends_that_problem_only():
 def test_batched_devices_equal_one_at_a_time(starts):
     """Under vmap every device runs the loop until its own last problem ends (the
     others' states held by a select): each equals its own unbatched solve."""
-    solve = jax.jit(lambda t0: _newton(quartic(CENTRES), t0, (40, 20, 20), 1e-10))
-    batched = jax.jit(jax.vmap(lambda t0: _newton(quartic(CENTRES), t0, (40, 20, 20), 1e-10)))(
+    solve = jax.jit(lambda t0: newton(quartic(CENTRES), t0, (40, 20, 20)))
+    batched = jax.jit(jax.vmap(lambda t0: newton(quartic(CENTRES), t0, (40, 20, 20))))(
         jnp.asarray(starts))
     for i, s in enumerate(starts):
         one = solve(jnp.asarray(s))

@@ -410,12 +410,14 @@ def _cholesky(a):
     """Cholesky factors of the column-scaled Gram matrices (..., p, p) and the column scales.
 
     A matrix that is not finite gives NaN (one degenerate device never stops the batch).
+    Finite is tested on the sum of the scaled entries (|g_ij| ≤ 1 where A is positive
+    semidefinite): an all-reduction of isfinite compiled to 3× the code.
     """
     from .fit import _scaled
 
     g, d = _scaled(a)
     eye = jnp.eye(a.shape[-1], dtype=a.dtype)
-    ok = jnp.all(jnp.isfinite(g), axis=(-2, -1))[..., None, None]
+    ok = jnp.isfinite(jnp.sum(g, axis=(-2, -1)))[..., None, None]
     chol = jnp.linalg.cholesky(jnp.where(ok, g, eye))
     return jnp.where(ok, chol, jnp.nan), d
 
@@ -441,17 +443,40 @@ def _unpack(layout: Layout, s):
     return a, c, s[..., int(q_idx[0]):int(q_idx[-1]) + 1], s[..., 0]
 
 
+def _unpack_split(layout: Layout, fixed, moving):
+    """:func:`_unpack` of ``_assemble(layout, fixed, moving)`` by one gather, without
+    assembling first; ``fixed`` None: the fixed products are zero (derivatives)."""
+    var_idx, fix_idx = varying_products(layout)
+    src = np.zeros(layout.n_products, np.int32)
+    src[var_idx] = np.arange(len(var_idx))
+    if fixed is None:  # every fixed product reads the zero appended to the moving ones
+        src[fix_idx] = len(var_idx)
+        s = jnp.concatenate([moving, jnp.zeros(moving.shape[:-1] + (1,), moving.dtype)], axis=-1)
+    else:
+        src[var_idx] += len(fix_idx)
+        src[fix_idx] = np.arange(len(fix_idx))
+        fixed = jnp.broadcast_to(fixed, moving.shape[:-1] + fixed.shape[-1:])
+        s = jnp.concatenate([fixed, moving], axis=-1)
+    a_idx, c_idx, q_idx = layout.index()
+    cuts = np.cumsum([a_idx.size, c_idx.size, q_idx.size])
+    g = s[..., np.concatenate([src[a_idx].ravel(), src[c_idx].ravel(), src[q_idx], src[:1]])]
+    lead = g.shape[:-1]
+    return (g[..., :cuts[0]].reshape(lead + a_idx.shape), g[..., cuts[0]:cuts[1]].reshape(
+        lead + c_idx.shape), g[..., cuts[1]:cuts[2]], g[..., cuts[2]])
+
+
 def _sse(a, c, q, beta):
     """Σ (y − xβ)² per axis from the sums A, c, Q."""
     return q - 2.0 * jnp.einsum("...ip,...ip->...i", beta, c) + jnp.einsum(
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
-def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
+def _newton(evaluate, theta0, caps: tuple[int, ...], rtol, aux_shapes):
     """Minimise smooth functions of a few parameters (log time constants), one after another.
 
     ``evaluate(j, θ)`` gives problem j's value, gradient, Hessian and an aux pytree
-    in one pass over the samples. Problem 0 starts at ``theta0``, every later one at
+    (of ``aux_shapes``: given, so that ``evaluate`` is traced once) in one pass over
+    the samples. Problem 0 starts at ``theta0``, every later one at
     problem 0's optimum (the folds' refits start from the full fit's); problem j takes
     at most ``caps[j]`` steps. The problems share one loop, so ``evaluate`` is traced
     and compiled once, and each pass evaluates one problem, as many passes as steps.
@@ -487,8 +512,7 @@ def _newton(evaluate, theta0, caps: tuple[int, ...], rtol):
 
     n_problems = len(caps)
     q, dtype = theta0.shape[0], theta0.dtype
-    aux_leaves, aux_tree = jax.tree.flatten(
-        jax.eval_shape(lambda th: evaluate(jnp.int32(0), th), theta0)[3])
+    aux_leaves, aux_tree = jax.tree.flatten(aux_shapes)
     aux_sizes = [int(np.prod(a.shape, dtype=np.int64)) for a in aux_leaves]
     n_aux = sum(aux_sizes)
     # the whole state is one vector (counters as exact floats): under vmap the loop
@@ -576,17 +600,18 @@ def _product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
     return [u * v] + [d1(k) for k in range(q)] + [d2(k, r) for k in range(q) for r in range(q)]
 
 
-def _projected(layout: Layout, s, ds, dds):
+def _projected(sums, dsums, ddsums):
     """Value, gradient and Hessian of the projected cost ``Σ_i min_β Σ(y_i − x_iβ)²``
-    from the sums ``s`` and their derivatives ``ds`` (q, P) and ``dds`` (q, q, P).
+    from the sums (A, c, Q, count) of :func:`_unpack` and their derivatives (leading
+    axes (q,) and (q, q)).
 
     With ``β = A⁻¹c`` stationary, ``f = Q − 2βᵀc + βᵀAβ`` has ``∂f = ∂Q − 2βᵀ∂c + βᵀ∂Aβ``
     and ``∂²f = ∂²Q − 2βᵀ∂²c + βᵀ∂²Aβ − 2 r_kᵀA⁻¹r_l`` with ``r = ∂c − ∂Aβ``: one
     factorisation of each A, no derivative of the factorisation itself.
     """
-    a, c, q, _ = _unpack(layout, s)
-    da, dc, dq, _ = _unpack(layout, ds)
-    dda, ddc, ddq, _ = _unpack(layout, dds)
+    a, c, q, _ = sums
+    da, dc, dq, _ = dsums
+    dda, ddc, ddq, _ = ddsums
     chol, d = _cholesky(a)
     beta = _cho_solve(chol, d, c)
 
@@ -618,6 +643,55 @@ def varying_products(layout: Layout) -> tuple[list, list]:
     return var, fixed
 
 
+def _assemble(layout: Layout, fixed, moving):
+    """All products (..., P) from the fixed ones and the moving ones (:func:`varying_products`)."""
+    var_idx, fix_idx = varying_products(layout)
+    order = np.argsort(np.concatenate([fix_idx, var_idx]))
+    fixed = jnp.broadcast_to(fixed, moving.shape[:-1] + fixed.shape[-1:])
+    return jnp.concatenate([fixed, moving], axis=-1)[..., order]
+
+
+def covariance_pairs(model: ErrorModel, layout: Layout) -> tuple[list, np.ndarray, np.ndarray]:
+    """The products the Gauss–Newton covariance of (β, θ) needs, each formed once.
+
+    Factors are (column, axis, k): the column (k None) or its slope ∂x/∂θ_k, on
+    axis 0 for a column equal on all axes. ``cross`` (3, p, w) and ``curvature``
+    (3, w, w) index the distinct pairs: Σ x_a ∂x_m/∂θ_k and Σ ∂x_m/∂θ_k ∂x_n/∂θ_r
+    for the moving columns m, n (w = columns × time constants, (m, k) order).
+    """
+    p, nq = layout.p, model.n_nonlinear
+    slopes = [(m, k) for m in moving_columns(model) for k in range(nq)]
+    pairs: dict = {}
+
+    def index(f, g):
+        key = tuple(sorted((f, g), key=repr))
+        return pairs.setdefault(key, len(pairs))
+
+    def ax(a, i):
+        return 0 if layout.shared[a] else i
+
+    cross = np.asarray([[[index((a, ax(a, i), None), (m, ax(m, i), k)) for m, k in slopes]
+                         for a in range(p)] for i in range(3)], np.int32).reshape(3, p, len(slopes))
+    curvature = np.asarray([[[index((m, ax(m, i), k), (n, ax(n, i), r)) for n, r in slopes]
+                             for m, k in slopes] for i in range(3)],
+                           np.int32).reshape(3, len(slopes), len(slopes))
+    return list(pairs), cross, curvature
+
+
+def _assembled(model: ErrorModel, layout: Layout, raw: dict) -> dict:
+    """``raw`` with the sums of a model with time constants in the finish's form: all
+    products of tot, held and train, and the covariance's sums by axis."""
+    if "covariance" not in raw:
+        return raw
+    raw = dict(raw)
+    for k in ("tot", "held", "train"):
+        raw[k] = _assemble(layout, raw[k]["fixed"], raw[k]["moving"])
+    _, cross, curvature = covariance_pairs(model, layout)
+    cov = raw.pop("covariance")
+    raw["cross"], raw["curvature"] = cov[..., cross], cov[..., curvature]
+    return raw
+
+
 def _chunked_sum(ops, c: int):
     """Sums of the (n,) arrays ``ops`` in one loop, by chunks of ``c`` then over chunks
     (a short sum per chunk keeps the rounding of a long sum down)."""
@@ -638,7 +712,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         norm = temp_norm_from(temp, mask) if centre is None else TempNorm(centre=centre, scale=scale)
     t = jnp.zeros(mask.shape, dtype) if t is None else t
     sig = make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
-                       norm=norm, dtemp_window=opts.dtemp_window, dt=dt)
+                       norm=norm, dtemp_window=opts.dtemp_window, dt=dt, slopes=dt is not None)
     if temp is not None:  # the same T_s with a multiply instead of a divide per sample
         inv = 1.0 / norm.scale
         sig = eqx.tree_at(lambda s_: s_.temp_s, sig, temp * inv - norm.centre * inv)
@@ -721,10 +795,13 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                     None if dd is None else dd[:, :, :, ax]
             return x_any[:, ax, a_], None, None
 
-        def moving(th, masks, derivatives=True, plain=()):
+        cov_pairs = covariance_pairs(model, layout)[0]
+
+        def moving(th, masks, derivatives=True, plain=(), covariance=False):
             """Moving sums (m,) per mask, and with ``derivatives`` their first (q, m)
             and second (q, q, m) derivatives in θ (product rule), then the sums alone
-            under the ``plain`` masks: one variadic reduction."""
+            under the ``plain`` masks, then with ``covariance`` the sums of
+            :func:`covariance_pairs` under the first mask: one variadic reduction."""
             jets = column_jets(th, derivatives)
             streams = []
             for j in var_idx:
@@ -734,35 +811,38 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
                 streams.append(_product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0))
             ops = [jnp.where(m, u, 0.0) for m in masks for st in streams for u in st]
             ops += [jnp.where(m, st[0], 0.0) for m in plain for st in streams]
+            if covariance:  # a column (k None) or a slope ∂x/∂θ_k, of (column, axis)
+                def one(a_, i_, k_):
+                    x_, d_, _ = factor(jets, i_, a_)
+                    return x_ if k_ is None else d_[k_]
+
+                ops += [jnp.where(masks[0], one(*f) * one(*g_), 0.0) for f, g_ in cov_pairs]
             sums = _chunked_sum(ops, c)
             w = 1 + nq + nq * nq if derivatives else 1
             lead = len(masks) * len(var_idx) * w
-            out_plain = sums[lead:].reshape(len(plain), len(var_idx))
+            n_plain = len(plain) * len(var_idx)
+            out_plain = sums[lead:lead + n_plain].reshape(len(plain), len(var_idx))
+            out_cov = sums[lead + n_plain:]
             sums = sums[:lead].reshape(len(masks), len(var_idx), w)
             if not derivatives:
                 out = sums[..., 0]
             else:
                 out = (sums[..., 0], jnp.moveaxis(sums[..., 1:1 + nq], -1, 1),
                        jnp.moveaxis(sums[..., 1 + nq:].reshape(len(masks), -1, nq, nq), 1, -1))
+            if covariance:
+                return out, out_plain, out_cov
             return (out, out_plain) if plain else out
 
-        order = np.argsort(np.concatenate([fix_idx, var_idx]))
-
-        def assemble(fixed, moving_):  # all products from the fixed and the moving ones
-            fixed = jnp.broadcast_to(fixed, moving_.shape[:-1] + fixed.shape[-1:])
-            return jnp.concatenate([fixed, moving_], axis=-1)[..., order]
-
-        def cost_of(s_):
-            a_, c_, q_, _ = _unpack(layout, s_)
+        def cost_of(fixed, v_):
+            a_, c_, q_, _ = _unpack_split(layout, fixed, v_)
             return jnp.sum(_sse(a_, c_, q_, _cho_solve(*_cholesky(a_), c_)))
 
-        def projected(fixed, v_, dv, ddv):
-            zero = jnp.zeros_like(fixed)  # the fixed products do not move
-            return _projected(layout, assemble(fixed, v_), assemble(zero, dv),
-                              assemble(zero, ddv))
+        def projected(fixed, v_, dv, ddv):  # the fixed products do not move
+            return _projected(_unpack_split(layout, fixed, v_), _unpack_split(layout, None, dv),
+                              _unpack_split(layout, None, ddv))
 
         grid = model.nonlinear_grid(sig).astype(dtype)
-        costs = jax.vmap(lambda th: cost_of(assemble(fix_tot, moving(th, [mask], False)[0])))(grid)
+        costs = jax.vmap(lambda th: cost_of(fix_tot, moving(th, [mask], False)[0]))(grid)
         costs = jnp.where(jnp.isfinite(costs), costs, jnp.inf)
         best = jnp.argmin(costs)
         start = grid[best] if theta0 is None else theta0
@@ -779,34 +859,25 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             held = mask & (fold_id == j - 1)
             without = jnp.sum(jnp.where((jnp.arange(n_folds) == j - 1)[:, None], fix_fold, 0.0),
                               axis=0)
-            ((v_train,), (dv,), (ddv,)), (v_held,) = moving(th, [mask & ~held], plain=[held])
-            return (*projected(fix_tot - without, v_train, dv, ddv), (v_train, v_held))
+            # with the covariance's sums at the trial point (problem 0's at θ̂ are the
+            # ones kept): they need the columns' slopes, which only this pass forms
+            ((v_train,), (dv,), (ddv,)), (v_held,), cov = moving(th, [mask & ~held], plain=[held],
+                                                                  covariance=True)
+            return (*projected(fix_tot - without, v_train, dv, ddv), (v_train, v_held, cov))
 
         caps = (opts.max_steps,) + (max(8, opts.max_steps // 4),) * n_folds
-        th_all, cost_all, (v_train, v_held), steps_all, conv_all = _newton(evaluate, start, caps,
-                                                                           opts.rtol)
+        sums_shape = jax.ShapeDtypeStruct((len(var_idx),), dtype)
+        th_all, cost_all, (v_train, v_held, cov), steps_all, conv_all = _newton(
+            evaluate, start, caps, opts.rtol,
+            (sums_shape, sums_shape, jax.ShapeDtypeStruct((len(cov_pairs),), dtype)))
         theta, steps = th_all[0], steps_all[0]
-        tot = assemble(fix_tot, v_train[0])
         # a local optimum worse than the best grid point is not the answer
         converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
-        held, train = assemble(fix_fold, v_held[1:]), assemble(fix_tot[None] - fix_fold, v_train[1:])
-
-        # the covariance's sums at θ̂: products of the columns X with the slopes ∂X/∂θ of
-        # the moving columns, and of the slopes with each other (the finish weighs them
-        # by β: ∂(Xβ)/∂θ = Σ_m β_m ∂x_m/∂θ)
-        jets_opt = column_jets(theta, True)
-        cols = moving_columns(model)
-        x_opt = jnp.stack([jets_opt[j][0] if j in jets_opt else x_any[..., j] for j in range(p)],
-                          axis=-1)
-        slopes = [jets_opt[m][1][k] for m in cols for k in range(nq)]  # (n, 3), (m, k) order
-        ops = [jnp.where(mask, x_opt[:, i, a] * d_[:, i], 0.0)
-               for i in range(3) for a in range(p) for d_ in slopes]
-        ops += [jnp.where(mask, d_[:, i] * e_[:, i], 0.0)
-                for i in range(3) for d_ in slopes for e_ in slopes]
-        sums = _vsum(ops)
-        w = len(slopes)
-        raw_cov = dict(cross=sums[:3 * p * w].reshape(3, p, w),
-                       curvature=sums[3 * p * w:].reshape(3, w, w))
+        # fixed and moving sums apart: the finish assembles them (:func:`_assembled`)
+        tot = dict(fixed=fix_tot, moving=v_train[0])
+        held = dict(fixed=fix_fold, moving=v_held[1:])
+        train = dict(fixed=fix_tot[None] - fix_fold, moving=v_train[1:])
+        raw_cov = dict(covariance=cov[0])
     terms = model.deterministic
     raw = dict(tot=tot, held=held, train=train, theta=theta, steps=jnp.asarray(steps, jnp.int32),
                converged=jnp.asarray(converged), y0=y0,
@@ -835,6 +906,7 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     from . import fit as F
 
     p, nq = layout.p, model.n_nonlinear
+    raw = _assembled(model, layout, raw)
     theta, converged = raw["theta"], raw["converged"]
     a, cc, q, n_valid = _unpack(layout, raw["tot"])
     af, cf, qf, nf = _unpack(layout, raw["held"])
@@ -940,7 +1012,7 @@ def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, te
 
 def _finished(model, layout, opts, raw):
     """A group's results from its sums, packed (:func:`_pack`)."""
-    return _pack(jax.vmap(lambda r: _finish(model, layout, opts, r))(raw), raw["tot"].dtype)
+    return _pack(jax.vmap(lambda r: _finish(model, layout, opts, r))(raw), raw["y0"].dtype)
 
 
 _group_fused = filter_jit(compiler_options=REASSOCIATE)(_group_program)
@@ -1034,7 +1106,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         g = max(group_size(d, n, GROUP_SAMPLES // NONLINEAR_GROUP_DIVISOR), min(2, d))
     else:
         g = group_size(d, n, GROUP_SAMPLES * (FUSED_GROUP_FACTOR if fused else 1))
-    dt = sampling_intervals(batch) if "dt" in need else np.ones(d)
+    # dT/dt (and the heating state) only for a model that reads them
+    dt = sampling_intervals(batch) if "dt" in need else None
     centre = scale = None
     if norm is not None and batch.temp is not None:
         centre = np.broadcast_to(np.asarray(norm.centre, dtype), (d,))

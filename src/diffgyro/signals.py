@@ -167,13 +167,15 @@ def make_signals(
     norm: TempNorm | None = None,
     dtemp_window: float = 60.0,
     dt: Float[Array, ""] | None = None,
+    slopes: bool = True,
 ) -> Signals:
     """Derived signals for one device; pure, so it vmaps over a batch.
 
     ``dtemp_window`` (seconds) is the span of the centred slope that gives
     dT/dt; widen it when the temperature read-out is coarsely quantised.
     ``dt`` is the nominal sampling interval (default: median spacing of the
-    valid samples).
+    valid samples). Without ``slopes`` dT/dt and the heating state are left out
+    (None): for a model that reads neither, they are not traced at all.
     """
     t = jnp.asarray(t)
     t = t - t[0]
@@ -184,6 +186,7 @@ def make_signals(
         if norm is None:
             norm = temp_norm_from(temp, mask)
         temp_s = (temp - norm.centre) / norm.scale
+    if temp is not None and slopes:
         if dt is None:
             gaps = jnp.diff(t)
             dt = jnp.nanmedian(jnp.where(mask[1:], gaps, jnp.nan))
