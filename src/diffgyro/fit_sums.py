@@ -259,8 +259,12 @@ def _products(layout: Layout, x, ys, mask):
     The mask is applied once to each column and rate (products of masked
     factors are masked), and a column equal on all axes is formed once.
     """
+    @functools.cache
+    def masked(ax, a):  # traced once per column and axis
+        return jnp.where(mask, x[..., ax, a], 0.0)
+
     def col(i, a):
-        return jnp.where(mask, x[..., 0 if layout.shared[a] else i, a], 0.0)
+        return masked(0 if layout.shared[a] else i, a)
 
     yw = [jnp.where(mask, ys[..., i], 0.0) for i in range(3)]
     ops = [mask.astype(ys.dtype)]
@@ -807,17 +811,25 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
             under the ``plain`` masks, then with ``covariance`` the sums of
             :func:`covariance_pairs` under the first mask: one variadic reduction."""
             jets = column_jets(th, derivatives)
+
+            @functools.cache
+            def column(ax, a_):  # sliced once per column and axis
+                return factor(jets, ax, a_)
+
+            def fac(i_, a_):
+                return column(0 if layout.shared[a_] else i_, a_)
+
             streams = []
             for j in var_idx:
                 i_, a_, b_ = factors(j)
-                u, du, ddu = factor(jets, i_, a_)
-                v, dv, ddv = (ys[:, i_], None, None) if b_ is None else factor(jets, i_, b_)
+                u, du, ddu = fac(i_, a_)
+                v, dv, ddv = (ys[:, i_], None, None) if b_ is None else fac(i_, b_)
                 streams.append(_product_jet(u, du, ddu, v, dv, ddv, nq if derivatives else 0))
             ops = [jnp.where(m, u, 0.0) for m in masks for st in streams for u in st]
             ops += [jnp.where(m, st[0], 0.0) for m in plain for st in streams]
             if covariance:  # a column (k None) or a slope ∂x/∂θ_k, of (column, axis)
                 def one(a_, i_, k_):
-                    x_, d_, _ = factor(jets, i_, a_)
+                    x_, d_, _ = fac(i_, a_)
                     return x_ if k_ is None else d_[k_]
 
                 ops += [jnp.where(masks[0], one(*f) * one(*g_), 0.0) for f, g_ in cov_pairs]
