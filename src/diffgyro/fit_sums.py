@@ -452,8 +452,9 @@ def _unpack(layout: Layout, s):
 
 
 def _unpack_split(layout: Layout, fixed, moving):
-    """:func:`_unpack` of ``_assemble(layout, fixed, moving)`` by one gather, without
-    assembling first; ``fixed`` None: the fixed products are zero (derivatives)."""
+    """:func:`_unpack` of the products whose fixed ones (:func:`varying_products`) are
+    ``fixed`` and moving ones ``moving``, by one gather from the two side by side;
+    ``fixed`` None: the fixed products are zero (derivatives)."""
     var_idx, fix_idx = varying_products(layout)
     src = np.zeros(layout.n_products, np.int32)
     src[var_idx] = np.arange(len(var_idx))
@@ -651,14 +652,6 @@ def varying_products(layout: Layout) -> tuple[list, list]:
     return var, fixed
 
 
-def _assemble(layout: Layout, fixed, moving):
-    """All products (..., P) from the fixed ones and the moving ones (:func:`varying_products`)."""
-    var_idx, fix_idx = varying_products(layout)
-    order = np.argsort(np.concatenate([fix_idx, var_idx]))
-    fixed = jnp.broadcast_to(fixed, moving.shape[:-1] + fixed.shape[-1:])
-    return jnp.concatenate([fixed, moving], axis=-1)[..., order]
-
-
 def covariance_pairs(model: ErrorModel, layout: Layout) -> tuple[list, np.ndarray, np.ndarray]:
     """The products the Gauss–Newton covariance of (β, θ) needs, each formed once.
 
@@ -686,18 +679,12 @@ def covariance_pairs(model: ErrorModel, layout: Layout) -> tuple[list, np.ndarra
     return list(pairs), cross, curvature
 
 
-def _assembled(model: ErrorModel, layout: Layout, raw: dict) -> dict:
-    """``raw`` with the sums of a model with time constants in the finish's form: all
-    products of tot, held and train, and the covariance's sums by axis."""
-    if "covariance" not in raw:
-        return raw
-    raw = dict(raw)
-    for k in ("tot", "held", "train"):
-        raw[k] = _assemble(layout, raw[k]["fixed"], raw[k]["moving"])
-    _, cross, curvature = covariance_pairs(model, layout)
-    cov = raw.pop("covariance")
-    raw["cross"], raw["curvature"] = cov[..., cross], cov[..., curvature]
-    return raw
+def _unpack_sums(layout: Layout, s):
+    """:func:`_unpack` of a product vector, or of the fixed and moving sums apart (a model
+    with time constants: :func:`_unpack_split`)."""
+    if isinstance(s, dict):
+        return _unpack_split(layout, s["fixed"], s["moving"])
+    return _unpack(layout, s)
 
 
 def _chunked_sum(ops, c: int):
@@ -889,11 +876,11 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         theta, steps = th_all[0], steps_all[0]
         # a local optimum worse than the best grid point is not the answer
         converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
-        # fixed and moving sums apart: the finish assembles them (:func:`_assembled`)
+        # fixed and moving sums apart: the finish unpacks them (:func:`_unpack_sums`)
         tot = dict(fixed=fix_tot, moving=v_train[0])
         held = dict(fixed=fix_fold, moving=v_held[1:])
         train = dict(fixed=fix_tot[None] - fix_fold, moving=v_train[1:])
-        raw_cov = dict(covariance=cov[0])
+        raw_cov = dict(covariance=cov[0])  # indexed by :func:`covariance_pairs`
     terms = model.deterministic
     raw = dict(tot=tot, held=held, train=train, theta=theta, steps=jnp.asarray(steps, jnp.int32),
                converged=jnp.asarray(converged), y0=y0,
@@ -922,11 +909,10 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     from . import fit as F
 
     p, nq = layout.p, model.n_nonlinear
-    raw = _assembled(model, layout, raw)
     theta, converged = raw["theta"], raw["converged"]
-    a, cc, q, n_valid = _unpack(layout, raw["tot"])
-    af, cf, qf, nf = _unpack(layout, raw["held"])
-    at, ct, _, _ = _unpack(layout, raw["train"])
+    a, cc, q, n_valid = _unpack_sums(layout, raw["tot"])
+    af, cf, qf, nf = _unpack_sums(layout, raw["held"])
+    at, ct, _, _ = _unpack_sums(layout, raw["train"])
     dtype = a.dtype
 
     # with every column shared by the axes the three Gram matrices are one: factor,
@@ -963,8 +949,10 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     else:  # g = ∂(Xβ)/∂θ = Σ_m β_m ∂x_m/∂θ over the moving columns m
         cols = moving_columns(model)
         b_m, n_m = beta_s[:, cols], len(cols)  # (3, M)
-        cross = raw["cross"].reshape(3, p, n_m, nq)  # Σ x_a ∂x_m/∂θ_k
-        curvature = raw["curvature"].reshape(3, n_m, nq, n_m, nq)  # Σ ∂x_m/∂θ_k ∂x_n/∂θ_r
+        _, cross_at, curvature_at = covariance_pairs(model, layout)
+        cross = raw["covariance"][cross_at].reshape(3, p, n_m, nq)  # Σ x_a ∂x_m/∂θ_k
+        # Σ ∂x_m/∂θ_k ∂x_n/∂θ_r
+        curvature = raw["covariance"][curvature_at].reshape(3, n_m, nq, n_m, nq)
         xg = jnp.einsum("iamk,im->iak", cross, b_m)
         gg = jnp.einsum("imknr,im,in->ikr", curvature, b_m, b_m)
         cov = _covariance_separable(a, xg, gg, sigma2)

@@ -48,11 +48,11 @@ def first_order_lag_jet(t, x, log_tau):
 
     # the update as one expression over the state vector (no stack of three results:
     # XLA emits a concatenation element by element, 3× the code of the body)
-    slopes = jnp.asarray([0.0, 1.0, 1.0], x.dtype)  # y′ and y″ decay by (1 − a_k)
+    decays = jnp.asarray([0.0, 1.0, 1.0], x.dtype)  # y′ and y″ decay by (1 − a_k)
     last = jnp.asarray([0.0, 0.0, 1.0], x.dtype)
 
     def step(s, z):
-        new = s - (z[0] * s) * slopes + (z[3] - s[0]) * z[:3] - (2.0 * z[1] * s[1]) * last
+        new = s - (z[0] * s) * decays + (z[3] - s[0]) * z[:3] - (2.0 * z[1] * s[1]) * last
         return new, new
 
     first = x[0] * jnp.asarray([1.0, 0.0, 0.0], x.dtype)
