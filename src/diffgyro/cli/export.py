@@ -1,0 +1,126 @@
+"""``diffgyro export``: a calibration as PX4 or ArduPilot parameters, a C header, or Kalibr's imu.yaml."""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempUnit,
+    TimeUnit,
+    load_from_cli,
+)
+
+
+@app.command("export")
+def export_command(
+    source: Annotated[Path, typer.Argument(
+        help="Calibration file from 'diffgyro fit --out' (px4, ardupilot, c-header); for kalibr "
+             "an 'allan --json' output or a static recording.", show_default=False)],
+    fmt: Annotated[str, typer.Option("--format", "-f", help="px4, ardupilot, kalibr or c-header.",
+                                     show_default=False)],
+    device: Annotated[str | None, typer.Option("--device", help="The device to export "
+                                               "(default: every device, where the format holds several).")] = None,
+    instance: Annotated[int | None, typer.Option("--instance", help="First sensor slot: TC_G<N> "
+                                                 "(px4, 0-3, default 0), INS_TCAL<N> (ardupilot, 1-3, default 1).")] = None,
+    out: Annotated[str | None, typer.Option("--out", "-o", help="File to write; '-' or none: stdout.")] = None,
+    device_id: Annotated[str | None, typer.Option("--device-id", help="px4: the sensors' device_id "
+                                                  "(TC_G<N>_ID), comma-separated for several devices.")] = None,
+    rate: Annotated[float | None, typer.Option("--rate", help="kalibr: update_rate in Hz "
+                                               "(default: the recording's).")] = None,
+    topic: Annotated[str, typer.Option("--topic", help="kalibr: rostopic.")] = "/imu0",
+    accel_noise_density: Annotated[float | None, typer.Option(
+        "--accel-noise-density", help="kalibr: accelerometer noise density, m/s²/√Hz.")] = None,
+    accel_random_walk: Annotated[float | None, typer.Option(
+        "--accel-random-walk", help="kalibr: accelerometer random walk, m/s³/√Hz.")] = None,
+    columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+) -> None:
+    """Write SOURCE in an autopilot's or estimator's format (docs/export.md: formulas, units).
+
+    A model the format cannot hold exactly (px4, ardupilot: anything but bias_poly(k ≤ 3))
+    is refused, never truncated; the float32 error of autopilot parameters is reported.
+    """
+    from diffgyro.errors import DataError
+    from diffgyro.export import FORMATS, render
+
+    fmt = fmt.lower()
+    if fmt not in FORMATS:
+        raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
+    if fmt == "kalibr":
+        from diffgyro.export import kalibr
+
+        noise, report = _kalibr_noise(source, device, rate, (columns, gyro_unit, acc_unit, temp_unit,
+                                      time_unit, sampling_rate, drop_invalid))
+        from dataclasses import replace
+
+        if accel_noise_density is not None:
+            noise = replace(noise, accel_noise_density=accel_noise_density)
+        if accel_random_walk is not None:
+            noise = replace(noise, accel_random_walk=accel_random_walk)
+        text = kalibr.write(noise, topic)
+    else:
+        from diffgyro import calibration
+
+        cal = calibration.load(source)
+        ids = None if device_id is None else _ids(device_id)
+        text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids)
+    for line in report:
+        print(f"diffgyro: {line}", file=sys.stderr)
+    _emit(text, out, source)
+
+
+def _ids(text: str) -> list[int]:
+    from diffgyro.errors import DataError
+
+    try:
+        return [int(x, 0) for x in text.split(",")]
+    except ValueError:
+        raise DataError(f"--device-id {text!r} must be integers (comma-separated)") from None
+
+
+def _kalibr_noise(source: Path, device, rate, load_opts):
+    """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
+    from diffgyro.errors import DataError
+    from diffgyro.export import kalibr
+
+    if source.suffix.lower() == ".json":
+        try:
+            doc = json.loads(source.read_text(encoding="utf-8"))
+        except (OSError, UnicodeDecodeError, ValueError) as err:
+            raise DataError(f"cannot read Allan read-outs: {err}".splitlines()[0],
+                            file=str(source)) from None
+        try:
+            return kalibr.from_allan(doc, device, rate)
+        except DataError as err:
+            raise DataError(err.problem, file=str(source), device=err.device,
+                            hint=err.hint) from None
+    from .allan import MIN_SAMPLES
+
+    batch = load_from_cli([source], *load_opts, min_samples=MIN_SAMPLES)
+    gyro_doc = kalibr.allan_of(batch, "gyro")
+    acc_doc = kalibr.allan_of(batch, "accel") if batch.accel is not None else None
+    return kalibr.from_allan(gyro_doc, device, rate, acc_doc)
+
+
+def _emit(text: str, out: str | None, source: Path) -> None:
+    from diffgyro.calibration import atomic_write_text
+    from diffgyro.errors import DataError
+
+    if out is None or out == "-":
+        sys.stdout.write(text)
+        return
+    if Path(out).resolve() == Path(source).resolve():
+        raise DataError("refusing to overwrite the input file", file=out, hint="choose another --out")
+    atomic_write_text(out, text)

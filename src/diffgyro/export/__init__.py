@@ -1,0 +1,60 @@
+"""Calibrations out to the tools that fly and fuse: PX4, ArduPilot, Kalibr, C firmware.
+
+One module per target format; :func:`render` picks the devices and returns the
+file's text with report lines (the float32 error of autopilot parameters,
+warnings). The formulas, signs, clamping and units are in docs/export.md.
+"""
+
+from __future__ import annotations
+
+from ..calibration import Calibration
+from ..errors import DataError
+
+FORMATS = ("px4", "ardupilot", "kalibr", "c-header")
+
+
+def select_devices(cal: Calibration, device: str | None, fmt: str, max_devices: int) -> list[str]:
+    """The named device, or every device of the calibration if there are few enough."""
+    names = [d.device for d in cal.devices]
+    if device is not None:
+        cal.device(device)  # SpecError naming the devices it has
+        return [device]
+    if len(names) > max_devices:
+        raise DataError(f"the calibration has {len(names)} devices; {fmt} takes "
+                        f"{'one' if max_devices == 1 else f'at most {max_devices}'} per file",
+                        hint=f"choose one with --device ({', '.join(names[:10])})")
+    return names
+
+
+def _slots(fmt: str, first: int | None, count: int, slots: range) -> int:
+    first = slots.start if first is None else int(first)
+    if first < slots.start or first + count - 1 > slots.stop - 1:
+        raise DataError(f"{fmt} has instances {slots.start}..{slots.stop - 1}; "
+                        f"{count} device(s) from --instance {first} do not fit")
+    return first
+
+
+def render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
+           device_ids: list[int] | None = None) -> tuple[str, list[str]]:
+    """Text of the ``fmt`` file for ``cal`` and report lines (not part of the file)."""
+    from . import ardupilot, c_header, px4
+
+    if fmt == "px4":
+        names = select_devices(cal, device, fmt, len(px4.SLOTS))
+        first = _slots(fmt, instance, len(names), px4.SLOTS)
+        warn = []
+        if device_ids is None:
+            device_ids = [0] * len(names)
+            warn.append("warning: TC_Gn_ID written as 0: PX4 applies a TC_Gn slot only to the sensor "
+                        "whose device_id equals it; pass --device-id (sensor_gyro.device_id)")
+        elif len(device_ids) != len(names):
+            raise DataError(f"--device-id gives {len(device_ids)} id(s) for {len(names)} device(s)")
+        text, report = px4.write(cal, names, first, device_ids)
+        return text, warn + report
+    if fmt == "ardupilot":
+        names = select_devices(cal, device, fmt, len(ardupilot.SLOTS))
+        return ardupilot.write(cal, names, _slots(fmt, instance, len(names), ardupilot.SLOTS))
+    if fmt == "c-header":
+        names = select_devices(cal, device, fmt, 1)
+        return c_header.write(cal, names[0]), []
+    raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
