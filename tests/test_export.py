@@ -281,3 +281,21 @@ def test_c_header_compiles_and_agrees_with_apply(tmp_path, model, call):
                                      temp_ext=temp_ext, accel=accel)
     assert omega_c.shape == (n, 3)
     np.testing.assert_allclose(omega_c, omega_ref, rtol=0, atol=1e-12)
+
+
+def test_several_devices_take_consecutive_slots(tmp_path, capsys):
+    path = _write_cal(tmp_path, "bias_poly(1)", 2)
+    doc = json.loads(path.read_text())
+    doc["devices"].append({**doc["devices"][0], "device": "imu1", "temp_range": [0.0, 40.0]})
+    path.write_text(json.dumps(doc))
+    assert main(["export", str(path), "--format", "px4", "--device-id", "11,12"]) == 0
+    p = _px4_parse(capsys.readouterr().out)
+    assert (p["TC_G0_ID"], p["TC_G1_ID"], p["TC_G1_TREF"]) == (11, 12, 20.0)
+    assert main(["export", str(path), "--format", "px4", "--device-id", "11"]) == 2
+    assert "1 id(s) for 2 device(s)" in capsys.readouterr().err
+    assert main(["export", str(path), "--format", "ardupilot", "--device", "imu1",
+                 "--instance", "3"]) == 0
+    assert "INS_GYR3OFFS_Z," in capsys.readouterr().out
+    assert main(["export", str(path), "--format", "c-header"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--device" in err and "imu0, imu1" in err and len(err.splitlines()) == 1

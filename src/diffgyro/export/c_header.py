@@ -89,7 +89,8 @@ def write(cal: Calibration, device: str) -> str:
                    f"{_literal(dev.temp_scale)};"] if "temp" in need else
                   ["    (void)t;"])
     return "\n".join([
-        f"/* diffgyro calibration of device {device!r} (model {cal.model}), written by",
+        f"/* diffgyro calibration of device {device!r} (model {cal.model}), written by"
+        .replace("*/", "* /"),
         " * diffgyro export --format c-header. Rates in rad/s, temperatures in °C,",
         " * specific force in m/s². Formula: docs/export.md and diffgyro/apply.py. */",
         f"#ifndef {guard}", f"#define {guard}", "",
