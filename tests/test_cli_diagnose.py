@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 
 import hidden_effects as H
+import numpy as np
 import pytest
 
 from diffgyro.cli import main
@@ -65,10 +66,10 @@ def test_json_contract(thermal_csv, capsys):
     assert "dT/dt" in g["explanation"]
 
 
-def test_report_and_auto(thermal_csv, tmp_path, capsys):
-    report = tmp_path / "report"
+def test_report_auto_and_calibration(thermal_csv, tmp_path, capsys):
+    report, cal = tmp_path / "report", tmp_path / "diag-cal.json"
     out = _json(capsys, ["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--json",
-                         "--auto", "--report", str(report)])
+                         "--auto", "--report", str(report), "--out", str(cal)])
     assert [s["added"] for s in out["ladder"]] == [None, "gradient"]
     assert out["ladder"][-1]["spec"] == "bias_poly(2)+gradient"
     assert all(d["verdict"] == "adequate" for d in out["final"]["devices"])
@@ -76,6 +77,24 @@ def test_report_and_auto(thermal_csv, tmp_path, capsys):
     assert pages == ["index.html", "unit-clean.html", "unit-gradient.html"]
     page = (report / "unit-gradient.html").read_text()
     assert page.count("data:image/png;base64,") >= 4 and "http" not in page.split("<body>")[1][:200]
+    # --out: the final model's calibration, equal to what `fit --out` writes for that model
+    ref = tmp_path / "fit-cal.json"
+    assert main(["fit", *thermal_csv, "--model", out["ladder"][-1]["spec"], "--out", str(ref)]) == 0
+    capsys.readouterr()
+    got, want = json.loads(cal.read_text()), json.loads(ref.read_text())
+    assert got["model"] == want["model"] == "bias_poly(2)+gradient"
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # no temp files
+    for key in set(got) - {"created", "devices"}:
+        assert got[key] == want[key], key
+    for g, w in zip(got["devices"], want["devices"], strict=True):
+        assert g["device"] == w["device"] and g["status"] == w["status"]
+        for key in ("beta", "theta", "temp_centre", "temp_scale", "temp_range"):
+            np.testing.assert_allclose(g[key], w[key], rtol=1e-12, atol=1e-12, err_msg=key)
+        assert g["quality"] == pytest.approx(w["quality"], rel=1e-12, abs=1e-12)
+        assert set(g["params"]) == set(w["params"])
+        for ax in g["params"]:
+            for lab, v in g["params"][ax].items():
+                assert v == pytest.approx(w["params"][ax][lab], rel=1e-12, abs=1e-12), (ax, lab)
 
 
 def test_table_output(thermal_csv, capsys):
@@ -115,3 +134,10 @@ def test_model_needs_missing_column(tmp_path, capsys):
     code = main(["diagnose", str(path), "--model", "bias_poly(2)"])
     err = capsys.readouterr().err.strip()
     assert code == 2 and "temp" in err and len(err.splitlines()) == 1
+
+
+def test_out_does_not_stream(tmp_path, capsys):
+    code = main(["diagnose", str(tmp_path), "--model", "bias_poly(1)", "--out", str(tmp_path / "c.json")])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and "--out" in err
+    assert not (tmp_path / "c.json").exists()

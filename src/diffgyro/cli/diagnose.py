@@ -70,6 +70,14 @@ def wide_console():
     return Console() if sys.stdout.isatty() else Console(width=140)
 
 
+def _write_calibration(diag, batch, path: Path, err) -> None:
+    """The calibration of ``diag``'s model from the fit it holds (no second fit), atomically."""
+    from diffgyro import calibration
+
+    calibration.save(calibration.from_fit(diag.fit, batch), path)
+    err.print(f"calibration of {diag.spec} written to {path}", markup=False, highlight=False)
+
+
 @app.command("diagnose")
 def diagnose_command(
     data: DataFiles,
@@ -84,6 +92,9 @@ def diagnose_command(
         "--candidates", help="Comma-separated effects to try (default: every registered effect "
                              "the data supports).")] = None,
     max_steps: Annotated[int, typer.Option("--max-steps", help="Most terms --auto adds.")] = 6,
+    out: Annotated[Path | None, typer.Option(
+        "--out", "-o", help="Write the calibration (JSON, as 'diffgyro fit --out') of the final "
+                            "model of --auto, or of MODEL, from the fit diagnose already holds.")] = None,
     dtemp_window: Annotated[float | None, typer.Option(
         "--dtemp-window", help="Seconds of the centred slope that gives dT/dt (default: chosen "
                                "from the temperature read-out's noise and steps).")] = None,
@@ -104,6 +115,13 @@ def diagnose_command(
     """
     if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
         from ._stream import stream_diagnose
+
+        if out is not None:
+            from diffgyro.errors import DataError
+
+            raise DataError("--out needs every device in memory; it does not stream",
+                            hint="run 'diffgyro fit --out' on the final model, or give data files "
+                                 "without --chunk-devices/--dask")
 
         stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window, columns,
                         gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
@@ -148,6 +166,8 @@ def diagnose_command(
 
         with err.status(f"writing the report to {report}"):
             write_report(diag, batch, report, ladder=ladder)
+    if out is not None:
+        _write_calibration(ladder.final if ladder is not None else diag, batch, out, err)
     if as_json:
         out = diag.to_json()
         if ladder is not None:
