@@ -14,6 +14,7 @@ from diffgyro import calibration
 from diffgyro.errors import DataError
 from diffgyro.fit import fit
 from diffgyro.io import load
+from diffgyro.jsonio import to_json_safe
 from diffgyro.pipeline import fit_dataset
 from diffgyro.pipeline.dataset import ReadConfig, expand_inputs, index_dataset
 from diffgyro.pipeline.workdir import WorkDir
@@ -228,7 +229,7 @@ def test_fast_calibration_entries_equal_from_fit():
         sigma=np.zeros((d, 3)), steps=np.array([5, 100, 3, 1]), status=status,
         range_flags=range_flags, collinear=collinear, n_samples=np.full(d, 200.0),
         options=FitOptions())
-    expected = [calibration._clean(dict(x.__dict__))
+    expected = [to_json_safe(dict(x.__dict__))
                 for x in calibration.from_fit(result).devices]
     got = calibration_entries(result)
     assert json.dumps(got, allow_nan=False) == json.dumps(expected, allow_nan=False)

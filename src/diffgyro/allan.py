@@ -63,6 +63,7 @@ from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
 from .jit import release_compiled_if_crowded
+from .jsonio import number
 from .signals import prefix_sums
 
 #: Bias-instability factor: the flicker floor of ADEV is sqrt(2 ln 2 / π)·B.
@@ -512,11 +513,6 @@ def allan_batch(batch, m=None, **options) -> AllanResult:
 # --- output: JSON and figure ---------------------------------------------------------------
 
 
-def _num(x) -> float | None:
-    x = float(x)
-    return x if math.isfinite(x) else None
-
-
 def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
     """The DESIGN.md §4 ``allan --json`` object (NaN becomes null; τ only where defined)."""
     tau = np.asarray(result.tau)
@@ -530,9 +526,9 @@ def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
             ax[name] = {
                 "tau": [float(v) for v in tau[d, a][keep]],
                 "adev": [float(v) for v in adev[d, a][keep]],
-                "arw": _num(ro.arw[d, a]),
-                "bias_instability": _num(ro.bias_instability[d, a]),
-                "rrw": _num(ro.rrw[d, a]),
+                "arw": number(ro.arw[d, a]),
+                "bias_instability": number(ro.bias_instability[d, a]),
+                "rrw": number(ro.rrw[d, a]),
             }
         out.append({"device": dev, "axes": ax})
     return {"devices": out}

@@ -22,7 +22,6 @@ import hashlib
 import json
 import math
 import os
-import tempfile
 import warnings
 from dataclasses import dataclass, field
 
@@ -35,6 +34,7 @@ from .data import Batch, Recording
 from .effects import parse_spec
 from .errors import SpecError
 from .fit import STATUS_NAMES, FitResult, batch_signals
+from .jsonio import atomic_write_text, dumps, to_json_safe
 from .model import ErrorModel, Params
 from .signals import TempNorm
 
@@ -90,21 +90,8 @@ class Calibration:
             "model": self.model, "dtemp_window": self.dtemp_window,
             "created": self.created, "diffgyro_version": self.diffgyro_version,
             "input_hash": self.input_hash, "units": self.units,
-            "devices": [_clean(d.__dict__) for d in self.devices],
+            "devices": [to_json_safe(d.__dict__) for d in self.devices],
         }
-
-
-def _clean(obj):
-    """JSON-safe copy: non-finite floats become null."""
-    if isinstance(obj, dict):
-        return {k: _clean(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_clean(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, (np.floating, np.integer)):
-        return _clean(obj.item())
-    return obj
 
 
 def data_hash(batch: Batch) -> str:
@@ -148,26 +135,8 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
         units=units_of(result.model))
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> None:
-    """Write a file so that readers see the old or the new content, never half."""
-    path = os.fspath(path)
-    d = os.path.dirname(os.path.abspath(path))
-    os.makedirs(d, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=d)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def save(cal: Calibration, path: str | os.PathLike) -> None:
-    atomic_write_text(path, json.dumps(cal.to_json(), indent=1, allow_nan=False) + "\n")
+    atomic_write_text(path, dumps(cal.to_json(), indent=1) + "\n")
 
 
 # --------------------------------------------------------------------------- strict loading

@@ -65,6 +65,7 @@ from .data import Batch, Recording
 from .effects import AbstractEffect, registry
 from .effects.base import MAX_ORDER
 from .jit import release_compiled_if_crowded
+from .jsonio import number
 from .model import ErrorModel
 from .signals import Signals
 
@@ -732,14 +733,14 @@ class Candidate:
     term: str = ""       # the term added or raised, as written in a spec (``scale_poly(1)``)
 
     def record(self) -> dict:
-        out = {"effect": self.effect, "spec": self.spec, "heldout_rms": _num(self.heldout_rms),
-               "significant": bool(self.significant), "gain": _num(self.gain),
-               "closure": _num(self.closure), "t": _num(self.t),
-               "folds_improved": self.folds_improved, "rms": _num(self.rms)}
+        out = {"effect": self.effect, "spec": self.spec, "heldout_rms": number(self.heldout_rms),
+               "significant": bool(self.significant), "gain": number(self.gain),
+               "closure": number(self.closure), "t": number(self.t),
+               "folds_improved": self.folds_improved, "rms": number(self.rms)}
         if self.term:
             out["term"] = self.term
         if self.tau is not None:
-            out["tau"] = _num(self.tau)
+            out["tau"] = number(self.tau)
         if self.family:
             out["family"] = self.family
         if self.note:
@@ -772,19 +773,19 @@ class DeviceDiagnosis:
 
     def record(self) -> dict:
         return {
-            "device": self.device, "rms": _num(self.rms), "heldout_rms": _num(self.heldout_rms),
-            "noise_floor": _num(self.noise_floor), "verdict": self.verdict,
+            "device": self.device, "rms": number(self.rms), "heldout_rms": number(self.heldout_rms),
+            "noise_floor": number(self.noise_floor), "verdict": self.verdict,
             "candidates": [c.record() for c in self.candidates],
             "status": self.status,
             "best": self.best.spec if self.best else None,
             "best_effect": self.best.effect if self.best else None,
             "best_term": self.best.term if self.best else None,
-            "alternatives": [{"effect": c.effect, "spec": c.spec, "heldout_rms": _num(c.heldout_rms)}
+            "alternatives": [{"effect": c.effect, "spec": c.spec, "heldout_rms": number(c.heldout_rms)}
                              for c in self.alternatives],
-            "noise_floor_axes": [_num(v) for v in self.noise_axes],
-            "noise_floor_allan": _num(self.floor_allan),
-            "excess": _num(self.excess),
-            "allan_slope": _num(self.allan_slope),
+            "noise_floor_axes": [number(v) for v in self.noise_axes],
+            "noise_floor_allan": number(self.floor_allan),
+            "excess": number(self.excess),
+            "allan_slope": number(self.allan_slope),
             "random_walk": self.random_walk.record() if self.random_walk else None,
             "evidence": self.evidence,
             "skipped": self.skipped,
@@ -846,16 +847,8 @@ def _plain(x):
     if isinstance(x, (int, np.integer)):
         return int(x)
     if isinstance(x, (float, np.floating)):
-        return _num(x)
+        return number(x)
     return x
-
-
-def _num(x) -> float | None:
-    try:
-        v = float(x)
-    except (TypeError, ValueError):
-        return None
-    return v if math.isfinite(v) else None
 
 
 # --------------------------------------------------------------------------- evidence in words
@@ -1300,8 +1293,8 @@ class LadderStep:
 
     def record(self, devices) -> dict:
         return {"spec": self.spec, "added": self.added,
-                "devices": [{"device": dev, "heldout_rms": _num(h), "rms": _num(r),
-                             "noise_floor": _num(f), "verdict": v}
+                "devices": [{"device": dev, "heldout_rms": number(h), "rms": number(r),
+                             "noise_floor": number(f), "verdict": v}
                             for dev, h, r, f, v in zip(devices, self.heldout_rms, self.rms,
                                                        self.noise_floor, self.verdicts)]}
 

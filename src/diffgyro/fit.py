@@ -14,7 +14,6 @@ device never sinks the batch.
 from __future__ import annotations
 
 import collections
-import math
 import warnings
 
 import equinox as eqx
@@ -28,6 +27,7 @@ from jaxtyping import Array, Bool, Float, Int
 from .data import Batch, Recording
 from .errors import DataError
 from .jit import release_compiled_if_crowded
+from .jsonio import number
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 
@@ -516,9 +516,9 @@ class FitResult(eqx.Module):
             "device": self.devices[i],
             "status": self.status_name(i),
             "status_detail": self.status_detail(i),
-            "rms": _num(self.rms[i]),
-            "heldout_rms": _num(self.heldout_rms[i]),
-            "noise_floor": _num(self.noise_floor[i]),
+            "rms": number(self.rms[i]),
+            "heldout_rms": number(self.heldout_rms[i]),
+            "noise_floor": number(self.noise_floor[i]),
             "steps": int(self.steps[i]),
             "n_samples": int(self.n_samples[i]),
             "params": self.param_dict(i),
@@ -537,11 +537,6 @@ class FitResult(eqx.Module):
         sig = self.signals(batch)
         pred = jax.vmap(self.model.predict)(self.params, sig)
         return (sig.gyro - pred) * sig.mask[..., None]
-
-
-def _num(x) -> float | None:
-    v = float(x)
-    return v if math.isfinite(v) else None
 
 
 def fit(

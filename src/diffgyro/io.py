@@ -27,7 +27,6 @@ import gzip
 import lzma
 import math
 import os
-import tempfile
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -38,6 +37,7 @@ import pandas as pd
 
 from .data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
 from .errors import DataError
+from .jsonio import AtomicFile
 
 __all__ = [
     "UNITS",
@@ -786,10 +786,8 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
              for r in recs])
         for k, name in enumerate(names):
             cols[name] = stacked[:, k]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with AtomicFile(path, None) as f:
+        tmp = f.tmp
         if fmt == "csv":
             _write_csv(cols, tmp, "\t" if ".tsv" in [s.lower() for s in path.suffixes] else ",",
                        compression)
@@ -805,11 +803,6 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
                       for k, v in cols.items()}
             with open(tmp, "wb") as fh:
                 np.savez(fh, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

@@ -41,6 +41,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from .jit import release_compiled_if_crowded
+from .jsonio import number
 from .model import ErrorModel, Params
 
 LOG_2PI = math.log(2.0 * math.pi)
@@ -454,15 +455,11 @@ class RandomWalkFit(eqx.Module):
         return out
 
     def summary(self, i: int) -> dict:
-        def num(v):
-            v = float(v)
-            return v if math.isfinite(v) else None
-
         return {
             "device": self.devices[i], "status": self.status_name(i),
-            "status_detail": self.status_detail(i), "rms": num(self.rms[i]),
-            "heldout_rms": num(self.heldout_rms[i]), "noise_floor": num(self.noise_floor[i]),
-            "loglik": num(self.loglik[i]), "steps": int(self.steps[i]),
+            "status_detail": self.status_detail(i), "rms": number(self.rms[i]),
+            "heldout_rms": number(self.heldout_rms[i]), "noise_floor": number(self.noise_floor[i]),
+            "loglik": number(self.loglik[i]), "steps": int(self.steps[i]),
             "n_samples": int(self.n_samples[i]), "params": self.param_dict(i),
         }
 

@@ -20,12 +20,12 @@ import html
 import io
 import math
 import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from .data import Batch
+from .jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
 
 AXES = ("x", "y", "z")
 COLORS = ("tab:blue", "tab:orange", "tab:green")
@@ -51,25 +51,6 @@ def figure_png(fig) -> str:
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     _plt().close(fig)
     return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def write_atomic(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` to ``path`` through a temporary file and a rename (never half-written)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(text)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; a report is meant to be read
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path
 
 
 def _thin(n: int) -> np.ndarray:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import html
-import json
 import math
 import sys
 from pathlib import Path
@@ -52,6 +51,7 @@ def allan_command(
     static: moving data measure the motion, not the noise.
     """
     from diffgyro.allan import allan_batch, to_json
+    from diffgyro.jsonio import dumps
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=MIN_SAMPLES)
@@ -61,7 +61,7 @@ def allan_command(
     if report is not None:
         _write_report(result, batch, doc, report)
     if json_out:
-        typer.echo(json.dumps(doc, allow_nan=False))
+        typer.echo(dumps(doc))
     else:
         _print_table(doc, report)
 
@@ -109,6 +109,7 @@ def _write_report(result, batch, doc: dict, out: Path) -> None:
     import matplotlib.pyplot as plt
 
     from diffgyro.allan import plot_allan
+    from diffgyro.jsonio import atomic_write_text, dumps
 
     out.mkdir(parents=True, exist_ok=True)
     rows, figs = [], []
@@ -141,5 +142,5 @@ one-sigma chi-square intervals. A dash means the curve shows no such region.</p>
 {imgs}
 </body></html>
 """
-    (out / "index.html").write_text(page, encoding="utf-8")
-    (out / "allan.json").write_text(json.dumps(doc, allow_nan=False), encoding="utf-8")
+    atomic_write_text(out / "index.html", page)
+    atomic_write_text(out / "allan.json", dumps(doc))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Annotated
@@ -130,6 +129,7 @@ def diagnose_command(
     from rich.console import Console
 
     from diffgyro.diagnose import diagnose, diagnose_auto
+    from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
     from .fit import load_for_model
@@ -173,7 +173,7 @@ def diagnose_command(
         if ladder is not None:
             out["ladder"] = ladder.records()
             out["final"] = ladder.final.to_json()
-        typer.echo(json.dumps(out, allow_nan=False))
+        typer.echo(dumps(out))
         return
     console = wide_console()
     print_diagnosis(diag, console)

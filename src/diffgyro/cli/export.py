@@ -115,8 +115,8 @@ def _kalibr_noise(source: Path, device, rate, load_opts):
 
 
 def _emit(text: str, out: str | None, source: Path) -> None:
-    from diffgyro.calibration import atomic_write_text
     from diffgyro.errors import DataError
+    from diffgyro.jsonio import atomic_write_text
 
     if out is None or out == "-":
         sys.stdout.write(text)

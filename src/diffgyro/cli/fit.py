@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 from typing import Annotated
@@ -71,6 +70,7 @@ def fit_command(
     """
     from diffgyro import calibration
     from diffgyro.fit import fit
+    from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
     if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
@@ -92,7 +92,7 @@ def fit_command(
         calibration.save(calibration.from_fit(result, batch), out)
     records = result.records()
     if as_json:
-        print(json.dumps({"model": em.spec, "devices": records}, allow_nan=False))
+        print(dumps({"model": em.spec, "devices": records}))
         return
     from rich.console import Console
     from rich.table import Table

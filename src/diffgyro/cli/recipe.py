@@ -8,7 +8,6 @@ rad/s) except ``six-position``, whose ``--json`` object is in the input units
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -103,8 +102,8 @@ def recipe_command(
     """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object)."""
     from diffgyro.errors import DataError
     from diffgyro.io import resolve_units
+    from diffgyro.jsonio import atomic_write_text, dumps, to_json_safe
     from diffgyro.recipes import get
-    from diffgyro.recipes._common import jsonable
 
     recipe = get(name)
     given = {
@@ -149,13 +148,13 @@ def recipe_command(
                              1.0 / conv.get("accel", (1.0, 0.0))[0])
         results.append((rec.device, res))
     if len(results) == 1:
-        payload = jsonable(results[0][1].to_dict())
+        payload = to_json_safe(results[0][1].to_dict())
     else:
-        payload = {"devices": [{"device": d, **jsonable(r.to_dict())} for d, r in results]}
+        payload = {"devices": [{"device": d, **to_json_safe(r.to_dict())} for d, r in results]}
     if out is not None:
-        out.write_text(json.dumps(payload, indent=2) + "\n")
+        atomic_write_text(out, dumps(payload, indent=2) + "\n")
     if as_json:
-        typer.echo(json.dumps(payload))
+        typer.echo(dumps(payload))
         return
     _print_human(name, recipe, results)
 
@@ -165,18 +164,18 @@ def _print_human(name, recipe, results) -> None:
     import numpy as np
     from rich.console import Console
 
-    from diffgyro.recipes._common import jsonable
+    from diffgyro.jsonio import dumps, to_json_safe
 
     con = Console(width=120)
     con.print(f"[bold]{name}[/bold] — {recipe.source}")
     for dev, res in results:
         con.print("device ", end="")
         con.print(dev, style="bold", markup=False)
-        for key, val in jsonable(res.to_dict()).items():
+        for key, val in to_json_safe(res.to_dict()).items():
             arr = np.asarray(val, dtype=object) if isinstance(val, list) else None
             if arr is not None and arr.size > 12:
                 continue
-            if isinstance(val, dict) and len(json.dumps(val)) > 200:
+            if isinstance(val, dict) and len(dumps(val)) > 200:
                 continue
             con.print(f"  {key}: {_fmt(val)}", markup=False, highlight=False)
 

@@ -34,8 +34,9 @@ import numpy as np
 
 from ..data import Batch, Recording
 from ..errors import DataError
+from ..jsonio import AtomicFile, dumps, number, to_json_safe
 from .dataset import ReadConfig, expand_inputs, fingerprint, index_dataset, read_devices
-from .workdir import FORMAT, FORMAT_VERSION, WorkDir, atomic_write_bytes, file_mode
+from .workdir import FORMAT, FORMAT_VERSION, WorkDir
 
 DEFAULT_CHUNK_DEVICES = 256
 INVALID = "invalid_data"   # status of a device whose data could not be read or validated
@@ -112,8 +113,7 @@ def calibration_entries(result) -> list[dict]:
     import jax
     import numpy as np
 
-    from ..calibration import _clean
-    from ..fit import STATUS_NAMES, _num
+    from ..fit import STATUS_NAMES
 
     model = result.model
     labels = model.param_labels()
@@ -138,12 +138,12 @@ def calibration_entries(result) -> list[dict]:
             params["shared"] = {n: float(v) for names, vals in shared
                                 for n, v in zip(names, vals[i])}
         st = STATUS_NAMES[int(status[i])]
-        out.append(_clean({
+        out.append(to_json_safe({
             "device": name, "status": st, "beta": beta[i].tolist(), "theta": theta[i].tolist(),
             "temp_centre": float(centre[i]), "temp_scale": float(scale[i]),
             "temp_range": None if trange is None else trange[i].tolist(),
-            "quality": {"rms": _num(rms[i]), "heldout_rms": _num(held[i]),
-                        "noise_floor": _num(floor[i]), "n_samples": int(n_samples[i]),
+            "quality": {"rms": number(rms[i]), "heldout_rms": number(held[i]),
+                        "noise_floor": number(floor[i]), "n_samples": int(n_samples[i]),
                         "steps": int(steps[i])},
             "params": params,
             "status_detail": st if st == "ok" else result.status_detail(i)}))
@@ -285,27 +285,21 @@ class _ResultsWriter:
     """The per-device results table, JSON lines or Parquet (by the file suffix)."""
 
     def __init__(self, path: Path):
-        import tempfile
-
         self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, self.tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-        os.fchmod(fd, file_mode())
-        os.close(fd)
         self.parquet = path.suffix.lower() in (".parquet", ".pq")
-        self._fh = None if self.parquet else open(self.tmp, "w", encoding="utf-8")
+        self._file = AtomicFile(path, None if self.parquet else "w")
         self._pq = None
 
     def write(self, records: list[dict]) -> None:
         if not self.parquet:
             for r in records:
-                self._fh.write(json.dumps(r, allow_nan=False) + "\n")
+                self._file.fh.write(dumps(r) + "\n")
             return
         import pyarrow as pa
         import pyarrow.parquet as pq
 
         cols = {c: [r.get(c) for r in records] for c in _RESULT_COLUMNS}
-        cols["params"] = [None if p is None else json.dumps(p) for p in cols["params"]]
+        cols["params"] = [None if p is None else dumps(p) for p in cols["params"]]
         schema = pa.schema([("device", pa.string()), ("status", pa.string()),
                             ("status_detail", pa.string()), ("reason", pa.string()),
                             ("rms", pa.float64()), ("heldout_rms", pa.float64()),
@@ -313,58 +307,41 @@ class _ResultsWriter:
                             ("n_samples", pa.int64()), ("params", pa.string())])
         table = pa.table(cols, schema=schema)
         if self._pq is None:
-            self._pq = pq.ParquetWriter(self.tmp, schema)
+            self._pq = pq.ParquetWriter(self._file.tmp, schema)
         self._pq.write_table(table)
 
     def commit(self) -> None:
-        if self._fh is not None:
-            self._fh.flush()
-            os.fsync(self._fh.fileno())
-            self._fh.close()
         if self._pq is not None:
             self._pq.close()
-        os.replace(self.tmp, self.path)
+        self._file.commit()
 
     def abort(self) -> None:
-        if self._fh is not None:
-            self._fh.close()
         if self._pq is not None:
             self._pq.close()
-        if os.path.exists(self.tmp):
-            os.unlink(self.tmp)
+        self._file.abort()
 
 
 class _CalibrationWriter:
     """A calibration file streamed device by device (the format of :mod:`diffgyro.calibration`)."""
 
     def __init__(self, path: Path, header: dict):
-        import tempfile
-
         self.path = path
-        path.parent.mkdir(parents=True, exist_ok=True)
-        fd, self.tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-        os.fchmod(fd, file_mode())
-        self._fh = os.fdopen(fd, "w", encoding="utf-8")
-        head = json.dumps({**header, "devices": []}, indent=1, allow_nan=False)
+        self._file = AtomicFile(path, "w")
+        head = dumps({**header, "devices": []}, indent=1)
         assert head.endswith('"devices": []\n}')
-        self._fh.write(head[: -len("[]\n}")] + "[")
+        self._file.fh.write(head[: -len("[]\n}")] + "[")
         self.n = 0
 
     def write(self, entry: dict) -> None:
-        self._fh.write(("\n" if self.n == 0 else ",\n") + json.dumps(entry, allow_nan=False))
+        self._file.fh.write(("\n" if self.n == 0 else ",\n") + dumps(entry))
         self.n += 1
 
     def commit(self) -> None:
-        self._fh.write("\n]\n}\n")
-        self._fh.flush()
-        os.fsync(self._fh.fileno())
-        self._fh.close()
-        os.replace(self.tmp, self.path)
+        self._file.fh.write("\n]\n}\n")
+        self._file.commit()
 
     def abort(self) -> None:
-        self._fh.close()
-        if os.path.exists(self.tmp):
-            os.unlink(self.tmp)
+        self._file.abort()
 
 
 def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
@@ -395,7 +372,7 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
             cal_w = _CalibrationWriter(out, header)
             writers.append(cal_w)
         if json_stream is not None:
-            json_stream.write(json.dumps({"model": spec})[:-1] + ', "devices": [')
+            json_stream.write(dumps({"model": spec})[:-1] + ', "devices": [')
         first = True
         for c in plan:
             obj = work.read_chunk(c["chunk"], c["devices"])
@@ -407,7 +384,7 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
                 if cal_w is not None and entry is not None:
                     cal_w.write(entry)
                 if json_stream is not None:
-                    json_stream.write(("" if first else ",") + "\n" + json.dumps(rec, allow_nan=False))
+                    json_stream.write(("" if first else ",") + "\n" + dumps(rec))
                     first = False
             if res_w is not None:
                 res_w.write(obj["records"])
@@ -632,6 +609,6 @@ def _run_local(pending: list[dict], setup: dict, finished: Callable[[dict], None
             del prepared
 
 
-__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "atomic_write_bytes",
+__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary",
            "diagnose_dataset", "fit_chunk", "fit_dataset", "merge", "plan_chunks", "read_chunk",
            "run_chunk"]

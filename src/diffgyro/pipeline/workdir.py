@@ -21,41 +21,17 @@ from __future__ import annotations
 import errno
 import json
 import os
-import tempfile
 from pathlib import Path
 
 from ..errors import DataError
+from ..jsonio import atomic_write_bytes, dumps
 
 FORMAT = "diffgyro-work"
 FORMAT_VERSION = 1
 
 
-def file_mode() -> int:
-    """Permissions of a new file under the current umask (mkstemp's are owner-only)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file and a rename (whole or nothing)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=".tmp-", dir=path.parent)
-    try:
-        os.fchmod(fd, file_mode())
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-
-
 def _dumps(obj) -> bytes:
-    return (json.dumps(obj, allow_nan=False, separators=(",", ":")) + "\n").encode()
+    return (dumps(obj, separators=(",", ":")) + "\n").encode()
 
 
 class WorkDir:

@@ -4,7 +4,6 @@ least squares on a toolkit model's design, and JSON conversion."""
 from __future__ import annotations
 
 import dataclasses
-import math
 from typing import ClassVar
 
 import jax.numpy as jnp
@@ -12,6 +11,7 @@ import numpy as np
 
 from ..data import Recording
 from ..errors import DataError
+from ..jsonio import to_json_safe
 from ..model import ErrorModel
 from ..signals import Signals, make_signals
 
@@ -29,24 +29,7 @@ class RecipeResult:
 
 def jsonable(x):
     """numpy / JAX values -> plain Python (lists, floats, None for non-finite)."""
-    if isinstance(x, RecipeResult):
-        return x.to_dict()
-    if isinstance(x, dict):
-        return {str(k): jsonable(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [jsonable(v) for v in x]
-    if hasattr(x, "shape") and hasattr(x, "dtype"):
-        arr = np.asarray(x)
-        if arr.dtype == bool:
-            return arr.tolist()
-        if np.issubdtype(arr.dtype, np.integer):
-            return arr.tolist()
-        return jsonable(arr.astype(float).tolist()) if arr.ndim else jsonable(float(arr))
-    if isinstance(x, bool | int | str) or x is None:
-        return x
-    if isinstance(x, float):
-        return x if math.isfinite(x) else None
-    return x
+    return to_json_safe(x)
 
 
 def signals_for(

@@ -20,6 +20,7 @@ import numpy as np
 
 from ..effects import BiasPoly, ScalePoly, ThermalLag
 from ..errors import SpecError
+from ..jsonio import atomic_write_text, dumps, to_json_safe
 from ..model import ErrorModel, Params
 from ..signals import TempNorm
 from .noise import NoiseLevels
@@ -145,7 +146,7 @@ class Truth:
             })
         return {
             "format": FORMAT, "version": VERSION,
-            "plan": self.plan, "options": _plain(self.options), "spec": self.spec,
+            "plan": self.plan, "options": to_json_safe(self.options), "spec": self.spec,
             "preset": self.preset, "seed": int(self.seed),
             "norm": {"centre": float(self.norm.centre), "scale": float(self.norm.scale)},
             "labels": model.param_labels(), "nonlinear_labels": model.nonlinear_labels(),
@@ -159,15 +160,15 @@ class Truth:
             },
             "outputs": list(self.outputs),
             "devices": devices,
-            "segments": _plain(self.segments),
-            "info": _plain(self.info),
+            "segments": to_json_safe(self.segments),
+            "info": to_json_safe(self.info),
         }
 
     def to_json(self, path: str | Path | None = None, indent: int | None = 1) -> str:
         """The truth as JSON text; also written to ``path`` if given."""
-        text = json.dumps(self.to_dict(), indent=indent, allow_nan=False)
+        text = dumps(self.to_dict(), indent=indent)
         if path is not None:
-            Path(path).write_text(text + "\n")
+            atomic_write_text(path, text + "\n")
         return text
 
     @classmethod
@@ -210,15 +211,3 @@ def truth_path(out: str | Path) -> Path:
                          + ".truth.json")
 
 
-def _plain(x):
-    if isinstance(x, dict):
-        return {str(k): _plain(v) for k, v in x.items()}
-    if isinstance(x, list | tuple):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.ndarray):
-        return _plain(x.tolist())
-    if isinstance(x, np.generic):
-        return _plain(x.item())
-    if isinstance(x, float) and not math.isfinite(x):
-        return None
-    return x
