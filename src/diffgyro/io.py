@@ -1,11 +1,13 @@
-"""Reading and writing recordings: CSV, Parquet and NPZ in the standard schema.
+"""Reading and writing recordings: CSV, Parquet and NPZ in the standard schema; logs.
 
 The standard schema is DESIGN.md §3: ``device, t, gx, gy, gz`` plus the
 optional groups ``temp``, ``temp_ext``, ``ax..az``, ``mx..mz``, ``rx..rz`` and
 ``qw..qz``, in SI units (s, rad/s, m/s², °C). One file may hold many devices
 in long format (a ``device`` column); without it the device id is the file
 stem. Other column names and units are mapped at load time
-(:func:`parse_columns`, ``units=``).
+(:func:`parse_columns`, ``units=``). PX4 ULog, ROS bags and ArduPilot
+DataFlash logs are read by :mod:`diffgyro.logs` into the same schema and then
+checked like any table.
 
 Bad input raises :class:`~diffgyro.errors.DataError` naming file, device,
 column and row. **Row convention:** ``row N`` is the N-th data row of the
@@ -38,6 +40,7 @@ import pandas as pd
 from .data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
 from .errors import DataError
 from .jsonio import AtomicFile
+from .logs import LOG_SUFFIXES, log_format
 
 __all__ = [
     "UNITS",
@@ -202,16 +205,18 @@ class Dropped:
 
 @dataclass
 class LoadReport:
-    """What :func:`load` skipped; pass one in as ``report=`` to receive it."""
+    """What :func:`load` skipped or noticed; pass one in as ``report=`` to receive it."""
 
     dropped: list[Dropped] = field(default_factory=list)
+    # one line each, "warning: file F: ..." (e.g. a log reader's fallback)
+    warnings: list[str] = field(default_factory=list)
 
     @property
     def n_dropped(self) -> int:
         return sum(d.rows for d in self.dropped)
 
     def lines(self) -> list[str]:
-        return [d.message() for d in self.dropped]
+        return [d.message() for d in self.dropped] + list(self.warnings)
 
 
 def check_min_samples(recording: Recording, n_needed: int, why: str = "the model") -> None:
@@ -243,6 +248,8 @@ def _format_of(path: Path) -> tuple[str, str | None]:
         compression = _COMPRESSION[suffixes[-1]]
         suffixes = suffixes[:-1]
     ext = suffixes[-1] if suffixes else ""
+    if compression is None and log_format(path):
+        return log_format(path), None
     if ext in _CSV_SUFFIXES:
         return "csv", compression
     if compression is None and ext in (".parquet", ".pq"):
@@ -251,18 +258,25 @@ def _format_of(path: Path) -> tuple[str, str | None]:
         return "npz", None
     raise DataError(f"unknown file type {''.join(path.suffixes) or '(no extension)'!r}",
                     file=str(path),
-                    hint="use .csv, .tsv, .txt (optionally .gz/.bz2/.xz), .parquet or .npz")
+                    hint="use .csv, .tsv, .txt (optionally .gz/.bz2/.xz), .parquet, .npz or "
+                         "a log: " + ", ".join(LOG_SUFFIXES) + ", a rosbag2 folder")
 
 
 class _Source:
     """One opened input file: its column names and a reader for some of them."""
 
-    def __init__(self, path: Path, file: str):
+    def __init__(self, path: Path, file: str, log_options: Mapping | None = None):
         self.path, self.file = path, file
         self.format, self.compression = _format_of(path)
         self.sep = ","
         self.raw_names: list[str] = []
-        if self.format == "csv":
+        self.log = None
+        if self.format in ("ulog", "rosbag", "dataflash"):  # read whole, as a frame
+            from .logs import read_log
+
+            self.log = read_log(path, self.format, file=file, **dict(log_options or {}))
+            self.raw_names = list(self.log.frame.columns)
+        elif self.format == "csv":
             self._open_csv()
         elif self.format == "parquet":
             self._open_parquet()
@@ -372,6 +386,8 @@ class _Source:
         self.raw_names = list(self._arrays)
 
     def read(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame:
+        if self.log is not None:
+            return self.log.frame[wanted]
         if self.format == "csv":
             return self._read_csv_columns(wanted, text_cols)
         if self.format == "parquet":
@@ -511,8 +527,10 @@ def load(
     *,
     min_samples: int = 2,
     report: LoadReport | None = None,
+    topic: str | None = None,
+    temp_topic: str | None = None,
 ) -> list[Recording]:
-    """Read recordings from CSV / Parquet / NPZ files in the standard schema.
+    """Read recordings from CSV / Parquet / NPZ files in the standard schema, or logs.
 
     Args:
         paths: one file or many; a device id may appear in only one file.
@@ -526,7 +544,16 @@ def load(
             (k = the sample's index within its device in the file).
         device: id for files without a ``device`` column (default: file stem).
         min_samples: fewer samples in a device is an error.
-        report: a :class:`LoadReport` that receives the dropped-row counts.
+        report: a :class:`LoadReport` that receives the dropped-row counts
+            and the log readers' warnings (without one they are issued with
+            :func:`warnings.warn`).
+        topic: ROS bags: the ``sensor_msgs/msg/Imu`` topic(s), comma-separated
+            (default: all).
+        temp_topic: ROS bags: the ``sensor_msgs/msg/Temperature`` topic.
+
+    Logs (``.ulg``, ``.bag``, ``.mcap``, a rosbag2 folder, ``.bin``, ``.log``)
+    are read by :mod:`diffgyro.logs`; ``device`` then replaces the file stem
+    at the start of their device ids.
 
     Returns one :class:`Recording` per device, in file order, then
     first-appearance order within a file.
@@ -544,9 +571,10 @@ def load(
         raise DataError("device id given is empty")
     recordings: list[Recording] = []
     owner: dict[str, str] = {}
+    log_options = {"topic": topic, "temp_topic": temp_topic}
     for path in _as_paths(paths):
         for rec in _load_file(path, columns, conv, drop_invalid, sampling_rate, device,
-                              min_samples, report):
+                              min_samples, report, log_options):
             if rec.device in owner:
                 raise DataError(
                     f"device id appears in two files: {owner[rec.device]} and {rec.source}",
@@ -577,13 +605,20 @@ def load_batch(
 
 
 def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_samples,
-               report) -> list[Recording]:
+               report, log_options=None) -> list[Recording]:
     file = str(path)
     if not path.exists():
         raise DataError("file not found", file=file)
-    if not path.is_file():
+    if not path.is_file() and log_format(path) != "rosbag":
         raise DataError("not a file", file=file)
-    src = _Source(path, file)
+    if device is not None and log_format(path):
+        log_options = {**(log_options or {}), "prefix": str(device).strip()}
+    src = _Source(path, file, log_options)
+    for line in src.log.warnings if src.log is not None else []:
+        if report is not None:
+            report.warnings.append(line)
+        else:
+            warnings.warn(line, stacklevel=3)
     names = set(src.names)
     found = ", ".join(n for n in src.names[:12] if n) + (" ..." if len(src.names) > 12 else "")
 

@@ -34,7 +34,8 @@ _UNITS_HELP = "Unit of {what} in the files: {units} (converted to {si})."
 DataFiles = Annotated[
     list[Path],
     typer.Argument(help="Data files (CSV, TSV, Parquet, NPZ) in the standard schema; "
-                        "one or many devices per file (a 'device' column).",
+                        "one or many devices per file (a 'device' column); or logs: "
+                        "PX4 .ulg, ROS .bag / .mcap / rosbag2 folder, ArduPilot .bin / .log.",
                    show_default=False),
 ]
 Columns = Annotated[
@@ -73,6 +74,23 @@ DropInvalid = Annotated[
     typer.Option("--drop-invalid", help="Skip rows with empty, NaN or inf cells "
                                         "(the count is reported) instead of stopping."),
 ]
+Topic = Annotated[
+    str | None,
+    typer.Option("--topic", help="ROS bags: the sensor_msgs/msg/Imu topic(s) to read, "
+                                 "comma-separated (default: every Imu topic)."),
+]
+TempTopic = Annotated[
+    str | None,
+    typer.Option("--temp-topic", help="ROS bags: the sensor_msgs/msg/Temperature topic joined "
+                                      "to the Imu samples (default: the only one, if any)."),
+]
+
+
+def streamed_dir(path: Path) -> bool:
+    """A folder of Parquet files (streamed); a rosbag2 folder is a log, read whole."""
+    from diffgyro.logs import is_rosbag_dir
+
+    return path.is_dir() and not is_rosbag_dir(path)
 
 
 def units_from_cli(gyro_unit: str | None = None, acc_unit: str | None = None,
@@ -94,8 +112,10 @@ def load_from_cli(
     *,
     min_samples: int = 2,
     batch: bool = True,
+    topic: str | None = None,
+    temp_topic: str | None = None,
 ):
-    """Load data files from command-line options; report dropped rows on stderr.
+    """Load data files from command-line options; report dropped rows and warnings on stderr.
 
     Returns a :class:`~diffgyro.data.Batch` (or a list of recordings with
     ``batch=False``). Raises :class:`~diffgyro.errors.DataError` on bad input.
@@ -107,7 +127,8 @@ def load_from_cli(
     recordings = load(paths, parse_columns(columns),
                       units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
                       drop_invalid=drop_invalid, sampling_rate=sampling_rate,
-                      min_samples=min_samples, report=report)
+                      min_samples=min_samples, report=report, topic=topic,
+                      temp_topic=temp_topic)
     for line in report.lines():
         print(f"diffgyro: {line}", file=sys.stderr)
     return Batch.from_recordings(recordings) if batch else recordings

@@ -18,8 +18,10 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    TempTopic,
     TempUnit,
     TimeUnit,
+    Topic,
     load_from_cli,
 )
 
@@ -42,6 +44,8 @@ def allan_command(
     time_unit: TimeUnit = None,
     sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
+    topic: Topic = None,
+    temp_topic: TempTopic = None,
 ) -> None:
     """Overlapping Allan deviation per device and gyro axis (rates in rad/s).
 
@@ -54,7 +58,8 @@ def allan_command(
     from diffgyro.jsonio import dumps
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, min_samples=MIN_SAMPLES)
+                          sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
+                          topic=topic, temp_topic=temp_topic)
     _warn_uneven(batch)
     result = allan_batch(batch, per_decade=per_decade)
     doc = to_json(result, batch.devices, AXES)

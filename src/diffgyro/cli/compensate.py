@@ -15,8 +15,10 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    TempTopic,
     TempUnit,
     TimeUnit,
+    Topic,
     load_from_cli,
 )
 
@@ -28,7 +30,7 @@ def compensate_command(
     out: Annotated[Path, typer.Option("--out", "-o", help="File to write (CSV, Parquet or NPZ).")],
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
-    drop_invalid: DropInvalid = False,
+    drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
 ) -> None:
     """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
     calibrated range are clamped to it, with a warning."""
@@ -38,7 +40,7 @@ def compensate_command(
 
     calib = calibration.load(cal)
     batch = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid)
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         corrected, clamped = calibration.compensate(calib, batch)

@@ -16,8 +16,11 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    TempTopic,
     TempUnit,
     TimeUnit,
+    Topic,
+    streamed_dir,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -99,7 +102,7 @@ def diagnose_command(
                                "from the temperature read-out's noise and steps).")] = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
-    drop_invalid: DropInvalid = False,
+    drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None,
 ) -> None:
@@ -112,7 +115,7 @@ def diagnose_command(
     A directory of Parquet files, --chunk-devices or --dask streams the data in chunks of
     devices with resumable state in --work-dir (see docs/dask.md).
     """
-    if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
+    if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
         from ._stream import stream_diagnose
 
         if out is not None:
@@ -136,7 +139,7 @@ def diagnose_command(
 
     spec = ErrorModel.from_spec(model)  # SpecError (a DataError) for a bad spec: exit 2
     batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid)
+                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:
         from diffgyro.effects import parse_term, registry

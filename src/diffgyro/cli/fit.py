@@ -16,9 +16,12 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    TempTopic,
     TempUnit,
     TimeUnit,
+    Topic,
     load_from_cli,
+    streamed_dir,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -37,12 +40,12 @@ def samples_needed(model) -> int:
 
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid):
+                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None):
     """Load data for ``model``: a DataError if every device is too short for it."""
     from diffgyro.io import check_min_samples
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid)
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     need = samples_needed(model)
     recs = batch.recordings()
     if all(r.n < need for r in recs):
@@ -59,7 +62,7 @@ def fit_command(
     dtemp_window: DtempWindow = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
-    drop_invalid: DropInvalid = False,
+    drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None,
 ) -> None:
@@ -73,7 +76,7 @@ def fit_command(
     from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
-    if chunk_devices is not None or dask is not None or any(p.is_dir() for p in data):
+    if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
         from ._stream import stream_fit
 
         stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit,
@@ -82,7 +85,7 @@ def fit_command(
         return
     em = ErrorModel.from_spec(model)
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid)
+                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     if dtemp_window is None:
         from diffgyro.diagnose import suggest_dtemp_window
 

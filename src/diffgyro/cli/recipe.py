@@ -20,8 +20,10 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    TempTopic,
     TempUnit,
     TimeUnit,
+    Topic,
     load_from_cli,
 )
 
@@ -97,7 +99,7 @@ def recipe_command(
                                             "the first 100 samples (IMU-TK).")] = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
-    drop_invalid: DropInvalid = False,
+    drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
 ) -> None:
     """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object)."""
     from diffgyro.errors import DataError
@@ -134,7 +136,8 @@ def recipe_command(
         given["sampling_rate"] = sampling_rate
 
     recordings = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                               sampling_rate, drop_invalid, batch=False)
+                               sampling_rate, drop_invalid, batch=False,
+                               topic=topic, temp_topic=temp_topic)
     if device is not None:
         recordings = [r for r in recordings if r.device == device]
         if not recordings:

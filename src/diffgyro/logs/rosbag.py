@@ -1,0 +1,116 @@
+"""ROS 1 and ROS 2 bags (``.bag``, rosbag2 folders, ``.mcap``) via rosbags.
+
+Every ``sensor_msgs/msg/Imu`` topic (or those named by ``topic``) is the
+device ``<stem><topic>`` (``flight/imu/data``): ``angular_velocity`` (rad/s)
+→ ``gx, gy, gz``, ``linear_acceleration`` (m/s²) → ``ax, ay, az``. Time is
+the message's ``header.stamp`` in s (sec + nanosec·1e-9, the sensor's time);
+a topic whose stamps are all zero uses the bag's receive time instead.
+
+A ``sensor_msgs/msg/Temperature`` topic (``temperature``, °C), the one named
+by ``temp_topic`` or the only one in the bag, gives ``temp``: linearly
+interpolated at the Imu stamps, the first / last reading held beyond its ends.
+Several Temperature topics and no ``temp_topic`` is an error listing them.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import DataError
+from . import LogTable, interp_join, require, table
+
+IMU = "sensor_msgs/msg/Imu"
+TEMPERATURE = "sensor_msgs/msg/Temperature"
+
+
+def _topics(connections, msgtype: str) -> list[str]:
+    return sorted({c.topic for c in connections if c.msgtype == msgtype})
+
+
+def _listing(connections) -> str:
+    found = sorted({(c.topic, c.msgtype) for c in connections})
+    return ", ".join(f"{t} [{m}]" for t, m in found) or "none"
+
+
+def _pick(connections, file: str, topic: str | None,
+          temp_topic: str | None) -> tuple[list[str], str | None]:
+    imus, temps = _topics(connections, IMU), _topics(connections, TEMPERATURE)
+    if not imus:
+        raise DataError(f"no {IMU} topic in the bag (topics: {_listing(connections)})",
+                        file=file)
+    if topic:
+        wanted = [s.strip() for s in topic.split(",") if s.strip()]
+        for name in wanted:
+            if name not in imus:
+                raise DataError(f"topic {name} is not an Imu topic of the bag "
+                                f"(Imu topics: {', '.join(imus)})", file=file)
+        imus = wanted
+    if temp_topic:
+        if temp_topic not in temps:
+            raise DataError(f"topic {temp_topic} is not a Temperature topic of the bag "
+                            f"(Temperature topics: {', '.join(temps) or 'none'})", file=file)
+        return imus, temp_topic
+    if len(temps) > 1:
+        raise DataError(f"several Temperature topics: {', '.join(temps)}", file=file,
+                        hint="pick one with --temp-topic")
+    return imus, (temps[0] if temps else None)
+
+
+def _stamp(msg, bag_ns: int) -> tuple[float, float]:
+    s = msg.header.stamp
+    return float(s.sec) + float(s.nanosec) * 1e-9, bag_ns * 1e-9
+
+
+def _collect(reader, imus: list[str], temp: str | None) -> dict[str, dict[str, list]]:
+    want = {*imus, *([temp] if temp else [])}
+    cons = [c for c in reader.connections if c.topic in want]
+    rows: dict[str, dict[str, list]] = {t: {"stamp": [], "bag": [], "v": []} for t in want}
+    for con, bag_ns, raw in reader.messages(connections=cons):
+        msg = reader.deserialize(raw, con.msgtype)
+        stamp, bag = _stamp(msg, bag_ns)
+        r = rows[con.topic]
+        r["stamp"].append(stamp)
+        r["bag"].append(bag)
+        if con.topic == temp:
+            r["v"].append(float(msg.temperature))
+        else:
+            w, a = msg.angular_velocity, msg.linear_acceleration
+            r["v"].append((w.x, w.y, w.z, a.x, a.y, a.z))
+    return rows
+
+
+def _times(r: dict[str, list]) -> np.ndarray:
+    stamp = np.asarray(r["stamp"], dtype=np.float64)
+    return np.asarray(r["bag"], dtype=np.float64) if not stamp.any() else stamp
+
+
+def read(path: Path, file: str, prefix: str, topic: str | None = None,
+         temp_topic: str | None = None) -> LogTable:
+    """Read ``path`` (a ROS 1 / ROS 2 bag) as a :class:`LogTable`; see the module docstring."""
+    highlevel = require("rosbags.highlevel", "rosbags", file)
+    typesys = require("rosbags.typesys", "rosbags", file)
+    store = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
+    try:
+        with highlevel.AnyReader([path], default_typestore=store) as reader:
+            imus, temp = _pick(reader.connections, file, topic, temp_topic)
+            rows = _collect(reader, imus, temp)
+    except DataError:
+        raise
+    except Exception as err:  # rosbags' reader/deserializer errors, sqlite, truncated chunks
+        raise DataError(f"cannot read as ROS bag ({type(err).__name__}: {err})",
+                        file=file) from None
+    devices = []
+    t_temp = _times(rows[temp]) if temp else None
+    for name in imus:
+        r = rows[name]
+        if not r["v"]:
+            raise DataError(f"topic {name} has no messages", file=file)
+        t, v = _times(r), np.asarray(r["v"], dtype=np.float64)
+        dev = {"device": prefix + (name if name.startswith("/") else "/" + name), "t": t,
+               "gyro": v[:, :3], "accel": v[:, 3:]}
+        if temp and rows[temp]["v"]:
+            dev["temp"] = interp_join(t, t_temp, np.asarray(rows[temp]["v"]))
+        devices.append(dev)
+    return table(devices, file)
