@@ -6,10 +6,12 @@ device ``<stem><topic>`` (``flight/imu/data``): ``angular_velocity`` (rad/s)
 the message's ``header.stamp`` in s (sec + nanosec·1e-9, the sensor's time);
 a topic whose stamps are all zero uses the bag's receive time instead.
 
-A ``sensor_msgs/msg/Temperature`` topic (``temperature``, °C), the one named
-by ``temp_topic`` or the only one in the bag, gives ``temp``: linearly
-interpolated at the Imu stamps, the first / last reading held beyond its ends.
-Several Temperature topics and no ``temp_topic`` is an error listing them.
+A ``sensor_msgs/msg/Temperature`` topic (``temperature``, °C) gives
+``temp``: linearly interpolated at the Imu stamps, the first / last reading
+held beyond its ends. Which one: the topic named by ``temp_topic`` (for
+every Imu topic), else the only one in the bag, else the one in the same
+namespace as each Imu topic (``/imu0/data`` ↔ ``/imu0/temperature``); several
+Temperature topics that do not pair up so are an error listing them.
 """
 
 from __future__ import annotations
@@ -34,8 +36,12 @@ def _listing(connections) -> str:
     return ", ".join(f"{t} [{m}]" for t, m in found) or "none"
 
 
+def _namespace(topic: str) -> str:
+    return topic.rsplit("/", 1)[0]
+
+
 def _pick(connections, file: str, topic: str | None,
-          temp_topic: str | None) -> tuple[list[str], str | None]:
+          temp_topic: str | None) -> tuple[list[str], dict[str, str]]:
     imus, temps = _topics(connections, IMU), _topics(connections, TEMPERATURE)
     if not imus:
         raise DataError(f"no {IMU} topic in the bag (topics: {_listing(connections)})",
@@ -51,11 +57,15 @@ def _pick(connections, file: str, topic: str | None,
         if temp_topic not in temps:
             raise DataError(f"topic {temp_topic} is not a Temperature topic of the bag "
                             f"(Temperature topics: {', '.join(temps) or 'none'})", file=file)
-        return imus, temp_topic
-    if len(temps) > 1:
-        raise DataError(f"several Temperature topics: {', '.join(temps)}", file=file,
+        return imus, {name: temp_topic for name in imus}
+    if len(temps) <= 1:
+        return imus, {name: temps[0] for name in imus} if temps else {}
+    pairs = {name: [t for t in temps if _namespace(t) == _namespace(name)] for name in imus}
+    if any(len(p) != 1 for p in pairs.values()):
+        raise DataError(f"several Temperature topics ({', '.join(temps)}) and no one-to-one "
+                        f"pairing with the Imu topics by namespace", file=file,
                         hint="pick one with --temp-topic")
-    return imus, (temps[0] if temps else None)
+    return imus, {name: p[0] for name, p in pairs.items()}
 
 
 def _stamp(msg, bag_ns: int) -> tuple[float, float]:
@@ -63,8 +73,8 @@ def _stamp(msg, bag_ns: int) -> tuple[float, float]:
     return float(s.sec) + float(s.nanosec) * 1e-9, bag_ns * 1e-9
 
 
-def _collect(reader, imus: list[str], temp: str | None) -> dict[str, dict[str, list]]:
-    want = {*imus, *([temp] if temp else [])}
+def _collect(reader, imus: list[str], temps: set[str]) -> dict[str, dict[str, list]]:
+    want = {*imus, *temps}
     cons = [c for c in reader.connections if c.topic in want]
     rows: dict[str, dict[str, list]] = {t: {"stamp": [], "bag": [], "v": []} for t in want}
     for con, bag_ns, raw in reader.messages(connections=cons):
@@ -73,7 +83,7 @@ def _collect(reader, imus: list[str], temp: str | None) -> dict[str, dict[str, l
         r = rows[con.topic]
         r["stamp"].append(stamp)
         r["bag"].append(bag)
-        if con.topic == temp:
+        if con.topic in temps:
             r["v"].append(float(msg.temperature))
         else:
             w, a = msg.angular_velocity, msg.linear_acceleration
@@ -94,15 +104,14 @@ def read(path: Path, file: str, prefix: str, topic: str | None = None,
     store = typesys.get_typestore(typesys.Stores.ROS2_HUMBLE)
     try:
         with highlevel.AnyReader([path], default_typestore=store) as reader:
-            imus, temp = _pick(reader.connections, file, topic, temp_topic)
-            rows = _collect(reader, imus, temp)
+            imus, temp_of = _pick(reader.connections, file, topic, temp_topic)
+            rows = _collect(reader, imus, set(temp_of.values()))
     except DataError:
         raise
     except Exception as err:  # rosbags' reader/deserializer errors, sqlite, truncated chunks
         raise DataError(f"cannot read as ROS bag ({type(err).__name__}: {err})",
                         file=file) from None
     devices = []
-    t_temp = _times(rows[temp]) if temp else None
     for name in imus:
         r = rows[name]
         if not r["v"]:
@@ -110,7 +119,8 @@ def read(path: Path, file: str, prefix: str, topic: str | None = None,
         t, v = _times(r), np.asarray(r["v"], dtype=np.float64)
         dev = {"device": prefix + (name if name.startswith("/") else "/" + name), "t": t,
                "gyro": v[:, :3], "accel": v[:, 3:]}
+        temp = temp_of.get(name)
         if temp and rows[temp]["v"]:
-            dev["temp"] = interp_join(t, t_temp, np.asarray(rows[temp]["v"]))
+            dev["temp"] = interp_join(t, _times(rows[temp]), np.asarray(rows[temp]["v"]))
         devices.append(dev)
     return table(devices, file)

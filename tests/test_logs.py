@@ -1,0 +1,379 @@
+"""Log readers (diffgyro.logs): PX4 ULog, ROS 1/2 bags, ArduPilot DataFlash.
+
+Each format is written through its own library (pyulog's ``write_ulog``,
+rosbags' writers) or, where the library cannot write (pymavlink), byte by
+byte from the format's definition; read back it must give the same Batch as
+the CSV path and the same fit to 1e-12. The real PX4 logs in tests/data/px4
+are read against pyulog's own numbers.
+"""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import jax
+import numpy as np
+import pandas as pd
+import pytest
+
+from diffgyro.cli import main
+from diffgyro.io import LoadReport, load, load_batch
+
+PX4 = Path(__file__).parent / "data" / "px4"
+N, RATE, T0 = 600, 250.0, 10_000_000  # samples, Hz, first timestamp (µs)
+B0 = np.array([[0.01, -0.02, 0.005], [-0.004, 0.012, 0.02], [0.003, 0.0, -0.015]])  # rad/s
+B1 = np.array([[2e-4, -1e-4, 3e-4], [1e-4, 2e-4, -2e-4], [-3e-4, 1e-4, 1e-4]])  # rad/s/°C
+SIGMA = 2e-4
+
+
+def _truth(k: int, seed: int = 0) -> dict[str, np.ndarray]:
+    """Device k: a linear thermal bias, white noise, a 20→40 °C ramp, gravity on z."""
+    rng = np.random.default_rng(seed + k)
+    us = T0 + np.round(np.arange(N) * 1e6 / RATE).astype(np.int64) + 50 * k
+    us = np.delete(us, [100, 101, 350])  # dropped samples stay gaps
+    temp = 20.0 + 20.0 * (us - us[0]) / (us[-1] - us[0])
+    gyro = B0[k] + np.outer(temp - 30.0, B1[k]) + SIGMA * rng.standard_normal((us.size, 3))
+    accel = np.array([0.1, -0.2, 9.81]) + 0.01 * rng.standard_normal((us.size, 3))
+    return {"us": us, "temp": temp, "gyro": gyro, "accel": accel}
+
+
+def _csv(path: Path, rows: list[dict]) -> Path:
+    frames = []
+    for r in rows:
+        cols = {"device": r["device"], "t": r["t"], "gx": r["gyro"][:, 0],
+                "gy": r["gyro"][:, 1], "gz": r["gyro"][:, 2]}
+        if "temp" in r:
+            cols["temp"] = r["temp"]
+        cols.update(ax=r["accel"][:, 0], ay=r["accel"][:, 1], az=r["accel"][:, 2])
+        frames.append(pd.DataFrame(cols))
+    pd.concat(frames).to_csv(path, index=False, float_format="%.17g")
+    return path
+
+
+def _f32(x) -> np.ndarray:
+    return np.asarray(x, dtype=np.float32).astype(np.float64)
+
+
+# --------------------------------------------------------------------------- writers
+
+
+def write_ulog(path: Path, devices: list[dict]) -> list[dict]:
+    """sensor_gyro / sensor_accel instances through pyulog's writer.
+
+    PX4's own message definitions come from the real log in tests/data/px4,
+    whose data are replaced (pyulog writes a ULog object; it has no builder).
+    """
+    import pyulog
+
+    ulog = pyulog.ULog(str(PX4 / "sample_log_small.ulg"), ["sensor_gyro", "sensor_accel"])
+    expect = []
+    for d in ulog.data_list:
+        k = d.multi_id
+        if k >= len(devices):
+            continue
+        dev = devices[k]
+        n = dev["us"].size
+        new = {name: np.zeros(n, dtype=v.dtype) for name, v in d.data.items()}
+        new["timestamp_sample"] = dev["us"].astype(np.uint64)
+        new["timestamp"] = new["timestamp_sample"] + 300
+        new["device_id"][:] = 1000 + k
+        new["temperature"] = dev["temp"].astype(np.float32)
+        values = dev["gyro"] if d.name == "sensor_gyro" else dev["accel"]
+        for j, axis in enumerate("xyz"):
+            new[axis] = values[:, j].astype(np.float32)
+        d.data = new
+    ulog.data_list[:] = [d for d in ulog.data_list if d.multi_id < len(devices)]
+    ulog.write_ulog(str(path))
+    for k, dev in enumerate(devices):
+        expect.append({"device": f"{path.stem}/gyro{k}", "t": dev["us"] * 1e-6,
+                       "gyro": _f32(dev["gyro"]), "temp": _f32(dev["temp"]),
+                       "accel": _f32(dev["accel"])})
+    return expect
+
+
+def _ros_messages(typestore, dev: dict, k: int):
+    Imu = typestore.types["sensor_msgs/msg/Imu"]
+    Temperature = typestore.types["sensor_msgs/msg/Temperature"]
+    Header = typestore.types["std_msgs/msg/Header"]
+    Time = typestore.types["builtin_interfaces/msg/Time"]
+    Vector3 = typestore.types["geometry_msgs/msg/Vector3"]
+    Quaternion = typestore.types["geometry_msgs/msg/Quaternion"]
+    zero = np.zeros(9)
+    for i, us in enumerate(dev["us"].tolist()):
+        header = Header(stamp=Time(sec=us // 1_000_000, nanosec=(us % 1_000_000) * 1000),
+                        frame_id=f"imu{k}")
+        w, a = dev["gyro"][i], dev["accel"][i]
+        imu = Imu(header=header, orientation=Quaternion(x=0.0, y=0.0, z=0.0, w=1.0),
+                  orientation_covariance=zero,
+                  angular_velocity=Vector3(x=w[0], y=w[1], z=w[2]),
+                  angular_velocity_covariance=zero,
+                  linear_acceleration=Vector3(x=a[0], y=a[1], z=a[2]),
+                  linear_acceleration_covariance=zero)
+        yield f"/imu{k}/data", Imu, us * 1000 + 7, imu
+        if i % 5 == 0:  # temperature at a fifth of the rate, own topic per IMU
+            yield f"/imu{k}/temperature", Temperature, us * 1000 + 9, Temperature(
+                header=header, temperature=float(dev["temp"][i]), variance=0.0)
+
+
+def write_bag(path: Path, devices: list[dict], kind: str) -> list[dict]:
+    """Imu + Temperature topics through rosbags' writers (ROS 1, ROS 2 sqlite or MCAP)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    if kind == "ros1":
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), store.serialize_ros1
+    else:
+        from rosbags.rosbag2 import StoragePlugin, Writer
+
+        plugin = StoragePlugin.MCAP if kind == "mcap" else StoragePlugin.SQLITE3
+        writer, serialize = Writer(path, version=8, storage_plugin=plugin), store.serialize_cdr
+    with writer:
+        conns = {}
+        for k, dev in enumerate(devices):
+            for topic, cls, ns, msg in _ros_messages(store, dev, k):
+                if topic not in conns:
+                    conns[topic] = writer.add_connection(topic, cls.__msgtype__, typestore=store)
+                writer.write(conns[topic], ns, serialize(msg, cls.__msgtype__))
+    stem = path.name if kind != "ros1" else path.stem
+    expect = []
+    for k, dev in enumerate(devices):
+        t = (dev["us"] // 1_000_000) + (dev["us"] % 1_000_000) * 1000 * 1e-9
+        expect.append({"device": f"{stem}/imu{k}/data", "t": t, "gyro": dev["gyro"],
+                       "temp": np.interp(t, t[::5], dev["temp"][::5]), "accel": dev["accel"]})
+    return expect
+
+
+_FMT_FMT = ("BBnNZ", "Type,Length,Name,Format,Columns")
+_IMU_FMT = ("QBffffffIIf", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T")
+_OLD_IMU_FMT = ("QffffffIIf", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T")
+
+
+def write_dataflash(path: Path, devices: list[dict], text: bool) -> list[dict]:
+    """IMU messages from the DataFlash definition (pymavlink reads but does not write).
+
+    Binary: ``A3 95 type`` then the packed fields, with FMT messages first;
+    ``IMU`` carries its instance in ``I``. Text: the same messages as comma-
+    separated lines, in the older style ``IMU``/``IMU2``/``IMU3`` without ``I``.
+    """
+    out = bytearray()
+    lines = []
+    fmts = [(128, "FMT", *_FMT_FMT)]
+    fmts += ([(129 + k, "IMU" if k == 0 else f"IMU{k + 1}", *_OLD_IMU_FMT)
+              for k in range(len(devices))] if text else [(129, "IMU", *_IMU_FMT)])
+    sizes = {"Q": 8, "B": 1, "f": 4, "I": 4, "n": 4, "N": 16, "Z": 64}
+    length = {t: 3 + sum(sizes[c] for c in f) for t, _, f, _ in fmts}
+    for t, name, f, cols in fmts:
+        out += b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", t, length[t], name.encode(),
+                                             f.encode(), cols.encode())
+        lines.append(f"FMT, {t}, {length[t]}, {name}, {f}, {cols}")
+    events = sorted((int(us), k, i) for k, d in enumerate(devices)
+                    for i, us in enumerate(d["us"].tolist()))
+    for us, k, i in events:
+        d = devices[k]
+        vals = [float(np.float32(v)) for v in (*d["gyro"][i], *d["accel"][i])]
+        temp = float(np.float32(d["temp"][i]))
+        if text:
+            name = fmts[1 + k][1]
+            lines.append(", ".join([name, str(us), *map(repr, vals), "0", "0", repr(temp)]))
+        else:
+            out += b"\xa3\x95\x81" + struct.pack("<QB6fIIf", us, k, *vals, 0, 0, temp)
+    if text:
+        path.write_text("\n".join(lines) + "\n")
+    else:
+        path.write_bytes(bytes(out))
+    return [{"device": f"{path.stem}/imu{k}", "t": d["us"] * 1e-6, "gyro": _f32(d["gyro"]),
+             "temp": _f32(d["temp"]), "accel": _f32(d["accel"])} for k, d in enumerate(devices)]
+
+
+WRITERS = {
+    "ulog": ("flight.ulg", write_ulog),
+    "ros1": ("flight.bag", lambda p, d: write_bag(p, d, "ros1")),
+    "ros2": ("flight_ros2", lambda p, d: write_bag(p, d, "ros2")),
+    "mcap": ("flight_mcap", lambda p, d: write_bag(p, d, "mcap")),
+    "dataflash": ("flight.bin", lambda p, d: write_dataflash(p, d, text=False)),
+    "dataflash-text": ("flight.log", lambda p, d: write_dataflash(p, d, text=True)),
+}
+
+
+# --------------------------------------------------------------------------- same as CSV
+
+
+def _leaves(result) -> list[np.ndarray]:
+    return [np.asarray(x) for x in jax.tree_util.tree_leaves(result.params)]
+
+
+@pytest.mark.parametrize("fmt", list(WRITERS))
+def test_log_reads_as_the_csv_path(fmt, tmp_path):
+    from diffgyro.fit import fit
+
+    name, writer = WRITERS[fmt]
+    truth = [_truth(k) for k in range(3)]
+    expect = writer(tmp_path / name, truth)
+    if fmt == "mcap":  # rosbags writes a folder; the bare .mcap inside is a log too
+        mcap = next((tmp_path / name).glob("*.mcap")).rename(tmp_path / "flight.mcap")
+        for e in expect:
+            e["device"] = e["device"].replace("flight_mcap/", "flight/")
+        log = mcap
+    else:
+        log = tmp_path / name
+    csv = _csv(tmp_path / "same.csv", expect)
+    from_log, from_csv = load_batch(log), load_batch(csv)
+    assert from_log.devices == tuple(e["device"] for e in expect)
+    for sig in ("t", "gyro", "temp", "accel", "mask"):
+        np.testing.assert_array_equal(getattr(from_log, sig), getattr(from_csv, sig), err_msg=sig)
+    fit_log, fit_csv = fit("bias_poly(1)", from_log), fit("bias_poly(1)", from_csv)
+    for a, b in zip(_leaves(fit_log), _leaves(fit_csv), strict=True):
+        np.testing.assert_allclose(a, b, rtol=0, atol=1e-12)
+    recs = load(log)  # the simulated thermal bias comes back (slope σ ≈ 1.4e-6 rad/s/°C)
+    for k, rec in enumerate(recs):
+        assert rec.temp is not None and rec.accel is not None
+        assert rec.t.size == N - 3  # the three dropped samples are gaps, not filled
+        assert np.max(np.diff(rec.t)) == pytest.approx(3 / RATE, abs=1e-9)
+        fitted = np.polyfit(rec.temp - 30.0, rec.gyro, 1)
+        np.testing.assert_allclose(fitted[0], B1[k], atol=1e-5)
+        np.testing.assert_allclose(fitted[1], B0[k], atol=5e-5)
+
+
+def test_ulog_keeps_device_id_and_sampled_time(tmp_path):
+    from diffgyro.logs import read_log
+
+    write_ulog(tmp_path / "f.ulg", [_truth(k) for k in range(2)])
+    log = read_log(tmp_path / "f.ulg")
+    assert log.metadata == {"f/gyro0": {"device_id": 1000}, "f/gyro1": {"device_id": 1001}}
+    assert log.warnings == []
+    first = log.frame[log.frame.device == "f/gyro1"].t.iloc[0]
+    assert first == (T0 + 50) * 1e-6  # timestamp_sample, not timestamp (+300 µs)
+
+
+def test_device_option_replaces_the_stem(tmp_path):
+    write_dataflash(tmp_path / "f.bin", [_truth(0)], text=False)
+    assert [r.device for r in load(tmp_path / "f.bin", device="drone7")] == ["drone7/imu0"]
+
+
+# --------------------------------------------------------------------------- real PX4 logs
+
+
+def test_sample_ulog_bias_is_the_logs_mean_rate(capsys):
+    """sample.ulg has no sensor_gyro: the documented sensor_combined fallback."""
+    import json
+
+    import pyulog
+
+    path = PX4 / "sample.ulg"
+    code = main(["fit", str(path), "--model", "bias_poly(0)", "--json"])
+    captured = capsys.readouterr()
+    assert code == 0
+    doc = json.loads(captured.out)
+    warnings = [line for line in captured.err.splitlines() if "sensor_combined" in line]
+    assert len(warnings) == 1 and str(path) in warnings[0]
+    (dev,) = doc["devices"]
+    assert dev["device"] == "sample/sensor_combined"
+    combined = next(d for d in pyulog.ULog(str(path), ["sensor_combined"]).data_list)
+    for k, axis in enumerate("xyz"):
+        mean = np.mean(combined.data[f"gyro_rad[{k}]"].astype(np.float64))
+        assert dev["params"][axis]["bias_poly(0).c0"] == pytest.approx(mean, rel=1e-9, abs=1e-12)
+
+
+def test_small_ulog_gyro_at_1hz_falls_back_to_sensor_combined():
+    import pyulog
+
+    path = PX4 / "sample_log_small.ulg"
+    ulog = pyulog.ULog(str(path), ["sensor_gyro", "sensor_combined"])
+    gyros = [d for d in ulog.data_list if d.name == "sensor_gyro"]
+    assert len(gyros) == 3 and all(len(d.data["timestamp"]) < 10 for d in gyros)
+    report = LoadReport()
+    (rec,) = load(path, report=report)
+    assert rec.device == "sample_log_small/sensor_combined" and rec.temp is None
+    combined = next(d for d in ulog.data_list if d.name == "sensor_combined")
+    np.testing.assert_array_equal(rec.t, combined.data["timestamp"] * 1e-6)
+    np.testing.assert_array_equal(rec.gyro[:, 2], combined.data["gyro_rad[2]"])
+    assert len(report.warnings) == 1
+    assert "logged at 1 samples/s (< 10)" in report.warnings[0]
+
+
+# --------------------------------------------------------------------------- bad input
+
+
+def _one_line_error(args, capsys, *names):
+    code = main(args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2
+    assert len(err) == 1 and err[0].startswith("diffgyro: error: "), err
+    for name in names:
+        assert name in err[0], err[0]
+    return err[0]
+
+
+def test_corrupted_ulog_is_one_line(tmp_path, capsys):
+    good = (PX4 / "sample_log_small.ulg").read_bytes()
+    header_broken = tmp_path / "broken.ulg"
+    header_broken.write_bytes(good[:16] + bytes(range(256)) * 40)
+    _one_line_error(["fit", str(header_broken), "-m", "bias_poly(0)"], capsys, str(header_broken))
+    garbled = tmp_path / "garbled.ulg"
+    garbled.write_bytes(good[:20000] + b"\xff" * 5000 + good[25000:])
+    line = _one_line_error(["fit", str(garbled), "-m", "bias_poly(0)"], capsys, str(garbled))
+    assert "no gyro data" in line and "corrupted" in line
+    renamed = tmp_path / "notulog.ulg"
+    renamed.write_text("t,gx,gy,gz\n0,1,2,3\n")
+    _one_line_error(["fit", str(renamed), "-m", "bias_poly(0)"], capsys, str(renamed), "ULog")
+    cut = tmp_path / "cut.ulg"
+    cut.write_bytes(good[:300])
+    _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut), "no gyro data")
+
+
+def test_bag_without_imu_topic_lists_the_topics(tmp_path, capsys):
+    from rosbags.rosbag1 import Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    Float64 = store.types["std_msgs/msg/Float64"]
+    path = tmp_path / "noimu.bag"
+    with Writer(path) as w:
+        conn = w.add_connection("/battery", Float64.__msgtype__, typestore=store)
+        w.write(conn, 1, store.serialize_ros1(Float64(data=1.0), Float64.__msgtype__))
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path),
+                    "sensor_msgs/msg/Imu", "/battery [std_msgs/msg/Float64]")
+
+
+def test_unknown_topic_lists_the_imu_topics(tmp_path, capsys):
+    path = tmp_path / "two.bag"
+    write_bag(path, [_truth(0), _truth(1)], "ros1")
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)", "--topic", "/imu9/data"], capsys,
+                    str(path), "/imu9/data", "/imu0/data, /imu1/data")
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)", "--temp-topic", "/t"], capsys,
+                    str(path), "/imu0/temperature, /imu1/temperature")
+    recs = load(path, topic="/imu1/data", temp_topic="/imu0/temperature")
+    assert [r.device for r in recs] == ["two/imu1/data"]
+    t0 = np.asarray(_truth(0)["us"], dtype=np.float64)  # /imu0's temperature, /imu1's times
+    assert recs[0].temp[0] == pytest.approx(20.0 + 20.0 * (recs[0].t[0] * 1e6 - t0[0])
+                                            / (t0[-1] - t0[0]), abs=1e-3)
+
+
+def test_truncated_bag_is_one_line(tmp_path, capsys):
+    path = tmp_path / "full.bag"
+    write_bag(path, [_truth(0)], "ros1")
+    cut = tmp_path / "cut.bag"
+    cut.write_bytes(path.read_bytes()[:5000])
+    _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut))
+
+
+def test_dataflash_without_imu_is_one_line(tmp_path, capsys):
+    path = tmp_path / "noimu.bin"
+    fmt = struct.pack("<BB4s16s64s", 128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
+    path.write_bytes(b"\xa3\x95\x80" + fmt)
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path), "no IMU messages")
+    other = tmp_path / "other.bin"
+    other.write_bytes(b"\x00" * 100)
+    _one_line_error(["fit", str(other), "-m", "bias_poly(0)"], capsys, str(other), "DataFlash")
+
+
+def test_rosbag2_folder_is_read_whole_not_streamed(tmp_path, capsys):
+    import json
+
+    write_bag(tmp_path / "run", [_truth(0)], "ros2")
+    assert main(["fit", str(tmp_path / "run"), "-m", "bias_poly(1)", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert [d["device"] for d in doc["devices"]] == ["run/imu0/data"]
