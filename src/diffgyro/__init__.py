@@ -65,7 +65,8 @@ def use_cpu_cores(n: int | None = None) -> int:
     return len(jax.devices("cpu"))
 
 
-from . import effects  # noqa: E402,F401
+# kalman registers the random_walk fit with diffgyro.core (fit() dispatches through it)
+from . import effects, kalman  # noqa: E402,F401
 from .data import Batch, Recording  # noqa: E402
 from .errors import DataError, SpecError  # noqa: E402
 from .model import ErrorModel, Params  # noqa: E402

@@ -13,77 +13,53 @@ device never sinks the batch.
 
 from __future__ import annotations
 
-import collections
 import warnings
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import lineax as lx
 import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
+    FAILED,
+    INSUFFICIENT_DATA,
+    INSUFFICIENT_RANGE,
+    NOT_CONVERGED,
+    OK,
+    RANK_DEFICIENT,
+    STATUS_NAMES,
+    TRACE_COUNTS,
+    FitOptions,
+    as_batch,
+    device_bucket,
+    fit_status,
+    fold_ids,
+    min_samples,
+    pad_devices,
+    sampling_intervals,
+    stochastic_fit,
+)
 from .data import Batch, Recording
 from .errors import DataError
 from .jit import release_compiled_if_crowded
 from .jsonio import number
+from .linalg import (  # noqa: F401  (re-exported)
+    normal_equations,
+    rank_check,
+    solve_normal,
+    solve_normal_inner,
+)
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 
-STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
-                "insufficient_data", "failed")
-OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED = range(6)
-#: How often each compiled batch function was traced (tests check that a new batch
-#: size within a bucket does not compile again).
-TRACE_COUNTS: collections.Counter = collections.Counter()
-
-
-class FitOptions(eqx.Module):
-    """Solver settings. Integers are static; tolerances are arrays so changing them
-    does not compile again."""
-
-    n_blocks: int = eqx.field(static=True, default=100)
-    n_folds: int = eqx.field(static=True, default=5)
-    max_steps: int = eqx.field(static=True, default=100)
-    chunk: int = eqx.field(static=True, default=64)
-    rtol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-10)))
-    atol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-14)))
-    rank_tol: Float[Array, ""] = eqx.field(default_factory=lambda: jax.device_put(np.asarray(1e-10)))
-    dtemp_window: float = eqx.field(static=True, default=60.0)
-    #: "closed": closed form (linear part) + variable projection (time constants);
-    #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
-    solver: str = eqx.field(static=True, default="closed")
-    #: "sums" reads the samples once per trial of the time constants and never forms the
-    #: design (fit_sums.py; Newton on the projected cost for time constants); "direct"
-    #: forms it (optimistix LM for time constants); "auto": "sums" with the closed-form
-    #: solver (linear models and time constants alike), "direct" with ``solver="lm"``.
-    path: str = eqx.field(static=True, default="auto")
-    #: The model-free noise floor: two medians per device and axis (on the host's
-    #: threads, :mod:`diffgyro.noise`), the costliest part of a linear fit; False
-    #: skips it (NaN) when only coefficients matter.
-    noise_floor: bool = eqx.field(static=True, default=True)
+# Old private names, kept while diagnose.py still imports them.
+_as_batch = as_batch
+_fold_ids = fold_ids
 
 
 # --------------------------------------------------------------------------- signals
-
-
-def _as_batch(data: Batch | Recording | list[Recording]) -> Batch:
-    if isinstance(data, Batch):
-        return data
-    if isinstance(data, Recording):
-        return Batch.from_recordings([data])
-    return Batch.from_recordings(list(data))
-
-
-def sampling_intervals(batch: Batch) -> np.ndarray:
-    """Median sampling interval of each device's valid samples (s)."""
-    out = np.ones(batch.n_devices)
-    for i in range(batch.n_devices):
-        n = int(batch.n_valid[i])
-        if n >= 2:
-            out[i] = float(np.median(np.diff(np.asarray(batch.t[i, :n]))))
-    return out
 
 
 def batch_signals(
@@ -114,87 +90,22 @@ def batch_signals(
                          arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt)
 
 
-# --------------------------------------------------------------------------- linear algebra
-
-
-def normal_equations(x: Float[Array, "n 3 p"], y: Float[Array, "n 3"], w: Float[Array, " n"]):
-    """Per-axis weighted Gram matrix and right-hand side."""
-    xw = x * w[:, None, None]
-    return jnp.einsum("nip,niq->ipq", xw, x), jnp.einsum("nip,ni->ip", xw, y)
-
-
-def _scaled(a: Float[Array, "3 p p"]):
-    diag = jnp.diagonal(a, axis1=-2, axis2=-1)
-    d = jnp.sqrt(jnp.where(diag > 0, diag, 1.0))  # where before sqrt: finite derivative at 0
-    return a / (d[..., :, None] * d[..., None, :]), d
-
-
-def solve_normal(a: Float[Array, "3 p p"], c: Float[Array, "3 p"], ridge: float = 0.0):
-    """Cholesky solve (lineax) of the column-scaled normal equations, per axis."""
-    g, d = _scaled(a)
-    b = c / d
-    eye = jnp.eye(g.shape[-1], dtype=g.dtype)
-    if ridge:
-        g = g + ridge * eye
-    # A non-finite system (a degenerate device) is replaced by a harmless one and its
-    # answer set to NaN: lineax stops the whole batch on non-finite input otherwise.
-    bad = ~(jnp.all(jnp.isfinite(g), axis=(-2, -1)) & jnp.all(jnp.isfinite(b), axis=-1))
-    g = jnp.where(bad[:, None, None], eye, g)
-    b = jnp.where(bad[:, None], 0.0, b)
-
-    def one(gi, bi):
-        op = lx.MatrixLinearOperator(gi, lx.positive_semidefinite_tag)
-        return lx.linear_solve(op, bi, solver=lx.Cholesky(), throw=False).value
-
-    return jnp.where(bad[:, None], jnp.nan, jax.vmap(one)(g, b) / d)
-
-
-def solve_normal_inner(a: Float[Array, "3 p p"], c: Float[Array, "3 p"], ridge: float = 1e-13):
-    """Cholesky solve for the inner loop of variable projection.
-
-    Plain ``jax.scipy`` Cholesky: differentiable in forward and reverse mode
-    inside optimistix's Jacobian and adjoint, and it returns NaN rather than
-    raising when a trial step of the time constants makes the system singular.
-    """
-    g, d = _scaled(a)
-    g = g + ridge * jnp.eye(g.shape[-1], dtype=g.dtype)
-    factor = jax.scipy.linalg.cho_factor(g)
-    return jax.scipy.linalg.cho_solve(factor, (c / d)[..., None])[..., 0] / d
-
-
-def rank_check(a: Float[Array, "3 p p"], rank_tol):
-    """Smallest/largest eigenvalue of the scaled Gram matrix per axis, and the
-    direction of the smallest (which columns are collinear)."""
-    g, _ = _scaled(a)
-    evals, evecs = jnp.linalg.eigh(g)
-    ratio = evals[:, 0] / jnp.maximum(evals[:, -1], 1e-300)
-    return ratio, evecs[:, :, 0], ratio > rank_tol
-
-
 # --------------------------------------------------------------------------- one device
 
 
-def _fold_ids(mask: Bool[Array, " n"], n_blocks: int, n_folds: int) -> Int[Array, " n"]:
-    """Fold of every valid sample: contiguous time blocks dealt round-robin to folds."""
-    k = jnp.cumsum(mask) - 1
-    n_valid = jnp.maximum(jnp.sum(mask), 1)
-    block = (k * n_blocks) // n_valid
-    return jnp.where(mask, block % n_folds, -1)
-
-
-def _projected(model: ErrorModel, sig: Signals, y, w, theta):
+def project_linear(model: ErrorModel, sig: Signals, y, w, theta):
     """Linear coefficients for given nonlinear parameters, and the design."""
     x = model.design(sig, theta)
     a, c = normal_equations(x, y, w)
     return solve_normal_inner(a, c), x
 
 
-def _varpro(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions, max_steps: int):
+def varpro(model: ErrorModel, sig: Signals, y, w, theta0, opts: FitOptions, max_steps: int):
     """Levenberg–Marquardt over the time constants with the linear part projected out."""
     sw = jnp.sqrt(w)[:, None]
 
     def residual(theta, _):
-        beta, x = _projected(model, sig, y, w, theta)
+        beta, x = project_linear(model, sig, y, w, theta)
         return (y - jnp.einsum("nip,ip->ni", x, beta)) * sw
 
     solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
@@ -226,7 +137,7 @@ def _grid_start(model: ErrorModel, sig: Signals, y, w):
     grid = model.nonlinear_grid(sig)
 
     def cost(theta):
-        beta, x = _projected(model, sig, y, w, theta)
+        beta, x = project_linear(model, sig, y, w, theta)
         r = y - jnp.einsum("nip,ip->ni", x, beta)
         return jnp.sum(w[:, None] * r * r)
 
@@ -362,7 +273,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     if opts.solver == "lm":
         beta, theta, converged, steps = _full_lm(model, sig, y, w, start, opts)
     elif q:
-        theta, converged, steps = _varpro(model, sig, y, w, start, opts, opts.max_steps)
+        theta, converged, steps = varpro(model, sig, y, w, start, opts, opts.max_steps)
     else:
         theta = start
         converged, steps = jnp.asarray(True), jnp.asarray(1)
@@ -378,12 +289,12 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
         converged = converged & (jnp.sum(resid**2) <= grid_cost * (1.0 + 1e-9) + 1e-300)
 
     # held-out error over folds of interleaved time blocks
-    fold = _fold_ids(sig.mask, opts.n_blocks, opts.n_folds)
+    fold = fold_ids(sig.mask, opts.n_blocks, opts.n_folds)
 
     def fold_fit(f):
         wf = w * (fold != f)
         if q:
-            th, _, _ = _varpro(model, sig, y, wf, theta, opts, max(8, opts.max_steps // 4))
+            th, _, _ = varpro(model, sig, y, wf, theta, opts, max(8, opts.max_steps // 4))
             xf = model.design(sig, th)
         else:
             xf = x
@@ -407,12 +318,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
         jnp.zeros((len(terms),), bool)
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
-    status = jnp.where(
-        n_valid < max(2 * (p + q), p + q + 4), INSUFFICIENT_DATA,
-        jnp.where(jnp.any(range_flags), INSUFFICIENT_RANGE,
-                  jnp.where(~jnp.all(rank_ok), RANK_DEFICIENT,
-                            jnp.where(~converged, NOT_CONVERGED,
-                                      jnp.where(finite, OK, FAILED)))))
+    status = fit_status(n_valid, min_samples(p + q), converged, finite, range_flags, rank_ok)
     return dict(beta=beta, theta=theta, cov=cov, rms=rms, heldout_rms=heldout_rms,
                 fold_mse=fold_mse, noise_floor=jnp.sqrt(jnp.mean(noise_axes**2)),
                 noise_axes=noise_axes, sigma=sigma, steps=jnp.asarray(steps, jnp.int32),
@@ -557,7 +463,7 @@ def fit(
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
-    batch = _as_batch(data)
+    batch = as_batch(data)
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
@@ -569,13 +475,13 @@ def fit(
         name = sorted(missing)[0]
         raise DataError(f"model {model.spec!r} needs column(s) {col.get(name, name)}, not in the data",
                         file=batch.sources[0] if batch.sources else None, column=col.get(name, name))
-    if any(t.stochastic for t in model.terms):
-        from .kalman import fit_random_walk  # the state-space path (random_walk)
-
-        return fit_random_walk(model, batch, norm=norm, options=options, **option_overrides)
+    noise = [t for t in model.terms if t.stochastic]
+    if noise:  # the state-space path (random_walk: diffgyro.kalman), found by its effect
+        fit_noise = stochastic_fit(noise[0].name)
+        return fit_noise(model, batch, norm=norm, options=options, **option_overrides)
     opts = options or FitOptions()
     if option_overrides:
-        opts = _replace(opts, **option_overrides)
+        opts = opts.replace(**option_overrides)
     if opts.path not in ("auto", "direct", "sums"):
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
     if opts.solver != "lm" and opts.path in ("sums", "auto"):
@@ -583,7 +489,7 @@ def fit(
     if opts.path == "sums":
         raise ValueError("path='sums' needs solver='closed'")
     n_dev = batch.n_devices
-    batch = _pad_devices(batch)  # a few device-count buckets: no compile per batch size
+    batch = pad_devices(batch)  # a few device-count buckets: no compile per batch size
     sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
     if theta0 is not None:
         theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype), (n_dev, model.n_nonlinear))
@@ -609,24 +515,6 @@ def fit(
         n_samples=out["n_samples"], options=opts)
 
 
-def device_bucket(n: int) -> int:
-    """Padded device count of a direct-path batch: powers of two up to 64 (at least 8),
-    then multiples of 64, so that a few more or fewer devices reuse the compiled fit."""
-    n = max(int(n), 1)
-    if n <= 64:
-        return max(8, 1 << (n - 1).bit_length())
-    return -(-n // 64) * 64
-
-
-def _pad_devices(batch: Batch) -> Batch:
-    """The batch with its last device repeated up to :func:`device_bucket` devices."""
-    n = batch.n_devices
-    m = device_bucket(n)
-    if m == n:
-        return batch
-    return batch.select(np.minimum(np.arange(m), n - 1))
-
-
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
               theta0=None) -> FitResult:
     """The sums path (fit_sums.py): one blocked pass per trial of the time constants."""
@@ -649,12 +537,3 @@ def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitO
         noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
         status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
         n_samples=out["n_samples"], options=opts)
-
-
-def _replace(opts: FitOptions, **kw) -> FitOptions:
-    fields = {f: getattr(opts, f) for f in opts.__dataclass_fields__}
-    for k, v in kw.items():
-        if k not in fields:
-            raise TypeError(f"unknown fit option {k!r}; options: {', '.join(fields)}")
-        fields[k] = jax.device_put(np.asarray(v)) if k in ("rtol", "atol", "rank_tol") else v
-    return FitOptions(**fields)

@@ -60,8 +60,10 @@ from jax import lax
 from jax.interpreters import partial_eval as pe
 from jaxtyping import Bool
 
+from .core import TRACE_COUNTS, fit_status, fold_ids, min_samples, sampling_intervals
 from .data import Batch
 from .jit import collector_paused, filter_jit, parallel_devices
+from .linalg import rank_check, scale_gram
 from .model import ErrorModel
 from .noise import start as host_noise
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
@@ -421,9 +423,7 @@ def _cholesky(a):
     Finite is tested on the sum of the scaled entries (|g_ij| ≤ 1 where A is positive
     semidefinite): an all-reduction of isfinite compiled to 3× the code.
     """
-    from .fit import _scaled
-
-    g, d = _scaled(a)
+    g, d = scale_gram(a)
     eye = jnp.eye(a.shape[-1], dtype=a.dtype)
     ok = jnp.isfinite(jnp.sum(g, axis=(-2, -1)))[..., None, None]
     chol = jnp.linalg.cholesky(jnp.where(ok, g, eye))
@@ -696,8 +696,6 @@ def _chunked_sum(ops, c: int):
 
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
             temp, temp_ext, accel, centre, scale, dt, nv, theta0, pos=None):
-    from . import fit as F
-
     p, nq = layout.p, model.n_nonlinear
     dtype = gyro.dtype
     if isinstance(pos, str):  # ALIGNED: every sample valid; a constant mask folds away
@@ -853,7 +851,7 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         # problem 0 is the full fit, problem 1 + k the fit without fold k (scored on
         # fold k's own sums), refitted from the full optimum: one Newton loop solves
         # them in turn, so its body is traced and compiled once
-        fold_id = F._fold_ids(mask, opts.n_blocks, n_folds)  # -1 where not valid
+        fold_id = fold_ids(mask, opts.n_blocks, n_folds)  # -1 where not valid
 
         def evaluate(j, th):
             # problem j trains without fold j − 1 (problem 0: on all) and scores on it; the
@@ -906,8 +904,6 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     Small dense algebra on (3, p, p) systems, no samples: a program of its own
     (:func:`_group_finish`), inlined in fused linear models' group programs.
     """
-    from . import fit as F
-
     p, nq = layout.p, model.n_nonlinear
     theta, converged = raw["theta"], raw["converged"]
     a, cc, q, n_valid = _unpack_sums(layout, raw["tot"])
@@ -928,7 +924,7 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     beta_all = _cho_solve(chol_all, d_all, jnp.concatenate([cc[None], ct]))
     chol, dsc, beta_s, beta_f = chol_all[0], d_all[0], beta_all[0], beta_all[1:]
     ratio, direction, rank_ok = (jnp.broadcast_to(v, (3,) + v.shape[1:])
-                                 for v in F.rank_check(a[:n_gram], opts.rank_tol))
+                                 for v in rank_check(a[:n_gram], opts.rank_tol))
     sse = jnp.maximum(_sse(a, cc, q, beta_s), 0.0)
     shift = jnp.zeros((3, p), dtype)
     if layout.const_col is not None:
@@ -963,12 +959,8 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
         jnp.zeros((len(terms),), bool)
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
-    status = jnp.where(
-        n_valid < max(2 * (p + nq), p + nq + 4), F.INSUFFICIENT_DATA,
-        jnp.where(jnp.any(raw["range_flags"]), F.INSUFFICIENT_RANGE,
-                  jnp.where(~jnp.all(rank_ok), F.RANK_DEFICIENT,
-                            jnp.where(~converged, F.NOT_CONVERGED,
-                                      jnp.where(finite, F.OK, F.FAILED)))))
+    status = fit_status(n_valid, min_samples(p + nq), converged, finite, raw["range_flags"],
+                        rank_ok)
     out = dict(beta=beta, theta=theta, cov=cov, rms=rms,
                heldout_rms=heldout_rms, fold_mse=fold_mse,
                sigma=jnp.sqrt(sigma2), steps=raw["steps"],
@@ -999,9 +991,7 @@ def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, te
     """Every device of a group through :func:`_device`: its results finished and packed
     (:func:`_pack`), or with ``apart`` its sums as they are (finished by
     :func:`_group_finish`)."""
-    from . import fit as F
-
-    F.TRACE_COUNTS["sums"] += 1
+    TRACE_COUNTS["sums"] += 1
     aligned = isinstance(pos, str)  # ALIGNED: the same for every device, not an array
 
     def one(*args):
@@ -1100,8 +1090,6 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
 
     ``theta0`` (devices × time constants, log s) replaces the grid start.
     """
-    from .fit import sampling_intervals
-
     present = frozenset(batch.signals)
     layout, need = layout_of(model, present)
     d, n = batch.n_devices, batch.length

@@ -40,6 +40,17 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from .core import (
+    FAILED,
+    INSUFFICIENT_DATA,
+    NOT_CONVERGED,
+    OK,
+    STATUS_NAMES,
+    FitOptions,
+    as_batch,
+    fold_ids,
+    register_stochastic_fit,
+)
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .model import ErrorModel, Params
@@ -426,8 +437,6 @@ class RandomWalkFit(eqx.Module):
         return jnp.sqrt(self.q)
 
     def status_name(self, i: int) -> str:
-        from .fit import STATUS_NAMES
-
         return STATUS_NAMES[int(self.status[i])]
 
     def status_detail(self, i: int) -> str:
@@ -468,14 +477,7 @@ class RandomWalkFit(eqx.Module):
 
 
 def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
-    from .fit import (  # shared definitions keep held-out numbers comparable with fit()
-        FAILED,
-        INSUFFICIENT_DATA,
-        NOT_CONVERGED,
-        OK,
-        _fold_ids,
-        _noise_floor,
-    )
+    from .fit import _noise_floor  # the floor fit() reports
 
     nf = learn_noise(model, sig, obs, p0, keep, reml=reml, max_steps=max_steps)
     obs = obs & sig.mask
@@ -486,7 +488,7 @@ def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
     resid = (y - sb.bias) * w[:, None]
     n_obs = jnp.sum(w)
     rms = jnp.sqrt(jnp.sum(resid**2) / jnp.maximum(3 * n_obs, 1.0))
-    fold = jnp.where(obs, _fold_ids(obs, n_blocks, n_folds), -1)
+    fold = jnp.where(obs, fold_ids(obs, n_blocks, n_folds), -1)
 
     def fold_fit(f):
         of = obs & (fold != f)
@@ -518,6 +520,7 @@ def _fit_batch(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds, ch
     return jax.lax.map(one, (sig, obs, keep), batch_size=chunk)
 
 
+@register_stochastic_fit("random_walk")
 def fit_random_walk(
     model: ErrorModel | str,
     batch,
@@ -540,15 +543,15 @@ def fit_random_walk(
     ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
-    from .fit import FitOptions, _as_batch, _replace, batch_signals
+    from .fit import batch_signals
     from .signals import TempNorm
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
-    batch = _as_batch(batch)
+    batch = as_batch(batch)
     opts = options or FitOptions()
     if option_overrides:
-        opts = _replace(opts, **option_overrides)
+        opts = opts.replace(**option_overrides)
     sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
     obs = np.asarray(batch.mask, bool)
     if static is not None:

@@ -35,7 +35,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from .data import Batch
-from .fit import FitOptions, FitResult, _projected, _varpro, normal_equations, solve_device
+from .fit import FitOptions, FitResult, normal_equations, project_linear, solve_device, varpro
 from .jit import release_compiled_if_crowded
 from .model import ErrorModel, Params
 from .plan_design import compensation_error, flat, operating_signals, output_jacobian, unflat
@@ -345,8 +345,8 @@ def device_bootstrap(model: ErrorModel, sig: Signals, params: Params, key, n_boo
         theta = jnp.broadcast_to(params.theta, (n_boot, 0))
     else:
         def refit(y):
-            th, _, _ = _varpro(model, sig, y, w, params.theta, opts, opts.max_steps)
-            b, _ = _projected(model, sig, y, w, th)
+            th, _, _ = varpro(model, sig, y, w, params.theta, opts, opts.max_steps)
+            b, _ = project_linear(model, sig, y, w, th)
             return b, th
 
         beta, theta = jax.lax.map(refit, y_star, batch_size=16)

@@ -1,6 +1,7 @@
 """Chunks as Dask tasks (``--dask ADDRESS`` or ``--dask local:N``); needs ``diffgyro[dask]``.
 
-Each chunk is one task, :func:`diffgyro.pipeline.run.run_chunk`: the worker
+Each chunk is one task, the chunk function the caller gives
+(:func:`diffgyro.pipeline.run.run_chunk`): the worker
 reads the chunk's rows itself (the data files must be readable at the same
 paths on every worker: a shared file system or object store mount), fits
 them and returns the JSON-ready results; the client writes each chunk's
@@ -66,13 +67,13 @@ def _client(address: str):
                         hint="give tcp://HOST:PORT of a running scheduler, or local:N") from None
 
 
-def run_on_dask(address: str, pending: list[dict], setup: dict,
-                finished: Callable[[dict], None]) -> None:
-    """Run ``pending`` chunks on a Dask cluster; ``finished`` gets each result as it arrives."""
+def run_on_dask(address: str, run_chunk: Callable[[dict, dict], dict], pending: list[dict],
+                setup: dict, finished: Callable[[dict], None]) -> None:
+    """Run ``run_chunk(job, setup)`` for every ``pending`` job on a Dask cluster;
+    ``finished`` gets each result as it arrives. ``run_chunk`` must be importable by
+    name on the workers (a module-level function)."""
     import jax
     from distributed import as_completed
-
-    from .run import run_chunk
 
     client, cluster = _client(address)
     try:

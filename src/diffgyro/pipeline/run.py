@@ -559,7 +559,7 @@ def _run(
                 if dask:
                     from .cluster import run_on_dask
 
-                    run_on_dask(dask, pending, setup, finished)
+                    run_on_dask(dask, run_chunk, pending, setup, finished)
                 else:
                     _run_local(pending, setup, finished)
         finally:

@@ -17,7 +17,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..errors import DataError
-from ._common import RecipeResult, require
+from ._common import RecipeResult, jsonable, require
 from .attitude_reference import AttitudeReferenceResult, attitude_reference
 from .binned_thermal import BinnedThermalResult, binned_thermal
 from .cube_bias import CubeBiasResult, cube_bias, read_sets
@@ -139,6 +139,6 @@ __all__ = [
     "RECIPES", "AttitudeReferenceResult", "BinnedThermalResult", "CubeBiasResult",
     "FogOneRunResult", "MultiPositionResult", "Recipe", "RecipeResult", "SixPositionResult",
     "StaticKalmanResult", "attitude_reference", "binned_thermal", "cube_bias", "fog_one_run", "get",
-    "multi_position", "read_sections", "read_sets", "six_position", "static_intervals",
+    "jsonable", "multi_position", "read_sections", "read_sets", "six_position", "static_intervals",
     "static_kalman",
 ]

@@ -1,0 +1,163 @@
+"""The module graph of src/diffgyro: no import cycle, no private names across modules,
+every module importable first.
+
+The graph is read statically (``ast``) from every ``import`` and ``from ... import``
+in a module, at module level, inside a function or under ``TYPE_CHECKING``: an import
+inside a function only delays a cycle to the first call, so it counts. ``from P import name`` is an edge to
+``P.name`` when that is a module, else to ``P``. The implicit import of a module's
+parent packages is not an edge (a package's ``__init__`` re-exports its children by
+design).
+
+A private name is one with a leading underscore (not a dunder). A module may import
+the private module of its own package (``effects._common`` from ``effects.bias_poly``)
+but no private name of another module.
+"""
+
+from __future__ import annotations
+
+import ast
+import json
+import os
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+PACKAGE = SRC / "diffgyro"
+
+#: Private imports that other work removes (module, imported from, name). Shrink only.
+ALLOWED_PRIVATE = {
+    # diagnose.py is being split into a package; the split imports the public names
+    # (diffgyro.core.fold_ids, diffgyro.core.as_batch)
+    ("diffgyro.diagnose", "diffgyro.fit", "_fold_ids"),
+    ("diffgyro.diagnose", "diffgyro.fit", "_as_batch"),
+    # one noise-floor statistic in diffgyro.noise (issue 23, one mechanism per idea)
+    ("diffgyro.kalman", "diffgyro.fit", "_noise_floor"),
+    # one JSON sanitiser for every writer (issue 23, one mechanism per idea)
+    ("diffgyro.pipeline.run", "diffgyro.calibration", "_clean"),
+    ("diffgyro.pipeline.run", "diffgyro.fit", "_num"),
+}
+
+
+def _is_private(name: str) -> bool:
+    return name.startswith("_") and not name.startswith("__")
+
+
+def _modules() -> dict[str, tuple[Path, bool]]:
+    """Dotted name -> (file, is a package) of every module under src/diffgyro."""
+    out = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = list(path.relative_to(SRC).with_suffix("").parts)
+        is_pkg = parts[-1] == "__init__"
+        out[".".join(parts[:-1] if is_pkg else parts)] = (path, is_pkg)
+    return out
+
+
+def _imports(modules) -> list[tuple[str, str, str | None]]:
+    """Every (importer, imported module, imported name or None) inside diffgyro."""
+    edges = []
+    for mod, (path, is_pkg) in modules.items():
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.Import):
+                edges += [(mod, a.name, None) for a in node.names if a.name.startswith("diffgyro")]
+            elif isinstance(node, ast.ImportFrom):
+                if node.level:
+                    base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+                    base = base[:len(base) - node.level + 1]
+                    target = ".".join(base + ([node.module] if node.module else []))
+                else:
+                    target = node.module or ""
+                if target.split(".")[0] != "diffgyro":
+                    continue
+                for a in node.names:
+                    sub = f"{target}.{a.name}"
+                    edges.append((mod, sub, None) if sub in modules else (mod, target, a.name))
+    return edges
+
+
+def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """Strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph.get(v, ())):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_graph_reads_known_edges():
+    """The reader sees relative, absolute, function-level and submodule imports."""
+    modules = _modules()
+    edges = {(a, b) for a, b, _ in _imports(modules)}
+    assert ("diffgyro.fit", "diffgyro.core") in edges  # from .core import (...)
+    assert ("diffgyro.kalman", "diffgyro.fit") in edges  # inside a function
+    assert ("diffgyro.effects.bias_poly", "diffgyro.effects._common") in edges
+    assert ("diffgyro", "diffgyro.effects") in edges  # from . import effects
+    assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_no_import_cycle():
+    modules = _modules()
+    graph: dict[str, set[str]] = {}
+    for a, b, _ in _imports(modules):
+        if a != b and b in modules:
+            graph.setdefault(a, set()).add(b)
+    assert _cycles(graph) == [], "import cycles (module-level or inside functions)"
+
+
+def test_no_private_cross_imports():
+    modules = _modules()
+    found = set()
+    for importer, target, name in _imports(modules):
+        parent = target.rsplit(".", 1)[0]
+        private_module = _is_private(target.rsplit(".", 1)[-1])
+        if private_module and not (importer == parent or importer.startswith(parent + ".")):
+            found.add((importer, target, name))  # another package's private module
+        if name is not None and _is_private(name) and importer != target:
+            found.add((importer, target, name))
+    assert sorted(found - ALLOWED_PRIVATE) == []
+
+
+def test_every_module_imports_first():
+    """Each module imports in a fresh state, in random orders (one subprocess: the
+    diffgyro modules are dropped from ``sys.modules`` before each round; JAX stays)."""
+    names = sorted(m for m in _modules() if not m.endswith("__main__"))  # __main__ runs the CLI
+    orders = [random.sample(names, len(names)) for _ in range(3)]
+    script = (
+        "import importlib, json, sys\n"
+        "for order in json.loads(sys.argv[1]):\n"
+        "    for k in [k for k in sys.modules if k.split('.')[0] == 'diffgyro']:\n"
+        "        del sys.modules[k]\n"
+        "    for m in order:\n"
+        "        try:\n"
+        "            importlib.import_module(m)\n"
+        "        except Exception as err:\n"
+        "            sys.exit(f'{m} after {order[:order.index(m)]}: {err!r}')\n"
+    )
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(SRC)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    proc = subprocess.run([sys.executable, "-c", script, json.dumps(orders)], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
