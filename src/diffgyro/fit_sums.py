@@ -75,45 +75,40 @@ GROUP_SAMPLES = 1 << 17
 #: Models whose columns are all shared by the three axes and pointwise (temperature
 #: polynomials, gradient, temp_diff) sum in one fused pass with no group-sized
 #: temporaries: their groups are this many times larger (fewer calls). Others
-#: materialise per-axis columns and run fastest with the group in cache (measured on
-#: a 2-core EPYC, 32 MB L3: S2's regression 150 ms per 200 devices × 10k samples in
-#: groups of 8 devices, 290 ms in groups of 16; bias_poly(3) fastest at 64).
+#: materialise per-axis columns and run fastest with the group in cache: on a
+#: 2-core CPU with 32 MB L3, S2's regression at 10 000 samples runs about twice as fast
+#: in groups of 8 devices as of 16, and bias_poly(3) fastest in groups of 64.
 FUSED_GROUP_FACTOR = 8
 #: Models with time constants run batched Newton loops in lockstep: a group takes as
 #: many passes as its slowest device needs for the full fit and the folds' refits.
-#: Their groups hold this many times fewer samples (at least 2 devices). Measured on
-#: the 2-core EPYC, bias_poly(1)+thermal_lag, 256 devices × 10 000 samples (session 5,
-#: when the folds had a loop of their own): groups of 2 devices 1.47 s, of 8 (the
-#: linear size) 1.95 s, of 1 device 1.85 s; at 2000 samples groups of 2 to 64 ran alike.
-#: Re-measured in session 7 with one loop for the full fit and the folds: groups of 2
-#: devices 1.6–1.9 s, of 4 2.6–2.7 s, of 8 1.9–2.6 s.
+#: Their groups hold this many times fewer samples (at least 2 devices): at 10 000
+#: samples per device that is 2 devices, which fits bias_poly(1)+thermal_lag fastest
+#: (smaller groups wait less for their slowest device; a single device per call pays
+#: the call overhead); at 2000 samples the group size hardly matters.
 NONLINEAR_GROUP_DIVISOR = 4
-#: Most devices in one compiled call. XLA's CPU runtime (jax 0.10.2) never finished a
-#: group of 1024 devices × 640 samples of bias_poly(3)+temp_diff on one CPU device (all
-#: threads idle, reproducible; 512 ran), nor two groups of 256 running side by side on
-#: two CPU devices (bias_poly(3), 1000 or 10 000 samples). Groups of 128 ran at every
-#: length from 200 to 10 000 samples on two devices. Short recordings would otherwise
-#: ask for such groups.
+#: Most devices in one compiled call. XLA's CPU runtime (jax 0.10) can hang on very
+#: large groups (1024 devices × 640 samples on one CPU device; two groups of 256 side
+#: by side on two CPU devices), all threads idle; groups of 128 run at every length from
+#: 200 to 10 000 samples. Short recordings would otherwise ask for such groups.
 MAX_GROUP_DEVICES = 128
 #: XLA options of the group program: its sums may be reassociated, which lets LLVM
 #: vectorise the variadic reduction (XLA keeps every sum in source order otherwise, one
 #: scalar accumulator per product). NaN, ±inf, division and library functions keep
-#: their IEEE meaning. Sums agree with the ordered ones to rounding (5e-13 relative on
-#: the benchmark's bias_poly(3)); measured on the 2-core EPYC: bias_poly(3) 7 % and
-#: thermal_lag about 15 % faster.
+#: their IEEE meaning. Sums agree with the ordered ones to rounding (about 5e-13
+#: relative on the benchmark's bias_poly(3)) and run faster (bias_poly(3) by 7 %,
+#: thermal_lag by about 15 %).
 REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=True,
                    xla_cpu_fast_math_honor_infs=True, xla_cpu_fast_math_honor_division=True,
                    xla_cpu_fast_math_honor_functions=True)
 #: XLA options of every group program but a fused linear model's: XLA's older loop
 #: emitters instead of its MLIR fusion emitters. Such a program has many kernels (a
 #: Newton loop, the lag recursions, per-axis columns, small factorisations) and XLA
-#: spends most of its compile time emitting and optimising them one by one. Measured on
-#: the 2-core EPYC at 256 × 2000: bias_poly(1)+thermal_lag (session 7, ~200 kernels)
-#: XLA compile 2.6 → 1.5 s, the fit of 1000 × 10 000 ~9 % slower (6.3 → 6.9 s); S2's
-#: regression (session 9) first fit 1.6 → 1.35 s, the fit of 1000 × 10 000 ~14 % slower
-#: (0.54 → 0.62 s, still 4.4× its numpy baseline). Fused linear models (every column
-#: shared by the axes: bias_poly and the like) keep the emitters: their one pass over
-#: the samples runs at memory speed.
+#: spends most of its compile time emitting and optimising them one by one. The older
+#: emitters compile such a program in about 60 % of the time and run it 9-14 % slower,
+#: the right trade for the model-discovery loop, which compiles a program per spec and
+#: fits each once. Fused linear models (every column shared by the axes: bias_poly and
+#: the like) keep the fusion emitters: their one pass over the samples runs at memory
+#: speed.
 FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: XLA options of a tiny program run once (LLVM without optimisation passes).
 ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
@@ -1013,9 +1008,8 @@ _group_fused = filter_jit(compiler_options=REASSOCIATE)(_group_program)
 _group_compact = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(_group_program)
 #: The finish of every model but a fused linear one: a few dozen tiny kernels, compiled
 #: without optimisation (:data:`ONCE`) on a thread of its own while the group program
-#: compiles. S2's regression at 256 × 2000: first fit 1.35 → 1.0 s; its fit of
-#: 1000 × 10 000 ~10 % slower (a second call per group, not the unoptimised code:
-#: compiled at XLA's default level it was as slow).
+#: compiles: a first fit starts sooner, at the cost of a second call per group (which,
+#: not the unoptimised code, makes long fits about 10 % slower).
 _group_finish = filter_jit(compiler_options=ONCE)(_finished)
 
 
