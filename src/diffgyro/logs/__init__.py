@@ -12,14 +12,10 @@ The field mapping of each format is in docs/formats.md.
 
 from __future__ import annotations
 
-import importlib
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-import pandas as pd
-
 from ..errors import DataError
+from .table import LogTable
 
 __all__ = ["LOG_SUFFIXES", "LogTable", "is_rosbag_dir", "log_format", "read_log"]
 
@@ -29,16 +25,6 @@ LOG_SUFFIXES = {".ulg": "ulog", ".bag": "rosbag", ".mcap": "rosbag", ".bin": "da
 _NAMES = {"ulog": "PX4 ULog", "rosbag": "ROS bag", "dataflash": "ArduPilot DataFlash"}
 _MAGIC = {"ulog": (b"ULog\x01\x12\x35",), "rosbag": (b"#ROSBAG V2.0", b"\x89MCAP0\r\n"),
           "dataflash": (b"\xa3\x95", b"FMT,", b"FMT ")}
-
-
-@dataclass
-class LogTable:
-    """A log read as a standard-schema frame, with what the reader noticed."""
-
-    frame: pd.DataFrame
-    warnings: list[str] = field(default_factory=list)
-    # per device: metadata the schema has no column for (e.g. PX4's device_id)
-    metadata: dict[str, dict[str, object]] = field(default_factory=dict)
 
 
 def is_rosbag_dir(path: Path) -> bool:
@@ -67,15 +53,6 @@ def _check_magic(path: Path, fmt: str, file: str) -> None:
     if not any(text.startswith(m) for m in _MAGIC[fmt]):
         raise DataError(f"not a {_NAMES[fmt]} log (the file does not start with its "
                         f"marker {_MAGIC[fmt][0]!r})", file=file)
-
-
-def require(module: str, package: str, file: str):
-    """Import ``module`` or raise a DataError telling how to install it."""
-    try:
-        return importlib.import_module(module)
-    except ImportError:
-        raise DataError(f"reading this log needs {package}", file=file,
-                        hint='pip install "diffgyro[logs]"') from None
 
 
 def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = None,
@@ -110,52 +87,3 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
     from . import dataflash
 
     return dataflash.read(path, file, prefix)
-
-
-def interp_join(t: np.ndarray, t_other: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """``values`` sampled at ``t_other`` linearly interpolated at ``t``.
-
-    Beyond the ends of ``t_other`` the first / last value is held. Columns of
-    a 2-D ``values`` are interpolated separately.
-    """
-    values = np.asarray(values, dtype=np.float64)
-    if values.ndim == 1:
-        return np.interp(t, t_other, values)
-    return np.stack([np.interp(t, t_other, values[:, k]) for k in range(values.shape[1])],
-                    axis=1)
-
-
-def table(devices: list[dict[str, np.ndarray | str]], file: str,
-          warnings: list[str] | None = None) -> LogTable:
-    """Stack per-device dicts (``device, t, gyro`` [, ``temp``, ``accel``]) in one frame.
-
-    An optional group (temperature, accelerometer) that some devices lack is
-    left out for all of them, with a warning (a table has one set of columns).
-    """
-    warnings = list(warnings or [])
-    if not devices:
-        raise DataError("no gyro data in the log", file=file)
-    groups = []
-    for sig, what in (("temp", "temperature"), ("accel", "accelerometer")):
-        have = [d["device"] for d in devices if d.get(sig) is not None]
-        if have and len(have) < len(devices):
-            lacking = next(d["device"] for d in devices if d.get(sig) is None)
-            warnings.append(f"warning: file {file}: device {lacking} has no {what}; "
-                            f"the {what} of the other devices is left out too")
-        elif have:
-            groups.append(sig)
-    parts = []
-    for d in devices:
-        n = len(d["t"])
-        cols: dict[str, object] = {"device": np.full(n, d["device"], dtype=object),
-                                   "t": np.asarray(d["t"], dtype=np.float64)}
-        gyro = np.asarray(d["gyro"], dtype=np.float64)
-        cols.update(gx=gyro[:, 0], gy=gyro[:, 1], gz=gyro[:, 2])
-        if "temp" in groups:
-            cols["temp"] = np.asarray(d["temp"], dtype=np.float64)
-        if "accel" in groups:
-            acc = np.asarray(d["accel"], dtype=np.float64)
-            cols.update(ax=acc[:, 0], ay=acc[:, 1], az=acc[:, 2])
-        parts.append(pd.DataFrame(cols))
-    frame = pd.concat(parts, ignore_index=True)
-    return LogTable(frame, warnings)

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from . import LogTable, require, table
+from .table import LogTable, require, table
 
 _TYPES = ["IMU", "IMU2", "IMU3"]
 _FIELDS = ("TimeUS", "GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")

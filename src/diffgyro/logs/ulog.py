@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from . import LogTable, interp_join, require, table
+from .table import LogTable, interp_join, require, table
 
 MIN_RATE = 10.0  # samples per second below which sensor_gyro is "not logged at rate"
 _TOPICS = ["sensor_gyro", "sensor_accel", "sensor_combined"]
