@@ -5,13 +5,15 @@ same statistic as :func:`diffgyro.fit._noise_floor` (the pure-JAX version the
 differentiable paths use), with the same exact order statistics.
 
 Why on the host: the statistic needs two medians per device and axis. XLA has
-no selection primitive, so the compiled version sorts every axis of every
-device (the costliest part of a linear fit with defaults) and its program
-costs half a second of compile per group shape. numpy's introselect
-(``ndarray.partition``) finds both medians in linear time without a sort, and
-threads compute chunks of devices side by side while the compiled fits run.
-Measured on the 2-core CPU (256 devices × 10 000 samples): XLA's program
-0.29 s; this 0.19 s on one thread, 0.095 s on two.
+no selection primitive, so a compiled version sorts every axis of every device
+(several times the cost of a linear fit) and its program costs half a second of
+compile per group shape. numpy's introselect (``ndarray.partition``) finds a
+median in linear time without a sort. What it costs is mostly where the data
+lie: a median is taken on a block of a few devices' differences small enough to
+stay in the core's cache while it is differenced, selected, turned into
+deviations and selected again (about 2 ns per difference and selection; out of
+cache, twice that). Threads take chunks of devices side by side while the
+compiled fits run; numpy releases the GIL while it partitions.
 """
 
 from __future__ import annotations
@@ -24,8 +26,11 @@ from jaxtyping import Bool, Float
 
 from .jit import available_cores
 
-#: Device-samples per chunk of work (a few MB of differences: they stay in cache).
+#: Device-samples per chunk of work given to a thread.
 CHUNK_SAMPLES = 1 << 18
+#: Device-samples per block a thread differences and selects in its cache (3 axes ×
+#: 8 bytes each: about 200 kB, within a core's L2).
+BLOCK_SAMPLES = 1 << 16
 
 
 def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
@@ -33,30 +38,65 @@ def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"
     """White-noise σ per device and axis from successive differences of ``gyro − rate``:
     ``1.4826 · MAD(Δy) / √2`` over pairs of valid samples (NaN differences left out),
     NaN where no pair is valid."""
-    gyro = np.asarray(gyro, dtype)
-    d, n = gyro.shape[:2]
+    d, n = np.shape(mask)
+    out = np.full((d, 3), np.nan, dtype)
     if n < 2:
-        return np.full((d, 3), np.nan, dtype)
-    y = gyro if rate is None else gyro - np.asarray(rate, dtype)
-    dy = np.diff(y.transpose(0, 2, 1), axis=-1).reshape(d * 3, n - 1)  # a row per axis
-    pair = np.asarray(mask, bool)
-    ok = np.repeat(pair[:, 1:] & pair[:, :-1], 3, axis=0) & ~np.isnan(dy)
+        return out
+    step = max(1, BLOCK_SAMPLES // n)
+    for a in range(0, d, step):
+        b = min(a + step, d)
+        y = np.asarray(gyro[a:b], dtype)
+        if rate is not None:
+            y = y - np.asarray(rate[a:b], dtype)
+        rows = np.empty((b - a, 3, n - 1), dtype)  # a row of differences per axis
+        np.subtract(y[:, 1:].transpose(0, 2, 1), y[:, :-1].transpose(0, 2, 1), out=rows)
+        rows = rows.reshape(-1, n - 1)
+        pair = np.asarray(mask[a:b], bool)
+        pair = pair[:, 1:] & pair[:, :-1]
+        out[a:b] = _mad_rows(rows, pair).reshape(-1, 3)
+    return 1.4826 * out / np.sqrt(2.0)
+
+
+def _mad_rows(rows: Float[np.ndarray, "r m"], pair: Bool[np.ndarray, "c m"]) -> Float[np.ndarray, " r"]:
+    """MAD of each row (3 rows per device of ``pair``) over its valid entries, in place."""
+    m = rows.shape[1]
+    if pair.all() and not np.isnan(rows.sum()):  # every difference counts (the usual case)
+        return _mad_equal(rows, m)
+    ok = np.repeat(pair, 3, axis=0) & ~np.isnan(rows)
+    rows[~ok] = np.inf  # past every valid difference: the order statistics below ignore it
     counts = np.count_nonzero(ok, axis=1)
-    if not ok.all():
-        dy[~ok] = np.inf  # past every valid difference: the order statistics below ignore it
-    out = np.full(d * 3, np.nan, dtype)
+    out = np.full(rows.shape[0], np.nan, rows.dtype)
     for count in np.unique(counts):  # rows with as many valid pairs share their ranks
-        if count == 0:
-            continue
-        rows = counts == count
-        r = dy if rows.all() else dy[rows]
-        ranks = sorted({(count - 1) // 2, count // 2})  # the middle one or two
-        r.partition(ranks, axis=1)
-        med = 0.5 * (r[:, ranks[0]] + r[:, ranks[-1]])
-        np.abs(np.subtract(r, med[:, None], out=r), out=r)  # the deviations, in place
-        r.partition(ranks, axis=1)
-        out[rows] = 1.4826 * (0.5 * (r[:, ranks[0]] + r[:, ranks[-1]])) / np.sqrt(2.0)
-    return out.reshape(d, 3)
+        if count:
+            sel = counts == count
+            out[sel] = _mad_equal(rows if sel.all() else rows[sel], int(count))
+    return out
+
+
+def _mad_equal(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
+    """MAD of the first ``count`` order statistics of each row (the rest are +inf), in place.
+
+    The deviations are ≥ 0, and the bit patterns of non-negative IEEE-754 numbers
+    (+inf and NaN last) order as integers of their width do: their median is selected
+    on that view, where a selection costs half what it costs on floats, with the same
+    result.
+    """
+    med = _middle(r, count)
+    np.abs(np.subtract(r, med[:, None], out=r), out=r)  # the deviations (inf stays inf)
+    return _middle(r.view(f"i{r.itemsize}"), count, r.dtype)
+
+
+def _middle(r: np.ndarray, count: int, as_type=None) -> Float[np.ndarray, " r"]:
+    """Median of the ``count`` smallest of each row: the middle one, or the mean of the
+    middle two (one selection: the lower of the two is the largest below the upper).
+    ``as_type``: the dtype the selected values are read as (the rows hold its bits)."""
+    k = count // 2
+    r.partition(k, axis=1)
+    upper = r[:, k].copy()
+    if count % 2 == 0:
+        lower = r[:, :k].max(axis=1)
+        return 0.5 * (lower.view(as_type) + upper.view(as_type)) if as_type else 0.5 * (lower + upper)
+    return upper.view(as_type) if as_type else upper
 
 
 def noise_floor(axes: Float[np.ndarray, "d 3"]) -> Float[np.ndarray, " d"]:
