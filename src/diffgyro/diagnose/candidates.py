@@ -1,0 +1,97 @@
+"""The candidate terms: every registered effect the data supports and the model lacks."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from ..effects import AbstractEffect, registry
+from ..effects.base import MAX_ORDER
+from ..model import ErrorModel
+
+
+@dataclass(frozen=True)
+class CandidateSpec:
+    """One candidate: the model with ``term`` added (or ``old`` raised to ``term``)."""
+
+    effect: str
+    term: AbstractEffect
+    model: ErrorModel
+    old: AbstractEffect | None = None  # the term it replaces (order raised)
+
+    @property
+    def spec(self) -> str:
+        return self.model.spec
+
+    @property
+    def stochastic(self) -> bool:
+        return self.term.stochastic
+
+
+def _new_terms(cls, present: AbstractEffect | None) -> list[AbstractEffect]:
+    """The terms to try for one effect: an absent one at its default order, or at orders 0
+    and 1 when it has no default (a constant and a temperature-dependent one); a present
+    one with its order raised by one."""
+    if present is None:
+        if cls.order_arg:
+            if cls.default_order is not None:
+                return [cls(order=cls.default_order)]
+            return [cls(order=0), cls(order=1)]
+        return [cls()]
+    if cls.order_arg and present.order < MAX_ORDER:
+        return [cls(order=present.order + 1)]
+    return []
+
+
+def candidate_specs(model: ErrorModel, available: frozenset[str],
+                    names: list[str] | None = None) -> list[CandidateSpec]:
+    """Every registered effect the data supports and ``model`` lacks (or can raise).
+
+    An effect already in the model with an order (``bias_poly(2)``) is offered
+    one order higher; an absent one at its default order, or at orders 0 and 1
+    when it has none (a scale factor that drifts with temperature is
+    ``scale_poly(1)``; ``scale_poly(0)`` alone can be worse than nothing
+    there). ``names`` limits the search to those effect names (or full terms
+    such as ``bias_poly(3)``). Order-k columns must be the first columns of
+    order k+1 (true of the built-in polynomial terms) for a raised candidate
+    to be scored.
+    """
+    from ..effects import parse_term
+
+    present = {t.name: t for t in model.terms}
+    wanted: dict[str, list[AbstractEffect] | None] = {}
+    if names is None:
+        wanted = {n: None for n in registry()}
+    else:
+        for text in names:
+            text = text.strip()
+            if text in registry():  # a bare name: the default candidates of that effect
+                wanted[text] = None
+                continue
+            term = parse_term(text)
+            wanted.setdefault(term.name, [])
+            if wanted[term.name] is not None:
+                wanted[term.name].append(term)
+    out = []
+    for name, explicit in wanted.items():
+        cls = registry()[name]
+        old = present.get(name)
+        for term in (explicit if explicit is not None else _new_terms(cls, old)):
+            if old is not None and (term == old or not cls.order_arg or term.order <= old.order):
+                continue
+            if not term.requires() <= available | {"t", "gyro"}:
+                continue
+            if old is None:
+                new_model = model + term
+            else:
+                new_model = ErrorModel(tuple(term if t is old else t for t in model.terms))
+            out.append(CandidateSpec(effect=name, term=term, model=new_model, old=old))
+    return out
+
+
+# --------------------------------------------------------------------------- the engine (one device)
+
+
+def added_term(old: str, new: str) -> str:
+    """The term text that ``new`` has and ``old`` lacks (``scale_poly(1)``, ``bias_poly(3)``)."""
+    extra = [t for t in new.split("+") if t not in old.split("+")]
+    return "+".join(extra) or new

@@ -1,0 +1,159 @@
+"""Evidence (what the residual follows) and the explanation in words."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..data import Recording
+from .results import DeviceDiagnosis
+from .thresholds import family_of
+
+
+def _corr(a: np.ndarray, b: np.ndarray) -> float:
+    a = a - a.mean()
+    b = b - b.mean()
+    den = math.sqrt(float(np.dot(a, a)) * float(np.dot(b, b)))
+    return float(np.dot(a, b) / den) if den > 0 else 0.0
+
+
+def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict) -> dict:
+    """What the residual follows: correlations a person can check in the figures.
+
+    ``residual`` (n, 3) of the base model; ``sig_dev`` the device's derived
+    signals as numpy (dtemp, heating). Per signal: the largest |r| over the
+    axes, its axis, and where helpful the residual's mean in two regimes.
+    """
+    e = residual
+    n = e.shape[0]
+    out: dict = {}
+
+    def add(name, s, per_axis=False, label=None):
+        s = np.asarray(s, float)
+        if s.ndim == 1 and (not np.all(np.isfinite(s)) or np.std(s) == 0):
+            return
+        rs = [_corr(e[:, i], s[:, i] if per_axis else s) for i in range(3)]
+        i = int(np.argmax(np.abs(rs)))
+        out[name] = {"r": round(rs[i], 3), "axis": "xyz"[i], "label": label or name}
+
+    t = rec.t - rec.t[0]
+    add("time", t, label="time since start")
+    add("early", np.exp(-t / max(t[-1] / 20.0, 1.0)), label="the first minutes after power-on")
+    if rec.temp is not None:
+        add("temp", rec.temp, label="temperature")
+        dtemp = sig_dev.get("dtemp")
+        if dtemp is not None:
+            add("dtemp", dtemp, label="dT/dt")
+        heat = sig_dev.get("heating")
+        if heat is not None and np.any(heat > 0) and np.any(heat < 0):
+            add("heating", heat, label="heating vs cooling")
+            up, down = heat > 0, heat < 0
+            i = int(np.argmax(np.abs(e[up].mean(0) - e[down].mean(0))))
+            out["heating"]["mean_heating"] = float(e[up, i].mean())
+            out["heating"]["mean_cooling"] = float(e[down, i].mean())
+        if rec.temp_ext is not None:
+            add("temp_diff", rec.temp - rec.temp_ext, label="temp − temp_ext")
+    if rec.rate is not None and np.max(np.abs(rec.rate)) > 1e-3:
+        add("rate", rec.rate, per_axis=True, label="input rate")
+        add("abs_rate", np.abs(rec.rate), per_axis=True, label="|input rate|")
+        add("rate3", rec.rate**3, per_axis=True, label="rate³")
+        cross = [(abs(_corr(e[:, i], rec.rate[:, j])), _corr(e[:, i], rec.rate[:, j]), i, j)
+                 for i in range(3) for j in range(3) if i != j and np.std(rec.rate[:, j]) > 0]
+        if cross:
+            _, r, i, j = max(cross)
+            out["cross_rate"] = {"r": round(r, 3), "axis": "xyz"[i],
+                                 "label": f"the {'xyz'[j]} input rate"}
+        hi = np.abs(rec.rate) > np.median(np.abs(rec.rate[np.abs(rec.rate) > 1e-3])) if np.any(
+            np.abs(rec.rate) > 1e-3) else None
+        if hi is not None:
+            out["high_rate_rms"] = float(np.sqrt(np.mean(e[hi] ** 2))) if hi.any() else None
+            out["low_rate_rms"] = float(np.sqrt(np.mean(e[~hi] ** 2))) if (~hi).any() else None
+    if rec.accel is not None:
+        f = rec.accel
+        if np.ptp(f, axis=0).max() > 1.0:
+            best = (0.0, 0)
+            for i in range(3):
+                a = np.column_stack([f - f.mean(0), np.ones(n)])
+                coef, *_ = np.linalg.lstsq(a, e[:, i], rcond=None)
+                pred = a @ coef
+                r2 = 1 - np.sum((e[:, i] - pred) ** 2) / max(np.sum((e[:, i] - e[:, i].mean()) ** 2), 1e-300)
+                if r2 > best[0]:
+                    best = (r2, i)
+            out["accel"] = {"r": round(math.sqrt(max(best[0], 0.0)), 3), "axis": "xyz"[best[1]],
+                            "label": "specific force"}
+    return out
+
+
+#: The signal that names each built-in effect in an explanation.
+EFFECT_SIGNAL = {
+    "gradient": ("dtemp", "scales with dT/dt"),
+    "thermal_lag": ("dtemp", "lags the temperature (follows dT/dt with a delay)"),
+    "temp_diff": ("temp_diff", "follows the inside–outside temperature difference"),
+    "hysteresis": ("heating", "separates heating from cooling and keeps the offset through soaks"),
+    "bias_poly": ("temp", "curves with temperature beyond the current polynomial"),
+    "warmup": ("early", "decays in the first minutes after power-on"),
+    "scale_poly": ("rate", "grows in proportion to the input rate"),
+    "scale_asym": ("abs_rate", "differs between positive and negative input rates"),
+    "scale_nonlin": ("rate3", "grows faster than the input rate (∝ rate³)"),
+    "misalignment": ("cross_rate", "follows the other axes' rates"),
+    "g_sens": ("accel", "follows the specific force (changes with orientation)"),
+    "random_walk": ("time", "wanders in time with no physical signal explaining it"),
+}
+
+
+def _fmt(x) -> str:
+    return "n/a" if x is None or not math.isfinite(x) else f"{x:.2g}"
+
+
+def explain(d: DeviceDiagnosis) -> str:
+    """A short explanation in words naming the evidence."""
+    floor = f"noise floor {_fmt(d.noise_floor)} rad/s"
+    if d.verdict == "adequate":
+        text = (f"{d.device}: adequate — held-out RMS {_fmt(d.heldout_rms)} rad/s against a "
+                f"{floor} ({100 * (d.heldout_rms / max(d.noise_floor, 1e-300) - 1):+.0f} %)")
+        near = [c for c in d.candidates if c.closure > 0.1][:1]
+        if near:
+            c = near[0]
+            text += (f"; best candidate `{c.effect}` would give {_fmt(c.heldout_rms)} "
+                     f"(closes {100 * max(c.closure, 0):.0f} % of a small gap: not material)")
+        return text + "."
+    b = d.best
+    if b is None:
+        near = [c for c in d.candidates if c.closure > 0][:3]
+        text = (f"{d.device}: missing effect — held-out RMS {_fmt(d.heldout_rms)} rad/s is "
+                f"{d.heldout_rms / max(d.noise_floor, 1e-300):.1f}× the {floor}, and no single term "
+                f"closes enough of the gap")
+        if near:
+            text += " (best: " + ", ".join(f"`{c.spec}` {_fmt(c.heldout_rms)}, closes "
+                                           f"{100 * c.closure:.0f} %" for c in near) + ")"
+        return text + ": several effects may be missing at once, or one outside the vocabulary."
+    sig_name, phrase = EFFECT_SIGNAL.get(b.effect, (None, f"follows the `{b.effect}` term"))
+    ev = d.evidence.get(sig_name) if sig_name else None
+    what = f"residual {phrase}"
+    if ev is not None and sig_name != "time":
+        what += f" (r = {ev['r']:+.2f} on axis {ev['axis']} with {ev['label']})"
+        if sig_name == "heating" and "mean_heating" in ev:
+            what += (f"; mean {_fmt(ev['mean_heating'])} rad/s heating vs "
+                     f"{_fmt(ev['mean_cooling'])} cooling")
+    if b.effect == "random_walk":
+        what += f"; Allan slope of the residual at long τ {d.allan_slope:+.2f} (+½ for a random walk)"
+    if b.effect in ("scale_asym", "scale_nonlin", "scale_poly") and d.evidence.get("high_rate_rms"):
+        what += (f"; residual RMS {_fmt(d.evidence['high_rate_rms'])} at high rates vs "
+                 f"{_fmt(d.evidence.get('low_rate_rms'))} at low")
+    tau = f" (τ ≈ {b.tau:.0f} s)" if b.tau else ""
+    text = (f"{d.device}: {what}: add `{b.term or b.effect}`{tau}; held-out RMS "
+            f"{_fmt(d.heldout_rms)} → {_fmt(b.heldout_rms)} rad/s, {floor}.")
+    if d.alternatives:
+        alts = ", ".join(f"`{c.term or c.effect}` {_fmt(c.heldout_rms)}" for c in d.alternatives)
+        fam = family_of(b.effect)
+        same = fam is not None and all(family_of(c.effect) == fam for c in d.alternatives)
+        text += f" Close alternatives{f' ({fam} family)' if same else ''}: {alts}."
+    if b.effect != "random_walk" and d.random_walk is not None and d.random_walk.closure > 0.5:
+        text += (f" A random-walk smoother would also follow this residual (held-out "
+                 f"{_fmt(d.random_walk.heldout_rms)}), but `{b.effect}` explains it with a "
+                 f"physical signal and calibrates future data.")
+    if d.floor_allan and abs(d.floor_allan / max(d.noise_floor, 1e-300) - 1) > 0.2:
+        text += (f" Note: the short-τ Allan deviation of the residual ({_fmt(d.floor_allan)}) "
+                 f"disagrees with the floor (spikes, steps or correlated samples).")
+    return text

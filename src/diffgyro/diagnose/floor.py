@@ -1,0 +1,124 @@
+"""The model-free noise floor and the temperature read-out's resolution."""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from ..data import Batch
+
+
+def noise_floor(
+    y: Float[Array, "n 3"],
+    mask: Bool[Array, " n"],
+    rate: Float[Array, "n 3"] | None = None,
+) -> Float[Array, " 3"]:
+    """White-noise σ per axis of ``y = gyro − rate``, without any model.
+
+    From successive differences: slow drift (temperature, random walk) hardly
+    changes from one sample to the next, so ``Δy/√2`` sees the white noise.
+    Pairs where the reference rate jumps (a rate table spinning up, where a
+    scale-factor error would leak in) are left out. A first robust scale
+    (MAD) sets a ±4σ window; the floor is the root mean square of the
+    differences inside it (corrected for the truncation), which, unlike a
+    median, stays continuous when the output is quantised to a few LSB. When
+    the LSB exceeds ~2σ most differences are exactly zero and the MAD
+    collapses; the RMS of all but the largest 0.5 % of differences is used.
+    The same on lag-2 differences guards against output samples that are
+    correlated (a sensor's internal low-pass filter): the larger is kept.
+    """
+    y = jnp.asarray(y)
+    out = []
+    for lag in (1, 2):
+        d = y[lag:] - y[:-lag]
+        ok = mask[lag:] & mask[:-lag]
+        if rate is not None:
+            dr = jnp.linalg.norm(rate[lag:] - rate[:-lag], axis=-1)
+            s0 = _mad(d, ok)
+            calm = ok & (dr <= 30.0 * jnp.max(s0))
+            ok = jnp.where(jnp.sum(calm) >= 0.2 * jnp.sum(ok), calm, ok)
+        s1 = _mad(d, ok)
+        med = _masked_median(d, ok)
+        dev = jnp.abs(d - med)
+        inside = ok[:, None] & (dev <= 4.0 * s1)
+        ms = jnp.sum(jnp.where(inside, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(inside, axis=0), 1)
+        ms = ms / _TRUNC4
+        # an output quantised to more than ~2σ makes most differences exactly 0 and the MAD
+        # collapse; then the RMS of all but the largest 0.5 % of the differences is the floor
+        lim = jnp.nanquantile(jnp.where(ok[:, None], dev, jnp.nan), 0.995, axis=0)
+        keep = ok[:, None] & (dev <= lim)
+        ms_trim = jnp.sum(jnp.where(keep, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(keep, axis=0), 1)
+        ms = jnp.where(s1**2 < 0.25 * ms_trim, ms_trim, ms)
+        ms_all = jnp.sum(jnp.where(ok[:, None], dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(ok), 1)
+        ms = jnp.where(ms > 0, ms, ms_all)  # a nearly constant output: every difference counts
+        out.append(jnp.sqrt(ms / 2.0))
+    return jnp.maximum(out[0], out[1])
+
+
+#: E[Z² | |Z| ≤ 4] for a standard normal Z (truncation correction of the floor).
+_TRUNC4 = 1.0 - 8.0 * math.exp(-8.0) / math.sqrt(2.0 * math.pi) / math.erf(4.0 / math.sqrt(2.0))
+
+
+def _masked_median(d, ok):
+    return jnp.nanmedian(jnp.where(ok[:, None], d, jnp.nan), axis=0)
+
+
+def _mad(d, ok):
+    med = _masked_median(d, ok)
+    return 1.4826 * jnp.nanmedian(jnp.where(ok[:, None], jnp.abs(d - med), jnp.nan), axis=0)
+
+
+# --------------------------------------------------------------------------- temperature read-out
+
+
+def temperature_quantum(temp: np.ndarray) -> float:
+    """Read-out step of a quantised temperature (°C), 0 when it is not quantised.
+
+    Quantised read-outs change by whole steps: the nonzero successive
+    differences are (within 5 %) integer multiples of their median.
+    """
+    temp = np.asarray(temp, float)
+    d = np.abs(np.diff(temp[np.isfinite(temp)]))
+    nz = d[d > 1e-9]
+    if nz.size < 10:
+        return 0.0
+    q = float(np.median(nz))
+    r = nz / q
+    return q if np.mean(np.abs(r - np.round(r)) < 0.05) >= 0.9 else 0.0
+
+
+def suggest_dtemp_window(batch: Batch, default: float = 60.0) -> float:
+    """dT/dt window (s) for a batch: wide enough that read-out noise and steps do not flip
+    the heating/cooling latch or swamp the gradient column.
+
+    The centred slope over ``W`` seconds of a read-out with noise σ_T (or a
+    quantised one, σ_T ≈ step/√12) has σ ≈ σ_T·√(12/(f_s·W³)); ``W`` is
+    chosen so that this is a fifth of the latch's threshold (0.05 °C/min),
+    never below ``default``, then rounded up to 60, 90, 120, 180, 240, 360,
+    480 or 600 s (few distinct values: each compiles once).
+    """
+    from ..signals import HEATING_THRESHOLD
+
+    if batch.temp is None:
+        return default
+    need = default
+    for i in range(batch.n_devices):
+        n = int(batch.n_valid[i])
+        temp = np.asarray(batch.temp[i, :n], float)
+        if n < 10:
+            continue
+        q = temperature_quantum(temp)
+        d = np.diff(temp)
+        sigma = 1.4826 * np.median(np.abs(d - np.median(d))) / math.sqrt(2.0)
+        sigma = max(sigma, q / math.sqrt(12.0))
+        fs = 1.0 / max(float(np.median(np.diff(batch.t[i, :n]))), 1e-9)
+        if sigma > 0:
+            w = (5.0 * sigma * math.sqrt(12.0 / fs) / HEATING_THRESHOLD) ** (2.0 / 3.0)
+            need = max(need, w)
+    for w in (60.0, 90.0, 120.0, 180.0, 240.0, 360.0, 480.0, 600.0):
+        if w >= need:
+            return max(w, default)
+    return 600.0

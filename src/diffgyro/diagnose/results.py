@@ -1,0 +1,142 @@
+"""The diagnosis as data: one candidate, one device, a batch; JSON records."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import equinox as eqx
+import numpy as np
+
+from ..jsonio import number, to_json_safe
+from ..model import ErrorModel
+from .thresholds import Thresholds
+
+
+class AllanCurves(eqx.Module):
+    """Overlapping Allan deviation of the residuals: ``tau``, ``adev`` (devices, 3, k)."""
+
+    tau: np.ndarray
+    adev: np.ndarray
+
+
+@dataclass
+class Candidate:
+    """One candidate of one device: held-out RMS of the model with the term added, and the test."""
+
+    effect: str
+    spec: str
+    heldout_rms: float
+    significant: bool
+    gain: float          # held-out MSE gain / floor MSE
+    closure: float       # share of (base held-out MSE − floor MSE) closed
+    t: float             # paired t over the folds
+    folds_improved: int
+    rms: float           # in-sample RMS with the term
+    tau: float | None = None  # chosen time constant (s), for nonlinear terms
+    family: str | None = None
+    stochastic: bool = False
+    note: str = ""
+    term: str = ""       # the term added or raised, as written in a spec (``scale_poly(1)``)
+
+    def record(self) -> dict:
+        out = {"effect": self.effect, "spec": self.spec, "heldout_rms": number(self.heldout_rms),
+               "significant": bool(self.significant), "gain": number(self.gain),
+               "closure": number(self.closure), "t": number(self.t),
+               "folds_improved": self.folds_improved, "rms": number(self.rms)}
+        if self.term:
+            out["term"] = self.term
+        if self.tau is not None:
+            out["tau"] = number(self.tau)
+        if self.family:
+            out["family"] = self.family
+        if self.note:
+            out["note"] = self.note
+        return out
+
+
+@dataclass
+class DeviceDiagnosis:
+    device: str
+    status: str
+    rms: float
+    heldout_rms: float
+    noise_floor: float
+    noise_axes: list[float]
+    floor_allan: float
+    verdict: str
+    candidates: list[Candidate]
+    best: Candidate | None
+    alternatives: list[Candidate]
+    random_walk: Candidate | None
+    allan_slope: float
+    evidence: dict = field(default_factory=dict)
+    explanation: str = ""
+    skipped: dict = field(default_factory=dict)
+
+    @property
+    def excess(self) -> float:
+        return (self.heldout_rms**2 - self.noise_floor**2) / max(self.noise_floor**2, 1e-300)
+
+    def record(self) -> dict:
+        return {
+            "device": self.device, "rms": number(self.rms), "heldout_rms": number(self.heldout_rms),
+            "noise_floor": number(self.noise_floor), "verdict": self.verdict,
+            "candidates": [c.record() for c in self.candidates],
+            "status": self.status,
+            "best": self.best.spec if self.best else None,
+            "best_effect": self.best.effect if self.best else None,
+            "best_term": self.best.term if self.best else None,
+            "alternatives": [{"effect": c.effect, "spec": c.spec, "heldout_rms": number(c.heldout_rms)}
+                             for c in self.alternatives],
+            "noise_floor_axes": [number(v) for v in self.noise_axes],
+            "noise_floor_allan": number(self.floor_allan),
+            "excess": number(self.excess),
+            "allan_slope": number(self.allan_slope),
+            "random_walk": self.random_walk.record() if self.random_walk else None,
+            "evidence": self.evidence,
+            "skipped": self.skipped,
+            "explanation": self.explanation,
+        }
+
+
+@dataclass
+class Diagnosis:
+    """Diagnosis of every device of a batch against ``model``."""
+
+    model: ErrorModel
+    devices: list[DeviceDiagnosis]
+    fit: object  # FitResult of the base model
+    residuals: np.ndarray  # (d, n, 3), padding zeroed
+    allan: object  # AllanCurves of the residuals (tau, adev), leading axes (d, 3)
+    thresholds: Thresholds
+    options: dict = field(default_factory=dict)
+    #: Per-fold numbers behind every decision (re-decide with other thresholds: :func:`redecide`).
+    raw: dict = field(default_factory=dict, repr=False)
+
+    @property
+    def spec(self) -> str:
+        return self.model.spec
+
+    def device(self, key: int | str) -> DeviceDiagnosis:
+        if isinstance(key, int):
+            return self.devices[key]
+        for d in self.devices:
+            if d.device == key:
+                return d
+        raise KeyError(key)
+
+    def to_json(self) -> dict:
+        """The DESIGN.md §4 ``diagnose --json`` object (extra keys per device)."""
+        return to_json_safe({"model": self.spec, "devices": [d.record() for d in self.devices],
+                       "thresholds": asdict(self.thresholds),
+                       "dtemp_window": self.options.get("dtemp_window")})
+
+    def records(self) -> list[dict]:
+        """One JSON-ready record per device (the ``devices`` list of :meth:`to_json`)."""
+        return self.to_json()["devices"]
+
+    def verdicts(self) -> dict[str, int]:
+        out = {"adequate": 0, "missing_effect": 0}
+        for d in self.devices:
+            out[d.verdict] += 1
+        return out

@@ -1,0 +1,295 @@
+"""diagnose(model, batch): the base fit, then every device through the scoring, in chunks.
+
+Devices go through the compiled programs a chunk at a time (about
+:data:`CHUNK_SAMPLES` samples per chunk, a power-of-two number of devices so
+that few shapes compile), one device at a time inside (``lax.map``): memory
+is that of one device's per-sample arrays, whatever the batch.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ..data import Batch, Recording
+from ..jit import release_compiled_if_crowded
+from ..model import ErrorModel
+from ..signals import TempNorm, make_signals
+from .candidates import CandidateSpec, candidate_specs
+from .decision import allan_slope, decide, unfitted
+from .evidence import evidence
+from .floor import noise_floor, suggest_dtemp_window
+from .random_walk import random_walk_scores, segment_length
+from .results import AllanCurves, Diagnosis
+from .scoring import base_scores, block_windows, candidate_scores, window
+from .thresholds import Thresholds
+
+#: About this many samples (devices × padded length) go through one compiled call.
+CHUNK_SAMPLES = 1 << 18
+
+UNSUPPORTED = "the data cannot support it (range: e.g. no rate, no temperature span)"
+
+
+def device_bucket(n: int) -> int:
+    """Padded device count of the compiled diagnosis: 1, 2, 4, ... 64, then multiples of 64."""
+    n = max(int(n), 1)
+    return 1 << (n - 1).bit_length() if n <= 64 else -(-n // 64) * 64
+
+
+def chunk_size(n_devices: int, length: int) -> int:
+    """Devices per compiled call: a power of two, about :data:`CHUNK_SAMPLES` samples."""
+    g = 1 << max((CHUNK_SAMPLES // max(length, 1)).bit_length() - 1, 0)
+    return max(1, min(device_bucket(n_devices), g))
+
+
+def _chunks(n_devices: int, size: int):
+    """Device indices of each chunk, the last device repeated to fill the last chunk."""
+    for start in range(0, n_devices, size):
+        yield start, np.minimum(np.arange(start, start + size), n_devices - 1)
+
+
+def _inputs(batch: Batch, res, idx: np.ndarray) -> dict:
+    """One chunk's samples and the fit's temperature normalisation and sampling intervals."""
+    from ..fit import sampling_intervals
+
+    def arr(x):
+        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
+
+    norm = None
+    if res.model.requires() & {"temp"}:
+        n = batch.n_devices
+        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(res.norm.centre, jnp.float64), (n,))[idx],
+                        scale=jnp.broadcast_to(jnp.asarray(res.norm.scale, jnp.float64), (n,))[idx])
+    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
+                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
+                accel=arr(batch.accel), norm=norm, dt=jnp.asarray(sampling_intervals(batch)[idx]))
+
+
+def _signals(inp: dict, dtemp_window: float):
+    """The fit's derived signals of one device (its TempNorm and dT/dt window)."""
+    return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
+                        temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
+                        dtemp_window=dtemp_window, dt=inp["dt"])
+
+
+@eqx.filter_jit
+def _ranges_and_floors(cands, inputs, dtemp_window):
+    """Per device of a chunk: > 0 where its data cannot support a candidate, and its floor."""
+    def one(inp):
+        s = _signals(inp, dtemp_window)
+        rng = jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
+        return rng, noise_floor(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
+
+    return jax.lax.map(one, inputs)
+
+
+def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
+                   n_folds: int, min_lag: float, rw_m: int, dtemp_window: float, inp: dict,
+                   beta_b, theta_b, floor_axes, idx, inside) -> dict:
+    """Held-out scores of the base model, every deterministic candidate and the random walk."""
+    sig = _signals(inp, dtemp_window)
+    dtype = sig.gyro.dtype
+    y = sig.gyro - sig.rate
+    w = sig.mask.astype(dtype)
+    xb = base.design(sig, theta_b) if base.n_params else jnp.zeros((y.shape[0], 3, 0), dtype)
+    e = (y - jnp.einsum("nip,ip->ni", xb, beta_b)) * w[:, None]  # base residual (full fit)
+    e = jnp.where(jnp.isfinite(e), e, 0.0)
+    xb_w = window(jnp.where(jnp.isfinite(xb), xb, 0.0), idx, inside)
+    e_w = window(e, idx, inside)
+    b = base_scores(xb_w, e_w, inside, n_folds)
+    scores = [candidate_scores(c, base, sig, theta_b, min_lag, b, xb_w, e_w, idx, inside, n_folds)
+              for c in cands]
+    base_full = jnp.sum(e * e, 0)
+    dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
+    rw = random_walk_scores(e_w, xb_w, window(sig.t, idx, inside), inside, b["b_base"],
+                            b["base_sse"], b["base_blk"], base_full, floor_axes, dt0, rw_m)
+    out = dict(cnt=b["cnt"], base_sse=b["base_sse"], base_full=base_full, blk_cnt=b["blk_cnt"],
+               base_blk=b["base_blk"], residual=e, **rw, **_stacked(scores, n_folds, n_blocks, dtype))
+    if sig.dtemp is not None:
+        out["dtemp"] = sig.dtemp
+    if sig.heating is not None:
+        out["heating"] = sig.heating
+    return out
+
+
+def _stacked(scores: list[dict], n_folds: int, n_blocks: int, dtype) -> dict:
+    """The candidates' scores stacked on a leading axis (one NaN placeholder when there are
+    none: lax.map dislikes empty outputs)."""
+    if not scores:
+        return dict(cand_sse=jnp.full((1, n_folds, 3), jnp.nan, dtype),
+                    cand_full=jnp.full((1, 3), jnp.nan, dtype), cand_theta=jnp.full((1, 1), jnp.nan, dtype),
+                    cand_blk=jnp.full((1, n_blocks), jnp.nan, dtype), cand_edge=jnp.zeros((1,), bool))
+    q = max(int(s["theta"].shape[0]) for s in scores)
+    theta = [jnp.pad(s["theta"], (0, q - s["theta"].shape[0]), constant_values=jnp.nan) for s in scores]
+    return dict(cand_sse=jnp.stack([s["held"] for s in scores]),
+                cand_full=jnp.stack([s["full"] for s in scores]), cand_theta=jnp.stack(theta),
+                cand_blk=jnp.stack([s["blk"] for s in scores]),
+                cand_edge=jnp.stack([s["edge"] for s in scores]))
+
+
+@eqx.filter_jit
+def _engine(base, cands, n_blocks, n_folds, min_lag, rw_m, dtemp_window, inputs, beta, theta,
+            floors, idx, inside):
+    def one(args):
+        inp, b, th, fl, ix, ins = args
+        return _device_scores(base, cands, n_blocks, n_folds, min_lag, rw_m, dtemp_window, inp, b,
+                              th, fl, ix, ins)
+
+    return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside))
+
+
+def _gather(chunks: list[dict], n_dev: int) -> dict:
+    """Chunk outputs joined on the device axis, the repeated devices dropped."""
+    return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
+
+
+def _prepare(batch: Batch, res, every: list[CandidateSpec]):
+    """Ranges of every candidate and floors, streamed per chunk of devices."""
+    n_dev, length = batch.n_devices, batch.t.shape[1]
+    size = chunk_size(n_dev, length)
+    ranges, floors = [], []
+    for _, idx in _chunks(n_dev, size):
+        rg, fl = _ranges_and_floors(tuple(every), _inputs(batch, res, idx), float(res.options.dtemp_window))
+        ranges.append(np.asarray(rg))
+        floors.append(np.asarray(fl))
+    return np.concatenate(ranges)[:n_dev], np.concatenate(floors)[:n_dev]
+
+
+def _score(model, cands, batch, res, floors) -> dict:
+    """Every device's scores (:func:`_device_scores`), one chunk of devices at a time."""
+    opts = res.options
+    n_dev, length = batch.n_devices, batch.t.shape[1]
+    size = chunk_size(n_dev, length)
+    rw_m = segment_length(length, opts.n_blocks)
+    beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
+    windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
+    out = []
+    for _, idx in _chunks(n_dev, size):
+        ix = np.stack([windows[i][0] for i in idx])
+        ins = np.stack([windows[i][1] for i in idx])
+        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, float(opts.dtemp_window), rw_m,
+                    float(opts.dtemp_window), _inputs(batch, res, idx), jnp.asarray(beta[idx]),
+                    jnp.asarray(theta[idx]), jnp.asarray(floors[idx]), jnp.asarray(ix), jnp.asarray(ins))
+        out.append(jax.device_get(o))
+    out = _gather(out, n_dev)
+    if not cands:
+        for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk", "cand_edge"):
+            out[k] = out[k][:, :0]
+    return out
+
+
+def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
+    """Overlapping Allan deviation of every device's residual (devices, 3, k)."""
+    from .. import allan as allan_mod
+
+    n_dev = batch.n_devices
+    pick = np.minimum(np.arange(device_bucket(n_dev)), n_dev - 1)  # few compiled shapes
+    dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
+    m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
+    nv = np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1)
+    adev, _ = allan_mod.oadev(jnp.asarray(np.moveaxis(resid, -1, 1)[pick]), jnp.asarray(dts[pick, None]),
+                              jnp.asarray(m), jnp.asarray(nv))
+    adev = np.asarray(adev)[:n_dev]
+    tau = dts[:, None, None] * np.asarray(m)[None, None, :] * np.ones((1, 3, 1))
+    return AllanCurves(tau=tau, adev=adev)
+
+
+def _taus(cands, theta_row) -> list:
+    """The chosen time constant (s) of every candidate with one, else None."""
+    taus = []
+    for c, th in zip(cands, theta_row):
+        if c.old is None and c.term.n_nonlinear == 1 and np.isfinite(th).all():
+            taus.append(float(np.asarray(c.term.nonlinear_values(jnp.asarray(th)))[0]))
+        else:
+            taus.append(None)
+    return taus
+
+
+def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported):
+    """One device's :class:`DeviceDiagnosis` from its scores; slope and floor_allan too."""
+    nv = int(batch.n_valid[i])
+    total = float(batch.t[i, nv - 1] - batch.t[i, 0])
+    adev, tau = al.adev[i], al.tau[i]
+    slope = allan_slope(adev, tau, total)
+    first = np.isfinite(adev[:, 0])
+    floor_allan = float(np.sqrt(np.mean(adev[first, 0] ** 2))) if first.any() else float("nan")
+    if not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
+            and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
+        return unfitted(batch.devices[i], res.status_detail(i), floors[i]), slope, floor_allan
+    sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
+    ev = evidence(out["residual"][i, :nv], batch.recording(i), sd)
+    ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
+    d = decide(
+        batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
+        out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],
+        out["cand_sse"][i], out["cand_full"][i], ok, _taus(cands, out["cand_theta"][i]), rw_spec,
+        out["rw_interp"][i], out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
+        blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
+        edge=out["cand_edge"][i], base_spec=model.spec)
+    for name in unsupported:
+        d.skipped[name] = UNSUPPORTED
+    return d, slope, floor_allan
+
+
+def diagnose(
+    model: ErrorModel | str,
+    batch: Batch | Recording | list[Recording],
+    candidates: list[str] | None = None,
+    *,
+    thresholds: Thresholds | None = None,
+    base_fit=None,
+    **fit_options,
+) -> Diagnosis:
+    """Diagnose every device of ``batch`` against ``model``.
+
+    ``candidates`` limits the effects tried (names or terms, default: every
+    registered effect the data supports). ``base_fit`` reuses a
+    :class:`~diffgyro.fit.FitResult` of ``model`` on this batch. Other
+    keywords are fit options (``n_folds``, ``n_blocks``, ``dtemp_window``...).
+    Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
+    object.
+    """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
+    from ..fit import _as_batch
+    from ..fit import fit as fit_fn
+
+    if isinstance(model, str):
+        model = ErrorModel.from_spec(model)
+    if any(t.stochastic for t in model.terms):
+        from ..errors import SpecError
+
+        raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
+                        hint="drop random_walk from --model: it is tried as a candidate")
+    batch = _as_batch(batch)
+    th = thresholds or Thresholds()
+    if "dtemp_window" not in fit_options and base_fit is None:
+        fit_options["dtemp_window"] = suggest_dtemp_window(batch)
+    res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
+    specs = candidate_specs(model, frozenset(batch.signals), candidates)
+    every = [c for c in specs if not c.stochastic]
+    rw_spec = (model + "random_walk").spec if any(c.stochastic for c in specs) else None
+    all_ranges, floors = _prepare(batch, res, every)
+    # drop candidates no device can support (e.g. scale terms on a static run) before compiling
+    usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
+    cands = [every[j] for j in usable]
+    unsupported = [c.effect for j, c in enumerate(every) if j not in usable]
+    out = _score(model, cands, batch, res, floors)
+    ranges = all_ranges[:, usable]
+    al = _allan(out["residual"], batch)
+    devices, slopes, floor_allans = [], [], []
+    for i in range(batch.n_devices):
+        d, slope, fa = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                               unsupported)
+        devices.append(d)
+        slopes.append(slope)
+        floor_allans.append(fa)
+    opts = res.options
+    raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
+    return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
+                     thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+                                             "dtemp_window": opts.dtemp_window},
+                     raw={**raw, "floors": floors, "ok": ranges <= 0, "slope": np.asarray(slopes),
+                          "floor_allan": np.asarray(floor_allans), "candidates": cands,
+                          "n_valid": np.asarray(batch.n_valid)})

@@ -1,0 +1,83 @@
+"""The decision's thresholds, the look-alike families and the search grids."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Thresholds:
+    """When a candidate counts as significant (see the module docstring).
+
+    ``t_min``: paired t of the per-fold held-out MSE gains (``n_folds − 1``
+    degrees of freedom); an effect confined to part of the record (a warm-up
+    transient) improves one or two folds a lot and the others not at all, so
+    it also passes when no fold gets worse by more than ``consistency`` × the
+    mean gain. ``excess_min``: the base model's held-out MSE must
+    exceed the floor's by this fraction of the floor's. ``closure_min``:
+    share of that gap the candidate closes. ``gain_min``: its held-out MSE
+    gain as a fraction of the floor's MSE. ``rw_slope_min``: long-τ Allan
+    slope of the residual needed to name a random walk, ``rw_excess_min`` the
+    excess it needs (low-level flicker and rate random walk are noise, not a
+    missing effect). A significant deterministic term is preferred to the
+    random walk when it closes at least ``rw_prefer`` of the gap, or leaves
+    less than ``rw_ratio`` times the gap the random walk leaves; a term whose
+    time constant ran to the slow end of its search (a warm-up with τ of a
+    quarter of the record) fits a drift, not a physical transient, and does
+    not count. ``alt_share``: a significant candidate is a close
+    alternative when it closes at least this share of what the best closes.
+
+    An effect confined to a small part of the record (a warm-up transient,
+    the highest rates of a rate table) can be material where it happens yet
+    small over the whole record. So a candidate is also material when, in the
+    ``local_share`` of time blocks it improves most, the base model's held-out
+    MSE is at least ``1 + local_excess`` times the floor's and the candidate
+    closes ``local_closure`` of that local gap, with a whole-record gain of at
+    least ``local_gain_min`` and at least ``local_closure_min`` of the
+    whole-record gap closed (so a term that follows one flicker excursion does
+    not pass); never for the random walk.
+
+    A model whose held-out MSE is ``1 + unexplained_excess`` times the
+    floor's or more is ``missing_effect`` even when no single term is
+    significant (several effects missing at once, or one outside the
+    vocabulary); it then names none.
+    """
+
+    t_min: float = 3.0
+    consistency: float = 0.25
+    excess_min: float = 0.15
+    closure_min: float = 0.3
+    gain_min: float = 0.03
+    rw_slope_min: float = 0.25
+    rw_excess_min: float = 0.2
+    rw_prefer: float = 0.85
+    rw_ratio: float = 2.0
+    alt_share: float = 0.6
+    local_share: float = 0.02
+    local_excess: float = 2.0
+    local_closure: float = 0.5
+    local_gain_min: float = 0.005
+    local_closure_min: float = 0.5
+    unexplained_excess: float = 1.0
+
+
+#: Effects that mimic each other on common test plans (reported together).
+FAMILIES: dict[str, tuple[str, ...]] = {
+    "thermal transient": ("gradient", "thermal_lag", "temp_diff", "hysteresis"),
+    "rate-dependent scale factor": ("scale_asym", "scale_nonlin", "scale_poly"),
+    "orientation-dependent bias": ("g_sens", "misalignment"),
+}
+
+#: Time-constant grid density for candidate terms with one nonlinear parameter.
+GRID_POINTS = 24
+#: Walk variance grid (q·dt / r) searched by the local-level smoother.
+RW_GRID = tuple(10.0 ** np.linspace(-10.0, -1.0, 19))
+
+
+def family_of(name: str) -> str | None:
+    for fam, names in FAMILIES.items():
+        if name in names:
+            return fam
+    return None
