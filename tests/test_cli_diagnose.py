@@ -66,6 +66,23 @@ def test_json_contract(thermal_csv, capsys):
     assert "dT/dt" in g["explanation"]
 
 
+def test_fit_and_diagnose_report_the_same_noise_floor(thermal_csv, capsys):
+    """One model-free floor: ``fit --json`` and ``diagnose --json`` print the same
+    ``noise_floor`` (and per axis) for the same device; diagnose's decision level is
+    reported apart as ``white_noise_rms``."""
+    diag = _json(capsys, ["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--json"])
+    fitted = _json(capsys, ["fit", *thermal_csv, "--model", "bias_poly(2)", "--json"])
+    floors = {d["device"]: d["noise_floor"] for d in fitted["devices"]}
+    assert set(floors) == {d["device"] for d in diag["devices"]}
+    for d in diag["devices"]:
+        assert d["noise_floor"] == floors[d["device"]], d["device"]
+        assert 1e-4 < d["noise_floor"] < 4e-4  # the simulated white noise, 2e-4 rad/s
+        assert len(d["noise_floor_axes"]) == 3 and len(d["white_noise_rms_axes"]) == 3
+        # a different statistic of the same white noise: close, not equal
+        assert d["white_noise_rms"] != d["noise_floor"]
+        assert abs(d["white_noise_rms"] / d["noise_floor"] - 1) < 0.1
+
+
 def test_report_auto_and_calibration(thermal_csv, tmp_path, capsys):
     report, cal = tmp_path / "report", tmp_path / "diag-cal.json"
     out = _json(capsys, ["diagnose", *thermal_csv, "--model", "bias_poly(2)", "--json",

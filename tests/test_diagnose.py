@@ -28,9 +28,9 @@ from diffgyro.diagnose import (
     Thresholds,
     candidate_specs,
     diagnose,
-    noise_floor,
     suggest_dtemp_window,
     temperature_quantum,
+    white_noise_rms,
 )
 from diffgyro.fit import fit
 from diffgyro.model import ErrorModel
@@ -205,7 +205,7 @@ def test_explanation_names_the_evidence():
     d = diagnose("bias_poly(2)", batch).devices[0]
     assert d.verdict == "missing_effect"
     assert "dT/dt" in d.explanation and "add `gradient`" in d.explanation
-    assert "noise floor" in d.explanation and "→" in d.explanation
+    assert "white-noise RMS" in d.explanation and "→" in d.explanation
     assert abs(d.evidence["dtemp"]["r"]) > 0.3
     assert d.alternatives, "look-alikes of gradient are reported"
 
@@ -269,7 +269,7 @@ def test_threshold_dataclass_changes_the_verdict():
 
 
 @pytest.mark.parametrize("quantum", [0.0, 0.5, 1.0])
-def test_noise_floor_is_the_white_sigma(quantum):
+def test_white_noise_rms_is_the_white_sigma(quantum):
     """Robust to slow drift, rate-table steps (scale error × rate jumps) and output
     quantisation (RMS of the quantised noise, which the held-out residual also contains)."""
     rng = np.random.default_rng(5)
@@ -283,28 +283,28 @@ def test_noise_floor_is_the_white_sigma(quantum):
         lsb = quantum * sigma
         y = np.round(y / lsb) * lsb
     expect = math.sqrt(sigma**2 + (quantum * sigma) ** 2 / 12.0)
-    got = np.asarray(noise_floor(jnp.asarray(y), jnp.ones(n, bool), jnp.asarray(rate)))
+    got = np.asarray(white_noise_rms(jnp.asarray(y), jnp.ones(n, bool), jnp.asarray(rate)))
     assert np.allclose(got, expect, rtol=0.05), (got, expect)
 
 
 @pytest.mark.parametrize("lsb", [2.0, 4.0])
-def test_noise_floor_of_a_coarsely_quantised_output(lsb):
+def test_white_noise_rms_of_a_coarsely_quantised_output(lsb):
     """An LSB of several σ makes most successive differences exactly zero (the MAD is 0); the
     floor is then the RMS of the quantised differences, never zero."""
     rng = np.random.default_rng(8)
     y = np.round((rng.normal(size=(20000, 3)) + 0.3) / lsb) * lsb
     expect = np.sqrt(np.mean(np.diff(y, axis=0) ** 2, axis=0) / 2)
-    got = np.asarray(noise_floor(jnp.asarray(y), jnp.ones(len(y), bool)))
+    got = np.asarray(white_noise_rms(jnp.asarray(y), jnp.ones(len(y), bool)))
     assert np.allclose(got, expect, rtol=0.05), (got, expect)
 
 
-def test_noise_floor_sees_correlated_samples():
+def test_white_noise_rms_sees_correlated_samples():
     """Positively correlated output samples (an internal low-pass filter) shrink lag-1
     differences; the lag-2 check keeps the floor near the true σ."""
     rng = np.random.default_rng(6)
     w = rng.normal(size=(40001, 3))
     y = (w[1:] + w[:-1]) / math.sqrt(2.0)  # MA(1): ρ1 = 0.5, σ = 1
-    got = np.asarray(noise_floor(jnp.asarray(y), jnp.ones(len(y), bool)))
+    got = np.asarray(white_noise_rms(jnp.asarray(y), jnp.ones(len(y), bool)))
     assert np.all(got > 0.85) and np.all(got < 1.05), got
 
 

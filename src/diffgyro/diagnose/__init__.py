@@ -13,10 +13,12 @@ everything significant:
   on the others. Base and candidate use the same folds, so their per-fold mean
   squared errors are *paired*. Every score comes from per-block sums
   (:mod:`.scoring`), so memory does not grow with the number of candidates.
-* **A noise floor that does not depend on any model** (:func:`noise_floor`):
-  the robust scale of successive differences of ``gyro − rate`` (slow drift
-  and the steps of a rate table drop out), checked against the short-τ
-  Allan deviation of the residual.
+* **A white-noise level that does not depend on any model**
+  (:func:`white_noise_rms`): a trimmed RMS of successive differences of
+  ``gyro − rate`` (slow drift and the steps of a rate table drop out),
+  checked against the short-τ Allan deviation of the residual. The decision
+  measures held-out errors against it. The ``noise_floor`` reported beside it
+  is :mod:`diffgyro.noise`'s, the one ``fit`` reports for the same device.
 * **Significant means large and material** (:mod:`.decision`): a paired t
   over the folds, a base model materially above the floor, a real share of
   that gap closed and a material gain. These keep time-correlated noise
@@ -33,8 +35,8 @@ everything significant:
 * **Look-alikes are shown, not hidden** (gradient / thermal lag / inside–outside
   difference; scale asymmetry / nonlinearity; g-sensitivity / misalignment).
 
-The package: :mod:`.thresholds` (the rule's numbers), :mod:`.floor` (noise
-floor, temperature read-out), :mod:`.candidates` (what is tried),
+The package: :mod:`.thresholds` (the rule's numbers), :mod:`.floor` (white-noise
+level, temperature read-out), :mod:`.candidates` (what is tried),
 :mod:`.scoring` (held-out errors from block sums), :mod:`.random_walk`,
 :mod:`.decision` (significance, ranking, verdict), :mod:`.evidence`
 (correlations and the explanation), :mod:`.results` (the records),
@@ -49,7 +51,7 @@ from __future__ import annotations
 from .candidates import CandidateSpec, candidate_specs
 from .decision import redecide
 from .evidence import EFFECT_SIGNAL, evidence, explain
-from .floor import noise_floor, suggest_dtemp_window, temperature_quantum
+from .floor import suggest_dtemp_window, temperature_quantum, white_noise_rms
 from .ladder import Ladder, LadderStep, choose_effect, diagnose_auto
 from .results import AllanCurves, Candidate, DeviceDiagnosis, Diagnosis
 from .run import device_bucket, diagnose
@@ -58,5 +60,5 @@ from .thresholds import FAMILIES, GRID_POINTS, RW_GRID, Thresholds, family_of
 __all__ = ["EFFECT_SIGNAL", "FAMILIES", "GRID_POINTS", "RW_GRID", "AllanCurves", "Candidate",
            "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Ladder", "LadderStep", "Thresholds",
            "candidate_specs", "choose_effect", "device_bucket", "diagnose", "diagnose_auto",
-           "evidence", "explain", "family_of", "noise_floor", "redecide", "suggest_dtemp_window",
-           "temperature_quantum"]
+           "evidence", "explain", "family_of", "redecide", "suggest_dtemp_window",
+           "temperature_quantum", "white_noise_rms"]

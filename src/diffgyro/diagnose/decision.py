@@ -133,7 +133,8 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
     shown, best, alts, verdict = _rank(det, rw_c, sc.excess, slope, th)
     d = DeviceDiagnosis(
         device=name, status=status, rms=rms_b, heldout_rms=math.sqrt(max(sc.hb2, 0.0)),
-        noise_floor=floor, noise_axes=[float(v) for v in floor_axes], floor_allan=floor_allan,
+        white_noise_rms=floor, white_noise_axes=[float(v) for v in floor_axes],
+        floor_allan=floor_allan,
         verdict=verdict, candidates=shown, best=best, alternatives=alts, random_walk=rw_c,
         allan_slope=slope, evidence=ev, skipped=skipped)
     d.explanation = explain(d)
@@ -144,8 +145,9 @@ def unfitted(name: str, status: str, floor_axes: np.ndarray) -> DeviceDiagnosis:
     """A device whose base model could not be fitted: nothing to diagnose against."""
     floor = float(np.sqrt(np.mean(floor_axes**2)))
     d = DeviceDiagnosis(
-        device=name, status=status, rms=float("nan"), heldout_rms=float("nan"), noise_floor=floor,
-        noise_axes=[float(v) for v in floor_axes], floor_allan=float("nan"), verdict="adequate",
+        device=name, status=status, rms=float("nan"), heldout_rms=float("nan"),
+        white_noise_rms=floor, white_noise_axes=[float(v) for v in floor_axes],
+        floor_allan=float("nan"), verdict="adequate",
         candidates=[], best=None, alternatives=[], random_walk=None, allan_slope=float("nan"))
     d.explanation = (f"{name}: the base model could not be fitted ({status}); the data do not "
                      f"support it, so no effect is named: simplify the model (see `diffgyro fit`).")
@@ -189,4 +191,6 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
                 int(r["n_valid"]), thresholds, row["diag"].get("evidence", {}),
                 blocks={"cnt": r["blk_cnt"], "base": r["base_blk"], "cand": r["cand_blk"]}
                 if "blk_cnt" in r else None, edge=r.get("cand_edge", _edge_from_theta(r)))
+    d.noise_floor = row["diag"].get("noise_floor", math.nan)
+    d.noise_axes = row["diag"].get("noise_floor_axes", [])
     return d.record()

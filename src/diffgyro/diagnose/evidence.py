@@ -108,10 +108,11 @@ def _fmt(x) -> str:
 
 def explain(d: DeviceDiagnosis) -> str:
     """A short explanation in words naming the evidence."""
-    floor = f"noise floor {_fmt(d.noise_floor)} rad/s"
+    white = max(d.white_noise_rms, 1e-300)
+    floor = f"white-noise RMS {_fmt(d.white_noise_rms)} rad/s"
     if d.verdict == "adequate":
         text = (f"{d.device}: adequate — held-out RMS {_fmt(d.heldout_rms)} rad/s against a "
-                f"{floor} ({100 * (d.heldout_rms / max(d.noise_floor, 1e-300) - 1):+.0f} %)")
+                f"{floor} ({100 * (d.heldout_rms / white - 1):+.0f} %)")
         near = [c for c in d.candidates if c.closure > 0.1][:1]
         if near:
             c = near[0]
@@ -122,7 +123,7 @@ def explain(d: DeviceDiagnosis) -> str:
     if b is None:
         near = [c for c in d.candidates if c.closure > 0][:3]
         text = (f"{d.device}: missing effect — held-out RMS {_fmt(d.heldout_rms)} rad/s is "
-                f"{d.heldout_rms / max(d.noise_floor, 1e-300):.1f}× the {floor}, and no single term "
+                f"{d.heldout_rms / white:.1f}× the {floor}, and no single term "
                 f"closes enough of the gap")
         if near:
             text += " (best: " + ", ".join(f"`{c.spec}` {_fmt(c.heldout_rms)}, closes "
@@ -153,7 +154,7 @@ def explain(d: DeviceDiagnosis) -> str:
         text += (f" A random-walk smoother would also follow this residual (held-out "
                  f"{_fmt(d.random_walk.heldout_rms)}), but `{b.effect}` explains it with a "
                  f"physical signal and calibrates future data.")
-    if d.floor_allan and abs(d.floor_allan / max(d.noise_floor, 1e-300) - 1) > 0.2:
+    if d.floor_allan and abs(d.floor_allan / white - 1) > 0.2:
         text += (f" Note: the short-τ Allan deviation of the residual ({_fmt(d.floor_allan)}) "
-                 f"disagrees with the floor (spikes, steps or correlated samples).")
+                 f"disagrees with the white-noise RMS (spikes, steps or correlated samples).")
     return text

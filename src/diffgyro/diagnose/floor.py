@@ -1,4 +1,4 @@
-"""The model-free noise floor and the temperature read-out's resolution."""
+"""The model-free white-noise level the decision uses, and the temperature read-out's resolution."""
 
 from __future__ import annotations
 
@@ -11,14 +11,17 @@ from jaxtyping import Array, Bool, Float
 from ..data import Batch
 
 
-def noise_floor(
+def white_noise_rms(
     y: Float[Array, "n 3"],
     mask: Bool[Array, " n"],
     rate: Float[Array, "n 3"] | None = None,
 ) -> Float[Array, " 3"]:
-    """White-noise σ per axis of ``y = gyro − rate``, without any model.
+    """White-noise σ per axis of ``y = gyro − rate``, without any model: the level
+    the decision measures held-out errors against (``white_noise_rms`` in the JSON).
 
-    From successive differences: slow drift (temperature, random walk) hardly
+    Unlike the reported ``noise_floor`` (:mod:`diffgyro.noise`: the MAD of
+    successive differences, the same in ``fit``), this statistic stays
+    continuous on quantised output and sees correlated samples. From successive differences: slow drift (temperature, random walk) hardly
     changes from one sample to the next, so ``Δy/√2`` sees the white noise.
     Pairs where the reference rate jumps (a rate table spinning up, where a
     scale-factor error would leak in) are left out. A first robust scale

@@ -82,7 +82,7 @@ def choose_effect(diag: Diagnosis) -> tuple[str, str] | None:
     for d in diag.devices:
         if d.verdict == "missing_effect" and d.best is not None:
             votes.setdefault(d.best.effect, []).append(
-                (d.best.heldout_rms / max(d.noise_floor, 1e-300), d.best.spec))
+                (d.best.heldout_rms / max(d.white_noise_rms, 1e-300), d.best.spec))
     if not votes:
         return None
     effect = min(votes, key=lambda k: (-len(votes[k]), float(np.median([v for v, _ in votes[k]]))))
@@ -128,11 +128,11 @@ def diagnose_auto(
         if effect == "random_walk":
             rws = [d.random_walk for d in diag.devices]
             h = [c.heldout_rms if c is not None else d.heldout_rms for c, d in zip(rws, diag.devices)]
-            f = [d.noise_floor for d in diag.devices]
-            verdicts = ["adequate" if (hh**2 - ff**2) / max(ff**2, 1e-300) < th.excess_min
-                        else "missing_effect" for hh, ff in zip(h, f)]
+            w = [d.white_noise_rms for d in diag.devices]
+            verdicts = ["adequate" if (hh**2 - ww**2) / max(ww**2, 1e-300) < th.excess_min
+                        else "missing_effect" for hh, ww in zip(h, w)]
             steps.append(LadderStep(spec=(diag.model + "random_walk").spec, added="random_walk",
-                                    heldout_rms=h, noise_floor=f,
+                                    heldout_rms=h, noise_floor=[d.noise_floor for d in diag.devices],
                                     rms=[c.rms if c is not None else d.rms for c, d in zip(rws, diag.devices)],
                                     verdicts=verdicts))
             break

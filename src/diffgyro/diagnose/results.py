@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, field
 
 import equinox as eqx
@@ -60,8 +61,8 @@ class DeviceDiagnosis:
     status: str
     rms: float
     heldout_rms: float
-    noise_floor: float
-    noise_axes: list[float]
+    white_noise_rms: float         # the level the decision uses (:func:`.floor.white_noise_rms`)
+    white_noise_axes: list[float]
     floor_allan: float
     verdict: str
     candidates: list[Candidate]
@@ -72,10 +73,15 @@ class DeviceDiagnosis:
     evidence: dict = field(default_factory=dict)
     explanation: str = ""
     skipped: dict = field(default_factory=dict)
+    #: The model-free floor ``fit`` reports for the device (:mod:`diffgyro.noise`).
+    noise_floor: float = math.nan
+    noise_axes: list[float] = field(default_factory=list)
 
     @property
     def excess(self) -> float:
-        return (self.heldout_rms**2 - self.noise_floor**2) / max(self.noise_floor**2, 1e-300)
+        """Held-out MSE above the white-noise level, as a fraction of it."""
+        w2 = self.white_noise_rms**2
+        return (self.heldout_rms**2 - w2) / max(w2, 1e-300)
 
     def record(self) -> dict:
         return {
@@ -89,6 +95,8 @@ class DeviceDiagnosis:
             "alternatives": [{"effect": c.effect, "spec": c.spec, "heldout_rms": number(c.heldout_rms)}
                              for c in self.alternatives],
             "noise_floor_axes": [number(v) for v in self.noise_axes],
+            "white_noise_rms": number(self.white_noise_rms),
+            "white_noise_rms_axes": [number(v) for v in self.white_noise_axes],
             "noise_floor_allan": number(self.floor_allan),
             "excess": number(self.excess),
             "allan_slope": number(self.allan_slope),

@@ -20,7 +20,7 @@ from ..signals import TempNorm, make_signals
 from .candidates import CandidateSpec, candidate_specs
 from .decision import allan_slope, decide, unfitted
 from .evidence import evidence
-from .floor import noise_floor, suggest_dtemp_window
+from .floor import suggest_dtemp_window, white_noise_rms
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
 from .scoring import base_scores, block_windows, candidate_scores, window
@@ -80,7 +80,7 @@ def _ranges_and_floors(cands, inputs, dtemp_window):
     def one(inp):
         s = _signals(inp, dtemp_window)
         rng = jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
-        return rng, noise_floor(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
+        return rng, white_noise_rms(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
 
     return jax.lax.map(one, inputs)
 
@@ -207,8 +207,23 @@ def _taus(cands, theta_row) -> list:
     return taus
 
 
+def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
+    """(noise floor, per axis) of every device: the base fit's (:mod:`diffgyro.noise`),
+    computed here when that fit was run without it, so ``diagnose`` and ``fit`` report
+    the same floor for the same device."""
+    from .. import noise
+
+    if res.options.noise_floor:
+        axes = np.asarray(res.noise_axes, float)
+    else:
+        axes = noise.noise_axes(np.asarray(batch.gyro), None if batch.rate is None
+                                else np.asarray(batch.rate), np.asarray(batch.mask, bool))
+    return [(float(f), [float(v) for v in a]) for f, a in zip(noise.noise_floor(axes), axes)]
+
+
 def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported):
-    """One device's :class:`DeviceDiagnosis` from its scores; slope and floor_allan too."""
+    """One device's :class:`DeviceDiagnosis` from its scores (floors: the white-noise level
+    the decision uses); slope and floor_allan too."""
     nv = int(batch.n_valid[i])
     total = float(batch.t[i, nv - 1] - batch.t[i, 0])
     adev, tau = al.adev[i], al.tau[i]
@@ -278,10 +293,12 @@ def diagnose(
     out = _score(model, cands, batch, res, floors)
     ranges = all_ranges[:, usable]
     al = _allan(out["residual"], batch)
+    reported = _reported_floor(batch, res)
     devices, slopes, floor_allans = [], [], []
     for i in range(batch.n_devices):
         d, slope, fa = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                unsupported)
+        d.noise_floor, d.noise_axes = reported[i]
         devices.append(d)
         slopes.append(slope)
         floor_allans.append(fa)
