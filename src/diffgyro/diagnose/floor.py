@@ -4,74 +4,80 @@ from __future__ import annotations
 
 import math
 
-import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Bool, Float
 
 from ..data import Batch
 
 
 def white_noise_rms(
-    y: Float[Array, "n 3"],
-    mask: Bool[Array, " n"],
-    rate: Float[Array, "n 3"] | None = None,
-) -> Float[Array, " 3"]:
+    y: Float[np.ndarray, "n 3"],
+    mask: Bool[np.ndarray, " n"],
+    rate: Float[np.ndarray, "n 3"] | None = None,
+) -> Float[np.ndarray, " 3"]:
     """White-noise σ per axis of ``y = gyro − rate``, without any model: the level
     the decision measures held-out errors against (``white_noise_rms`` in the JSON).
 
     Unlike the reported ``noise_floor`` (:mod:`diffgyro.noise`: the MAD of
     successive differences, the same in ``fit``), this statistic stays
-    continuous on quantised output and sees correlated samples. From successive differences: slow drift (temperature, random walk) hardly
-    changes from one sample to the next, so ``Δy/√2`` sees the white noise.
-    Pairs where the reference rate jumps (a rate table spinning up, where a
-    scale-factor error would leak in) are left out. A first robust scale
-    (MAD) sets a ±4σ window; the floor is the root mean square of the
-    differences inside it (corrected for the truncation), which, unlike a
-    median, stays continuous when the output is quantised to a few LSB. When
-    the LSB exceeds ~2σ most differences are exactly zero and the MAD
-    collapses; the RMS of all but the largest 0.5 % of differences is used.
-    The same on lag-2 differences guards against output samples that are
-    correlated (a sensor's internal low-pass filter): the larger is kept.
+    continuous on quantised output and sees correlated samples. From successive
+    differences: slow drift (temperature, random walk) hardly changes from one
+    sample to the next, so ``Δy/√2`` sees the white noise. Pairs where the
+    reference rate jumps (a rate table spinning up, where a scale-factor error
+    would leak in) are left out. A first robust scale (MAD) sets a ±4σ window;
+    the floor is the root mean square of the differences inside it (corrected
+    for the truncation), which, unlike a median, stays continuous when the
+    output is quantised to a few LSB. When the LSB exceeds ~2σ most differences
+    are exactly zero and the MAD collapses; the RMS of all but the largest
+    0.5 % of differences is used. The same on lag-2 differences guards against
+    output samples that are correlated (a sensor's internal low-pass filter):
+    the larger is kept. Runs on the host (medians by selection, not sorting).
     """
-    y = jnp.asarray(y)
+    y = np.asarray(y, np.float64)
+    mask = np.asarray(mask, bool)
+    rate = None if rate is None else np.asarray(rate, np.float64)
     out = []
     for lag in (1, 2):
         d = y[lag:] - y[:-lag]
         ok = mask[lag:] & mask[:-lag]
-        if rate is not None:
-            dr = jnp.linalg.norm(rate[lag:] - rate[:-lag], axis=-1)
-            s0 = _mad(d, ok)
-            calm = ok & (dr <= 30.0 * jnp.max(s0))
-            ok = jnp.where(jnp.sum(calm) >= 0.2 * jnp.sum(ok), calm, ok)
-        s1 = _mad(d, ok)
-        med = _masked_median(d, ok)
-        dev = jnp.abs(d - med)
-        inside = ok[:, None] & (dev <= 4.0 * s1)
-        ms = jnp.sum(jnp.where(inside, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(inside, axis=0), 1)
-        ms = ms / _TRUNC4
-        # an output quantised to more than ~2σ makes most differences exactly 0 and the MAD
-        # collapse; then the RMS of all but the largest 0.5 % of the differences is the floor
-        lim = jnp.nanquantile(jnp.where(ok[:, None], dev, jnp.nan), 0.995, axis=0)
-        keep = ok[:, None] & (dev <= lim)
-        ms_trim = jnp.sum(jnp.where(keep, dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(keep, axis=0), 1)
-        ms = jnp.where(s1**2 < 0.25 * ms_trim, ms_trim, ms)
-        ms_all = jnp.sum(jnp.where(ok[:, None], dev**2, 0.0), axis=0) / jnp.maximum(jnp.sum(ok), 1)
-        ms = jnp.where(ms > 0, ms, ms_all)  # a nearly constant output: every difference counts
-        out.append(jnp.sqrt(ms / 2.0))
-    return jnp.maximum(out[0], out[1])
+        if rate is not None and ok.any():
+            dr = np.linalg.norm(rate[lag:] - rate[:-lag], axis=-1)
+            calm = ok & (dr <= 30.0 * np.max(_mad(d[ok])))
+            ok = calm if calm.sum() >= 0.2 * ok.sum() else ok
+        out.append(np.array([_white(d[ok, i]) for i in range(y.shape[1])]))
+    return np.maximum(out[0], out[1])
+
+
+def _white(d: np.ndarray) -> float:
+    """σ of one axis from its valid differences ``d`` (see :func:`white_noise_rms`)."""
+    if d.size == 0:
+        return 0.0
+    med = np.median(d)
+    dev = np.abs(d - med)
+    s1 = 1.4826 * np.median(dev)
+    dev2 = dev * dev
+    inside = dev <= 4.0 * s1
+    ms = dev2[inside].sum() / max(int(inside.sum()), 1) / _TRUNC4
+    # an output quantised to more than ~2σ makes most differences exactly 0 and the MAD
+    # collapse; then the RMS of all but the largest 0.5 % of the differences is the floor
+    keep = dev <= np.quantile(dev, 0.995)
+    ms_trim = dev2[keep].sum() / max(int(keep.sum()), 1)
+    if s1**2 < 0.25 * ms_trim:
+        ms = ms_trim
+    if not ms > 0:  # a nearly constant output: every difference counts
+        ms = dev2.sum() / d.size
+    return math.sqrt(ms / 2.0)
 
 
 #: E[Z² | |Z| ≤ 4] for a standard normal Z (truncation correction of the floor).
 _TRUNC4 = 1.0 - 8.0 * math.exp(-8.0) / math.sqrt(2.0 * math.pi) / math.erf(4.0 / math.sqrt(2.0))
 
 
-def _masked_median(d, ok):
-    return jnp.nanmedian(jnp.where(ok[:, None], d, jnp.nan), axis=0)
-
-
-def _mad(d, ok):
-    med = _masked_median(d, ok)
-    return 1.4826 * jnp.nanmedian(jnp.where(ok[:, None], jnp.abs(d - med), jnp.nan), axis=0)
+def _mad(d: np.ndarray) -> np.ndarray:
+    """1.4826 × the median absolute deviation of each column of ``d`` (m, 3)."""
+    if d.shape[0] == 0:
+        return np.full(d.shape[1:], np.nan)
+    return 1.4826 * np.median(np.abs(d - np.median(d, axis=0)), axis=0)
 
 
 # --------------------------------------------------------------------------- temperature read-out

@@ -75,14 +75,23 @@ def _signals(inp: dict, dtemp_window: float):
 
 
 @eqx.filter_jit
-def _ranges_and_floors(cands, inputs, dtemp_window):
-    """Per device of a chunk: > 0 where its data cannot support a candidate, and its floor."""
+def _ranges(cands, inputs, dtemp_window):
+    """Per device of a chunk: > 0 where its data cannot support a candidate."""
     def one(inp):
         s = _signals(inp, dtemp_window)
-        rng = jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
-        return rng, white_noise_rms(s.gyro - s.rate, s.mask, s.rate if s.has_rate else None)
+        return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
 
     return jax.lax.map(one, inputs)
+
+
+def _white_noise(batch: Batch) -> np.ndarray:
+    """The decision's white-noise level (devices, 3), on the host."""
+    out = []
+    for i in range(batch.n_devices):
+        rate = None if batch.rate is None else np.asarray(batch.rate[i], np.float64)
+        gyro = np.asarray(batch.gyro[i], np.float64)
+        out.append(white_noise_rms(gyro if rate is None else gyro - rate, np.asarray(batch.mask[i]), rate))
+    return np.stack(out)
 
 
 def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
@@ -149,12 +158,9 @@ def _prepare(batch: Batch, res, every: list[CandidateSpec]):
     """Ranges of every candidate and floors, streamed per chunk of devices."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
-    ranges, floors = [], []
-    for _, idx in _chunks(n_dev, size):
-        rg, fl = _ranges_and_floors(tuple(every), _inputs(batch, res, idx), float(res.options.dtemp_window))
-        ranges.append(np.asarray(rg))
-        floors.append(np.asarray(fl))
-    return np.concatenate(ranges)[:n_dev], np.concatenate(floors)[:n_dev]
+    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx), float(res.options.dtemp_window)))
+              for _, idx in _chunks(n_dev, size)]
+    return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
 
 def _score(model, cands, batch, res, floors) -> dict:
