@@ -28,10 +28,6 @@ PACKAGE = SRC / "diffgyro"
 
 #: Private imports that other work removes (module, imported from, name). Shrink only.
 ALLOWED_PRIVATE = {
-    # diagnose.py is being split into a package; the split imports the public names
-    # (diffgyro.core.fold_ids, diffgyro.core.as_batch)
-    ("diffgyro.diagnose", "diffgyro.fit", "_fold_ids"),
-    ("diffgyro.diagnose", "diffgyro.fit", "_as_batch"),
     # one noise-floor statistic in diffgyro.noise (issue 23, one mechanism per idea)
     ("diffgyro.kalman", "diffgyro.fit", "_noise_floor"),
     # one JSON sanitiser for every writer (issue 23, one mechanism per idea)

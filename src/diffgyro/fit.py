@@ -54,11 +54,6 @@ from .linalg import (  # noqa: F401  (re-exported)
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 
-# Old private names, kept while diagnose.py still imports them.
-_as_batch = as_batch
-_fold_ids = fold_ids
-
-
 # --------------------------------------------------------------------------- signals
 
 

@@ -107,11 +107,11 @@ def diagnose_auto(
     ladder (its rung reports the smoother's held-out numbers). ``progress``
     is called with a line of text before each diagnosis.
     """
-    from ..fit import _as_batch
+    from ..core import as_batch
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
-    batch = _as_batch(batch)
+    batch = as_batch(batch)
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)

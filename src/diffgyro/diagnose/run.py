@@ -52,7 +52,7 @@ def _chunks(n_devices: int, size: int):
 
 def _inputs(batch: Batch, res, idx: np.ndarray) -> dict:
     """One chunk's samples and the fit's temperature normalisation and sampling intervals."""
-    from ..fit import sampling_intervals
+    from ..core import sampling_intervals
 
     def arr(x):
         return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
@@ -273,7 +273,7 @@ def diagnose(
     object.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
-    from ..fit import _as_batch
+    from ..core import as_batch
     from ..fit import fit as fit_fn
 
     if isinstance(model, str):
@@ -283,7 +283,7 @@ def diagnose(
 
         raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
                         hint="drop random_walk from --model: it is tried as a candidate")
-    batch = _as_batch(batch)
+    batch = as_batch(batch)
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
