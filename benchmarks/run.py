@@ -606,7 +606,12 @@ else:
     verdicts = [d.verdict + ":" + str(d.best.effect if d.best else None)
                 for d in diagnose("bias_poly(2)", batch).devices]
 seconds = time.perf_counter() - t0
-print(json.dumps({{"s": seconds, "rss_GB": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1e6}}))
+# peak RSS of this process image: VmHWM (ru_maxrss keeps the parent's peak across exec)
+try:
+    hwm = next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM"))
+except (OSError, StopIteration):
+    hwm = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({{"s": seconds, "rss_GB": hwm / 1e6}}))
 """
 
 
@@ -631,24 +636,40 @@ def native_run(command: str, path, cache: str = "") -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+#: The record sizes (devices, samples) of the full diagnose_native case: memory from 100 000
+#: to 1.35 M samples per device (200 Hz × 1 h is 720 000; a PX4 thermal log of three IMUs at
+#: 250 Hz × 1.5 h is 3 × 1.35 M).
+NATIVE_LADDER = {720_000: ((1, 100_000), (1, 360_000), (1, 720_000), (1, 1_350_000),
+                           (3, 1_350_000))}
+
+
 def case_diagnose_native(devices, samples, subset, repeats, bw):
     """diagnose and fit on the same raw-rate record (200 Hz), each in a child process: time of
-    the call and the process's peak RSS (compiled programs from the persistent cache)."""
+    the call and the process's peak RSS (compiled programs from the persistent cache, filled
+    by a first process of each). Full size: every record of :data:`NATIVE_LADDER`."""
     import os
     import tempfile
 
     cache = os.environ.get("DIFFGYRO_CACHE_DIR", "")
     rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "native.npz"
-        native_data(path, devices, samples)
-        for command in ("fit", "diagnose"):
-            native_run(command, path, cache)  # fills the compile cache
-            r = native_run(command, path, cache)
-            rows.append(row(f"{command}:native", devices, samples, r["s"], None, None, None, None,
-                            None, devices * samples * 6 * 8, bw, peak_rss_GB=r["rss_GB"],
-                            note=f"{command}('bias_poly(2)') on a 200 Hz thermal run, own process"))
-    rows[1]["time_vs_fit"] = rows[1]["diffgyro_s"] / rows[0]["diffgyro_s"]
+    for d, n in NATIVE_LADDER.get(samples, ((devices, samples),)):
+        pair = []
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "native.npz"
+            native_data(path, d, n)
+            for command in ("fit", "diagnose"):
+                native_run(command, path, cache)  # fills the compile cache
+                r = native_run(command, path, cache)
+                pair.append(row(f"{command}:native", d, n, r["s"], None, None, None, None,
+                                None, d * n * 6 * 8, bw, peak_rss_GB=r["rss_GB"],
+                                note=f"{command}('bias_poly(2)') on a 200 Hz thermal run, own process"))
+                print(f"  {command}:native {d} x {n}: {r['s']:.2f} s, {r['rss_GB']:.3f} GB", flush=True)
+        pair[1]["time_vs_fit"] = pair[1]["diffgyro_s"] / pair[0]["diffgyro_s"]
+        rows += pair
+    first = next(r for r in rows if r["case"] == "diagnose:native")
+    for r in rows:
+        if r["case"] == "diagnose:native":
+            r["rss_vs_smallest"] = r["peak_rss_GB"] / first["peak_rss_GB"]
     return rows
 
 

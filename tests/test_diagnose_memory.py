@@ -1,0 +1,77 @@
+"""diagnose's memory grows with the record by a few per-sample arrays, not by its candidates.
+
+Scores come from per-block sums (``diffgyro.diagnose.scoring``); what still grows
+with the record is a few per-sample arrays of one device (its signals, the base
+design and residual, one candidate's columns). Measured in child processes:
+the peak RSS of a second ``diagnose`` call (the first compiles) on a short and on
+a four times longer 200 Hz record. The absolute figures at raw-log sizes live in
+``benchmarks/README.md`` (the ``diagnose_native`` case).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+
+CHILD = r"""
+import json, sys
+import numpy as np
+import diffgyro
+diffgyro.enable_x64()
+from diffgyro.data import Batch, Recording
+from diffgyro.diagnose import diagnose
+
+def hwm_kb():
+    return next(int(line.split()[1]) for line in open("/proc/self/status") if line.startswith("VmHWM"))
+
+def record(n, fs=200.0, seed=3):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    temp = np.interp(t, [0, t[-1] / 3, 2 * t[-1] / 3, t[-1]], [-10.0, 50.0, 50.0, 0.0])
+    temp = temp + 0.02 * rng.normal(size=n)
+    gyro = (1e-3 * (temp - 20) / 40)[:, None] + 2e-3 * rng.normal(size=(n, 3))
+    return Recording(t=t, gyro=gyro, temp=temp, temp_ext=0.7 * temp + 5.0, device=f"n{n}")
+
+batch = Batch.from_recordings([record(int(sys.argv[1]))])
+diagnose("bias_poly(2)", batch)  # compiles
+open("/proc/self/clear_refs", "w").write("5")  # the peak from here on
+before = hwm_kb()
+d = diagnose("bias_poly(2)", batch).devices[0]
+print(json.dumps({"peak_kB": hwm_kb(), "before_kB": before, "verdict": d.verdict}))
+"""
+
+
+def _peak(n: int, env: dict) -> dict:
+    """Peak RSS (kB) of the second diagnose call on an ``n``-sample record, own process."""
+    try:
+        proc = subprocess.run([sys.executable, "-c", CHILD, str(n)], env=env,
+                              capture_output=True, text=True, timeout=600)
+    except subprocess.TimeoutExpired:
+        pytest.fail("diagnose did not finish in 10 minutes")
+    if proc.returncode != 0 and "clear_refs" in proc.stderr:
+        pytest.skip("cannot reset the peak RSS here (/proc/self/clear_refs)")
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return json.loads(proc.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="peak RSS from /proc (Linux)")
+def test_memory_per_sample_is_a_few_arrays():
+    """The peak grows by less than 3 kB per sample (under 400 float64 values; the old
+    diagnose, which materialised every candidate's columns, took about 15 kB), and the
+    record four times longer stays within 1.5 times the short one's peak."""
+    sizes = [30_000, 120_000]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(SRC)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    res = {n: _peak(n, env) for n in sizes}
+    small, large = res[sizes[0]], res[sizes[1]]
+    per_sample = (large["peak_kB"] - small["peak_kB"]) * 1e3 / (sizes[1] - sizes[0])
+    assert per_sample < 3000, res
+    assert large["peak_kB"] < 1.5 * small["peak_kB"], res
+    assert small["verdict"] == large["verdict"] == "adequate", res
