@@ -5,6 +5,12 @@ DESIGN.md §3 (SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
 recordings along a leading device axis, padded to a bucket length with a
 sample mask, so that batches of slightly different lengths reuse one compiled
 function. Arrays are host numpy arrays here; fits move them to JAX.
+
+Extra numeric columns of a file (supply voltage, a second board temperature,
+heater duty, ...) travel beside the standard signals in ``aux``, a dict from
+column name to a (n,) array; an ``aux(NAME)`` effect term reads them. In
+signal sets (:func:`inputs_of`, ``ErrorModel.requires``) they are named
+``aux:NAME`` (:func:`aux_key`).
 """
 
 from __future__ import annotations
@@ -31,6 +37,22 @@ SIGNALS: dict[str, tuple[str, ...]] = {
 OPTIONAL_SIGNALS = ("temp", "temp_ext", "accel", "mag", "rate", "quat")
 COLUMN_TO_SIGNAL = {c: s for s, cols in SIGNALS.items() for c in cols}
 STANDARD_COLUMNS = ("device", "t", *[c for cols in SIGNALS.values() for c in cols])
+AUX_PREFIX = "aux:"
+
+
+def aux_key(name: str) -> str:
+    """The signal name of extra column ``name`` (as effect terms declare it in ``requires``)."""
+    return AUX_PREFIX + name
+
+
+def inputs_of(data) -> frozenset[str]:
+    """Signals of a Recording or Batch, extra columns included as ``aux:NAME``."""
+    return frozenset(data.signals) | {aux_key(k) for k in data.aux}
+
+
+def _aux_dict(aux) -> dict:
+    """Extra columns in name order (a static order: the pytree flattens dicts sorted)."""
+    return {str(k): aux[k] for k in sorted(aux or {})}
 
 
 class Recording(eqx.Module):
@@ -46,6 +68,8 @@ class Recording(eqx.Module):
     quat: Float[np.ndarray, "n 4"] | None = None
     device: str = eqx.field(static=True, default="device")
     source: str | None = eqx.field(static=True, default=None)
+    #: Extra numeric columns by name, each (n,).
+    aux: dict[str, Float[np.ndarray, " n"]] = eqx.field(default_factory=dict, converter=_aux_dict)
 
     @property
     def n(self) -> int:
@@ -68,13 +92,16 @@ class Recording(eqx.Module):
             arr = np.asarray(arr).reshape(self.n, len(names))
             for k, name in enumerate(names):
                 cols[name] = arr[:, k]
+        for name, arr in self.aux.items():
+            cols[name] = np.asarray(arr)
         return pd.DataFrame(cols)
 
     def slice(self, start: int, stop: int) -> Recording:
         """Samples ``start:stop`` as a new recording of the same device."""
         kw = {s: (None if getattr(self, s) is None else getattr(self, s)[start:stop])
               for s in ("t", "gyro", *OPTIONAL_SIGNALS)}
-        return Recording(**kw, device=self.device, source=self.source)
+        return Recording(**kw, device=self.device, source=self.source,
+                         aux={k: v[start:stop] for k, v in self.aux.items()})
 
 
 def bucket_length(n: int, minimum: int = 64) -> int:
@@ -150,10 +177,13 @@ class Batch(eqx.Module):
     quat: Float[np.ndarray, "d n 4"] | None = None
     devices: tuple[str, ...] = eqx.field(static=True, default=())
     sources: tuple[str | None, ...] = eqx.field(static=True, default=())
+    #: Extra numeric columns by name, each (d, n), padded by holding the last value.
+    aux: dict[str, Float[np.ndarray, "d n"]] = eqx.field(default_factory=dict, converter=_aux_dict)
 
     def __post_init__(self):
         for name in ("t", "gyro", "mask", "temp", "temp_ext", "accel", "mag", "rate", "quat"):
             setattr(self, name, _aligned(getattr(self, name)))
+        self.aux = {k: _aligned(v) for k, v in self.aux.items()}
 
     @property
     def n_devices(self) -> int:
@@ -177,8 +207,8 @@ class Batch(eqx.Module):
     ) -> Batch:
         """Stack recordings, padding each to a common (bucketed) length.
 
-        A signal is kept only if every recording has it. Device ids must be
-        unique within the batch.
+        A signal (or extra column) is kept only if every recording has it.
+        Device ids must be unique within the batch.
         """
         recordings = list(recordings)
         if not recordings:
@@ -218,11 +248,14 @@ class Batch(eqx.Module):
                                    for r in recordings])
             else:
                 fields[s] = None
+        common = set.intersection(*(set(r.aux) for r in recordings))
+        aux = {k: stack([_pad(np.asarray(r.aux[k], dtype), length, "hold") for r in recordings])
+               for k in sorted(common)}
         n_valid = np.array([r.n for r in recordings], dtype=np.int64)
         mask = np.arange(length)[None, :] < n_valid[:, None]
         return cls(**fields, mask=mask, n_valid=n_valid,
                    devices=tuple(r.device for r in recordings),
-                   sources=tuple(r.source for r in recordings))
+                   sources=tuple(r.source for r in recordings), aux=aux)
 
     def recording(self, i: int) -> Recording:
         """Device ``i`` as an unpadded :class:`Recording`."""
@@ -230,7 +263,8 @@ class Batch(eqx.Module):
         kw = {s: (None if getattr(self, s) is None else np.asarray(getattr(self, s)[i, :n]))
               for s in ("t", "gyro", *OPTIONAL_SIGNALS)}
         return Recording(**kw, device=self.devices[i],
-                         source=self.sources[i] if self.sources else None)
+                         source=self.sources[i] if self.sources else None,
+                         aux={k: np.asarray(v[i, :n]) for k, v in self.aux.items()})
 
     def recordings(self) -> list[Recording]:
         return [self.recording(i) for i in range(self.n_devices)]
@@ -241,7 +275,8 @@ class Batch(eqx.Module):
         kw = {s: (None if getattr(self, s) is None else np.asarray(getattr(self, s))[idx])
               for s in ("t", "gyro", "mask", "n_valid", *OPTIONAL_SIGNALS)}
         return Batch(**kw, devices=tuple(self.devices[i] for i in idx),
-                     sources=tuple(self.sources[i] for i in idx) if self.sources else ())
+                     sources=tuple(self.sources[i] for i in idx) if self.sources else (),
+                     aux={k: np.asarray(v)[idx] for k, v in self.aux.items()})
 
     def to_frame(self):
         import pandas as pd

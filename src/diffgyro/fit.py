@@ -22,6 +22,7 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from . import aux as aux_cols
 from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
     FAILED,
     INSUFFICIENT_DATA,
@@ -42,7 +43,7 @@ from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
     stochastic_fit,
 )
 from .data import Batch, Recording
-from .errors import DataError
+from .errors import DataError, SpecError
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .linalg import (  # noqa: F401  (re-exported)
@@ -62,11 +63,14 @@ def batch_signals(
     norm: TempNorm | None = None,
     dtemp_window: float = 60.0,
     dtype=jnp.float64,
+    aux: dict | None = None,
 ) -> Signals:
     """Derived signals of every device, stacked on the device axis (JAX arrays).
 
     ``norm`` fixes the temperature centring (scalars, or one per device, as a
     calibration stores them); by default each device uses its own range.
+    ``aux`` holds the extra columns the model reads, centred and scaled
+    (:func:`diffgyro.aux.scaled`, (devices, n) each).
     """
 
     def arr(x):
@@ -77,12 +81,13 @@ def batch_signals(
         norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
                         scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
 
-    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt):
+    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux):
         return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
-                            norm=norm, dtemp_window=dtemp_window, dt=dt)
+                            norm=norm, dtemp_window=dtemp_window, dt=dt, aux=aux)
 
     return jax.vmap(one)(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
-                         arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt)
+                         arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
+                         {k: arr(v) for k, v in (aux or {}).items()})
 
 
 # --------------------------------------------------------------------------- one device
@@ -365,6 +370,10 @@ class FitResult(eqx.Module):
     collinear: Bool[Array, "d t"]
     n_samples: Float[Array, " d"]
     options: FitOptions
+    #: Centre and half-range of every extra column the model reads ((d,) arrays each).
+    aux_norm: dict[str, TempNorm] = eqx.field(default_factory=dict)
+    #: Calibrated range of every extra column the model reads ((d, 2) each).
+    aux_range: dict[str, Float[Array, "d 2"]] = eqx.field(default_factory=dict)
 
     @property
     def n_devices(self) -> int:
@@ -430,8 +439,11 @@ class FitResult(eqx.Module):
 
     def signals(self, batch: Batch) -> Signals:
         """Derived signals of ``batch`` with this calibration's temperature centring."""
+        names = aux_cols.aux_names(self.model.requires())
+        aux_cols.check_columns(batch, names)
         return batch_signals(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
-                             dtemp_window=self.options.dtemp_window)
+                             dtemp_window=self.options.dtemp_window,
+                             aux=aux_cols.scaled(batch, self.aux_norm) if names else None)
 
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
@@ -447,12 +459,14 @@ def fit(
     norm: TempNorm | None = None,
     options: FitOptions | None = None,
     theta0: Float[Array, "d q"] | None = None,
+    aux_norm: dict[str, TempNorm] | None = None,
     **option_overrides,
 ) -> FitResult:
     """Calibrate every device of ``data`` with ``model`` (a spec string or ErrorModel).
 
     ``norm`` fixes the temperature centring (default: each device's own
-    range); ``theta0`` (devices × nonlinear parameters, solver space = log τ)
+    range), ``aux_norm`` that of extra columns by name (``aux(NAME)`` terms);
+    ``theta0`` (devices × nonlinear parameters, solver space = log τ)
     replaces the grid start of the nonlinear solve. Keyword overrides set
     fields of :class:`FitOptions` (``n_folds=5``, ``max_steps=100``, ...).
     """
@@ -463,7 +477,9 @@ def fit(
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
     release_compiled_if_crowded(interval=1.0)  # before this fit compiles its programs
-    missing = model.requires() - set(batch.signals) - {"t"}
+    names = aux_cols.aux_names(model.requires())
+    aux_cols.check_columns(batch, names)  # DataError: missing, gaps, constant
+    missing = model.requires() - set(batch.signals) - {"t"} - {f"aux:{k}" for k in names}
     if missing:
         col = {"temp": "temp", "temp_ext": "temp_ext", "accel": "ax, ay, az",
                "rate": "rx, ry, rz"}
@@ -472,6 +488,9 @@ def fit(
                         file=batch.sources[0] if batch.sources else None, column=col.get(name, name))
     noise = [t for t in model.terms if t.stochastic]
     if noise:  # the state-space path (random_walk: diffgyro.kalman), found by its effect
+        if names:
+            raise SpecError(f"random_walk with aux terms ({model.spec!r}) is not supported",
+                            hint="fit the aux terms without random_walk")
         fit_noise = stochastic_fit(noise[0].name)
         return fit_noise(model, batch, norm=norm, options=options, **option_overrides)
     opts = options or FitOptions()
@@ -479,13 +498,17 @@ def fit(
         opts = opts.replace(**option_overrides)
     if opts.path not in ("auto", "direct", "sums"):
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
+    extra = aux_cols.norms(batch, names, aux_norm), aux_cols.ranges(batch, names)
     if opts.solver != "lm" and opts.path in ("sums", "auto"):
-        return _fit_sums(model, batch, norm, opts, theta0)
+        return _fit_sums(model, batch, norm, opts, theta0, extra)
     if opts.path == "sums":
         raise ValueError("path='sums' needs solver='closed'")
     n_dev = batch.n_devices
     batch = pad_devices(batch)  # a few device-count buckets: no compile per batch size
-    sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window)
+    pad = np.minimum(np.arange(batch.n_devices), n_dev - 1)
+    scaled = aux_cols.scaled(batch, {k: TempNorm(centre=v.centre[pad], scale=v.scale[pad])
+                                     for k, v in extra[0].items()})
+    sig = batch_signals(batch, norm=norm, dtemp_window=opts.dtemp_window, aux=scaled)
     if theta0 is not None:
         theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype), (n_dev, model.n_nonlinear))
         theta0 = theta0[np.minimum(np.arange(batch.n_devices), n_dev - 1)]
@@ -507,15 +530,23 @@ def fit(
         heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
         noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
         status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
-        n_samples=out["n_samples"], options=opts)
+        n_samples=out["n_samples"], options=opts, **_aux_fields(extra))
+
+
+def _aux_fields(extra) -> dict:
+    """FitResult's ``aux_norm`` and ``aux_range`` from (norms, ranges) (JAX arrays)."""
+    norms, ranges = extra
+    return dict(aux_norm={k: TempNorm(centre=jnp.asarray(v.centre), scale=jnp.asarray(v.scale))
+                          for k, v in norms.items()},
+                aux_range={k: jnp.asarray(v) for k, v in ranges.items()})
 
 
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
-              theta0=None) -> FitResult:
+              theta0=None, extra=({}, {})) -> FitResult:
     """The sums path (fit_sums.py): one blocked pass per trial of the time constants."""
     from .fit_sums import solve_sums
 
-    out = solve_sums(model, batch, norm, opts, theta0)
+    out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]))
     d = batch.n_devices
     if "norm_centre" in out:
         norm_out = TempNorm(centre=jax.device_put(out.pop("norm_centre")),
@@ -531,4 +562,4 @@ def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitO
         heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
         noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
         status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
-        n_samples=out["n_samples"], options=opts)
+        n_samples=out["n_samples"], options=opts, **_aux_fields(extra))

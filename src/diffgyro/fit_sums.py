@@ -61,7 +61,7 @@ from jax.interpreters import partial_eval as pe
 from jaxtyping import Bool
 
 from .core import TRACE_COUNTS, fit_status, fold_ids, min_samples, sampling_intervals
-from .data import Batch
+from .data import AUX_PREFIX, Batch, aux_key
 from .jit import collector_paused, filter_jit, parallel_devices
 from .linalg import rank_check, scale_gram
 from .model import ErrorModel
@@ -161,7 +161,12 @@ def _random_signals(present: frozenset[str], n: int, seed: int) -> Signals:
         temp_ext=rng.uniform(0, 30, n) if has["temp_ext"] else None,
         accel=r(size=(n, 3)) if has["accel"] else None,
         norm=TempNorm(centre=np.asarray(25.0), scale=np.asarray(15.0)) if has["temp"] else None,
-        has_rate=has["rate"])
+        has_rate=has["rate"], aux={k[len(AUX_PREFIX):]: r(size=n) for k in _aux_inputs(present)})
+
+
+def _aux_inputs(present: frozenset[str]) -> list[str]:
+    """The extra-column inputs (``aux:NAME``) among ``present``, in order."""
+    return sorted(k for k in present if k.startswith(AUX_PREFIX))
 
 
 @filter_jit(compiler_options=ONCE)
@@ -233,11 +238,14 @@ def _inputs_read(model: ErrorModel, present: frozenset[str], n: int, q: int) -> 
     interval matters, through dT/dt), by dead-code elimination of their trace."""
     dtype = jnp.float64 if jax.config.read("jax_enable_x64") else jnp.float32
     shapes = {"t": (n,), "rate": (n, 3), "temp": (n,), "temp_ext": (n,), "accel": (n, 3)}
-    names = [k for k in INPUTS if k in present or k == "t"]
+    shapes.update({k: (n,) for k in _aux_inputs(present)})
+    names = [k for k in INPUTS if k in present or k == "t"] + _aux_inputs(present)
 
     def f(dt, *arrays):
         kw = dict(zip(names, arrays))
-        s = make_signals(kw.pop("t"), jnp.zeros((n, 3), dtype), jnp.ones(n, bool), **kw, dt=dt)
+        aux = {k[len(AUX_PREFIX):]: kw.pop(k) for k in _aux_inputs(present)}
+        s = make_signals(kw.pop("t"), jnp.zeros((n, 3), dtype), jnp.ones(n, bool), **kw, dt=dt,
+                         aux=aux)
         out = [model.design(s, jnp.zeros((q,), dtype))]
         if model.deterministic:
             out.append(model.range_problems(s))
@@ -690,7 +698,7 @@ def _chunked_sum(ops, c: int):
 
 
 def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
-            temp, temp_ext, accel, centre, scale, dt, nv, theta0, pos=None):
+            temp, temp_ext, accel, aux, centre, scale, dt, nv, theta0, pos=None):
     p, nq = layout.p, model.n_nonlinear
     dtype = gyro.dtype
     if isinstance(pos, str):  # ALIGNED: every sample valid; a constant mask folds away
@@ -700,7 +708,8 @@ def _device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gy
         norm = temp_norm_from(temp, mask) if centre is None else TempNorm(centre=centre, scale=scale)
     t = jnp.zeros(mask.shape, dtype) if t is None else t
     sig = make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
-                       norm=norm, dtemp_window=opts.dtemp_window, dt=dt, slopes=dt is not None)
+                       norm=norm, dtemp_window=opts.dtemp_window, dt=dt, slopes=dt is not None,
+                       aux=aux)
     if temp is not None:  # the same T_s with a multiply instead of a divide per sample
         inv = 1.0 / norm.scale
         sig = eqx.tree_at(lambda s_: s_.temp_s, sig, temp * inv - norm.centre * inv)
@@ -982,7 +991,7 @@ def _covariance_separable(a, xg, gg, sigma2):
 
 
 def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
-                   centre, scale, dt, nv, theta0, pos=None, apart=False):
+                   aux, centre, scale, dt, nv, theta0, pos=None, apart=False):
     """Every device of a group through :func:`_device`: its results finished and packed
     (:func:`_pack`), or with ``apart`` its sums as they are (finished by
     :func:`_group_finish`)."""
@@ -994,7 +1003,7 @@ def _group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, te
             return _device(model, layout, opts, c, prefix, *args, pos=pos)
         return _device(model, layout, opts, c, prefix, *args)
 
-    args = (t, gyro, mask, rate, temp, temp_ext, accel, centre, scale, dt, nv, theta0)
+    args = (t, gyro, mask, rate, temp, temp_ext, accel, aux, centre, scale, dt, nv, theta0)
     raw = jax.vmap(one)(*(args if aligned else (*args, pos)))
     return raw if apart else _finished(model, layout, opts, raw)
 
@@ -1079,12 +1088,14 @@ def valid_counts(mask: Bool[np.ndarray, "d n"]) -> tuple[np.ndarray, np.ndarray]
 
 
 def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, theta0=None,
-               dtype=np.float64):
+               dtype=np.float64, aux: dict | None = None):
     """Fit every device of ``batch`` with the sums path; numpy arrays with a device axis.
 
-    ``theta0`` (devices × time constants, log s) replaces the grid start.
+    ``theta0`` (devices × time constants, log s) replaces the grid start; ``aux`` holds
+    the extra columns the model reads, centred and scaled ((devices, n) each).
     """
-    present = frozenset(batch.signals)
+    aux = dict(aux or {})
+    present = frozenset(batch.signals) | {aux_key(k) for k in aux}
     layout, need = layout_of(model, present)
     d, n = batch.n_devices, batch.length
     fused = layout.pointwise and all(layout.shared)
@@ -1107,6 +1118,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         arrays[k] = arr if (arr is not None and (k in need or k in ("temp", "rate"))) else None
     if "t" not in need:
         arrays["t"] = None
+    arrays["aux"] = {k: v for k, v in aux.items() if aux_key(k) in need}
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
@@ -1115,7 +1127,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # without optimisation beside it; a fused linear model's finishes inline
     apart = group is _group_compact
     finish = (model, layout, opts)
-    order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "centre", "scale", "dt")
+    order = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "aux", "centre", "scale",
+             "dt")
     nv_all, prefix_all = valid_counts(batch.mask)
 
     def run(j: int):
@@ -1128,7 +1141,9 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         c = chunk_size(int(nv.min()), opts.n_blocks, n)
         host = {k: (np.asarray(batch.mask[sl], bool) if k == "mask"
                     else np.ascontiguousarray(np.asarray(arrays[k][sl], dtype)))
-                for k in order if arrays[k] is not None}
+                for k in order if arrays[k] is not None and k != "aux"}
+        host["aux"] = {k: np.ascontiguousarray(np.asarray(v[sl], dtype))
+                       for k, v in arrays["aux"].items()}
         host["nv"] = nv.astype(np.int32)
         if arrays["theta0"] is not None:
             host["theta0"] = np.ascontiguousarray(arrays["theta0"][sl])

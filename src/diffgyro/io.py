@@ -29,6 +29,7 @@ import gzip
 import lzma
 import math
 import os
+import re
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -145,7 +146,12 @@ def resolve_units(units: Mapping[str, str] | None) -> dict[str, tuple[float, flo
 
 
 def parse_columns(text: str | None) -> dict[str, str]:
-    """Parse the command-line mapping ``"gx=gyr_x,gy=gyr_y"`` (standard=name in file)."""
+    """Parse the command-line mapping ``"gx=gyr_x,gy=gyr_y"`` (standard=name in file).
+
+    A left-hand name that is not a standard column renames an extra column:
+    ``vdd=Supply V`` keeps the file's ``Supply V`` as the extra column ``vdd``
+    (letters, digits, ``_`` and ``.``, starting with a letter or ``_``; the
+    name an ``aux(vdd)`` term uses)."""
     out: dict[str, str] = {}
     if text is None or not text.strip():
         return out
@@ -164,10 +170,15 @@ def parse_columns(text: str | None) -> dict[str, str]:
     return out
 
 
+#: Names an extra column may take (the column argument of an ``aux(NAME)`` term).
+AUX_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_.]*")
+
+
 def _check_mapping_pair(std: str, name: str) -> None:
-    if std not in STANDARD_COLUMNS:
+    if std not in STANDARD_COLUMNS and not AUX_NAME.fullmatch(std):
         raise DataError(f"unknown standard column {std!r} in column mapping",
-                        hint="valid: " + ", ".join(STANDARD_COLUMNS))
+                        hint="valid: " + ", ".join(STANDARD_COLUMNS) + "; another name renames "
+                             "an extra column (letters, digits, _ and ., e.g. vdd=Supply V)")
     if not name:
         raise DataError(f"column mapping for {std} names no column")
 
@@ -210,13 +221,15 @@ class LoadReport:
     dropped: list[Dropped] = field(default_factory=list)
     # one line each, "warning: file F: ..." (e.g. a log reader's fallback)
     warnings: list[str] = field(default_factory=list)
+    #: One line per file that had extra columns holding text (they are not loaded).
+    ignored: list[str] = field(default_factory=list)
 
     @property
     def n_dropped(self) -> int:
         return sum(d.rows for d in self.dropped)
 
     def lines(self) -> list[str]:
-        return [d.message() for d in self.dropped] + list(self.warnings)
+        return [d.message() for d in self.dropped] + list(self.warnings) + list(self.ignored)
 
 
 def check_min_samples(recording: Recording, n_needed: int, why: str = "the model") -> None:
@@ -234,6 +247,8 @@ def check_min_samples(recording: Recording, n_needed: int, why: str = "the model
 _CSV_SUFFIXES = {".csv": None, ".tsv": "\t", ".txt": None}
 _COMPRESSION = {".gz": "gzip", ".bz2": "bz2", ".xz": "xz"}
 _OPENERS = {"gzip": gzip.open, "bz2": bz2.open, "xz": lzma.open}
+#: Rows of a CSV file read to tell numeric extra columns from text ones.
+_PEEK_ROWS = 1000
 _NA_CSV = ["", "nan", "NaN", "NAN", "-nan", "-NaN", "NA", "N/A", "n/a", "null", "NULL",
            "None", "none", "#N/A", "<NA>", "NaT"]
 _NA_TEXT = frozenset({"", "nan", "-nan", "+nan", "na", "n/a", "nat", "null", "none", "#n/a",
@@ -384,6 +399,33 @@ class _Source:
                             file=self.file,
                             hint="store one 1-D array per column, device ids as text") from None
         self.raw_names = list(self._arrays)
+
+    def text_columns(self, names: list[str]) -> set[str]:
+        """Those of ``names`` that hold text, not numbers: for Parquet and NPZ from the
+        stored types; for CSV from the first rows (a column that turns to text further
+        down is found when it is read)."""
+        if not names:
+            return set()
+        raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
+        if self.format == "parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
+
+            schema = pq.read_schema(self.path)
+            return {n for n in names if not (pa.types.is_integer(schema.field(raw[n]).type)
+                                             or pa.types.is_floating(schema.field(raw[n]).type))}
+        if self.format == "npz":
+            return {n for n in names if self._arrays[raw[n]].dtype.kind not in "iuf"}
+        if self.log is not None:
+            return {n for n in names if self.log.frame[raw[n]].dtype.kind not in "iuf"}
+        try:
+            head = self._read_csv(header=0, nrows=_PEEK_ROWS, dtype=str,
+                                  usecols=[raw[n] for n in names])
+        except _ReadFailure:
+            return set()  # the full read reports what is wrong with the file
+        head.columns = [str(c).strip() for c in head.columns]
+        return {n for n in names if not all(_is_number(v) or v.strip().lower() in _NA_TEXT
+                                            for v in head[n].tolist())}
 
     def read(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame:
         if self.log is not None:
@@ -666,7 +708,8 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
 
     numeric = (["t"] if "t" in present else []) + [c for s in signals for c in SIGNALS[s]]
     wanted_std = (["device"] if "device" in present else []) + numeric
-    frame = src.read([present[s] for s in wanted_std],
+    extra, ignored = _extra_columns(src, columns, present)
+    frame = src.read([present[s] for s in wanted_std] + list(extra.values()),
                      {present["device"]} if "device" in present else set())
     n = len(frame)
     if n == 0:
@@ -680,7 +723,20 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
     values = np.empty((n, len(numeric)))
     for j, std in enumerate(numeric):
         values[:, j] = _to_float(frame[present[std]], file, _label(std, present[std]), devices)
+    aux_all: dict[str, np.ndarray] = {}
+    for name, col in extra.items():
+        try:
+            aux_all[name] = _to_float(frame[col], file, col, devices)
+        except DataError:  # text further down than the first rows
+            ignored.append(col)
     del frame
+    if ignored:
+        line = (f"ignored non-numeric column{'s' if len(ignored) > 1 else ''} "
+                f"{', '.join(sorted(ignored))} in file {file}")
+        if report is not None:
+            report.ignored.append(line)
+        else:
+            warnings.warn(line, stacklevel=3)
 
     # group rows by device: first-appearance order, file order within a device
     codes, uniques = pd.factorize(devices, sort=False)
@@ -710,6 +766,8 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
                                               int(rows[first]) + 1))
             keep = ~bad_rows
             vals, rows, k_index = vals[keep], rows[keep], k_index[keep]
+        # extra columns may hold gaps: checked when a model uses them (diffgyro.aux)
+        aux = {name: np.ascontiguousarray(a[rows]) for name, a in aux_all.items()}
         cols = {std: vals[:, j] for j, std in enumerate(numeric)}
         t = cols["t"] if "t" in cols else k_index / sampling_rate
         fields: dict[str, np.ndarray] = {}
@@ -734,7 +792,7 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
         _check_time(fields["t"], rows, file, dev,
                     _label("t", present["t"]) if "t" in present else "t (from sampling rate)",
                     several="device" in present)
-        rec = Recording(**fields, device=dev, source=file)
+        rec = Recording(**fields, device=dev, source=file, aux=aux)
         if rec.n < min_samples:
             dropped = " after dropping invalid rows" if drop_invalid and bad_rows.any() else ""
             raise DataError(
@@ -742,6 +800,25 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
                 f"fewer samples than loading needs ({min_samples})", file=file, device=dev)
         out.append(rec)
     return out
+
+
+def _extra_columns(src: _Source, columns: Mapping[str, str],
+                   present: Mapping[str, str]) -> tuple[dict[str, str], list[str]]:
+    """Extra columns to keep (name -> file column) and the text ones to ignore.
+
+    Every named file column that is neither a standard column nor used for one
+    is kept under its own name; ``columns`` entries whose key is not a standard
+    name rename one (the renamed name wins over a file column of that name)."""
+    used = set(present.values())
+    renamed = {name: col for name, col in columns.items() if name not in STANDARD_COLUMNS}
+    taken = set(renamed.values())
+    extra = dict(renamed)
+    for col in src.names:
+        if (col and col not in used and col not in taken and col not in STANDARD_COLUMNS
+                and col not in extra):
+            extra[col] = col
+    text = src.text_columns(list(extra.values()))
+    return {k: v for k, v in extra.items() if v not in text}, sorted(text)
 
 
 def _is_number(text: str) -> bool:
@@ -790,6 +867,8 @@ def _as_recordings(data) -> list[Recording]:
 def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike) -> Path:
     """Write recordings in the standard schema (long format) to CSV, Parquet or NPZ.
 
+    Extra columns (``aux``) follow the standard ones under their names.
+
     The format follows the extension (``.csv``, ``.tsv``, ``.csv.gz``,
     ``.parquet``, ``.npz``). Values are written as float64 in the shortest
     decimal form that reads back bitwise identical. The file is written to a
@@ -809,6 +888,12 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
                 f"{', '.join(recs[0].signals)} for {recs[0].device}); one long-format file "
                 f"needs the same columns for all", device=r.device, file=str(path),
                 hint="save them to separate files")
+        if list(r.aux) != list(recs[0].aux):
+            raise DataError(
+                f"devices have different extra columns ({', '.join(r.aux) or 'none'} vs "
+                f"{', '.join(recs[0].aux) or 'none'} for {recs[0].device}); one long-format "
+                f"file needs the same columns for all", device=r.device, file=str(path),
+                hint="save them to separate files")
     fmt, compression = _format_of(path)
     cols: dict[str, np.ndarray] = {
         "device": np.concatenate([np.full(r.n, r.device, dtype=object) for r in recs])}
@@ -821,6 +906,8 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
              for r in recs])
         for k, name in enumerate(names):
             cols[name] = stacked[:, k]
+    for name in recs[0].aux:
+        cols[name] = np.concatenate([np.asarray(r.aux[name], dtype=np.float64) for r in recs])
     with AtomicFile(path, None) as f:
         tmp = f.tmp
         if fmt == "csv":

@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
+from .data import aux_key
+
 # |dT/dt| above which the sensor counts as heating or cooling (0.05 °C/min).
 HEATING_THRESHOLD = 0.05 / 60.0
 
@@ -43,6 +45,8 @@ class Signals(eqx.Module):
     accel: Float[Array, "n 3"] | None
     norm: TempNorm | None
     has_rate: bool = eqx.field(static=True, default=False)
+    #: Extra logged columns by name, centred and scaled (:mod:`diffgyro.aux`).
+    aux: dict[str, Float[Array, " n"]] = eqx.field(default_factory=dict)
 
     @property
     def available(self) -> frozenset[str]:
@@ -53,7 +57,7 @@ class Signals(eqx.Module):
                 have.add(name)
         if self.has_rate:
             have.add("rate")
-        return frozenset(have)
+        return frozenset(have) | {aux_key(k) for k in self.aux}
 
     def with_rate(self, rate: Float[Array, "n 3"]) -> Signals:
         """The same signals seen at another true rate (used to invert the model)."""
@@ -168,6 +172,7 @@ def make_signals(
     dtemp_window: float = 60.0,
     dt: Float[Array, ""] | None = None,
     slopes: bool = True,
+    aux: dict[str, Float[Array, " n"]] | None = None,
 ) -> Signals:
     """Derived signals for one device; pure, so it vmaps over a batch.
 
@@ -175,7 +180,8 @@ def make_signals(
     dT/dt; widen it when the temperature read-out is coarsely quantised.
     ``dt`` is the nominal sampling interval (default: median spacing of the
     valid samples). Without ``slopes`` dT/dt and the heating state are left out
-    (None): for a model that reads neither, they are not traced at all.
+    (None): for a model that reads neither, they are not traced at all. ``aux``
+    holds extra columns already centred and scaled (:func:`diffgyro.aux.scaled`).
     """
     t = jnp.asarray(t)
     t = t - t[0]
@@ -196,4 +202,5 @@ def make_signals(
     return Signals(
         t=t, gyro=gyro, mask=mask, rate=rate, temp=temp, temp_s=temp_s, dtemp=dtemp,
         heating=heating, temp_ext=temp_ext, accel=accel, norm=norm, has_rate=has_rate,
+        aux=dict(aux or {}),
     )

@@ -1,6 +1,7 @@
 """Effect terms: one small module per physical effect, a registry and the spec grammar."""
 
 from . import (  # noqa: F401  (importing registers the built-in terms)
+    aux,
     bias_poly,
     g_sens,
     gradient,
@@ -14,7 +15,17 @@ from . import (  # noqa: F401  (importing registers the built-in terms)
     thermal_lag,
     warmup,
 )
-from .base import AXES, AbstractEffect, format_spec, parse_spec, parse_term, register, registry
+from .aux import Aux
+from .base import (
+    AXES,
+    AbstractEffect,
+    format_spec,
+    parse_spec,
+    parse_term,
+    register,
+    registry,
+    spec_arguments,
+)
 from .bias_poly import BiasPoly
 from .g_sens import GSens
 from .gradient import Gradient
@@ -29,7 +40,8 @@ from .thermal_lag import ThermalLag, first_order_lag
 from .warmup import Warmup
 
 __all__ = [
-    "AXES", "AbstractEffect", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
+    "AXES", "AbstractEffect", "Aux", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
     "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
     "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
+    "spec_arguments",
 ]

@@ -36,8 +36,13 @@ class AbstractEffect(eqx.Module):
     Class attributes describe the term for the registry and the command line:
     ``name`` (the spec name), ``description`` (one line of physics),
     ``needs`` (data signals it reads: ``temp``, ``temp_ext``, ``accel``,
-    ``rate``, ``t``), ``unit`` (unit of its per-axis coefficients) and
-    ``order_arg`` (whether the spec takes an integer, e.g. ``bias_poly(2)``).
+    ``rate``, ``t``), ``unit`` (unit of its per-axis coefficients) and the
+    arguments its spec takes: ``order_arg`` (an integer order, e.g.
+    ``bias_poly(2)``) or, in general, ``arguments``: ``(field, kind)`` pairs in
+    spec order, kind ``"int"`` (an order from ``min_order`` to
+    :data:`MAX_ORDER`) or ``"column"`` (the name of an extra logged column,
+    e.g. ``aux(vdd,2)``); a trailing ``order`` with a ``default_order`` may be
+    left out.
     """
 
     name: ClassVar[str]
@@ -46,6 +51,9 @@ class AbstractEffect(eqx.Module):
     unit: ClassVar[str] = ""
     order_arg: ClassVar[bool] = False
     default_order: ClassVar[int | None] = None
+    min_order: ClassVar[int] = 0
+    #: Spec arguments as (field, kind) pairs; empty: ``(("order", "int"),)`` if ``order_arg``.
+    arguments: ClassVar[tuple[tuple[str, str], ...]] = ()
     #: True if the contribution depends on the true rate (inverted by ``compensate``).
     rate_dependent: ClassVar[bool] = False
     #: True for terms handled by a state-space smoother rather than by regression.
@@ -55,6 +63,12 @@ class AbstractEffect(eqx.Module):
     def spec(self) -> str:
         """This term as it is written in a model spec."""
         return self.name
+
+    @property
+    def identity(self) -> tuple:
+        """What may appear only once in a model: the name and any column arguments."""
+        return (self.name, *(getattr(self, f) for f, kind in spec_arguments(type(self))
+                             if kind == "column"))
 
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]:
@@ -143,13 +157,46 @@ def registry() -> dict[str, type[AbstractEffect]]:
     return dict(_REGISTRY)
 
 
-_TERM = re.compile(r"^\s*([a-z][a-z0-9_]*)\s*(?:\(\s*([0-9]+)\s*\))?\s*$")
+_TERM = re.compile(r"^\s*([a-z][a-z0-9_]*)\s*(?:\((.*)\))?\s*$", re.S)
+_INT = re.compile(r"[0-9]+")
+#: A column argument: the names :func:`diffgyro.io.parse_columns` may give extra columns.
+_COLUMN = re.compile(r"[A-Za-z_][A-Za-z0-9_.]*")
 MAX_ORDER = 9
 MAX_SPEC_LENGTH = 1000
 
 
+def spec_arguments(cls: type[AbstractEffect]) -> tuple[tuple[str, str], ...]:
+    """The (field, kind) arguments a term's spec takes, in order."""
+    if cls.arguments:
+        return tuple(cls.arguments)
+    return (("order", "int"),) if cls.order_arg else ()
+
+
+def _usage(name: str, args) -> str:
+    shown = [("NAME" if kind == "column" else "k") for _, kind in args]
+    return f"{name}({','.join(shown)})" if shown else name
+
+
+def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
+    if kind == "column":
+        if not _COLUMN.fullmatch(text):
+            raise SpecError(f"{text!r} is not a column name (argument {field} of {name!r})",
+                            hint="letters, digits, _ and ., starting with a letter or _; "
+                                 "rename a column with --columns new=old")
+        return text
+    if not _INT.fullmatch(text):
+        raise SpecError(f"argument {field} of {name!r} must be a whole number, not {text!r}")
+    order = int(text)
+    if order > MAX_ORDER:
+        raise SpecError(f"order {order} of {name!r} is above the maximum {MAX_ORDER}")
+    if order < cls.min_order:
+        raise SpecError(f"order {order} of {name!r} is below the minimum {cls.min_order}")
+    return order
+
+
 def parse_term(text: str) -> AbstractEffect:
-    """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``; clear errors for bad text."""
+    """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``, ``"aux(vdd,2)"`` -> ``Aux(column="vdd",
+    order=2)``; clear errors for bad text."""
     m = _TERM.match(text)
     valid = ", ".join(sorted(_REGISTRY))
     if m is None:
@@ -159,16 +206,25 @@ def parse_term(text: str) -> AbstractEffect:
     cls = _REGISTRY.get(name)
     if cls is None:
         raise SpecError(f"unknown effect {name!r}", hint=f"valid names: {valid}")
-    if arg is not None and not cls.order_arg:
+    kinds = spec_arguments(cls)
+    given = [] if arg is None else [a.strip() for a in arg.split(",")]
+    if given and not kinds:
         raise SpecError(f"effect {name!r} takes no argument", hint=f"write {name}")
-    if cls.order_arg:
-        order = cls.default_order if arg is None else int(arg)
-        if order is None:
-            raise SpecError(f"effect {name!r} needs an order", hint=f"write {name}(k), e.g. {name}(2)")
-        if order > MAX_ORDER:
-            raise SpecError(f"order {order} of {name!r} is above the maximum {MAX_ORDER}")
-        return cls(order=order)
-    return cls()
+    if len(given) > len(kinds):
+        raise SpecError(f"effect {name!r} takes at most {len(kinds)} argument"
+                        f"{'s' if len(kinds) > 1 else ''}", hint=f"write {_usage(name, kinds)}")
+    values = {}
+    for k, (field, kind) in enumerate(kinds):
+        if k < len(given):
+            values[field] = _argument(name, field, kind, given[k], cls)
+        elif field == "order" and cls.default_order is not None:
+            values[field] = cls.default_order
+        else:
+            what = "an order" if kind == "int" else "a column name"
+            raise SpecError(f"effect {name!r} needs {what}",
+                            hint=f"write {_usage(name, kinds)}, e.g. "
+                                 f"{name}({'vdd' if kind == 'column' else 2})")
+    return cls(**values)
 
 
 def parse_spec(spec: str) -> tuple[AbstractEffect, ...]:
@@ -178,10 +234,11 @@ def parse_spec(spec: str) -> tuple[AbstractEffect, ...]:
     if len(spec) > MAX_SPEC_LENGTH:
         raise SpecError(f"model spec is longer than {MAX_SPEC_LENGTH} characters")
     terms = tuple(parse_term(part) for part in spec.split("+"))
-    names = [t.name for t in terms]
-    for n in names:
-        if names.count(n) > 1:
-            raise SpecError(f"effect {n!r} appears more than once in {spec!r}")
+    ids = [t.identity for t in terms]
+    for t, i in zip(terms, ids):
+        if ids.count(i) > 1:
+            what = t.name if len(i) == 1 else f"{t.name}({','.join(i[1:])})"
+            raise SpecError(f"effect {what!r} appears more than once in {spec!r}")
     return terms
 
 

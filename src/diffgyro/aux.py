@@ -1,0 +1,106 @@
+"""Extra logged columns as model inputs: checks, centring and scaling, ranges.
+
+An ``aux(NAME)`` term reads the extra column ``NAME`` of a batch (supply
+voltage, a second board temperature, heater duty ...), centred and scaled
+like temperature: ``x_s = (x - centre) / scale`` with centre and half-range
+of the device's valid samples, so a polynomial of ``x_s`` is well
+conditioned. A calibration stores centre, scale and the calibrated range per
+column; compensation clamps the column to that range, as it does
+temperature. A column a model uses must be finite on every valid sample and
+must vary; otherwise :class:`~diffgyro.errors.DataError` names file, device
+and column.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Mapping
+
+import numpy as np
+
+from .data import AUX_PREFIX, Batch
+from .errors import DataError
+from .signals import TempNorm
+
+#: Relative half-range below which a column counts as constant.
+MIN_RELATIVE_SPAN = 1e-9
+
+
+def aux_names(required: Iterable[str]) -> tuple[str, ...]:
+    """Extra-column names among a model's required signals (``aux:NAME``), sorted."""
+    return tuple(sorted(s[len(AUX_PREFIX):] for s in required if s.startswith(AUX_PREFIX)))
+
+
+def missing_message(batch: Batch, name: str) -> tuple[str, str]:
+    """Problem and hint for a model that needs extra column ``name`` the data lacks."""
+    have = ", ".join(batch.aux) or "none"
+    return (f"needs extra column {name!r}, not in the data",
+            f"extra columns in the data: {have} (columns holding text are ignored at load; "
+            f"rename one with --columns {name}=name_in_file)")
+
+
+def check_columns(batch: Batch, names: Iterable[str]) -> None:
+    """DataError naming file, device and column for a missing, non-finite or constant column."""
+    for name in names:
+        if name not in batch.aux:
+            problem, hint = missing_message(batch, name)
+            raise DataError(problem, file=batch.sources[0] if batch.sources else None,
+                            column=name, hint=hint)
+        values = np.asarray(batch.aux[name])
+        for i, dev in enumerate(batch.devices):
+            n = int(batch.n_valid[i])
+            x = values[i, :n]
+            where = dict(file=batch.sources[i] if batch.sources else None, device=dev, column=name)
+            bad = ~np.isfinite(x)
+            if bad.all():
+                raise DataError("extra column holds no numbers (all NaN)", **where)
+            if bad.any():
+                k = int(np.flatnonzero(bad)[0])
+                raise DataError(f"extra column has a missing or non-finite value at sample {k + 1}"
+                                f" of the device", **where,
+                                hint="a model term reading it needs a value on every sample")
+            lo, hi = float(x.min()), float(x.max())
+            if hi - lo <= MIN_RELATIVE_SPAN * max(abs(lo), abs(hi), 1e-300):
+                raise DataError(f"extra column is constant ({lo!r}): a term in it cannot be "
+                                f"told from the bias", **where)
+
+
+def ranges(batch: Batch, names: Iterable[str]) -> dict[str, np.ndarray]:
+    """Per column, the (devices, 2) smallest and largest valid value."""
+    out = {}
+    for name in names:
+        x = np.where(batch.mask, np.asarray(batch.aux[name], np.float64), np.nan)
+        out[name] = np.stack([np.nanmin(x, axis=1), np.nanmax(x, axis=1)], axis=1)
+    return out
+
+
+def norms(batch: Batch, names: Iterable[str],
+          given: Mapping[str, TempNorm] | None = None) -> dict[str, TempNorm]:
+    """Centre and half-range of every column per device (numpy (d,) arrays), or the given
+    ones broadcast to the devices."""
+    given = dict(given or {})
+    out = {}
+    d = batch.n_devices
+    for name, r in ranges(batch, names).items():
+        if name in given:
+            g = given[name]
+            out[name] = TempNorm(centre=np.broadcast_to(np.asarray(g.centre, np.float64), (d,)),
+                                 scale=np.broadcast_to(np.asarray(g.scale, np.float64), (d,)))
+        else:
+            half = 0.5 * (r[:, 1] - r[:, 0])
+            out[name] = TempNorm(centre=0.5 * (r[:, 0] + r[:, 1]),
+                                 scale=np.where(half > 0, half, 1.0))
+    return out
+
+
+def scaled(batch: Batch, norm: Mapping[str, TempNorm],
+           clamp: Mapping[str, np.ndarray] | None = None) -> dict[str, np.ndarray]:
+    """Every normalised column as a (devices, n) float64 array; ``clamp`` (per column,
+    (devices, 2) ranges) clips the raw values first."""
+    out = {}
+    for name, nm in norm.items():
+        x = np.asarray(batch.aux[name], np.float64)
+        if clamp is not None and name in clamp:
+            r = np.asarray(clamp[name], np.float64)
+            x = np.clip(x, r[:, :1], r[:, 1:])
+        out[name] = (x - np.asarray(nm.centre)[:, None]) / np.asarray(nm.scale)[:, None]
+    return out
