@@ -248,11 +248,27 @@ def effect_signal(name: str, rng: np.random.Generator, env: dict) -> np.ndarray:
         return env["rate"] @ m.T
     if name == "g_sens":
         return env["force"] @ rng.normal(size=(3, 3)).T
+    if name == "vdd":                # bias follows the logged supply voltage
+        return np.outer((env["vdd"] - 5.0) / 0.05, c)
     if name == "random_walk":
         steps = rng.normal(size=(n, 3))
         steps[0] = 0.0
         return np.cumsum(steps, axis=0)
     raise ValueError(name)
+
+
+def supply_voltage(t: np.ndarray, seed: int) -> np.ndarray:
+    """A logged 5 V supply, independent of the temperatures (a stream of its own): a
+    low-passed wander, load steps and a little read-out noise."""
+    rng = np.random.default_rng([seed, 5005])
+    n = t.shape[0]
+    dt = float(t[1] - t[0])
+    wander = _lag(np.cumsum(rng.normal(size=n)) * math.sqrt(dt), 600.0, dt, y0=0.0)
+    wander *= 0.03 / max(np.std(wander), 1e-12)
+    steps = np.zeros(n)
+    for at in rng.uniform(t[0], t[-1], 5):
+        steps[t >= at] += rng.choice([-1.0, 1.0]) * rng.uniform(0.01, 0.03)
+    return 5.0 + wander + steps - steps.mean() + rng.normal(size=n) * 5e-4
 
 
 def _flicker(n: int, dt: float, rng: np.random.Generator) -> np.ndarray:
@@ -291,7 +307,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     """One device on ``plan`` whose errors are those of ``base_spec`` plus ``effect``.
 
     The hidden effect is scaled so the part the base model cannot absorb has
-    RMS ``size × noise.white``.
+    RMS ``size × noise.white``. Effect ``"vdd"`` is a bias that follows a logged
+    supply voltage, recorded as the extra column ``vdd``.
     """
     from diffgyro.data import Batch
     from diffgyro.fit import batch_signals
@@ -317,6 +334,9 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     true_rate = p.rate + earth
     env = {"t": p.t, "dt": dt, "die": die, "ddie": ddie, "air": air, "rate": true_rate,
            "force": force}
+    aux = {}
+    if effect == "vdd":
+        env["vdd"] = aux["vdd"] = supply_voltage(p.t, seed)
 
     # the base model's errors, with realistic coefficients (fitted exactly by the base model)
     base = np.zeros((n, 3))
@@ -346,7 +366,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     rate_ref = p.rate + (earth if earth_in_reference else 0.0)
     gyro_clean = true_rate + base
     rec0 = Recording(t=p.t, gyro=gyro_clean, temp=temp, temp_ext=air, accel=force + rng.normal(size=(n, 3)) * 2e-3,
-                     rate=rate_ref if p.has_rate else None, device=device or f"{plan}-{effect}-{seed}")
+                     rate=rate_ref if p.has_rate else None, device=device or f"{plan}-{effect}-{seed}",
+                     aux=aux)
     hidden = np.zeros((n, 3))
     if effect is not None and size > 0:
         pattern = effect_signal(effect, rng, env)
@@ -386,7 +407,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
 
 def replace_recording(rec: Recording, gyro: np.ndarray) -> Recording:
     return Recording(t=rec.t, gyro=gyro, temp=rec.temp, temp_ext=rec.temp_ext, accel=rec.accel,
-                     rate=rec.rate, device=rec.device, source=rec.source)
+                     rate=rec.rate, device=rec.device, source=rec.source, aux=rec.aux)
 
 
-__all__ = ["Hidden", "Noise", "PLANS", "draw_noise", "effect_signal", "make_recording", "replace"]
+__all__ = ["Hidden", "Noise", "PLANS", "draw_noise", "effect_signal", "make_recording", "replace",
+           "supply_voltage"]

@@ -172,7 +172,10 @@ def test_parse_columns():
     assert parse_columns("gx=gyr_x, gy = gyr_y,gz=gyr_z,") == {
         "gx": "gyr_x", "gy": "gyr_y", "gz": "gyr_z"}
     assert parse_columns(None) == {} and parse_columns("  ") == {}
-    for bad, words in [("gx", "no '='"), ("gq=a", "unknown standard column"),
+    # another left-hand name renames an extra column (for aux(NAME) terms)
+    assert parse_columns("vdd=Supply V,gx=g") == {"vdd": "Supply V", "gx": "g"}
+    for bad, words in [("gx", "no '='"), ("1q=a", "unknown standard column"),
+                       ("g q=a", "unknown standard column"),
                        ("gx=", "names no column"), ("gx=a,gx=b", "twice")]:
         with pytest.raises(DataError, match=words):
             parse_columns(bad)

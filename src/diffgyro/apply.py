@@ -25,6 +25,9 @@ For one device with calibration record ``dev`` (an entry of the file's
    ``hysteresis``          +1 after heating, −1 after cooling (|dT/dt| > 0.05 °C/min), latched
    ``thermal_lag(k)``      ``Tlag_s**j − Ts**j``, j = 1..k; Tlag = T through a first-order lag τ
    ``warmup``              ``exp(−t/τ)``, t from the first sample
+   ``aux(NAME,k)``         ``x_s**1 .. x_s**k`` (k = 1 if left out), x = extra column NAME
+                           clamped to ``dev["aux"][NAME]["range"]``, ``x_s = (x − centre) /
+                           scale`` with that entry's ``centre`` and ``scale``
    ======================  ===============================================
 
 4. ``gyro_i = Ω_i + columns_i · beta_i``; compensation solves this for Ω
@@ -40,11 +43,17 @@ import numpy as np
 HEATING_THRESHOLD = 0.05 / 60.0
 _OTHERS = ((1, 2), (0, 2), (0, 1))
 _TERM = re.compile(r"^([a-z][a-z0-9_]*)(?:\((\d+)\))?$")
+_AUX = re.compile(r"^aux\(([A-Za-z_][A-Za-z0-9_.]*)(?:,(\d+))?\)$")
 
 
 def _terms(spec: str):
+    """(name, order) per term; an aux term gives ("aux", (column, order))."""
     out = []
     for part in spec.replace(" ", "").split("+"):
+        a = _AUX.match(part)
+        if a is not None:
+            out.append(("aux", (a.group(1), int(a.group(2) or 1))))
+            continue
         m = _TERM.match(part)
         if m is None:
             raise ValueError(f"bad term {part!r}")
@@ -128,6 +137,11 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
             lag_s = (lag - dev["temp_centre"]) / dev["temp_scale"]
             c = np.stack([lag_s**j - ts**j for j in range(1, k + 1)], -1)
             cols.append(np.repeat(c[:, None, :], 3, axis=1))
+        elif name == "aux":
+            column, order = k
+            xs = env["aux_s"][column]
+            c = np.stack([xs**j for j in range(1, order + 1)], -1)
+            cols.append(np.repeat(c[:, None, :], 3, axis=1))
         elif name == "warmup":
             tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
             q += 1
@@ -137,10 +151,17 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
     return np.concatenate(cols, axis=-1)
 
 
-def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0) -> dict:
-    """Derived signals of one device, as the calibration defines them."""
+def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0,
+                aux=None) -> dict:
+    """Derived signals of one device, as the calibration defines them; ``aux`` maps the
+    extra columns' names to their samples."""
     t = np.asarray(t, float) - float(t[0])
-    env = {"t": t, "accel": None if accel is None else np.asarray(accel, float)}
+    env = {"t": t, "accel": None if accel is None else np.asarray(accel, float), "aux_s": {}}
+    for name, e in dev.get("aux", {}).items():
+        if aux is None or name not in aux:
+            raise ValueError(f"the calibration needs extra column {name!r}")
+        x = np.clip(np.asarray(aux[name], float), *e["range"])
+        env["aux_s"][name] = (x - e["centre"]) / e["scale"]
     if temp is not None:
         raw = np.asarray(temp, float)
         lo, hi = dev.get("temp_range") or (-np.inf, np.inf)
@@ -156,12 +177,13 @@ def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window
 
 
 def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None, accel=None,
-               iterations: int = 4) -> np.ndarray:
-    """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file."""
+               iterations: int = 4, aux=None) -> np.ndarray:
+    """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file;
+    ``aux`` maps extra column names to samples (n,) for ``aux(NAME)`` terms."""
     dev = next(d for d in calibration["devices"] if d["device"] == device)
     spec = calibration["model"]
     beta = np.asarray(dev["beta"], float)
-    env = environment(dev, t, temp, temp_ext, accel, calibration.get("dtemp_window", 60.0))
+    env = environment(dev, t, temp, temp_ext, accel, calibration.get("dtemp_window", 60.0), aux)
     gyro = np.asarray(gyro, float)
 
     def err(omega):

@@ -34,12 +34,13 @@ def missing_message(batch: Batch, name: str) -> tuple[str, str]:
     """Problem and hint for a model that needs extra column ``name`` the data lacks."""
     have = ", ".join(batch.aux) or "none"
     return (f"needs extra column {name!r}, not in the data",
-            f"extra columns in the data: {have} (columns holding text are ignored at load; "
-            f"rename one with --columns {name}=name_in_file)")
+            f"extra columns in the data: {have}; columns holding text are ignored at load; "
+            f"rename one with --columns {name}=name_in_file")
 
 
-def check_columns(batch: Batch, names: Iterable[str]) -> None:
-    """DataError naming file, device and column for a missing, non-finite or constant column."""
+def check_columns(batch: Batch, names: Iterable[str], vary: bool = True) -> None:
+    """DataError naming file, device and column for a missing, non-finite or (``vary``:
+    a fit's data) constant column."""
     for name in names:
         if name not in batch.aux:
             problem, hint = missing_message(batch, name)
@@ -59,7 +60,7 @@ def check_columns(batch: Batch, names: Iterable[str]) -> None:
                                 f" of the device", **where,
                                 hint="a model term reading it needs a value on every sample")
             lo, hi = float(x.min()), float(x.max())
-            if hi - lo <= MIN_RELATIVE_SPAN * max(abs(lo), abs(hi), 1e-300):
+            if vary and hi - lo <= MIN_RELATIVE_SPAN * max(abs(lo), abs(hi), 1e-300):
                 raise DataError(f"extra column is constant ({lo!r}): a term in it cannot be "
                                 f"told from the bias", **where)
 

@@ -9,7 +9,8 @@ fixed schema (no pickle, no eval), so a file from elsewhere is safe to read.
 
 The formula (also in :mod:`diffgyro.apply`, numpy only)::
 
-    T_s   = (clip(T, T_lo, T_hi) - centre) / scale
+    T_s   = (clip(T, T_lo, T_hi) - centre) / scale      (an extra column x of an aux
+                                                          term likewise, with its own)
     gyro  = Ω + Σ_terms columns(Ω, T_s, dT/dt, ...) @ beta      (per axis)
 
 and compensation solves it for Ω.
@@ -57,6 +58,8 @@ class DeviceCalibration:
     quality: dict = field(default_factory=dict)
     params: dict = field(default_factory=dict)   # labelled copy for people (units in `units`)
     status_detail: str = ""
+    #: Per extra column an ``aux(NAME)`` term reads: {"centre", "scale", "range": [lo, hi]}.
+    aux: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -90,7 +93,8 @@ class Calibration:
             "model": self.model, "dtemp_window": self.dtemp_window,
             "created": self.created, "diffgyro_version": self.diffgyro_version,
             "input_hash": self.input_hash, "units": self.units,
-            "devices": [to_json_safe(d.__dict__) for d in self.devices],
+            "devices": [to_json_safe({k: v for k, v in d.__dict__.items() if k != "aux" or v})
+                        for d in self.devices],
         }
 
 
@@ -103,6 +107,9 @@ def data_hash(batch: Batch) -> str:
         for s in batch.signals:
             arr = getattr(batch, s)
             h.update(s.encode())
+            h.update(np.ascontiguousarray(np.asarray(arr[i, :n], np.float64)).tobytes())
+        for s, arr in batch.aux.items():
+            h.update(("aux:" + s).encode())
             h.update(np.ascontiguousarray(np.asarray(arr[i, :n], np.float64)).tobytes())
     return "sha256:" + h.hexdigest()
 
@@ -127,7 +134,10 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
             temp_range=None if result.temp_range is None else
             np.asarray(result.temp_range[i], float).tolist(),
             quality={k: s[k] for k in ("rms", "heldout_rms", "noise_floor", "n_samples", "steps")},
-            params=s["params"]))
+            params=s["params"],
+            aux={k: {"centre": float(nm.centre[i]), "scale": float(nm.scale[i]),
+                     "range": np.asarray(result.aux_range[k][i], float).tolist()}
+                 for k, nm in result.aux_norm.items()}))
     return Calibration(
         model=result.model.spec, devices=devices, dtemp_window=float(result.options.dtemp_window),
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -184,7 +194,7 @@ def _finite(x, where: str, allow_nan: bool = False) -> float:
 _FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
                         "diffgyro_version", "input_hash", "units", "devices"})
 _DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
-                          "temp_range", "quality", "params", "status_detail"})
+                          "temp_range", "quality", "params", "status_detail", "aux"})
 MAX_THETA = 700.0        # |log τ|: beyond this exp() overflows
 MAX_DTEMP_WINDOW = 1e6   # s
 MAX_NAME = 1000
@@ -287,7 +297,8 @@ def from_json(obj) -> Calibration:
         out.append(DeviceCalibration(device=name, status=status, beta=beta, theta=theta,
                                      temp_centre=centre, temp_scale=scale, temp_range=tr,
                                      quality=quality, params=params,
-                                     status_detail=_text(d, "status_detail", where)))
+                                     status_detail=_text(d, "status_detail", where),
+                                     aux=_aux_entries(d.get("aux", {}), model, where)))
     window = _req(obj, "dtemp_window", float, "file")
     if not (0 < window <= MAX_DTEMP_WINDOW):
         raise SpecError(f"calibration file: dtemp_window must be a positive number of seconds "
@@ -303,6 +314,27 @@ def from_json(obj) -> Calibration:
                        created=_text(obj, "created", "file"),
                        diffgyro_version=_text(obj, "diffgyro_version", "file"),
                        input_hash=ih, units=dict(units))
+
+
+def _aux_entries(val, model: ErrorModel, where: str) -> dict:
+    """The extra columns' centring and calibrated range: exactly those the model reads."""
+    from .aux import aux_names
+
+    names = aux_names(model.requires())
+    if not isinstance(val, dict) or sorted(val) != list(names):
+        raise SpecError(f"calibration file: {where}.aux must describe the extra columns "
+                        f"{', '.join(names) or '(none)'} of the model")
+    out = {}
+    for name in names:
+        w = f"{where}.aux.{name}"
+        e = val[name]
+        _known_keys(e, frozenset({"centre", "scale", "range"}), w)
+        centre, scale = _req(e, "centre", float, w), _req(e, "scale", float, w)
+        rng = _floats(_req(e, "range", list, w), (2,), f"{w}.range")
+        if not scale > 0 or not all(math.isfinite(x) for x in rng) or not rng[0] <= rng[1]:
+            raise SpecError(f"calibration file: {w} centring or range is invalid")
+        out[name] = {"centre": centre, "scale": scale, "range": rng}
+    return out
 
 
 def load(path: str | os.PathLike) -> Calibration:
@@ -359,6 +391,7 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
                     theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))
     clamped: dict[str, int] = {}
+    aux = _aux_scaled(batch, model, devs)
     if batch.temp is not None and "temp" in model.requires():
         temp = np.array(batch.temp, dtype=np.float64)
         for i, d in enumerate(devs):
@@ -375,11 +408,12 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
                                        "rate", "quat")}, "temp": temp},
                                 devices=batch.devices, sources=batch.sources)
         # dT/dt is taken from the measured temperature, not the clamped one
-        sig = batch_signals(batch_for_model, norm=_norm(devs), dtemp_window=cal.dtemp_window)
+        sig = batch_signals(batch_for_model, norm=_norm(devs), dtemp_window=cal.dtemp_window,
+                            aux=aux)
         sig_raw = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
         sig = eqx.tree_at(lambda s: (s.dtemp, s.heating), sig, (sig_raw.dtemp, sig_raw.heating))
     else:
-        sig = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
+        sig = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window, aux=aux)
     if clamped:
         warnings.warn("temperature outside the calibrated range was clamped for "
                       + ", ".join(f"{k} ({v} samples)" for k, v in clamped.items()), stacklevel=2)
@@ -387,8 +421,21 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     omega = np.where(np.asarray(batch.mask)[..., None], np.asarray(omega), 0.0)
     out = Batch(**{**{s: getattr(batch, s) for s in ("t", "mask", "n_valid", "temp", "temp_ext",
                                                       "accel", "mag", "rate", "quat")},
-                   "gyro": omega}, devices=batch.devices, sources=batch.sources)
+                   "gyro": omega}, devices=batch.devices, sources=batch.sources, aux=batch.aux)
     return out, clamped
+
+
+def _aux_scaled(batch: Batch, model: ErrorModel, devs) -> dict:
+    """The extra columns the model reads, clamped to the calibrated range and centred as
+    calibrated; DataError naming the column when the data lack one."""
+    from . import aux as aux_cols
+
+    names = aux_cols.aux_names(model.requires())
+    aux_cols.check_columns(batch, names, vary=False)
+    norm = {k: TempNorm(centre=np.asarray([d.aux[k]["centre"] for d in devs]),
+                        scale=np.asarray([d.aux[k]["scale"] for d in devs])) for k in names}
+    clamp = {k: np.asarray([d.aux[k]["range"] for d in devs]) for k in names}
+    return aux_cols.scaled(batch, norm, clamp)
 
 
 def _norm(devs) -> TempNorm:

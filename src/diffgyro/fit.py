@@ -440,7 +440,7 @@ class FitResult(eqx.Module):
     def signals(self, batch: Batch) -> Signals:
         """Derived signals of ``batch`` with this calibration's temperature centring."""
         names = aux_cols.aux_names(self.model.requires())
-        aux_cols.check_columns(batch, names)
+        aux_cols.check_columns(batch, names, vary=False)
         return batch_signals(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
                              dtemp_window=self.options.dtemp_window,
                              aux=aux_cols.scaled(batch, self.aux_norm) if names else None)

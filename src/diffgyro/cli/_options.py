@@ -41,7 +41,9 @@ DataFiles = Annotated[
 Columns = Annotated[
     str | None,
     typer.Option("--columns", help="Map standard columns to the names in the files, "
-                                   "e.g. 'gx=gyr_x,gy=gyr_y,gz=gyr_z,t=time'."),
+                                   "e.g. 'gx=gyr_x,gy=gyr_y,gz=gyr_z,t=time'; another "
+                                   "left-hand name renames an extra column for aux(NAME), "
+                                   "e.g. 'vdd=Supply V'."),
 ]
 GyroUnit = Annotated[
     str | None,

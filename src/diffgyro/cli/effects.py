@@ -11,7 +11,7 @@ from . import app
 @app.command("effects")
 def effects_command() -> None:
     """List the effect terms (name, physics, data needed)."""
-    from diffgyro.effects import registry
+    from diffgyro.effects import registry, spec_arguments
 
     table = Table(title="diffgyro effect terms (join with '+', e.g. bias_poly(2)+gradient)")
     table.add_column("name")
@@ -19,8 +19,15 @@ def effects_command() -> None:
     table.add_column("needs")
     table.add_column("coefficients (per axis)")
     for name, cls in registry().items():
-        term = cls() if not cls.order_arg else cls(order=cls.default_order or 1)
-        shown = f"{name}(k)" if cls.order_arg and cls.default_order is None else name
+        args = spec_arguments(cls)
+        example = {f: ("NAME" if kind == "column" else max(cls.default_order or 1, cls.min_order))
+                   for f, kind in args}
+        term = cls(**example)
+        shown = name
+        if any(kind == "column" for _, kind in args):  # e.g. aux(NAME) or aux(NAME,k)
+            shown = f"{name}(NAME)" + (f" or {name}(NAME,k)" if len(args) > 1 else "")
+        elif args and cls.default_order is None:
+            shown = f"{name}(k)"
         needs = ", ".join(sorted(term.requires())) or "—"
         coeffs = ", ".join(term.param_names()) if not cls.stochastic else "variance (learned)"
         table.add_row(shown, cls.description, needs, coeffs)

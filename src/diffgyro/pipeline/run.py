@@ -483,6 +483,9 @@ def _run(
     t_start = time.monotonic()
     em = ErrorModel(parse_spec(model))
     spec = em.spec
+    if any(r.startswith("aux:") for r in em.requires()):  # the readers keep standard columns
+        raise DataError(f"the streaming run reads the standard columns only; model {spec!r} "
+                        f"reads an extra column", hint="fit it with diffgyro fit")
     if isinstance(chunk_devices, bool) or int(chunk_devices) < 1:
         raise DataError(f"--chunk-devices must be a positive integer, not {chunk_devices!r}")
     chunk_devices = int(chunk_devices)

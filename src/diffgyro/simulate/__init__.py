@@ -65,26 +65,28 @@ CHUNK_SAMPLES = 4_000_000
 
 @eqx.filter_jit
 def _error_chunk(model: ErrorModel, norm: TempNorm, params: Params, t, rate, temp, dtemp,
-                 temp_ext, accel):
-    def one(params, t, rate, temp, dtemp, temp_ext, accel):
+                 temp_ext, accel, aux):
+    def one(params, t, rate, temp, dtemp, temp_ext, accel, aux):
         n = t.shape[0]
         mask = jnp.ones((n,), bool)
         sig = make_signals(t, jnp.zeros_like(rate), mask, rate=rate, temp=temp, temp_ext=temp_ext,
-                           accel=accel, norm=norm, dt=t[1] - t[0])
+                           accel=accel, norm=norm, dt=t[1] - t[0], aux=aux)
         heating = latched_heating(dtemp, mask, HEATING_THRESHOLD)
         sig = eqx.tree_at(lambda s: (s.dtemp, s.heating), sig, (dtemp, heating))
         return model.error(params, sig)
 
-    return jax.vmap(one)(params, t, rate, temp, dtemp, temp_ext, accel)
+    return jax.vmap(one)(params, t, rate, temp, dtemp, temp_ext, accel, aux)
 
 
 def model_error(model: ErrorModel, params: Params, norm: TempNorm, t, rate, temp, dtemp,
-                temp_ext, accel) -> np.ndarray:
+                temp_ext, accel, aux_s: dict | None = None) -> np.ndarray:
     """Deterministic error (devices, n, 3) of ``model`` on true signals.
 
     ``t`` (n,), the others (devices, n[, 3]); ``dtemp`` is the true dT/dt
-    (°C/s). Evaluated in device chunks of equal size (one compilation).
+    (°C/s); ``aux_s`` the extra columns, centred and scaled, (devices, n) each.
+    Evaluated in device chunks of equal size (one compilation).
     """
+    aux_s = dict(aux_s or {})
     d, n = temp.shape
     if model.n_params == 0:
         return np.zeros((d, n, 3))
@@ -96,7 +98,8 @@ def model_error(model: ErrorModel, params: Params, norm: TempNorm, t, rate, temp
         res = _error_chunk(
             model, norm, Params(beta=jnp.asarray(params.beta[idx]), theta=jnp.asarray(params.theta[idx])),
             jnp.asarray(tt), jnp.asarray(rate[idx]), jnp.asarray(temp[idx]), jnp.asarray(dtemp[idx]),
-            jnp.asarray(temp_ext[idx]), jnp.asarray(accel[idx]))
+            jnp.asarray(temp_ext[idx]), jnp.asarray(accel[idx]),
+            {k: jnp.asarray(v[idx]) for k, v in aux_s.items()})
         hi = min(lo + chunk, d)
         out[lo:hi] = np.asarray(res)[: hi - lo]
     return out
@@ -131,6 +134,7 @@ def simulate(
     accel_errors: bool | None = None,
     keep_components: bool = False,
     device_prefix: str = "dev",
+    aux: dict | None = None,
     **plan_options,
 ) -> tuple[Batch, Truth]:
     """Simulate ``n_devices`` gyros through test ``plan``; returns ``(batch, truth)``.
@@ -146,6 +150,10 @@ def simulate(
     ``keep_components`` stores the deterministic error, the true specific
     force and each noise part in ``truth.env``. Other keywords are plan
     options (see :mod:`.plans`), e.g. ``sample_rate``, ``duration``.
+    ``aux`` adds extra columns by name ((n,) or (devices, n) arrays); a column an
+    ``aux(NAME)`` effect reads that is not given is a simulated supply voltage
+    (:func:`.supply.supply_voltage`); ``truth.aux_norm`` holds the centring the
+    true coefficients refer to (pass it to ``fit(..., aux_norm=)``).
     The same arguments and seed always give identical output.
     """
     if isinstance(n_devices, bool) or not isinstance(n_devices, int | np.integer) or n_devices < 1:
@@ -173,7 +181,9 @@ def simulate(
         params = _device_params(params, model, d)
     rate = np.broadcast_to(env.rate, (d, n, 3))
     force = np.broadcast_to(env.specific_force, (d, n, 3))
-    error = model_error(model, params, norm, env.t, rate, temp, dtemp, chamber, force)
+    extra, aux_norm = _extra_columns(model, aux, env.t, d, seed)
+    aux_s = {k: (v - aux_norm[k].centre) / aux_norm[k].scale for k, v in extra.items()}
+    error = model_error(model, params, norm, env.t, rate, temp, dtemp, chamber, force, aux_s)
 
     # 3. noise, quantisation, other sensors
     levels = noise_levels(preset_obj, d, seed, noise, temp_quantum)
@@ -205,7 +215,8 @@ def simulate(
             accel=accel[i], mag=None if mag is None else mag[i],
             rate=np.array(rate[i]) if "rate" in env.outputs else None,
             quat=np.array(quat[i]) if "quat" in env.outputs else None,
-            device=dev, source=f"simulate:{plan_obj.name}"))
+            device=dev, source=f"simulate:{plan_obj.name}",
+            aux={k: np.array(v[i]) for k, v in extra.items()}))
     batch = Batch.from_recordings(recs)
     env_arrays = {"t": env.t, "temp": temp, "dtemp": dtemp, "chamber": env.chamber,
                   "power_state": heat_state}
@@ -216,8 +227,32 @@ def simulate(
         plan=plan_obj.name, options=plan_obj.resolved(), spec=model.spec, preset=preset_obj.name,
         seed=int(seed), devices=devices, params=params, norm=norm, noise=levels,
         thermal=thermal, accel=acc, outputs=tuple(sorted(env.outputs)), segments=env.segments,
-        info=env.info, env=env_arrays)
+        info=env.info, env=env_arrays, aux_norm=aux_norm)
     return batch, truth
+
+
+def _extra_columns(model: ErrorModel, given, t, d: int, seed: int):
+    """Extra columns (devices, n) by name, and each one's centring over all devices."""
+    from ..aux import aux_names
+    from .supply import supply_voltage
+
+    n = t.shape[0]
+    out = {}
+    for name, values in dict(given or {}).items():
+        arr = np.asarray(values, np.float64)
+        if arr.shape not in ((n,), (d, n)):
+            raise DataError(f"extra column {name!r} has shape {arr.shape}; expected ({n},) "
+                            f"or ({d}, {n})", column=name)
+        out[name] = np.array(np.broadcast_to(arr, (d, n)))
+    for name in aux_names(model.requires()):
+        if name not in out:
+            out[name] = supply_voltage(t, d, seed, name)
+    norms = {}
+    for name, arr in out.items():
+        lo, hi = float(arr.min()), float(arr.max())
+        norms[name] = TempNorm(centre=np.float64(0.5 * (lo + hi)),
+                               scale=np.float64(max(0.5 * (hi - lo), 1e-12)))
+    return out, norms
 
 
 def demo_batch(n_devices: int = 4, seed: int = 0, effects: str = "bias_poly(2)+gradient",

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..effects import (
     AbstractEffect,
+    Aux,
     BiasPoly,
     Gradient,
     GSens,
@@ -220,6 +221,8 @@ def _draw_term(term: AbstractEffect, p: Preset, d: int, seed: int, scale: float,
     for cls, sigma in simple.items():
         if isinstance(term, cls):
             return _normal(seed, term.name, d, term.n_params, sigma), none
+    if isinstance(term, Aux):  # about the linear temperature term's size over the range
+        return _normal(seed, term.spec, d, term.n_params, p.bias_edges[1] / 3.0), none
     raise SpecError(f"the simulator has no population for effect {term.spec!r}",
                     hint="pass params=Params(beta, theta) to simulate() to set its coefficients")
 

@@ -96,6 +96,8 @@ class Truth:
     segments: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
     env: dict = field(default_factory=dict, repr=False, compare=False)
+    #: Centring of each extra column the true coefficients refer to (``aux(NAME)`` terms).
+    aux_norm: dict = field(default_factory=dict)
 
     @property
     def model(self) -> ErrorModel:
