@@ -1,9 +1,8 @@
-"""The host noise floor (``diffgyro.noise``): the same order statistics as the pure-JAX
-``fit._noise_floor`` and as ``numpy.nanmedian``'s definition, chunked on threads, and
-the same numbers from both fit paths."""
+"""The host noise floor (``diffgyro.noise``): the same numbers as the pure-JAX
+``fit._noise_floor`` and as its definition written with numpy's median and quantile,
+chunked on threads, the same numbers from both fit paths, and the simulated σ on
+plain and quantised output."""
 from __future__ import annotations
-
-import warnings
 
 import jax
 import jax.numpy as jnp
@@ -14,16 +13,29 @@ from diffgyro import Batch, Recording, noise
 from diffgyro.fit import _noise_floor, fit
 
 
-def nanmedian_definition(y, rate, mask):
-    """1.4826 · MAD(Δy) / √2 per device and axis, by numpy.nanmedian."""
+def definition(y, rate, mask):
+    """The floor per device and axis, written out with numpy's median and quantile: the
+    truncation-corrected RMS of |Δy − median| inside 4 · 1.4826 · MAD, or, when fewer
+    than 90 % are inside (the MAD collapsed on quantised output), of all but the largest
+    0.5 %, over √2."""
     y = y if rate is None else y - rate
-    dy = np.diff(y, axis=1)
-    pair = (mask[:, 1:] & mask[:, :-1])[..., None]
-    dy = np.where(pair, dy, np.nan)
-    with warnings.catch_warnings():  # a device without a valid pair: an all-NaN slice
-        warnings.simplefilter("ignore", RuntimeWarning)
-        med = np.nanmedian(dy, axis=1, keepdims=True)
-        return 1.4826 * np.nanmedian(np.abs(dy - med), axis=1) / np.sqrt(2.0)
+    out = np.full((y.shape[0], 3), np.nan)
+    for i in range(y.shape[0]):
+        pair = mask[i, 1:] & mask[i, :-1]
+        for k in range(3):
+            d = np.diff(y[i, :, k])[pair]
+            d = d[~np.isnan(d)]
+            if d.size == 0:
+                continue
+            dev = np.abs(d - np.median(d))
+            inside = dev <= 4 * 1.4826 * np.median(dev)
+            ms = np.mean(dev[inside] ** 2) / noise.TRUNC4
+            if inside.sum() < 0.9 * dev.size:  # the MAD collapsed (coarse quantisation)
+                ms = np.mean(dev[dev <= np.quantile(dev, 0.995)] ** 2)
+                if not ms > 0:
+                    ms = np.mean(dev**2)
+            out[i, k] = np.sqrt(ms / 2)
+    return out
 
 
 def catalogue():
@@ -45,18 +57,20 @@ def catalogue():
         cases.append((g, rate, mask))
     q = np.round(rng.normal(size=(3, 500, 3)) * 2.0) / 2.0  # coarsely quantised: many ties
     cases.append((q, None, np.ones((3, 500), bool)))
+    coarse = np.round(rng.normal(size=(3, 500, 3)) / 3.0) * 3.0  # most differences 0
+    cases.append((coarse, None, rng.random((3, 500)) > 0.1))
     return cases
 
 
 @pytest.mark.parametrize("case", range(len(catalogue())))
-def test_equals_the_nanmedian_definition_and_the_jax_version(case):
+def test_equals_the_definition_and_the_jax_version(case):
     g, rate, mask = catalogue()[case]
     got = noise.noise_axes(g, rate, mask)
-    np.testing.assert_allclose(got, nanmedian_definition(g, rate, mask), rtol=1e-15, atol=0,
+    np.testing.assert_allclose(got, definition(g, rate, mask), rtol=1e-13, atol=0,
                                equal_nan=True)
     y = jnp.asarray(g if rate is None else g - rate)
     jaxed = np.asarray(jax.vmap(_noise_floor)(y, jnp.asarray(mask)))
-    np.testing.assert_allclose(got, jaxed, rtol=1e-15, atol=0, equal_nan=True)
+    np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     no_pair = ~(mask[:, 1:] & mask[:, :-1]).any(axis=1)
     assert np.isnan(got[no_pair]).all() and np.isfinite(got[~no_pair]).all()
 
@@ -94,7 +108,21 @@ def test_both_fit_paths_report_the_same_floor():
     sums = fit("bias_poly(1)", batch, path="sums")
     direct = fit("bias_poly(1)", batch, path="direct")
     np.testing.assert_allclose(np.asarray(sums.noise_axes), np.asarray(direct.noise_axes),
-                               rtol=1e-14, atol=0)
+                               rtol=1e-13, atol=0)
     np.testing.assert_allclose(np.asarray(sums.noise_floor), np.asarray(direct.noise_floor),
-                               rtol=1e-14, atol=0)
-    assert np.all(np.asarray(sums.noise_floor) > 1e-4)  # the simulated white noise, per axis
+                               rtol=1e-13, atol=0)
+    np.testing.assert_allclose(np.asarray(sums.noise_floor), 2e-4, rtol=0.08)  # the simulated σ
+
+
+@pytest.mark.parametrize("lsb", [0.0, 0.3, 0.9, 1.5])
+def test_the_white_noise_sigma_on_quantised_output(lsb):
+    # Quantised to about its σ, the output's differences take a few values and their
+    # MAD locks to whole LSBs (6-9 % low at 0.3-0.9 σ per LSB, 44 % high at 1.5);
+    # the floor is the noise of what is recorded, σ² + LSB²/12 (Sheppard).
+    rng = np.random.default_rng(7)
+    sigma = 1.0
+    y = 0.01 * np.arange(40_000)[None, :, None] + sigma * rng.normal(size=(2, 40_000, 3))
+    if lsb:
+        y = np.round(y / lsb) * lsb
+    got = noise.noise_axes(y, None, np.ones((2, 40_000), bool))
+    np.testing.assert_allclose(got, np.sqrt(sigma**2 + lsb**2 / 12), rtol=0.025)

@@ -23,6 +23,7 @@ import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from . import aux as aux_cols
+from . import noise
 from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
     FAILED,
     INSUFFICIENT_DATA,
@@ -206,19 +207,37 @@ def _middle_deviations(s, n, med, split, k):
 
 
 def _noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
-    """Robust white-noise σ per axis from successive differences (model-free):
-    1.4826 · MAD(Δy) / √2 over pairs of valid samples."""
+    """White-noise σ per axis from successive differences (model-free), over pairs of
+    valid samples: :func:`diffgyro.noise.sigma_from_differences` from one sort."""
     if y.shape[0] < 2:
         return jnp.full((3,), jnp.nan, y.dtype)
     dy = jnp.diff(y, axis=0).T  # (3, n-1)
     pair = jnp.broadcast_to(mask[1:] & mask[:-1], dy.shape)
-    s, n = _sorted_valid(dy, pair)  # one sort gives both medians
+    s, n = _sorted_valid(dy, pair)  # one sort gives every order statistic
     med = 0.5 * (_at(s, (n - 1) // 2) + _at(s, n // 2))
     split = jnp.sum((s < med[:, None]) & (jnp.arange(s.shape[-1]) < n[:, None]), axis=-1)
     # the median deviation: the middle one, or the mean of the middle two (one search)
     kth, after = _middle_deviations(s, n, med, split, (n - 1) // 2)
-    mad = jnp.where(n % 2 == 1, kth, 0.5 * (kth + after))
-    return jnp.where(n > 0, 1.4826 * mad / jnp.sqrt(2.0), jnp.nan)
+    scale = 1.4826 * jnp.where(n % 2 == 1, kth, 0.5 * (kth + after))
+    h = (1.0 - noise.TRIM) * (n - 1)
+    lo = jnp.floor(h).astype(n.dtype)
+    t = h - lo
+    a, b = _middle_deviations(s, n, med, split, lo)
+    b = jnp.where(lo + 1 < n, b, a)
+    trim = jnp.where(t >= 0.5, b - (b - a) * (1.0 - t), a + (b - a) * t)
+    valid = jnp.arange(s.shape[-1]) < n[:, None]
+    dev = jnp.where(valid, jnp.abs(s - med[:, None]), jnp.inf)
+    sq = jnp.where(valid, dev * dev, 0.0)
+
+    def mean_count(keep):
+        count = jnp.sum(keep, -1)
+        return jnp.sum(jnp.where(keep, sq, 0.0), -1) / jnp.maximum(count, 1), count
+
+    ms, inside = mean_count(dev <= 4.0 * scale[:, None])
+    ms_trim, _ = mean_count(dev <= trim[:, None])
+    ms_trim = jnp.where(ms_trim > 0, ms_trim, mean_count(valid)[0])  # a nearly constant output
+    ms = jnp.where(inside < noise.COLLAPSED * n, ms_trim, ms / noise.TRUNC4)
+    return jnp.where(n > 0, jnp.sqrt(ms / 2.0), jnp.nan)
 
 
 def _covariance(model: ErrorModel, sig: Signals, params: Params, w, resid, n_eff):

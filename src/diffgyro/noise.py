@@ -1,10 +1,15 @@
 """The model-free white-noise floor of a batch, on the host.
 
-``1.4826 · MAD(Δy) / √2`` per device and axis over pairs of valid samples, the
-same statistic as :func:`diffgyro.fit._noise_floor` (the pure-JAX version the
-differentiable paths use), with the same exact order statistics.
+Per device and axis, from the successive differences ``Δy`` of ``gyro − rate``
+over pairs of valid samples: the truncation-corrected RMS of the deviations
+from their median inside a ±4σ₀ window (σ₀ = 1.4826 · MAD), over √2
+(:func:`sigma_from_differences`). Slow drift hardly changes from one sample to
+the next, so the differences see the white noise; the window keeps rate-table
+steps and outliers out. The same statistic as :func:`diffgyro.fit._noise_floor`
+(the pure-JAX version the differentiable paths use), with the same exact order
+statistics.
 
-Why on the host: the statistic needs two medians per device and axis. XLA has
+Why on the host: the statistic needs three order statistics per device and axis. XLA has
 no selection primitive, so a compiled version sorts every axis of every device
 (several times the cost of a linear fit) and its program costs half a second of
 compile per group shape. numpy's introselect (``ndarray.partition``) finds a
@@ -18,6 +23,7 @@ compiled fits run; numpy releases the GIL while it partitions.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 
@@ -35,9 +41,9 @@ BLOCK_SAMPLES = 1 << 16
 
 def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
                mask: Bool[np.ndarray, "d n"], dtype=np.float64) -> Float[np.ndarray, "d 3"]:
-    """White-noise σ per device and axis from successive differences of ``gyro − rate``:
-    ``1.4826 · MAD(Δy) / √2`` over pairs of valid samples (NaN differences left out),
-    NaN where no pair is valid."""
+    """White-noise σ per device and axis from successive differences of ``gyro − rate``
+    over pairs of valid samples (NaN differences left out), NaN where no pair is valid:
+    :func:`sigma_from_differences` of the lag-1 differences."""
     d, n = np.shape(mask)
     out = np.full((d, 3), np.nan, dtype)
     if n < 2:
@@ -53,37 +59,97 @@ def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"
         rows = rows.reshape(-1, n - 1)
         pair = np.asarray(mask[a:b], bool)
         pair = pair[:, 1:] & pair[:, :-1]
-        out[a:b] = _mad_rows(rows, pair).reshape(-1, 3)
-    return 1.4826 * out / np.sqrt(2.0)
+        out[a:b] = sigma_from_differences(rows, pair).reshape(-1, 3)
+    return out
 
 
-def _mad_rows(rows: Float[np.ndarray, "r m"], pair: Bool[np.ndarray, "c m"]) -> Float[np.ndarray, " r"]:
-    """MAD of each row (3 rows per device of ``pair``) over its valid entries, in place."""
+def sigma_from_differences(rows: Float[np.ndarray, "r m"],
+                           valid: Bool[np.ndarray, "c m"]) -> Float[np.ndarray, " r"]:
+    """White-noise σ behind each row of differences ``Δy`` (``valid`` masks every
+    group of ``r / c`` consecutive rows alike), in place; NaN for a row without one.
+
+    The root mean square of the deviations from the median inside ±4σ₀, where σ₀
+    is 1.4826 × their median (MAD), corrected for the truncation, over √2. The
+    window keeps the steps of a rate table and outliers out, as a median would,
+    but the RMS stays continuous when the output is quantised to about its noise
+    (where the MAD of differences locks to whole LSBs). Past ~2σ per LSB most
+    differences are exactly zero and the MAD collapses: then the RMS of all but
+    the largest 0.5 % of the deviations is used.
+    """
     m = rows.shape[1]
-    if pair.all() and not np.isnan(rows.sum()):  # every difference counts (the usual case)
-        return _mad_equal(rows, m)
-    ok = np.repeat(pair, 3, axis=0) & ~np.isnan(rows)
+    per = rows.shape[0] // max(valid.shape[0], 1)
+    if valid.all() and not np.isnan(rows.sum()):  # every difference counts (the usual case)
+        return _sigma_equal(rows, m)
+    ok = np.repeat(valid, per, axis=0) & ~np.isnan(rows)
     rows[~ok] = np.inf  # past every valid difference: the order statistics below ignore it
     counts = np.count_nonzero(ok, axis=1)
     out = np.full(rows.shape[0], np.nan, rows.dtype)
     for count in np.unique(counts):  # rows with as many valid pairs share their ranks
         if count:
             sel = counts == count
-            out[sel] = _mad_equal(rows if sel.all() else rows[sel], int(count))
+            out[sel] = _sigma_equal(rows if sel.all() else rows[sel], int(count))
     return out
 
 
-def _mad_equal(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
-    """MAD of the first ``count`` order statistics of each row (the rest are +inf), in place.
+def _sigma_equal(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
+    """:func:`sigma_from_differences` of the first ``count`` order statistics of each
+    row (the rest are +inf), in place.
 
     The deviations are ≥ 0, and the bit patterns of non-negative IEEE-754 numbers
-    (+inf and NaN last) order as integers of their width do: their median is selected
-    on that view, where a selection costs half what it costs on floats, with the same
-    result.
+    (+inf and NaN last) order as integers of their width do: their order
+    statistics are selected on that view, where a selection costs half what it
+    costs on floats, with the same result. After the MAD's selection the lower
+    half of each row lies below its upper middle (≤ 2 · MAD), inside the window,
+    so only the upper half is compared with it.
     """
     med = _middle(r, count)
     np.abs(np.subtract(r, med[:, None], out=r), out=r)  # the deviations (inf stays inf)
-    return _middle(r.view(f"i{r.itemsize}"), count, r.dtype)
+    window = 4.0 * 1.4826 * _middle(r.view(f"i{r.itemsize}"), count, r.dtype)
+    k = count // 2
+    lower, top = r[:, :k], r[:, k:]
+    within = top <= window[:, None]
+    upper = np.where(within, top, 0.0)
+    inside = k + np.count_nonzero(within, axis=1)
+    ms = (np.einsum("ij,ij->i", lower, lower) + np.einsum("ij,ij->i", upper, upper))
+    ms /= np.maximum(inside, 1)
+    ms /= TRUNC4
+    collapsed = inside < COLLAPSED * count
+    if collapsed.any():
+        ms[collapsed] = _trimmed_ms(r[collapsed], count)
+    return np.sqrt(ms / 2.0)
+
+
+def _trimmed_ms(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
+    """Mean square of all but the largest TRIM of each row's ``count`` deviations
+    (the rest are +inf), or of all of them when that is 0 (a nearly constant output)."""
+    lo, frac = trim_rank(count)
+    hi = min(lo + 1, count - 1)
+    r.view(f"i{r.itemsize}").partition((lo, hi) if hi > lo else lo, axis=1)
+    trim = lerp(r[:, lo], r[:, hi], frac)
+    sq = np.where(np.isfinite(r), r * r, 0.0)
+    keep = r <= trim[:, None]
+    ms = np.where(keep, sq, 0.0).sum(axis=1) / np.count_nonzero(keep, axis=1)
+    return np.where(ms > 0, ms, sq.sum(axis=1) / count)
+
+
+#: Share of the largest deviations the quantised fallback leaves out.
+TRIM = 0.005
+#: Below this share of the deviations inside the window the MAD has collapsed.
+COLLAPSED = 0.9
+#: E[Z² | |Z| ≤ 4] for a standard normal Z (the ±4σ₀ window's truncation correction).
+TRUNC4 = 1.0 - 8.0 * math.exp(-8.0) / math.sqrt(2.0 * math.pi) / math.erf(4.0 / math.sqrt(2.0))
+
+
+def trim_rank(count: int) -> tuple[int, float]:
+    """Rank ``lo`` and fraction of the (1 − TRIM) quantile of ``count`` values, linear
+    between order statistics ``lo`` and ``lo + 1`` as ``numpy.quantile`` places it."""
+    h = (1.0 - TRIM) * (count - 1)
+    return math.floor(h), h - math.floor(h)
+
+
+def lerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
+    """``a + (b − a)·t``, from the nearer end (as ``numpy.quantile`` interpolates)."""
+    return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
 
 
 def _middle(r: np.ndarray, count: int, as_type=None) -> Float[np.ndarray, " r"]:

@@ -14,7 +14,7 @@ everything significant:
   squared errors are *paired*. Every score comes from per-block sums
   (:mod:`.scoring`), so memory does not grow with the number of candidates.
 * **A white-noise level that does not depend on any model**
-  (:func:`white_noise_rms`): a trimmed RMS of successive differences of
+  (:func:`white_noise_rms`): a windowed RMS of successive differences of
   ``gyro − rate`` (slow drift and the steps of a rate table drop out),
   checked against the short-τ Allan deviation of the residual. The decision
   measures held-out errors against it. The ``noise_floor`` reported beside it

@@ -8,6 +8,7 @@ import numpy as np
 from jaxtyping import Bool, Float
 
 from ..data import Batch
+from ..noise import sigma_from_differences
 
 
 def white_noise_rms(
@@ -18,20 +19,12 @@ def white_noise_rms(
     """White-noise σ per axis of ``y = gyro − rate``, without any model: the level
     the decision measures held-out errors against (``white_noise_rms`` in the JSON).
 
-    Unlike the reported ``noise_floor`` (:mod:`diffgyro.noise`: the MAD of
-    successive differences, the same in ``fit``), this statistic stays
-    continuous on quantised output and sees correlated samples. From successive
-    differences: slow drift (temperature, random walk) hardly changes from one
-    sample to the next, so ``Δy/√2`` sees the white noise. Pairs where the
+    The reported ``noise_floor`` (:mod:`diffgyro.noise`, the same in ``fit``) on
+    the lag-1 differences, with two guards the decision needs: pairs where the
     reference rate jumps (a rate table spinning up, where a scale-factor error
-    would leak in) are left out. A first robust scale (MAD) sets a ±4σ window;
-    the floor is the root mean square of the differences inside it (corrected
-    for the truncation), which, unlike a median, stays continuous when the
-    output is quantised to a few LSB. When the LSB exceeds ~2σ most differences
-    are exactly zero and the MAD collapses; the RMS of all but the largest
-    0.5 % of differences is used. The same on lag-2 differences guards against
-    output samples that are correlated (a sensor's internal low-pass filter):
-    the larger is kept. Runs on the host (medians by selection, not sorting).
+    would leak in) are left out, and the same on lag-2 differences guards
+    against output samples that are correlated (a sensor's internal low-pass
+    filter): the larger is kept.
     """
     y = np.asarray(y, np.float64)
     mask = np.asarray(mask, bool)
@@ -44,33 +37,11 @@ def white_noise_rms(
             dr = np.linalg.norm(rate[lag:] - rate[:-lag], axis=-1)
             calm = ok & (dr <= 30.0 * np.max(_mad(d[ok])))
             ok = calm if calm.sum() >= 0.2 * ok.sum() else ok
-        out.append(np.array([_white(d[ok, i]) for i in range(y.shape[1])]))
+        if not ok.any():
+            out.append(np.zeros(y.shape[1]))
+            continue
+        out.append(sigma_from_differences(np.ascontiguousarray(d.T), ok[None]))
     return np.maximum(out[0], out[1])
-
-
-def _white(d: np.ndarray) -> float:
-    """σ of one axis from its valid differences ``d`` (see :func:`white_noise_rms`)."""
-    if d.size == 0:
-        return 0.0
-    med = np.median(d)
-    dev = np.abs(d - med)
-    s1 = 1.4826 * np.median(dev)
-    dev2 = dev * dev
-    inside = dev <= 4.0 * s1
-    ms = dev2[inside].sum() / max(int(inside.sum()), 1) / _TRUNC4
-    # an output quantised to more than ~2σ makes most differences exactly 0 and the MAD
-    # collapse; then the RMS of all but the largest 0.5 % of the differences is the floor
-    keep = dev <= np.quantile(dev, 0.995)
-    ms_trim = dev2[keep].sum() / max(int(keep.sum()), 1)
-    if s1**2 < 0.25 * ms_trim:
-        ms = ms_trim
-    if not ms > 0:  # a nearly constant output: every difference counts
-        ms = dev2.sum() / d.size
-    return math.sqrt(ms / 2.0)
-
-
-#: E[Z² | |Z| ≤ 4] for a standard normal Z (truncation correction of the floor).
-_TRUNC4 = 1.0 - 8.0 * math.exp(-8.0) / math.sqrt(2.0 * math.pi) / math.erf(4.0 / math.sqrt(2.0))
 
 
 def _mad(d: np.ndarray) -> np.ndarray:
