@@ -38,6 +38,28 @@ def missing_message(batch: Batch, name: str) -> tuple[str, str]:
             f"rename one with --columns {name}=name_in_file")
 
 
+def column_problem(x: np.ndarray, vary: bool = True) -> str | None:
+    """Why the valid samples ``x`` of one device's extra column cannot feed a term, or None:
+    no numbers, a missing or non-finite value, or (``vary``) a constant."""
+    bad = ~np.isfinite(x)
+    if bad.all():
+        return "extra column holds no numbers (all NaN)"
+    if bad.any():
+        k = int(np.flatnonzero(bad)[0])
+        return f"extra column has a missing or non-finite value at sample {k + 1} of the device"
+    lo, hi = float(x.min()), float(x.max())
+    if vary and hi - lo <= MIN_RELATIVE_SPAN * max(abs(lo), abs(hi), 1e-300):
+        return f"extra column is constant ({lo!r}): a term in it cannot be told from the bias"
+    return None
+
+
+def device_problems(batch: Batch, name: str, vary: bool = True) -> list[str | None]:
+    """:func:`column_problem` of column ``name`` for every device of ``batch``."""
+    values = np.asarray(batch.aux[name])
+    return [column_problem(values[i, :int(batch.n_valid[i])], vary)
+            for i in range(batch.n_devices)]
+
+
 def check_columns(batch: Batch, names: Iterable[str], vary: bool = True) -> None:
     """DataError naming file, device and column for a missing, non-finite or (``vary``:
     a fit's data) constant column."""
@@ -46,23 +68,14 @@ def check_columns(batch: Batch, names: Iterable[str], vary: bool = True) -> None
             problem, hint = missing_message(batch, name)
             raise DataError(problem, file=batch.sources[0] if batch.sources else None,
                             column=name, hint=hint)
-        values = np.asarray(batch.aux[name])
-        for i, dev in enumerate(batch.devices):
-            n = int(batch.n_valid[i])
-            x = values[i, :n]
-            where = dict(file=batch.sources[i] if batch.sources else None, device=dev, column=name)
-            bad = ~np.isfinite(x)
-            if bad.all():
-                raise DataError("extra column holds no numbers (all NaN)", **where)
-            if bad.any():
-                k = int(np.flatnonzero(bad)[0])
-                raise DataError(f"extra column has a missing or non-finite value at sample {k + 1}"
-                                f" of the device", **where,
-                                hint="a model term reading it needs a value on every sample")
-            lo, hi = float(x.min()), float(x.max())
-            if vary and hi - lo <= MIN_RELATIVE_SPAN * max(abs(lo), abs(hi), 1e-300):
-                raise DataError(f"extra column is constant ({lo!r}): a term in it cannot be "
-                                f"told from the bias", **where)
+        for i, problem in enumerate(device_problems(batch, name, vary)):
+            if problem is None:
+                continue
+            where = dict(file=batch.sources[i] if batch.sources else None,
+                         device=batch.devices[i], column=name)
+            hint = ("a model term reading it needs a value on every sample"
+                    if "missing or non-finite" in problem else None)
+            raise DataError(problem, **where, hint=hint)
 
 
 def ranges(batch: Batch, names: Iterable[str]) -> dict[str, np.ndarray]:

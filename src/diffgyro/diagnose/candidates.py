@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..effects import AbstractEffect, registry
-from ..effects.base import MAX_ORDER
+from ..effects.base import MAX_ORDER, spec_arguments
 from ..model import ErrorModel
 
 
@@ -42,8 +42,29 @@ def _new_terms(cls, present: AbstractEffect | None) -> list[AbstractEffect]:
     return []
 
 
+def column_field(cls) -> str | None:
+    """The field of an effect's column argument (``aux(NAME)``: ``column``), or None."""
+    return next((f for f, kind in spec_arguments(cls) if kind == "column"), None)
+
+
+def term_column(term: AbstractEffect) -> str | None:
+    """The extra column a term reads through its column argument (``aux(vdd)``: vdd)."""
+    field = column_field(type(term))
+    return getattr(term, field) if field else None
+
+
+def _column_terms(cls, model: ErrorModel, columns, explicit) -> list[AbstractEffect]:
+    """Terms of a column effect: one per extra column the model does not read with it yet
+    (``explicit``: those of the given terms)."""
+    field = column_field(cls)
+    used = {getattr(t, field) for t in model.terms if t.name == cls.name}
+    terms = explicit if explicit is not None else [cls(**{field: c}) for c in columns]
+    return [t for t in terms if getattr(t, field) not in used]
+
+
 def candidate_specs(model: ErrorModel, available: frozenset[str],
-                    names: list[str] | None = None) -> list[CandidateSpec]:
+                    names: list[str] | None = None,
+                    columns: tuple[str, ...] = ()) -> list[CandidateSpec]:
     """Every registered effect the data supports and ``model`` lacks (or can raise).
 
     An effect already in the model with an order (``bias_poly(2)``) is offered
@@ -53,7 +74,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     there). ``names`` limits the search to those effect names (or full terms
     such as ``bias_poly(3)``). Order-k columns must be the first columns of
     order k+1 (true of the built-in polynomial terms) for a raised candidate
-    to be scored.
+    to be scored. An effect with a column argument (``aux``) is offered once per
+    extra column in ``columns`` the model does not read with it yet.
     """
     from ..effects import parse_term
 
@@ -74,8 +96,12 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]
-        old = present.get(name)
-        for term in (explicit if explicit is not None else _new_terms(cls, old)):
+        if column_field(cls):
+            old, terms = None, _column_terms(cls, model, columns, explicit)
+        else:
+            old = present.get(name)
+            terms = explicit if explicit is not None else _new_terms(cls, old)
+        for term in terms:
             if old is not None and (term == old or not cls.order_arg or term.order <= old.order):
                 continue
             if not term.requires() <= available | {"t", "gyro"}:

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from ..data import Recording
+from ..data import Recording, aux_key
 from .results import DeviceDiagnosis
 from .thresholds import family_of
 
@@ -82,6 +82,8 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict) -> dict:
                     best = (r2, i)
             out["accel"] = {"r": round(math.sqrt(max(best[0], 0.0)), 3), "axis": "xyz"[best[1]],
                             "label": "specific force"}
+    for name, x in rec.aux.items():  # extra logged columns, as aux:NAME
+        add(aux_key(name), x, label=f"`{name}`")
     return out
 
 
@@ -102,6 +104,22 @@ EFFECT_SIGNAL = {
 }
 
 
+def _term_column(c) -> str | None:
+    """The extra column a candidate's term reads (``aux(vdd)``: vdd), or None."""
+    from ..effects import parse_term
+    from .candidates import term_column
+
+    try:
+        return term_column(parse_term(c.term)) if c.term and "(" in c.term else None
+    except Exception:  # a term of several parts or an unregistered one: no column
+        return None
+
+
+def _named(c) -> str:
+    """How the explanation names a candidate: its effect, or its term when that names a column."""
+    return c.term if _term_column(c) else c.effect
+
+
 def _fmt(x) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x:.2g}"
 
@@ -116,7 +134,7 @@ def explain(d: DeviceDiagnosis) -> str:
         near = [c for c in d.candidates if c.closure > 0.1][:1]
         if near:
             c = near[0]
-            text += (f"; best candidate `{c.effect}` would give {_fmt(c.heldout_rms)} "
+            text += (f"; best candidate `{_named(c)}` would give {_fmt(c.heldout_rms)} "
                      f"(closes {100 * max(c.closure, 0):.0f} % of a small gap: not material)")
         return text + "."
     b = d.best
@@ -130,10 +148,14 @@ def explain(d: DeviceDiagnosis) -> str:
                                            f"{100 * c.closure:.0f} %" for c in near) + ")"
         return text + ": several effects may be missing at once, or one outside the vocabulary."
     sig_name, phrase = EFFECT_SIGNAL.get(b.effect, (None, f"follows the `{b.effect}` term"))
+    column = _term_column(b)
+    if column is not None:
+        sig_name, phrase = aux_key(column), f"follows `{column}`"
     ev = d.evidence.get(sig_name) if sig_name else None
     what = f"residual {phrase}"
     if ev is not None and sig_name != "time":
-        what += f" (r = {ev['r']:+.2f} on axis {ev['axis']} with {ev['label']})"
+        what += f" (r = {ev['r']:+.2f} on axis {ev['axis']}"
+        what += ")" if column is not None else f" with {ev['label']})"
         if sig_name == "heating" and "mean_heating" in ev:
             what += (f"; mean {_fmt(ev['mean_heating'])} rad/s heating vs "
                      f"{_fmt(ev['mean_cooling'])} cooling")
@@ -152,7 +174,7 @@ def explain(d: DeviceDiagnosis) -> str:
         text += f" Close alternatives{f' ({fam} family)' if same else ''}: {alts}."
     if b.effect != "random_walk" and d.random_walk is not None and d.random_walk.closure > 0.5:
         text += (f" A random-walk smoother would also follow this residual (held-out "
-                 f"{_fmt(d.random_walk.heldout_rms)}), but `{b.effect}` explains it with a "
+                 f"{_fmt(d.random_walk.heldout_rms)}), but `{_named(b)}` explains it with a "
                  f"physical signal and calibrates future data.")
     if d.floor_allan and abs(d.floor_allan / white - 1) > 0.2:
         text += (f" Note: the short-τ Allan deviation of the residual ({_fmt(d.floor_allan)}) "

@@ -8,16 +8,19 @@ is that of one device's per-sample arrays, whatever the batch.
 
 from __future__ import annotations
 
+import warnings
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Batch, Recording
+from .. import aux as aux_cols
+from ..data import Batch, Recording, aux_key
 from ..jit import release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
-from .candidates import CandidateSpec, candidate_specs
+from .candidates import CandidateSpec, candidate_specs, term_column
 from .decision import allan_slope, decide, unfitted
 from .evidence import evidence
 from .floor import suggest_dtemp_window, white_noise_rms
@@ -50,8 +53,9 @@ def _chunks(n_devices: int, size: int):
         yield start, np.minimum(np.arange(start, start + size), n_devices - 1)
 
 
-def _inputs(batch: Batch, res, idx: np.ndarray) -> dict:
-    """One chunk's samples and the fit's temperature normalisation and sampling intervals."""
+def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
+    """One chunk's samples, the fit's temperature normalisation and sampling intervals and
+    the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
     from ..core import sampling_intervals
 
     def arr(x):
@@ -64,14 +68,51 @@ def _inputs(batch: Batch, res, idx: np.ndarray) -> dict:
                         scale=jnp.broadcast_to(jnp.asarray(res.norm.scale, jnp.float64), (n,))[idx])
     return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
                 rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=jnp.asarray(sampling_intervals(batch)[idx]))
+                accel=arr(batch.accel), norm=norm, dt=jnp.asarray(sampling_intervals(batch)[idx]),
+                aux={k: jnp.asarray(v[idx]) for k, v in aux.items()})
+
+
+def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
+    """The extra columns diagnose reads, centred and scaled ((devices, n) each, zero where
+    not finite): those the model reads with the base fit's centring, the others (candidate
+    ``aux`` terms) with each device's own range; and, per column the model does not read,
+    every device's problem with it (None: usable, see :func:`diffgyro.aux.column_problem`)."""
+    used = aux_cols.aux_names(model.requires())
+    problems = {k: aux_cols.device_problems(batch, k) for k in batch.aux if k not in used}
+    fresh = [k for k, p in problems.items() if any(q is None for q in p)]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN devices: skipped below
+        norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
+                    for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
+        scaled = aux_cols.scaled(batch, norms)
+    return {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in scaled.items()}, problems
+
+
+def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict,
+                  n_dev: int) -> list[dict]:
+    """Per device, the column candidates (``aux(vdd)``) it skips and why: its column is
+    unusable (:func:`diffgyro.aux.column_problem`; the candidate's range marked so) or its
+    data cannot support the term."""
+    skips: list[dict] = [{} for _ in range(n_dev)]
+    for j, c in enumerate(every):
+        col = term_column(c.term)
+        if col is None:
+            continue
+        for i in range(n_dev):
+            why = problems.get(col, [None] * n_dev)[i]
+            if why is not None:
+                ranges[i, j] = 1.0
+                skips[i][c.term.spec] = why
+            elif ranges[i, j] > 0:
+                skips[i][c.term.spec] = UNSUPPORTED
+    return skips
 
 
 def _signals(inp: dict, dtemp_window: float):
     """The fit's derived signals of one device (its TempNorm and dT/dt window)."""
     return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
                         temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
-                        dtemp_window=dtemp_window, dt=inp["dt"])
+                        dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
 
 
 @eqx.filter_jit
@@ -154,16 +195,17 @@ def _gather(chunks: list[dict], n_dev: int) -> dict:
     return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
 
 
-def _prepare(batch: Batch, res, every: list[CandidateSpec]):
+def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
     """Ranges of every candidate and floors, streamed per chunk of devices."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
-    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx), float(res.options.dtemp_window)))
+    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx, aux),
+                                 float(res.options.dtemp_window)))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
 
-def _score(model, cands, batch, res, floors) -> dict:
+def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     """Every device's scores (:func:`_device_scores`), one chunk of devices at a time."""
     opts = res.options
     n_dev, length = batch.n_devices, batch.t.shape[1]
@@ -176,7 +218,7 @@ def _score(model, cands, batch, res, floors) -> dict:
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
         o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, float(opts.dtemp_window), rw_m,
-                    float(opts.dtemp_window), _inputs(batch, res, idx), jnp.asarray(beta[idx]),
+                    float(opts.dtemp_window), _inputs(batch, res, idx, aux), jnp.asarray(beta[idx]),
                     jnp.asarray(theta[idx]), jnp.asarray(floors[idx]), jnp.asarray(ix), jnp.asarray(ins))
         out.append(jax.device_get(o))
     out = _gather(out, n_dev)
@@ -227,9 +269,11 @@ def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
     return [(float(f), [float(v) for v in a]) for f, a in zip(noise.noise_floor(axes), axes)]
 
 
-def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported):
+def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported,
+            skips: dict):
     """One device's :class:`DeviceDiagnosis` from its scores (floors: the white-noise level
-    the decision uses); slope and floor_allan too."""
+    the decision uses); slope and floor_allan too. ``skips``: the column candidates it skips
+    and why (:func:`_column_skips`), listed by term."""
     nv = int(batch.n_valid[i])
     total = float(batch.t[i, nv - 1] - batch.t[i, 0])
     adev, tau = al.adev[i], al.tau[i]
@@ -251,6 +295,10 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
         edge=out["cand_edge"][i], base_spec=model.spec)
     for name in unsupported:
         d.skipped[name] = UNSUPPORTED
+    for c in cands:  # column candidates are listed by term (aux(vdd)), not under one name
+        if term_column(c.term) is not None and d.skipped.get(c.effect) == UNSUPPORTED:
+            del d.skipped[c.effect]
+    d.skipped.update(skips)
     return d, slope, floor_allan
 
 
@@ -288,22 +336,31 @@ def diagnose(
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
-    specs = candidate_specs(model, frozenset(batch.signals), candidates)
-    every = [c for c in specs if not c.stochastic]
+    aux, problems = _extra_columns(batch, model, res)
+    specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
+                            candidates, columns=tuple(problems))
+    # a column no device can use (all NaN, constant) is listed under skipped, never compiled
+    dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
+    every = [c for c in specs if not c.stochastic and c not in dead]
     rw_spec = (model + "random_walk").spec if any(c.stochastic for c in specs) else None
-    all_ranges, floors = _prepare(batch, res, every)
+    all_ranges, floors = _prepare(batch, res, every, aux)
+    skips = _column_skips(every, all_ranges, problems, batch.n_devices)
+    for c in dead:
+        for i, why in enumerate(problems[term_column(c.term)]):
+            skips[i][c.term.spec] = why
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
-    unsupported = [c.effect for j, c in enumerate(every) if j not in usable]
-    out = _score(model, cands, batch, res, floors)
+    unsupported = [c.effect for j, c in enumerate(every)
+                   if j not in usable and term_column(c.term) is None]
+    out = _score(model, cands, batch, res, floors, aux)
     ranges = all_ranges[:, usable]
     al = _allan(out["residual"], batch)
     reported = _reported_floor(batch, res)
     devices, slopes, floor_allans = [], [], []
     for i in range(batch.n_devices):
         d, slope, fa = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
-                               unsupported)
+                               unsupported, skips[i])
         d.noise_floor, d.noise_axes = reported[i]
         devices.append(d)
         slopes.append(slope)
