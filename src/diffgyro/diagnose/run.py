@@ -302,6 +302,20 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
     return d, slope, floor_allan
 
 
+def _candidates(model: ErrorModel, batch: Batch, res, names):
+    """The deterministic candidates, the random walk's spec (or None), the extra columns
+    their terms read (:func:`_extra_columns`), every column's problems per device, and the
+    column candidates no device can use (listed under skipped, never compiled)."""
+    aux, problems = _extra_columns(batch, model, res)
+    specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
+                            names, columns=tuple(problems))
+    dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
+    every = [c for c in specs if not c.stochastic and c not in dead]
+    rw_spec = (model + "random_walk").spec if any(c.stochastic for c in specs) else None
+    read = set(res.aux_norm) | {term_column(c.term) for c in every}
+    return every, rw_spec, {k: v for k, v in aux.items() if k in read}, problems, dead
+
+
 def diagnose(
     model: ErrorModel | str,
     batch: Batch | Recording | list[Recording],
@@ -336,13 +350,7 @@ def diagnose(
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
-    aux, problems = _extra_columns(batch, model, res)
-    specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
-                            candidates, columns=tuple(problems))
-    # a column no device can use (all NaN, constant) is listed under skipped, never compiled
-    dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
-    every = [c for c in specs if not c.stochastic and c not in dead]
-    rw_spec = (model + "random_walk").spec if any(c.stochastic for c in specs) else None
+    every, rw_spec, aux, problems, dead = _candidates(model, batch, res, candidates)
     all_ranges, floors = _prepare(batch, res, every, aux)
     skips = _column_skips(every, all_ranges, problems, batch.n_devices)
     for c in dead:
