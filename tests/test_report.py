@@ -7,11 +7,21 @@ import os
 import re
 
 import hidden_effects as H
+import numpy as np
 import pytest
 
 from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose, diagnose_auto
-from diffgyro.report import outliers, write_atomic, write_report
+from diffgyro.effects import registry
+from diffgyro.effects.gradient import Gradient
+from diffgyro.report import (
+    MAX_POINTS,
+    named_term_residuals,
+    outliers,
+    residual_drop_figure,
+    write_atomic,
+    write_report,
+)
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +84,96 @@ def test_outlier_device_is_listed(rate_table):
     dg = diagnose("bias_poly(1)+scale_poly(0)+scale_asym", batch)
     flagged = outliers(dg)
     assert any(dev == "rt2" and "bias_poly(1).c0" in why for dev, why in flagged), flagged
+
+
+@pytest.fixture(scope="module")
+def hidden_gradient():
+    """A thermal run with a hidden dT/dt gradient beside a clean one, and the diagnosis."""
+    noise = H.Noise(white=2e-4, flicker=0.1, drift=0.1)
+    hs = [H.make_recording("thermal", "gradient", "bias_poly(2)", 21, size=2.0, noise=noise,
+                           device="grad"),
+          H.make_recording("thermal", None, "bias_poly(2)", 22, noise=noise, device="clean")]
+    batch = Batch.from_recordings([h.recording for h in hs])
+    return hs, batch, diagnose("bias_poly(2)", batch, ["gradient", "temp_diff", "bias_poly"])
+
+
+def _drop_figure(dg, batch, e_new, spec):
+    n = int(batch.n_valid[0])
+    dtemp = np.asarray(dg.fit.signals(batch).dtemp[0, :n])
+    return residual_drop_figure(dg.model, spec, batch.recording(0), np.asarray(dg.residuals[0, :n]),
+                                e_new, dtemp)
+
+
+def _labelled(ax) -> dict:
+    """Drawn residual series of an axes by model spec (label "<spec>: RMS ...")."""
+    return {ln.get_label().split(":")[0]: ln for ln in ax.get_lines() if not ln.get_label().startswith("_")}
+
+
+def test_report_shows_the_error_fall_with_the_named_term(hidden_gradient, tmp_path):
+    hs, batch, dg = hidden_gradient
+    assert dg.devices[0].best.spec == "bias_poly(2)+gradient" and dg.devices[1].best is None
+    named = named_term_residuals(dg, batch)
+    assert set(named) == {0}, "only the device with a named term gets the overlay"
+    spec, e_new = named[0]
+    assert spec == "bias_poly(2)+gradient" and e_new.shape == (int(batch.n_valid[0]), 3)
+    e_base = np.asarray(dg.residuals[0, : int(batch.n_valid[0])])
+    # the two residuals differ by the hidden effect the simulator added
+    k = int(np.argmax(np.mean(e_base**2, 0) - np.mean(e_new**2, 0)))
+    assert np.corrcoef(e_base[:, k] - e_new[:, k], hs[0].hidden[:, k])[0, 1] > 0.95
+    fig = _drop_figure(dg, batch, e_new, spec)
+    time_ax, signal_ax = fig.axes
+    assert time_ax.get_xlabel() == "time (min)" and signal_ax.get_xlabel() == "dT/dt (°C/min)"
+    # the second panel is drawn against dT/dt: the simulator's true die dT/dt
+    x = np.asarray(_labelled(signal_ax)["bias_poly(2)"].get_xdata())
+    ddie = hs[0].env["ddie"]
+    assert np.corrcoef(x, ddie[::max(1, len(ddie) // MAX_POINTS)])[0, 1] > 0.9
+    for ax in fig.axes:
+        lines = _labelled(ax)
+        assert set(lines) == {"bias_poly(2)", "bias_poly(2)+gradient"}
+        rms = {sp: float(np.sqrt(np.mean(np.asarray(ln.get_ydata(), float) ** 2))) for sp, ln in lines.items()}
+        assert rms["bias_poly(2)+gradient"] < 0.5 * rms["bias_poly(2)"]
+        # with the term, what is left is the noise the simulator added
+        assert rms["bias_poly(2)+gradient"] == pytest.approx(hs[0].noise_rms, rel=0.15)
+        # each label states the RMS of every sample of that model on the drawn axis
+        for sp, e in (("bias_poly(2)", e_base), (spec, e_new)):
+            assert f"RMS {np.sqrt(np.mean(e[:, k] ** 2)):.3g} rad/s" in lines[sp].get_label()
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    write_report(dg, batch, tmp_path)
+    grad, clean = (tmp_path / "grad.html").read_text(), (tmp_path / "clean.html").read_text()
+    assert "The residual without and with gradient" in grad and "without and with" not in clean
+    assert len(_images(grad)) == len(_images(clean)) + 1
+
+
+def test_a_term_without_a_signal_is_drawn_against_the_one_it_follows(hidden_gradient, monkeypatch):
+    """A user effect that names no signal: the figure picks the one its contribution follows."""
+    hs, batch, dg = hidden_gradient
+    n = int(batch.n_valid[0])
+    e_new = np.asarray(dg.residuals[0, :n]) - hs[0].hidden  # the hidden dT/dt term taken out
+    monkeypatch.setattr(Gradient, "follows", None)
+    fig = _drop_figure(dg, batch, e_new, "bias_poly(2)+gradient")
+    assert fig.axes[1].get_xlabel() == "dT/dt (°C/min)"
+
+
+def test_every_builtin_effect_names_its_signal():
+    for name, cls in registry().items():
+        if cls.__module__.startswith("diffgyro."):
+            assert isinstance(cls.follows, str), name
+
+
+def test_an_aux_term_is_drawn_against_its_column():
+    from diffgyro.fit import fit
+    from diffgyro.simulate import simulate
+
+    batch, _ = simulate("thermal", 1, effects="bias_poly(1)+aux(vdd)", seed=8, duration=3600.0,
+                        sample_rate=1.0, noise={"arw": 2e-5, "rrw": 0.0, "bias_instability": 0.0})
+    n = int(batch.n_valid[0])
+    base = fit("bias_poly(1)", batch)
+    e_base = np.asarray(base.residuals(batch))[0, :n]
+    e_new = np.asarray(fit("bias_poly(1)+aux(vdd)", batch).residuals(batch))[0, :n]
+    fig = residual_drop_figure(base.model, "bias_poly(1)+aux(vdd)", batch.recording(0), e_base, e_new)
+    assert fig.axes[1].get_xlabel() == "vdd"
+    # the base residual, drawn against the column, follows it: the term's signal
+    x, y = (np.asarray(a, float) for a in _labelled(fig.axes[1])["bias_poly(1)"].get_data())
+    assert abs(np.corrcoef(x, y)[0, 1]) > 0.8

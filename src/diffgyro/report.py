@@ -2,7 +2,10 @@
 
 Per device: the residual of the base model against time, temperature
 (heating and cooling coloured), dT/dt, input rate and specific force (when
-the data has them); the Allan deviation of the residual with the noise
+the data has them); the residual of the base model and of the model with the
+named term, against time and against the signal that term follows (its
+effect's ``follows``: dT/dt, temperature, temp − temp_ext, the reference rate,
+an extra column), so the drop is seen; the Allan deviation of the residual with the noise
 floor; the candidates' held-out RMS against the base model and the floor;
 and the model ladder when the diagnosis came from ``--auto``. A batch gets a
 summary page: how many devices are adequate, the distribution of every
@@ -69,6 +72,13 @@ def _binned(x, y, bins=60):
     return xs[:m].reshape(-1, k).mean(1), ys[:m].reshape(-1, k).mean(1)
 
 
+def _moving_mean(t, y, segments=150):
+    """Means of ``y`` (and ``t``) over ``segments`` consecutive runs of samples."""
+    m = max(1, len(t) // segments)
+    cut = len(t) // m * m
+    return t[:cut].reshape(-1, m).mean(1), y[:cut].reshape(-1, m).mean(1)
+
+
 def _scatter_vs(ax, x, e, xlabel, color_by=None):
     idx = _thin(len(x))
     for i in range(3):
@@ -89,8 +99,9 @@ def _scatter_vs(ax, x, e, xlabel, color_by=None):
 # --------------------------------------------------------------------------- figures
 
 
-def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, str]:
-    """The figures of device ``i`` as {title: base64 PNG}."""
+def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> dict[str, str]:
+    """The figures of device ``i`` as {title: base64 PNG}; ``named`` is this device's entry of
+    :func:`named_term_residuals` (the residual with the named term, drawn over the base's)."""
     plt = _plt()
     d = diagnosis.devices[i]
     n = int(batch.n_valid[i])
@@ -104,10 +115,8 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
     idx = _thin(n)
     for k in range(3):
         ax.plot(t[idx] / 60.0, e[idx, k], ".", ms=1.2, alpha=0.25, color=COLORS[k])
-        m = max(1, n // 150)
-        cut = n // m * m
-        ax.plot(t[:cut].reshape(-1, m).mean(1) / 60.0, e[:cut, k].reshape(-1, m).mean(1), lw=1.4,
-                color=COLORS[k], label=f"g{AXES[k]} (moving mean)")
+        ax.plot(*_moving_mean(t / 60.0, e[:, k]), lw=1.4, color=COLORS[k],
+                label=f"g{AXES[k]} (moving mean)")
     ax.axhline(d.noise_floor, color="k", ls=":", lw=0.8, label="± noise floor")
     ax.axhline(-d.noise_floor, color="k", ls=":", lw=0.8)
     ax.set_xlabel("time (min)")
@@ -120,6 +129,11 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
         ax2.set_ylabel("temp (°C)", color="0.4")
     ax.legend(fontsize=7, loc="upper left")
     out["Residual against time"] = figure_png(fig)
+    if named is not None:
+        new_spec, e_new = named
+        fig = residual_drop_figure(diagnosis.model, new_spec, rec, e, e_new,
+                                   None if sig.dtemp is None else np.asarray(sig.dtemp[i, :n]))
+        out[f"The residual without and with {_added(diagnosis.spec, new_spec)}"] = figure_png(fig)
 
     if rec.temp is not None:
         heat = None if sig.heating is None else np.asarray(sig.heating[i, :n])
@@ -208,6 +222,135 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None) -> dict[str, st
     return out
 
 
+# --------------------------------------------------------------------------- the drop with the named term
+
+
+def named_term_residuals(diagnosis, batch: Batch, ladder=None) -> dict[int, tuple[str, np.ndarray]]:
+    """Device index -> (the model with its named term, that model's residual (n, 3)).
+
+    For every device whose diagnosis names a deterministic term: one fit per
+    distinct model over the devices that name it, with the base fit's options
+    (the ladder's last fit is reused when it is that model).
+    """
+    from .fit import fit
+
+    groups: dict[str, list[int]] = {}
+    for i, d in enumerate(diagnosis.devices):
+        if d.best is not None and not d.best.stochastic and math.isfinite(d.heldout_rms):
+            groups.setdefault(d.best.spec, []).append(i)
+    out: dict[int, tuple[str, np.ndarray]] = {}
+    for spec, idx in groups.items():
+        if ladder is not None and ladder.final.spec == spec:
+            e, rows = np.asarray(ladder.final.fit.residuals(batch)), idx
+        else:
+            sub = batch.select(np.asarray(idx))
+            e = np.asarray(fit(spec, sub, options=diagnosis.fit.options).residuals(sub))
+            rows = range(len(idx))
+        for i, r in zip(idx, rows):
+            e_i = e[r, : int(batch.n_valid[i])]
+            if np.all(np.isfinite(e_i)):
+                out[i] = (spec, e_i)
+    return out
+
+
+def _added(base_spec: str, new_spec: str) -> str:
+    from .model import ErrorModel
+
+    old = {t.spec for t in ErrorModel.from_spec(base_spec).terms}
+    return "+".join(t.spec for t in ErrorModel.from_spec(new_spec).terms if t.spec not in old)
+
+
+def _most_correlated(cols: np.ndarray, y: np.ndarray, among=(0, 1, 2)) -> int:
+    """The column of ``cols`` (n, m), among ``among``, that ``y`` follows most (|r|)."""
+    def r(j):
+        c = np.corrcoef(cols[:, j], y)[0, 1]
+        return abs(c) if np.isfinite(c) else -1.0
+    return max(among, key=r)
+
+
+def followed_signal(name: str | None, rec, dtemp, k: int, delta: np.ndarray):
+    """(x (n,), axis label) of the signal ``name`` (an effect's ``follows``) of ``rec`` as it
+    bears on gyro axis ``k``; ``delta`` (the named term's fitted contribution on that axis)
+    picks the component of a vector signal. None when the data lack it or it is time."""
+    temp, ext, rate, acc = rec.temp, rec.temp_ext, rec.rate, rec.accel
+    if name in ("temp", "heating") and temp is not None:
+        return temp, "temperature (°C)"
+    if name == "dtemp" and dtemp is not None:
+        return dtemp * 60.0, "dT/dt (°C/min)"
+    if name == "temp_diff" and temp is not None and ext is not None:
+        return temp - ext, "temp − temp_ext (°C)"
+    if name in ("rate", "abs_rate", "rate3") and rate is not None:
+        return rate[:, k], f"reference rate r{AXES[k]} (rad/s)"
+    if name == "cross_rate" and rate is not None:
+        j = _most_correlated(rate, delta, [j for j in range(3) if j != k])
+        return rate[:, j], f"reference rate r{AXES[j]} (rad/s)"
+    if name == "accel" and acc is not None:
+        j = _most_correlated(acc, delta)
+        return acc[:, j], f"specific force a{AXES[j]} (m/s²)"
+    if name is not None and name.startswith("aux:"):
+        x = getattr(rec, "aux", {}).get(name[4:])
+        return None if x is None else (np.asarray(x), name[4:])
+    return None
+
+
+def _signal_of_term(base_spec: str, new_spec: str, rec, dtemp, k: int, delta):
+    """The signal the added term follows; for a term that names none (a user effect),
+    the one among the data's signals that its contribution follows most."""
+    from .model import ErrorModel
+
+    old = {t.spec for t in ErrorModel.from_spec(base_spec).terms}
+    added = [t for t in ErrorModel.from_spec(new_spec).terms if t.spec not in old]
+    names = [t.followed_signal() for t in added]
+    if names and names[0] is not None:
+        return followed_signal(names[0], rec, dtemp, k, delta)
+    tries = ["temp", "dtemp", "temp_diff", "rate", "accel",
+             *(f"aux:{c}" for c in getattr(rec, "aux", {}))]
+    found = [s for s in (followed_signal(nm, rec, dtemp, k, delta) for nm in tries) if s is not None]
+    found = [s for s in found if np.ptp(s[0]) > 0]
+    if not found:
+        return None
+    return max(found, key=lambda s: abs(np.nan_to_num(np.corrcoef(s[0], delta)[0, 1])))
+
+
+def residual_drop_figure(base_model, new_spec: str, rec, e_base: np.ndarray, e_new: np.ndarray,
+                         dtemp: np.ndarray | None = None):
+    """Residual of ``base_model`` and of ``new_spec`` on the axis where they differ most,
+    against time and against the signal the added term follows (a matplotlib figure).
+
+    Each model is drawn as thinned samples, labelled ``"<spec>: RMS <value> rad/s"`` (the
+    RMS of every sample on that axis), and a moving or bin mean in the same colour.
+    """
+    plt = _plt()
+    base_spec = getattr(base_model, "spec", base_model)
+    k = int(np.argmax(np.mean(e_base**2, 0) - np.mean(e_new**2, 0)))
+    delta = e_base[:, k] - e_new[:, k]
+    signal = _signal_of_term(base_spec, new_spec, rec, dtemp, k, delta)
+    ncol = 1 if signal is None else 2
+    fig, axs = plt.subplots(1, ncol, figsize=(5.5 * ncol + (3 if ncol == 1 else 0), 3.6), squeeze=False)
+    t = (rec.t - rec.t[0]) / 60.0
+    idx = _thin(len(t))
+    for e, spec, col in ((e_base, base_spec, "0.5"), (e_new, new_spec, "tab:red")):
+        y = e[:, k]
+        label = f"{spec}: RMS {math.sqrt(float(np.mean(y**2))):.3g} rad/s"
+        axs[0, 0].plot(t[idx], y[idx], ".", ms=1.5, alpha=0.3, color=col, label=label)
+        axs[0, 0].plot(*_moving_mean(t, y), "-", lw=1.5, color=col)
+        if signal is not None:
+            x = signal[0]
+            axs[0, 1].plot(x[idx], y[idx], ".", ms=1.5, alpha=0.3, color=col, label=label)
+            axs[0, 1].plot(*_binned(x, y), "-", lw=1.5, color=col)
+    axs[0, 0].set_xlabel("time (min)")
+    axs[0, 0].set_title(f"g{AXES[k]} residual against time (lines: moving mean)", fontsize=9)
+    if signal is not None:
+        axs[0, 1].set_xlabel(signal[1])
+        axs[0, 1].set_title(f"g{AXES[k]} residual against {signal[1]} (lines: bin mean)", fontsize=9)
+    for ax in axs.flat:
+        ax.set_ylabel("residual (rad/s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, markerscale=4)
+    fig.tight_layout()
+    return fig
+
+
 def ladder_png(ladder, device: int | None = None) -> str:
     """Held-out RMS as terms are added (one line per device, or one device)."""
     plt = _plt()
@@ -248,7 +391,7 @@ def _fmt(x) -> str:
     return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
 
 
-def device_page(diagnosis, batch: Batch, i: int, ladder=None) -> str:
+def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str:
     d = diagnosis.devices[i]
     rows = "".join(
         f"<tr><td class=l>{html.escape(c.effect)}</td><td class=l>{html.escape(c.spec)}</td>"
@@ -267,7 +410,7 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None) -> str:
     ]
     if skipped:
         body.append(f"<p>Not tried:</p><ul>{skipped}</ul>")
-    for title, png in device_figures(diagnosis, batch, i, ladder).items():
+    for title, png in device_figures(diagnosis, batch, i, ladder, named).items():
         body.append(f"<h2>{html.escape(title)}</h2><img alt='{html.escape(title)}' "
                     f"src='data:image/png;base64,{png}'>")
     body.append("<p><a href='index.html'>batch summary</a></p>")
@@ -380,15 +523,18 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     directory.mkdir(parents=True, exist_ok=True)
     paths = []
     seen: set[str] = set()
+    named = named_term_residuals(diagnosis, batch, ladder)
     for i, d in enumerate(diagnosis.devices):
         slug = _slug(d.device)
         while slug in seen:
             slug += "_"
         seen.add(slug)
-        paths.append(write_atomic(directory / f"{slug}.html", device_page(diagnosis, batch, i, ladder)))
+        page = device_page(diagnosis, batch, i, ladder, named.get(i))
+        paths.append(write_atomic(directory / f"{slug}.html", page))
     paths.insert(0, write_atomic(directory / "index.html", summary_page(diagnosis, ladder)))
     return paths
 
 
-__all__ = ["device_figures", "device_page", "figure_png", "ladder_png", "outliers", "summary_page",
-           "write_atomic", "write_report"]
+__all__ = ["device_figures", "device_page", "figure_png", "followed_signal", "ladder_png",
+           "named_term_residuals", "outliers", "residual_drop_figure", "summary_page", "write_atomic",
+           "write_report"]

@@ -27,6 +27,7 @@ class Aux(AbstractEffect):
     arguments = (("column", "column"), ("order", "int"))
     default_order = 1
     min_order = 1
+    follows = "aux:NAME"  # the instance's column: followed_signal()
 
     @property
     def spec(self):
@@ -34,6 +35,9 @@ class Aux(AbstractEffect):
 
     def requires(self):
         return frozenset({aux_key(self.column)})
+
+    def followed_signal(self):
+        return f"aux:{self.column}"
 
     def param_names(self):
         return tuple(f"a{j}" for j in range(1, self.order + 1))

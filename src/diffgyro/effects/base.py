@@ -58,6 +58,12 @@ class AbstractEffect(eqx.Module):
     rate_dependent: ClassVar[bool] = False
     #: True for terms handled by a state-space smoother rather than by regression.
     stochastic: ClassVar[bool] = False
+    #: The signal the term's contribution follows, where its evidence is sought and against
+    #: which reports plot the residual: ``temp``, ``dtemp`` (dT/dt), ``temp_diff``
+    #: (temp − temp_ext), ``heating`` (heating vs cooling), ``rate``, ``abs_rate``, ``rate3``,
+    #: ``cross_rate`` (the other axes' rates), ``accel``, ``early`` (the first minutes),
+    #: ``time``, or ``aux:NAME`` (an extra logged column); None: no single signal.
+    follows: ClassVar[str | None] = None
 
     @property
     def spec(self) -> str:
@@ -69,6 +75,11 @@ class AbstractEffect(eqx.Module):
         """What may appear only once in a model: the name and any column arguments."""
         return (self.name, *(getattr(self, f) for f, kind in spec_arguments(type(self))
                              if kind == "column"))
+
+    def followed_signal(self) -> str | None:
+        """The signal this term follows (``follows``; a term whose signal depends on its
+        arguments, such as the column of ``aux(NAME)``, overrides this)."""
+        return self.follows
 
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]:

@@ -12,6 +12,7 @@ class GSens(AbstractEffect):
     """``Δω_i = Σ_j G_ij · f_j``: the proof mass feels specific force ``f`` (m/s²)."""
 
     name = "g_sens"
+    follows = "accel"
     description = "3×3 g-sensitivity: bias proportional to specific force"
     needs = frozenset({"accel"})
     unit = "rad/s per m/s²"

@@ -13,6 +13,7 @@ class Gradient(AbstractEffect):
     """``Δω_i = g_i · dT/dt`` (°C/s): a temperature gradient across the sensing element."""
 
     name = "gradient"
+    follows = "dtemp"
     description = "bias proportional to dT/dt"
     needs = frozenset({"temp"})
     unit = "rad/s per °C/s"

@@ -13,6 +13,7 @@ class Hysteresis(AbstractEffect):
     """``Δω_i = h_i · s(t)``, ``s = +1`` after heating, ``−1`` after cooling, kept through soaks."""
 
     name = "hysteresis"
+    follows = "heating"
     description = "bias offset set by whether the sensor last heated or cooled, kept through soaks"
     needs = frozenset({"temp"})
     unit = "rad/s"

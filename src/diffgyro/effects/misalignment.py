@@ -15,6 +15,7 @@ class Misalignment(AbstractEffect):
     """``Δω_i = Σ_{j≠i} m_ij · Ω_j``: each gyro axis also sees the other two true rates."""
 
     name = "misalignment"
+    follows = "cross_rate"
     description = "six off-diagonal cross-axis couplings"
     needs = frozenset({"rate"})
     unit = "rad (small angle, dimensionless)"

@@ -19,6 +19,7 @@ class RandomWalk(AbstractEffect):
     """``b_i(t)``: a per-axis random walk starting at 0 at the first sample; variance learned."""
 
     name = "random_walk"
+    follows = "time"
     description = "stochastic bias random walk, Kalman-smoothed, variance by maximum likelihood"
     unit = "(rad/s)²/s"
     stochastic = True

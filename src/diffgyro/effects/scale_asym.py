@@ -13,6 +13,7 @@ class ScaleAsym(AbstractEffect):
     """``Δω_i = a_i · |Ω_i|``: scale factor ``s + a`` for Ω > 0 and ``s − a`` for Ω < 0."""
 
     name = "scale_asym"
+    follows = "abs_rate"
     description = "scale factor differs for positive and negative input rates"
     needs = frozenset({"rate"})
     unit = "1 (dimensionless)"

@@ -11,6 +11,7 @@ class ScaleNonlin(AbstractEffect):
     """``Δω_i = n_i · Ω_i³``: the scale factor grows by ``n_i·Ω_i²`` at high rates."""
 
     name = "scale_nonlin"
+    follows = "rate3"
     description = "scale-factor error growing with rate² (output term ∝ Ω³)"
     needs = frozenset({"rate"})
     unit = "(rad/s)^-2"

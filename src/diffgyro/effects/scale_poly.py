@@ -14,6 +14,7 @@ class ScalePoly(AbstractEffect):
 
     order: int = eqx.field(static=True, default=0)
     name = "scale_poly"
+    follows = "rate"
     description = "per-axis scale-factor error, polynomial of temperature"
     unit = "1 per T_s^j (dimensionless)"
     order_arg = True

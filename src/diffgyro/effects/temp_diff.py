@@ -13,6 +13,7 @@ class TempDiff(AbstractEffect):
     """``Δω_i = d_i · (T − T_ext)``: heat flowing through the housing bends the bias."""
 
     name = "temp_diff"
+    follows = "temp_diff"
     description = "bias proportional to (temp − temp_ext)"
     needs = frozenset({"temp", "temp_ext"})
     unit = "rad/s per °C"

@@ -72,6 +72,7 @@ class ThermalLag(AbstractEffect):
 
     order: int = eqx.field(static=True, default=1)
     name = "thermal_lag"
+    follows = "dtemp"
     description = "the bias polynomial sees temperature through a first-order lag with fitted time constant"
     needs = frozenset({"temp"})
     unit = "rad/s per T_s^j"

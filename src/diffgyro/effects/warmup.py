@@ -13,6 +13,7 @@ class Warmup(AbstractEffect):
     """``Δω_i = w_i · exp(−t/τ)``, t from the first sample (power-on); τ shared by the axes."""
 
     name = "warmup"
+    follows = "early"
     description = "exponential bias transient after power-on, fitted amplitude and time constant"
     needs = frozenset({"t"})
     unit = "rad/s"
