@@ -206,7 +206,7 @@ def test_fast_calibration_entries_equal_from_fit():
     from diffgyro.pipeline.run import calibration_entries
     from diffgyro.signals import TempNorm
 
-    model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient")
+    model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient+aux(vdd)")
     d, p, q, t = 4, model.n_params, model.n_nonlinear, len(model.deterministic)
     rng = np.random.default_rng(0)
     beta = rng.standard_normal((d, 3, p))
@@ -228,13 +228,15 @@ def test_fast_calibration_entries_equal_from_fit():
         noise_floor=rng.uniform(1e-5, 1e-4, d), noise_axes=np.zeros((d, 3)),
         sigma=np.zeros((d, 3)), steps=np.array([5, 100, 3, 1]), status=status,
         range_flags=range_flags, collinear=collinear, n_samples=np.full(d, 200.0),
-        options=FitOptions())
-    expected = [to_json_safe(dict(x.__dict__))
-                for x in calibration.from_fit(result).devices]
+        options=FitOptions(),
+        aux_norm={"vdd": TempNorm(centre=rng.uniform(4, 6, d), scale=rng.uniform(0.1, 1, d))},
+        aux_range={"vdd": np.sort(rng.uniform(4, 6, (d, 2)), axis=1)})
+    expected = [calibration.entry_json(x.__dict__) for x in calibration.from_fit(result).devices]
     got = calibration_entries(result)
     assert json.dumps(got, allow_nan=False) == json.dumps(expected, allow_nan=False)
     assert got[2]["status_detail"].startswith("insufficient_range")
     assert "thermal_lag.tau" in got[0]["params"]["shared"]
+    assert set(got[1]["aux"]["vdd"]) == {"centre", "scale", "range"}
 
 
 def test_streamed_diagnosis_names_the_missing_effect(tmp_path):

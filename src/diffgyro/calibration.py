@@ -93,9 +93,13 @@ class Calibration:
             "model": self.model, "dtemp_window": self.dtemp_window,
             "created": self.created, "diffgyro_version": self.diffgyro_version,
             "input_hash": self.input_hash, "units": self.units,
-            "devices": [to_json_safe({k: v for k, v in d.__dict__.items() if k != "aux" or v})
-                        for d in self.devices],
+            "devices": [entry_json(d.__dict__) for d in self.devices],
         }
+
+
+def entry_json(fields: dict) -> dict:
+    """A device entry as written: JSON-safe, without an empty ``aux`` block."""
+    return to_json_safe({k: v for k, v in fields.items() if k != "aux" or v})
 
 
 def data_hash(batch: Batch) -> str:
