@@ -14,7 +14,6 @@ from diffgyro import calibration
 from diffgyro.errors import DataError
 from diffgyro.fit import fit
 from diffgyro.io import load
-from diffgyro.jsonio import to_json_safe
 from diffgyro.pipeline import fit_dataset
 from diffgyro.pipeline.dataset import ReadConfig, expand_inputs, index_dataset
 from diffgyro.pipeline.workdir import WorkDir

@@ -34,7 +34,7 @@ import numpy as np
 
 from ..data import Batch, Recording
 from ..errors import DataError
-from ..jsonio import AtomicFile, dumps, number, to_json_safe
+from ..jsonio import AtomicFile, dumps, number
 from .dataset import ReadConfig, expand_inputs, fingerprint, index_dataset, read_devices
 from .workdir import FORMAT, FORMAT_VERSION, WorkDir
 
