@@ -32,9 +32,13 @@
 #
 # The plan grid is coarse here (2048 samples, about 14 s) so the notebook
 # runs in about a minute; `PlanConfig(n_samples=8192)` gives the report
-# numbers. Rates are in rad/s inside, °/h in the prints.
+# numbers. Rates are in rad/s inside, °/h in the prints. With the environment
+# variable `DIFFGYRO_NOTEBOOK_QUICK` set (the test suite sets it) the Monte
+# Carlo batches, bootstrap and plan optimisation run smaller; every step is the
+# same.
 
 # %%
+import os
 import time
 
 import jax
@@ -74,6 +78,9 @@ diffgyro.enable_x64()
 diffgyro.enable_compilation_cache()
 started = time.perf_counter()
 DPH = 180 / np.pi * 3600  # rad/s -> °/h
+QUICK = bool(os.environ.get("DIFFGYRO_NOTEBOOK_QUICK"))
+N_DEVICES, N_BOOT, N_MC = (40, 40, 60) if QUICK else (120, 100, 250)
+STEPS, BUDGET_STEPS, BUDGET_ITERATIONS = (60, 40, 3) if QUICK else (200, 150, 6)
 
 model = ErrorModel.from_spec("bias_poly(3)+scale_poly(2)+gradient")
 op = OperatingRange(temps=(-40.0, 70.0), rate=10 * DEG)   # where the calibration is used
@@ -99,19 +106,19 @@ plt.show()
 # %% [markdown]
 # ## 1. Uncertainty that survives correlated noise
 #
-# 120 devices through S2, with white noise plus a Gauss–Markov bias
+# 120 devices (40 in quick mode) through S2, with white noise plus a Gauss–Markov bias
 # (σ = 0.5 °/h, τ = 2 min), each calibrated with `fit`. The truth is known,
 # so we can count how often the nominal 95 % intervals hold it.
 
 # %%
-batch, truth = simulate_devices(s2, config, model, 120, arw, op.norm, seed=1,
+batch, truth = simulate_devices(s2, config, model, N_DEVICES, arw, op.norm, seed=1,
                                 gm_sigma=0.5 / DPH, gm_tau=120.0)
 result = fit(model, batch, norm=op.norm)
 est = np.asarray(jax.vmap(flat)(result.params))
 tru = np.asarray(jax.vmap(flat)(truth))
 hac = hac_covariance(result, batch)                       # AR-spectral (default)
 nw = hac_covariance(result, batch, method="kernel")       # Newey–West, prewhitened
-boot = block_bootstrap(result, batch, n_boot=100)
+boot = block_bootstrap(result, batch, n_boot=N_BOOT)
 for name, cov in [("Gauss–Newton (plain)", result.cov), ("HAC, AR spectral", hac["cov"]),
                   ("Newey–West (Bartlett)", nw["cov"]), ("circular block bootstrap", boot["cov"])]:
     print(f"{name:26s} 95 % intervals cover the truth {100 * coverage(est, tru, cov):5.1f} %")
@@ -187,15 +194,15 @@ free_thermal = ("temps", "soaks", "ramp")
 T_s2 = float(plan_duration(s2, config))
 pred_s2 = predict_plan(s2, config, model, arw, op)
 designs = {
-    "thermal only": optimise_plan(s2, config, model, arw, op, free=free_thermal, steps=200),
-    "full": optimise_plan(s2, config, model, arw, op, steps=200),
+    "thermal only": optimise_plan(s2, config, model, arw, op, free=free_thermal, steps=STEPS),
+    "full": optimise_plan(s2, config, model, arw, op, steps=STEPS),
 }
 target = float(pred_s2.worst)
 rows = []
 for name, res in designs.items():
     free = free_thermal if name == "thermal only" else ("temps", "soaks", "ramp", "spin_fraction")
     t_eq, _ = budget_for_accuracy(target, s2, config, model, arw, op, lo=0.5 * 3600, hi=T_s2,
-                                  iterations=6, free=free, steps=150)
+                                  iterations=BUDGET_ITERATIONS, free=free, steps=BUDGET_STEPS)
     rows.append((name, float(res.prediction.worst), t_eq))
     print(f"{name:13s} equal time: worst {float(res.prediction.worst) * DPH:.4f} °/h "
           f"({100 * (1 - float(res.prediction.worst) / target):.0f} % better than S2); "
@@ -218,14 +225,14 @@ plt.show()
 # %% [markdown]
 # ## 5. Does the prediction hold? Monte Carlo
 #
-# 250 simulated devices per plan (each with its own sensor lag,
+# 250 simulated devices per plan (60 in quick mode) (each with its own sensor lag,
 # self-heating and coefficients, white noise), calibrated with `fit`; the
 # worst case over the operating range of the RMS compensation error is
 # compared with the prediction.
 
 # %%
 for name, plan, pred in [("S2", s2, pred_s2), ("full", best, designs["full"].prediction)]:
-    mc = monte_carlo(plan, config, model, arw, op, n_devices=250, seed=7)
+    mc = monte_carlo(plan, config, model, arw, op, n_devices=N_MC, seed=7)
     print(f"{name:5s} predicted {float(pred.worst) * DPH:.4f} °/h, Monte Carlo "
           f"{float(mc.worst) * DPH:.4f} °/h ({100 * (float(mc.worst) / float(pred.worst) - 1):+.1f} %), "
           f"median device worst |error| {float(jnp.median(mc.device_worst)) * DPH:.4f} °/h")

@@ -1,17 +1,34 @@
-"""``diffgyro demo``: the loop on a simulated batch with a hidden effect, end to end."""
+"""``diffgyro demo``: the loop on a simulated batch with a hidden effect, end to end.
+
+The command runs once; its result is taken from ``run_demo`` on the way out."""
 
 from __future__ import annotations
 
 import time
 
+import diffgyro.demo
 from diffgyro.cli import main
-from diffgyro.demo import BASE, TRUTH, run_demo
+from diffgyro.demo import BASE, TRUTH
 
 
-def test_demo_names_the_hidden_effect_and_reaches_the_floor(tmp_path):
+def test_demo_command_names_the_hidden_effect_and_reaches_the_floor(tmp_path, capsys,
+                                                                    monkeypatch):
+    results = []
+    real = diffgyro.demo.run_demo
+
+    def recorded(*args, **kwargs):
+        results.append(real(*args, **kwargs))
+        return results[-1]
+
+    monkeypatch.setattr(diffgyro.demo, "run_demo", recorded)
     start = time.perf_counter()
-    result = run_demo(tmp_path / "demo")
+    code = main(["demo", "--out", str(tmp_path / "demo")])
     elapsed = time.perf_counter() - start
+    out = capsys.readouterr().out
+    assert code == 0
+    assert BASE in out and "gradient" in out and "model ladder" in out
+
+    (result,) = results
     first, final = result.ladder.first, result.ladder.final
     assert result.added == ["gradient"] and result.ladder.spec == TRUTH
     assert all(d.verdict == "missing_effect" for d in first.devices)
@@ -22,11 +39,3 @@ def test_demo_names_the_hidden_effect_and_reaches_the_floor(tmp_path):
     assert (tmp_path / "demo" / "index.html").exists()
     assert len(list((tmp_path / "demo").glob("*.html"))) == 1 + result.batch.n_devices
     assert elapsed < 300  # one minute on an idle 2-core machine; shared CI runners are slower
-
-
-def test_demo_command(tmp_path, capsys):
-    code = main(["demo", "--out", str(tmp_path / "d")])
-    out = capsys.readouterr().out
-    assert code == 0
-    assert BASE in out and "gradient" in out and "model ladder" in out
-    assert (tmp_path / "d" / "index.html").exists()
