@@ -223,7 +223,7 @@ def layout_of(model: ErrorModel, present: frozenset[str]) -> tuple[Layout, froze
                 a_map[i, a, b] = a_map[i, b, a] = k
     const_col = None
     for term, sl, _ in model.slices():
-        if term.name == "bias_poly":
+        if term.constant_bias:
             const_col = sl.start
     shared = tuple(bool(np.array_equal(xall[:, 0, a], xall[:, 1, a]) and
                         np.array_equal(xall[:, 0, a], xall[:, 2, a])) for a in range(p))

@@ -557,7 +557,7 @@ def fit_random_walk(
     if static is not None:
         obs = obs & np.asarray(static, bool).reshape(obs.shape)
     if p0 is None:
-        p0 = 0.0 if any(t.name == "bias_poly" for t in model.deterministic) else WIDE_PRIOR
+        p0 = 0.0 if any(t.constant_bias for t in model.deterministic) else WIDE_PRIOR
     idx, ok = observed_indices(obs)
     keep = (jnp.asarray(idx), jnp.asarray(ok))
     out = _fit_batch(model, sig, jnp.asarray(obs), keep, jnp.asarray(p0, sig.gyro.dtype), reml,

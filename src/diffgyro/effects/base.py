@@ -58,6 +58,9 @@ class AbstractEffect(eqx.Module):
     rate_dependent: ClassVar[bool] = False
     #: True for terms handled by a state-space smoother rather than by regression.
     stochastic: ClassVar[bool] = False
+    #: True when the term's first column is a constant (a fixed bias): the linear solver
+    #: centres the other columns against it, and a random walk beside it starts at zero.
+    constant_bias: ClassVar[bool] = False
     #: The signal the term's contribution follows, where its evidence is sought and against
     #: which reports plot the residual: ``temp``, ``dtemp`` (dT/dt), ``temp_diff``
     #: (temp − temp_ext), ``heating`` (heating vs cooling), ``rate``, ``abs_rate``, ``rate3``,

@@ -14,6 +14,7 @@ class BiasPoly(AbstractEffect):
 
     order: int = eqx.field(static=True, default=0)
     name = "bias_poly"
+    constant_bias = True
     follows = "temp"
     description = "per-axis bias, polynomial of temperature (k = 0: constant)"
     unit = "rad/s per T_s^j"
