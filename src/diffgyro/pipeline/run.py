@@ -483,33 +483,9 @@ def _run(
     on_chunk: Callable[[dict], None] | None = None,
 ) -> RunSummary:
     """The streaming run behind :func:`fit_dataset` and :func:`diagnose_dataset`."""
-    from ..effects import parse_spec
-    from ..io import parse_columns, resolve_units
-    from ..model import ErrorModel
-
     t_start = time.monotonic()
-    em = ErrorModel(parse_spec(model))
-    spec = em.spec
-    if any(r.startswith("aux:") for r in em.requires()):  # the readers keep standard columns
-        raise DataError(f"the streaming run reads the standard columns only; model {spec!r} "
-                        f"reads an extra column", hint="fit it with diffgyro fit")
-    if isinstance(chunk_devices, bool) or int(chunk_devices) < 1:
-        raise DataError(f"--chunk-devices must be a positive integer, not {chunk_devices!r}")
-    chunk_devices = int(chunk_devices)
-    if isinstance(columns, str):
-        columns = parse_columns(columns)
-    resolve_units(units)  # unknown units fail here, before any work
-    if sampling_rate is not None and not (np.isfinite(sampling_rate) and sampling_rate > 0):
-        raise DataError(f"sampling rate must be a positive number of Hz, got {sampling_rate}")
-    fit_options = dict(fit_options or {})
-    task_options = dict(task_options or {})
-    files = expand_inputs(paths)
-    cfg = ReadConfig(columns=dict(columns or {}), units=dict(units or {}),
-                     drop_invalid=bool(drop_invalid), sampling_rate=sampling_rate,
-                     wanted=tuple(sorted(_WANTED[command](em))))
-    key = {"command": command, "model": spec, "chunk_devices": chunk_devices,
-           "options": {"fit": fit_options, "task": task_options, "read": cfg.to_json()},
-           "inputs": [fingerprint(f) for f in files]}
+    em, files, cfg, key = _run_key(command, paths, model, chunk_devices, columns, units,
+                                   drop_invalid, sampling_rate, fit_options, task_options)
     out = None if out is None else Path(out)
     if results is None and out is not None:
         results = out.with_name(out.name.removesuffix(".json") + ".devices.jsonl")
@@ -520,74 +496,21 @@ def _run(
 
     work.lock()
     try:
-        manifest = work.read_manifest()
-        if manifest is not None and resume and manifest.get("key") != key:
-            raise DataError(
-                "the work directory holds a different run (other command, model, options, "
-                "chunk size or changed input files)", file=str(work.path),
-                hint="use --no-resume to discard it, or another --work-dir")
-        if manifest is None or not resume:
-            work.clear()
-            index = index_dataset(files, cfg, needed=[s for s in _needed_signals(em)
-                                                      if s != "rate"])
-            manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, "key": key,
-                        "files": index.files, "n_devices": len(index.devices),
-                        "chunks": plan_chunks(index, chunk_devices), "complete": False,
-                        "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
-            del index
-            work.write_manifest(manifest)
-        work.remove_temporaries()
+        manifest = _open_manifest(work, key, resume, files, cfg, em)
         plan = manifest["chunks"]
-        setup = {"command": command, "model": spec, "fit_options": fit_options,
-                 "task_options": task_options, "chunk_devices": chunk_devices,
+        setup = {"command": command, "model": em.spec, "fit_options": key["options"]["fit"],
+                 "task_options": key["options"]["task"], "chunk_devices": key["chunk_devices"],
                  "shard": shard, "read": key["options"]["read"], "files": manifest["files"]}
-        done: set[int] = set()
-        skipped_failed = 0
-        for c in plan:
-            obj = work.read_chunk(c["chunk"], c["devices"])
-            if obj is not None:
-                done.add(c["chunk"])
-                skipped_failed += sum(r["status"] != "ok" for r in obj["records"])
-            del obj
+        done, skipped_failed = _finished_chunks(work, plan)
         pending = [c for c in plan if c["chunk"] not in done]
         bar = _progress(progress, command, manifest["n_devices"],
                         sum(len(c["devices"]) for c in plan if c["chunk"] in done), skipped_failed)
-        last_manifest = [time.monotonic()]
-
-        def finished(res: dict) -> None:
-            work.write_chunk(res["chunk"], res)
-            plan[res["chunk"]]["status"] = "done"
-            bar.update(len(res["devices"]), sum(r["status"] != "ok" for r in res["records"]))
-            if time.monotonic() - last_manifest[0] > 2.0:
-                work.write_manifest(manifest)
-                last_manifest[0] = time.monotonic()
-            if on_chunk is not None:
-                on_chunk(res)
-
         try:
             if pending:
-                if dask:
-                    from .cluster import run_on_dask
-
-                    run_on_dask(dask, run_chunk, pending, setup, finished)
-                else:
-                    _run_local(pending, setup, finished)
+                _run_pending(work, manifest, pending, setup, dask, bar, on_chunk)
         finally:
             bar.close()
-        hashes = []
-        for c in plan:
-            obj = work.read_chunk(c["chunk"], c["devices"])
-            if obj is None:
-                raise DataError(f"chunk {c['chunk']} has no result file", file=str(work.path))
-            c["status"] = "done"
-            hashes.append(obj["input_hash"])
-        manifest["input_hash"] = combined_hash(hashes)
-        work.write_manifest(manifest)
-        counts = merge(work, manifest, out, results, json_stream)
-        manifest["complete"] = True
-        manifest["outputs"] = {"calibration": None if out is None else str(out),
-                               "results": str(results)}
-        work.write_manifest(manifest)
+        counts = _merge_all(work, manifest, out, results, json_stream)
     finally:
         work.unlock()
     n_dev = manifest["n_devices"]
@@ -597,6 +520,116 @@ def _run(
                       chunks_total=len(plan), chunks_run=len(pending), seconds=seconds,
                       devices_per_second=bar.rate, work_dir=str(work.path),
                       outputs={k: v for k, v in manifest["outputs"].items() if v})
+
+
+def _run_key(command, paths, model, chunk_devices, columns, units, drop_invalid,
+             sampling_rate, fit_options, task_options):
+    """The checked model, input files and read configuration, and the run's key (what a
+    work directory must match to be resumed)."""
+    from ..effects import parse_spec
+    from ..io import parse_columns, resolve_units
+    from ..model import ErrorModel
+
+    em = ErrorModel(parse_spec(model))
+    if any(r.startswith("aux:") for r in em.requires()):  # the readers keep standard columns
+        raise DataError(f"the streaming run reads the standard columns only; model {em.spec!r} "
+                        f"reads an extra column", hint="fit it with diffgyro fit")
+    if isinstance(chunk_devices, bool) or int(chunk_devices) < 1:
+        raise DataError(f"--chunk-devices must be a positive integer, not {chunk_devices!r}")
+    if isinstance(columns, str):
+        columns = parse_columns(columns)
+    resolve_units(units)  # unknown units fail here, before any work
+    if sampling_rate is not None and not (np.isfinite(sampling_rate) and sampling_rate > 0):
+        raise DataError(f"sampling rate must be a positive number of Hz, got {sampling_rate}")
+    files = expand_inputs(paths)
+    cfg = ReadConfig(columns=dict(columns or {}), units=dict(units or {}),
+                     drop_invalid=bool(drop_invalid), sampling_rate=sampling_rate,
+                     wanted=tuple(sorted(_WANTED[command](em))))
+    key = {"command": command, "model": em.spec, "chunk_devices": int(chunk_devices),
+           "options": {"fit": dict(fit_options or {}), "task": dict(task_options or {}),
+                       "read": cfg.to_json()},
+           "inputs": [fingerprint(f) for f in files]}
+    return em, files, cfg, key
+
+
+def _open_manifest(work: WorkDir, key: dict, resume: bool, files, cfg: ReadConfig, em) -> dict:
+    """The work directory's manifest: the one there when it holds this run and ``resume``,
+    else a new one from indexing the inputs (the directory cleared)."""
+    manifest = work.read_manifest()
+    if manifest is not None and resume and manifest.get("key") != key:
+        raise DataError(
+            "the work directory holds a different run (other command, model, options, "
+            "chunk size or changed input files)", file=str(work.path),
+            hint="use --no-resume to discard it, or another --work-dir")
+    if manifest is None or not resume:
+        work.clear()
+        index = index_dataset(files, cfg, needed=[s for s in _needed_signals(em) if s != "rate"])
+        manifest = {"format": FORMAT, "format_version": FORMAT_VERSION, "key": key,
+                    "files": index.files, "n_devices": len(index.devices),
+                    "chunks": plan_chunks(index, key["chunk_devices"]), "complete": False,
+                    "created": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds")}
+        del index
+        work.write_manifest(manifest)
+    work.remove_temporaries()
+    return manifest
+
+
+def _finished_chunks(work: WorkDir, plan: list[dict]) -> tuple[set[int], int]:
+    """The chunks with a result file already, and how many of their devices are not ok."""
+    done: set[int] = set()
+    not_ok = 0
+    for c in plan:
+        obj = work.read_chunk(c["chunk"], c["devices"])
+        if obj is not None:
+            done.add(c["chunk"])
+            not_ok += sum(r["status"] != "ok" for r in obj["records"])
+        del obj
+    return done, not_ok
+
+
+def _run_pending(work: WorkDir, manifest: dict, pending: list[dict], setup: dict,
+                 dask: str | None, bar, on_chunk) -> None:
+    """Run the pending chunks (here or on a Dask cluster), each result written as it comes;
+    the manifest is rewritten at most every 2 s."""
+    plan = manifest["chunks"]
+    last_manifest = [time.monotonic()]
+
+    def finished(res: dict) -> None:
+        work.write_chunk(res["chunk"], res)
+        plan[res["chunk"]]["status"] = "done"
+        bar.update(len(res["devices"]), sum(r["status"] != "ok" for r in res["records"]))
+        if time.monotonic() - last_manifest[0] > 2.0:
+            work.write_manifest(manifest)
+            last_manifest[0] = time.monotonic()
+        if on_chunk is not None:
+            on_chunk(res)
+
+    if dask:
+        from .cluster import run_on_dask
+
+        run_on_dask(dask, run_chunk, pending, setup, finished)
+    else:
+        _run_local(pending, setup, finished)
+
+
+def _merge_all(work: WorkDir, manifest: dict, out: Path | None, results: Path,
+               json_stream) -> dict:
+    """Every chunk's result merged into the outputs; the manifest marked complete."""
+    hashes = []
+    for c in manifest["chunks"]:
+        obj = work.read_chunk(c["chunk"], c["devices"])
+        if obj is None:
+            raise DataError(f"chunk {c['chunk']} has no result file", file=str(work.path))
+        c["status"] = "done"
+        hashes.append(obj["input_hash"])
+    manifest["input_hash"] = combined_hash(hashes)
+    work.write_manifest(manifest)
+    counts = merge(work, manifest, out, results, json_stream)
+    manifest["complete"] = True
+    manifest["outputs"] = {"calibration": None if out is None else str(out),
+                           "results": str(results)}
+    work.write_manifest(manifest)
+    return counts
 
 
 def _progress(enabled: bool, label: str, total: int, skipped: int, skipped_failed: int):
