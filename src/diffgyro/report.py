@@ -102,15 +102,38 @@ def _scatter_vs(ax, x, e, xlabel, color_by=None):
 def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> dict[str, str]:
     """The figures of device ``i`` as {title: base64 PNG}; ``named`` is this device's entry of
     :func:`named_term_residuals` (the residual with the named term, drawn over the base's)."""
-    plt = _plt()
     d = diagnosis.devices[i]
     n = int(batch.n_valid[i])
     rec = batch.recording(i)
     e = np.asarray(diagnosis.residuals[i, :n])
-    t = rec.t - rec.t[0]
     sig = diagnosis.fit.signals(batch)
-    out: dict[str, str] = {}
+    heating = None if sig.heating is None else np.asarray(sig.heating[i, :n])
+    dtemp = None if sig.dtemp is None else np.asarray(sig.dtemp[i, :n])
+    out: dict[str, str] = {"Residual against time": _time_png(diagnosis, d, rec, e)}
+    if named is not None:
+        new_spec, e_new = named
+        fig = residual_drop_figure(diagnosis.model, new_spec, rec, e, e_new, dtemp)
+        out[f"The residual without and with {_added(diagnosis.spec, new_spec)}"] = figure_png(fig)
+    if rec.temp is not None:
+        out["Residual against temperature and dT/dt"] = _thermal_png(rec, e, heating, dtemp)
+    motion = _motion_png(rec, e)
+    if motion is not None:
+        out["Residual against input rate and specific force"] = motion
+    if not math.isfinite(d.heldout_rms):  # without a base fit there is nothing more to draw
+        return out
+    out["Allan deviation of the residual"] = _allan_png(diagnosis.allan, d, i)
+    if d.candidates:
+        out["Candidates: held-out RMS with each term added"] = _candidates_png(diagnosis, d)
+    if ladder is not None and len(ladder.steps) > 1:
+        out["Model ladder"] = ladder_png(ladder, device=i)
+    return out
 
+
+def _time_png(diagnosis, d, rec, e) -> str:
+    """Residual against time (thinned points and moving means), temperature on a twin axis."""
+    plt = _plt()
+    n = len(e)
+    t = rec.t - rec.t[0]
     fig, ax = plt.subplots(figsize=(9, 3.2))
     idx = _thin(n)
     for k in range(3):
@@ -128,61 +151,58 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> 
         ax2.plot(t[idx] / 60.0, rec.temp[idx], color="0.5", lw=0.8)
         ax2.set_ylabel("temp (°C)", color="0.4")
     ax.legend(fontsize=7, loc="upper left")
-    out["Residual against time"] = figure_png(fig)
-    if named is not None:
-        new_spec, e_new = named
-        fig = residual_drop_figure(diagnosis.model, new_spec, rec, e, e_new,
-                                   None if sig.dtemp is None else np.asarray(sig.dtemp[i, :n]))
-        out[f"The residual without and with {_added(diagnosis.spec, new_spec)}"] = figure_png(fig)
+    return figure_png(fig)
 
-    if rec.temp is not None:
-        heat = None if sig.heating is None else np.asarray(sig.heating[i, :n])
-        fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
-        _scatter_vs(axs[0], rec.temp, e, "temperature (°C)", color_by=heat)
-        axs[0].set_title("residual vs temperature (heating red, cooling blue)", fontsize=9)
-        if sig.dtemp is not None:
-            _scatter_vs(axs[1], np.asarray(sig.dtemp[i, :n]) * 60.0, e, "dT/dt (°C/min)")
-            axs[1].set_title("residual vs dT/dt", fontsize=9)
-        out["Residual against temperature and dT/dt"] = figure_png(fig)
 
+def _thermal_png(rec, e, heating, dtemp) -> str:
+    """Residual against temperature (heating red, cooling blue) and against dT/dt."""
+    fig, axs = _plt().subplots(1, 2, figsize=(11, 3.4))
+    _scatter_vs(axs[0], rec.temp, e, "temperature (°C)", color_by=heating)
+    axs[0].set_title("residual vs temperature (heating red, cooling blue)", fontsize=9)
+    if dtemp is not None:
+        _scatter_vs(axs[1], dtemp * 60.0, e, "dT/dt (°C/min)")
+        axs[1].set_title("residual vs dT/dt", fontsize=9)
+    return figure_png(fig)
+
+
+def _motion_png(rec, e) -> str | None:
+    """Residual against the input rate (own axis) and the specific-force direction; None
+    when the record neither turns nor changes its attitude."""
     moving = rec.rate is not None and np.max(np.abs(rec.rate)) > 1e-3
     varying_f = rec.accel is not None and np.ptp(rec.accel, axis=0).max() > 1.0
-    if moving or varying_f:
-        fig, axs = plt.subplots(1, 2, figsize=(11, 3.4))
-        if moving:
-            for k in range(3):
-                idk = _thin(n)
-                axs[0].plot(rec.rate[idk, k], e[idk, k], ".", ms=1.5, alpha=0.3, color=COLORS[k],
-                            label=f"g{AXES[k]} vs r{AXES[k]}")
-            axs[0].set_xlabel("input rate (rad/s)")
-            axs[0].set_ylabel("residual (rad/s)")
-            axs[0].grid(alpha=0.3)
-            axs[0].legend(fontsize=7, markerscale=4)
-            axs[0].set_title("residual vs input rate (own axis)", fontsize=9)
-        else:
-            axs[0].set_axis_off()
-        if varying_f:
-            fn = np.linalg.norm(rec.accel, axis=1)
-            for k in range(3):
-                idk = _thin(n)
-                axs[1].plot(rec.accel[idk, k] / np.maximum(fn[idk], 1e-9), e[idk, k], ".", ms=1.5,
-                            alpha=0.3, color=COLORS[k], label=f"g{AXES[k]} vs a{AXES[k]}/|a|")
-            axs[1].set_xlabel("specific force direction (a/|a|)")
-            axs[1].set_ylabel("residual (rad/s)")
-            axs[1].grid(alpha=0.3)
-            axs[1].legend(fontsize=7, markerscale=4)
-            axs[1].set_title("residual vs specific force", fontsize=9)
-        else:
-            axs[1].set_axis_off()
-        out["Residual against input rate and specific force"] = figure_png(fig)
+    if not (moving or varying_f):
+        return None
+    fig, axs = _plt().subplots(1, 2, figsize=(11, 3.4))
+    idk = _thin(len(e))
+    panels = []
+    if moving:
+        panels.append((axs[0], rec.rate, "r{}", "input rate (rad/s)",
+                       "residual vs input rate (own axis)"))
+    else:
+        axs[0].set_axis_off()
+    if varying_f:
+        fn = np.linalg.norm(rec.accel, axis=1)
+        panels.append((axs[1], rec.accel / np.maximum(fn, 1e-9)[:, None], "a{}/|a|",
+                       "specific force direction (a/|a|)", "residual vs specific force"))
+    else:
+        axs[1].set_axis_off()
+    for ax, x, name, xlabel, title in panels:
+        for k in range(3):
+            ax.plot(x[idk, k], e[idk, k], ".", ms=1.5, alpha=0.3, color=COLORS[k],
+                    label=f"g{AXES[k]} vs {name.format(AXES[k])}")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("residual (rad/s)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7, markerscale=4)
+        ax.set_title(title, fontsize=9)
+    return figure_png(fig)
 
-    # Allan deviation of the residual with the floor
-    if not math.isfinite(d.heldout_rms):  # no base fit: nothing more to draw
-        return out
-    al = diagnosis.allan
+
+def _allan_png(al, d, i: int) -> str:
+    """Allan deviation of the residual per axis, with white noise at the floor."""
     tau = np.asarray(al.tau)[i]
     adev = np.asarray(al.adev)[i]
-    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    fig, ax = _plt().subplots(figsize=(6.5, 4.2))
     for k in range(3):
         ok = np.isfinite(adev[k])
         ax.loglog(tau[k][ok], adev[k][ok], "o-", ms=2.5, lw=1, color=COLORS[k], label=f"g{AXES[k]}")
@@ -197,14 +217,12 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> 
     ax.grid(True, which="both", alpha=0.3)
     ax.set_title(f"long-τ slope {d.allan_slope:+.2f} (−½ white, 0 flicker, +½ random walk)", fontsize=9)
     ax.legend(fontsize=7)
-    out["Allan deviation of the residual"] = figure_png(fig)
+    return figure_png(fig)
 
-    # candidates / ladder
-    if not (math.isfinite(d.heldout_rms) and d.candidates):
-        if ladder is not None and len(ladder.steps) > 1:
-            out["Model ladder"] = ladder_png(ladder, device=i)
-        return out
-    fig, ax = plt.subplots(figsize=(8, 0.6 + 0.28 * (len(d.candidates) + 1)))
+
+def _candidates_png(diagnosis, d) -> str:
+    """Held-out RMS of the base and of each candidate added, significant ones in red."""
+    fig, ax = _plt().subplots(figsize=(8, 0.6 + 0.28 * (len(d.candidates) + 1)))
     labels = [f"{diagnosis.spec} (base)"] + [c.effect for c in d.candidates]
     vals = [d.heldout_rms] + [c.heldout_rms for c in d.candidates]
     cols = ["0.6"] + ["tab:red" if c.significant else "tab:gray" for c in d.candidates]
@@ -215,11 +233,7 @@ def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> 
     ax.set_xlabel("held-out RMS (rad/s); red = significant")
     ax.set_xlim(0, max(vals + [d.noise_floor]) * 1.05 if vals else 1)
     ax.legend(fontsize=7)
-    out["Candidates: held-out RMS with each term added"] = figure_png(fig)
-
-    if ladder is not None and len(ladder.steps) > 1:
-        out["Model ladder"] = ladder_png(ladder, device=i)
-    return out
+    return figure_png(fig)
 
 
 # --------------------------------------------------------------------------- the drop with the named term
