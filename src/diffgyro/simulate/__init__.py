@@ -189,34 +189,14 @@ def simulate(
     levels = noise_levels(preset_obj, d, seed, noise, temp_quantum)
     gnoise, parts = gyro_noise(levels, n, dt, seed, keep=keep_components)
     gyro = quantise(rate + error + gnoise, levels.quantum)
-    rng = stream(seed, "sensor_noise")
-    temp_out = quantise(temp + levels.temp_noise * rng.standard_normal((d, n)), levels.temp_quantum)
-    ext_out = quantise(chamber + levels.temp_noise * rng.standard_normal((d, n)), levels.temp_quantum)
     use_accel_errors = plan_obj.default_accel_errors if accel_errors is None else bool(accel_errors)
     acc = draw_accel_errors(preset_obj, d, seed, use_accel_errors)
-    accel = (np.einsum("dij,dnj->dni", np.eye(3) + acc["error_matrix"], force)
-             + acc["bias"][:, None, :]
-             + rng.standard_normal((d, n, 3)) * (levels.accel_noise / math.sqrt(dt))[:, None, None])
-    mag = None
-    if "mag" in env.outputs and env.mag_field is not None:
-        from .motion import to_body
-
-        quat_d = np.broadcast_to(env.quat, (d, n, 4))
-        mag = to_body(quat_d, env.mag_field) + levels.mag_noise * rng.standard_normal((d, n, 3))
+    temp_out, ext_out, accel, mag = _other_sensors(env, levels, acc, temp, chamber, force, seed)
 
     # 4. recordings, batch, truth
     devices = tuple(f"{device_prefix}{i:03d}" for i in range(d))
-    quat = np.broadcast_to(env.quat, (d, n, 4))
-    recs = []
-    for i, dev in enumerate(devices):
-        recs.append(Recording(
-            t=env.t.copy(), gyro=gyro[i], temp=temp_out[i],
-            temp_ext=ext_out[i] if "temp_ext" in env.outputs else None,
-            accel=accel[i], mag=None if mag is None else mag[i],
-            rate=np.array(rate[i]) if "rate" in env.outputs else None,
-            quat=np.array(quat[i]) if "quat" in env.outputs else None,
-            device=dev, source=f"simulate:{plan_obj.name}",
-            aux={k: np.array(v[i]) for k, v in extra.items()}))
+    recs = _recordings(env, devices, f"simulate:{plan_obj.name}", gyro, temp_out, ext_out, accel,
+                       mag, rate, extra)
     batch = Batch.from_recordings(recs)
     env_arrays = {"t": env.t, "temp": temp, "dtemp": dtemp, "chamber": env.chamber,
                   "power_state": heat_state}
@@ -229,6 +209,38 @@ def simulate(
         thermal=thermal, accel=acc, outputs=tuple(sorted(env.outputs)), segments=env.segments,
         info=env.info, env=env_arrays, aux_norm=aux_norm)
     return batch, truth
+
+
+def _other_sensors(env, levels: NoiseLevels, acc: dict, temp, chamber, force, seed: int):
+    """Read-outs beside the gyro: the two temperatures (noisy, quantised), the
+    accelerometer (with its errors ``acc``) and the magnetometer where the plan has one."""
+    d, n = temp.shape
+    rng = stream(seed, "sensor_noise")
+    temp_out = quantise(temp + levels.temp_noise * rng.standard_normal((d, n)), levels.temp_quantum)
+    ext_out = quantise(chamber + levels.temp_noise * rng.standard_normal((d, n)), levels.temp_quantum)
+    accel = (np.einsum("dij,dnj->dni", np.eye(3) + acc["error_matrix"], force)
+             + acc["bias"][:, None, :]
+             + rng.standard_normal((d, n, 3)) * (levels.accel_noise / math.sqrt(env.dt))[:, None, None])
+    mag = None
+    if "mag" in env.outputs and env.mag_field is not None:
+        from .motion import to_body
+
+        quat_d = np.broadcast_to(env.quat, (d, n, 4))
+        mag = to_body(quat_d, env.mag_field) + levels.mag_noise * rng.standard_normal((d, n, 3))
+    return temp_out, ext_out, accel, mag
+
+
+def _recordings(env, devices, source, gyro, temp_out, ext_out, accel, mag, rate, extra):
+    """One Recording per device, with the outputs the plan records."""
+    quat = np.broadcast_to(env.quat, (len(devices), env.n, 4))
+    return [Recording(
+        t=env.t.copy(), gyro=gyro[i], temp=temp_out[i],
+        temp_ext=ext_out[i] if "temp_ext" in env.outputs else None,
+        accel=accel[i], mag=None if mag is None else mag[i],
+        rate=np.array(rate[i]) if "rate" in env.outputs else None,
+        quat=np.array(quat[i]) if "quat" in env.outputs else None,
+        device=dev, source=source, aux={k: np.array(v[i]) for k, v in extra.items()})
+        for i, dev in enumerate(devices)]
 
 
 def _extra_columns(model: ErrorModel, given, t, d: int, seed: int):
