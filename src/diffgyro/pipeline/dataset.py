@@ -307,21 +307,8 @@ def index_dataset(paths: Sequence[Path], cfg: ReadConfig,
             if total:
                 add(cols.default_device, k, range(meta.num_row_groups), total, lacking)
             continue
-        row0 = 0
-        for rg in range(meta.num_row_groups):
-            col = pf.read_row_group(rg, columns=[cols.present["device"]]).column(0)
-            vals, codes = _dictionary_ids(col, file, cols.present["device"], row0)
-            counts = np.bincount(codes, minlength=len(vals))
-            first = np.full(len(vals), len(codes))
-            np.minimum.at(first, codes, np.arange(len(codes)))
-            # several dictionary entries can strip to one id: merge them in order of appearance
-            merged: dict[str, int] = {}
-            for j in np.argsort(first, kind="stable"):
-                if counts[j]:
-                    merged[vals[j]] = merged.get(vals[j], 0) + int(counts[j])
-            for dev, n in merged.items():
-                add(dev, k, (rg,), n, lacking)
-            row0 += meta.row_group(rg).num_rows
+        for rg, dev, n in _row_group_devices(pf, cols.present["device"], file):
+            add(dev, k, (rg,), n, lacking)
     for s, ok in any_has.items():
         if not ok:
             raise DataError(f"the model needs signal {s!r} ({', '.join(SIGNALS[s])}), "
@@ -330,6 +317,27 @@ def index_dataset(paths: Sequence[Path], cfg: ReadConfig,
         raise DataError("no data rows in the input files", file=files[0])
     return DatasetIndex(files=files, devices=devices, locations=locations, n_rows=n_rows,
                         duplicates=duplicates, missing_signal=missing_signal)
+
+
+def _row_group_devices(pf, column: str, file: str):
+    """(row group, device id, rows) for every device in every row group of a Parquet file,
+    in order of first appearance within each group."""
+    meta = pf.metadata
+    row0 = 0
+    for rg in range(meta.num_row_groups):
+        col = pf.read_row_group(rg, columns=[column]).column(0)
+        vals, codes = _dictionary_ids(col, file, column, row0)
+        counts = np.bincount(codes, minlength=len(vals))
+        first = np.full(len(vals), len(codes))
+        np.minimum.at(first, codes, np.arange(len(codes)))
+        # several dictionary entries can strip to one id: merge them in order of appearance
+        merged: dict[str, int] = {}
+        for j in np.argsort(first, kind="stable"):
+            if counts[j]:
+                merged[vals[j]] = merged.get(vals[j], 0) + int(counts[j])
+        for dev, n in merged.items():
+            yield rg, dev, n
+        row0 += meta.row_group(rg).num_rows
 
 
 # --------------------------------------------------------------------------- reading a chunk
