@@ -493,6 +493,27 @@ def sample_interval(t: np.ndarray, n_valid: int | None = None) -> float:
     return float(np.median(np.diff(t)))
 
 
+def sample_intervals(batch) -> np.ndarray:
+    """Each device's sample interval (s): the median spacing of its valid time stamps."""
+    nv = np.asarray(batch.n_valid, dtype=np.int64)
+    return np.array([sample_interval(batch.t[i], nv[i]) for i in range(batch.n_devices)])
+
+
+def cluster_sizes(taus, dt: float, rtol: float = 1e-6) -> np.ndarray:
+    """Cluster sizes ``m = τ / dt`` of the requested τ (s), as integers.
+
+    Raises ValueError naming the first τ that is not a whole number (≥ 1) of
+    sample intervals within ``rtol``: the deviation is only defined there.
+    """
+    taus = np.asarray(taus, dtype=np.float64)
+    m = np.round(taus / dt)
+    for tau, mi in zip(taus, m):
+        if not (mi >= 1 and abs(tau - mi * dt) <= rtol * max(tau, dt)):
+            raise ValueError(f"τ = {tau:g} s is not a whole number of sample intervals "
+                             f"(dt = {dt:g} s)")
+    return m.astype(np.int64)
+
+
 def allan_batch(batch, m=None, **options) -> AllanResult:
     """Allan curves of every device and gyro axis of a :class:`~diffgyro.data.Batch`.
 
@@ -503,11 +524,38 @@ def allan_batch(batch, m=None, **options) -> AllanResult:
     gyro = np.asarray(batch.gyro, dtype=np.float64)
     y = np.moveaxis(gyro, -1, 1)  # (d, 3, n)
     nv = np.asarray(batch.n_valid, dtype=np.int64)
-    dt = np.array([sample_interval(batch.t[i], nv[i]) for i in range(batch.n_devices)])
+    dt = sample_intervals(batch)
     if m is None:
         m = default_m(int(nv.max()), options.pop("per_decade", 10),
                       options.get("stop_ratio", STOP_RATIO))
     return allan(y, dt[:, None], m, nv[:, None].repeat(3, axis=1), **options)
+
+
+def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]]:
+    """Allan curves at exactly the requested τ (s) for every device of ``batch``.
+
+    Devices sampled at different rates need different cluster sizes for the
+    same τ, so they are computed in groups of equal ``m``: returns
+    ``[(device indices, AllanResult of those devices), ...]``. Raises
+    :class:`~diffgyro.errors.DataError` (naming file and device) where a τ is
+    not a whole number of its sample intervals; a τ longer than
+    ``n / stop_ratio`` is NaN as usual.
+    """
+    from .errors import DataError
+
+    dt = sample_intervals(batch)
+    ms = []
+    for i, dev in enumerate(batch.devices):
+        try:
+            ms.append(tuple(cluster_sizes(taus, dt[i])))
+        except ValueError as err:
+            raise DataError(f"requested {err}", device=str(dev),
+                            file=batch.sources[i] if batch.sources else None) from None
+    groups: dict[tuple, list[int]] = {}
+    for i, m in enumerate(ms):
+        groups.setdefault(m, []).append(i)
+    return [(np.array(idx), allan_batch(batch.select(idx), np.array(m, dtype=np.int64), **options))
+            for m, idx in groups.items()]
 
 
 # --- output: JSON and figure ---------------------------------------------------------------

@@ -37,6 +37,10 @@ def allan_command(
     report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
     per_decade: Annotated[int, typer.Option("--per-decade", min=1, max=100,
                                             help="Cluster sizes per decade of τ.")] = 10,
+    taus: Annotated[str | None, typer.Option(
+        "--taus", help="Compute exactly these τ in seconds, comma-separated (e.g. '1,10,100'); "
+                       "each must be a whole number of sample intervals. Replaces --per-decade.",
+        show_default=False)] = None,
     columns: Columns = None,
     gyro_unit: GyroUnit = None,
     acc_unit: AccUnit = None,
@@ -52,23 +56,73 @@ def allan_command(
     Read-outs: ARW (rad/s/√Hz) at τ = 1 s on the −1/2 line, bias instability
     (rad/s) = flat minimum / 0.664, RRW (rad/s²/√Hz) at τ = 3 s on the +1/2
     line; a read-out the curve does not show is null. Record the device
-    static: moving data measure the motion, not the noise.
+    static: moving data measure the motion, not the noise. With --taus the
+    curve holds just the τ asked for (those longer than a quarter of a
+    device's recording are left out, with a warning).
     """
-    from diffgyro.allan import allan_batch, to_json
     from diffgyro.jsonio import dumps
 
+    wanted = _parse_taus(taus)
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
                           topic=topic, temp_topic=temp_topic)
     _warn_uneven(batch)
-    result = allan_batch(batch, per_decade=per_decade)
-    doc = to_json(result, batch.devices, AXES)
+    parts = _curves(batch, per_decade, wanted)
+    doc = _merged_json(parts, batch)
+    if wanted is not None:
+        _warn_missing_taus(doc, wanted)
     if report is not None:
-        _write_report(result, batch, doc, report)
+        _write_report(parts, batch, doc, report)
     if json_out:
         typer.echo(dumps(doc))
     else:
         _print_table(doc, report)
+
+
+def _parse_taus(text: str | None) -> list[float] | None:
+    """The --taus list as positive finite floats (exit 2 with a clear line otherwise)."""
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise typer.BadParameter(f"{text!r} is not a comma-separated list of seconds",
+                                 param_hint="--taus") from None
+    if not values or not all(math.isfinite(v) and v > 0 for v in values):
+        raise typer.BadParameter(f"{text!r}: give one or more positive τ in seconds",
+                                 param_hint="--taus")
+    return values
+
+
+def _curves(batch, per_decade: int, taus: list[float] | None):
+    """[(device indices, AllanResult)]: one part for all devices, or one per cluster-size set."""
+    import numpy as np
+
+    from diffgyro.allan import allan_at_taus, allan_batch
+
+    if taus is None:
+        return [(np.arange(batch.n_devices), allan_batch(batch, per_decade=per_decade))]
+    return allan_at_taus(batch, taus)
+
+
+def _merged_json(parts, batch) -> dict:
+    """The ``allan --json`` object of every device, in the batch's order."""
+    from diffgyro.allan import to_json
+
+    by_index = {}
+    for idx, result in parts:
+        for i, entry in zip(idx, to_json(result, [batch.devices[i] for i in idx], AXES)["devices"]):
+            by_index[int(i)] = entry
+    return {"devices": [by_index[i] for i in range(batch.n_devices)]}
+
+
+def _warn_missing_taus(doc: dict, taus: list[float]) -> None:
+    for dev in doc["devices"]:
+        got = dev["axes"]["gx"]["tau"]
+        missing = [t for t in taus if not any(math.isclose(t, g, rel_tol=1e-6) for g in got)]
+        if missing:
+            print(f"diffgyro: warning: device {dev['device']}: τ {', '.join(f'{t:g}' for t in missing)} s "
+                  f"longer than a quarter of the recording, left out", file=sys.stderr)
 
 
 def _warn_uneven(batch) -> None:
@@ -107,7 +161,7 @@ def _print_table(doc: dict, report: Path | None) -> None:
         Console(width=120).print(f"report: {report / 'index.html'}")
 
 
-def _write_report(result, batch, doc: dict, out: Path) -> None:
+def _write_report(parts, batch, doc: dict, out: Path) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
@@ -118,10 +172,12 @@ def _write_report(result, batch, doc: dict, out: Path) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     rows, figs = [], []
+    where = {int(i): (result, j) for idx, result in parts for j, i in enumerate(idx)}
     for i, dev in enumerate(batch.devices):
         safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(dev)) or f"device{i}"
         name = f"allan_{i:03d}_{safe}.png"
-        fig = plot_allan(result, device=i, axes=AXES, title=f"{dev}: overlapping Allan deviation")
+        result, j = where[i]
+        fig = plot_allan(result, device=j, axes=AXES, title=f"{dev}: overlapping Allan deviation")
         fig.savefig(out / name, dpi=110, bbox_inches="tight")
         plt.close(fig)
         figs.append((dev, name))
