@@ -53,15 +53,43 @@ def test_pages_are_self_contained(rate_table, tmp_path):
     assert oct(os.stat(tmp_path / "r" / "index.html").st_mode & 0o444) == oct(0o444)
 
 
-def test_thermal_page_has_heating_and_cooling(tmp_path):
+def test_thermal_page_has_heating_and_cooling(tmp_path, monkeypatch):
+    """The thermal figure is on the page and draws the heating samples red and the cooling ones
+    blue: each coloured cloud is checked against the recorded temperature's own slope (a
+    one-minute moving mean, on the ramps only), so swapped states or colours fail."""
+    import matplotlib.colors as mcolors
+
+    from diffgyro import report
+
     hs = [H.make_recording("thermal", "hysteresis", "bias_poly(2)", 80 + k, size=2.0, hours=2.0,
                            device=f"th{k}") for k in range(2)]
     batch = Batch.from_recordings([h.recording for h in hs])
     dg = diagnose("bias_poly(2)", batch)
+    figures = []
+    encode = report.figure_png
+    monkeypatch.setattr(report, "figure_png", lambda fig: figures.append(fig) or encode(fig))
     write_report(dg, batch, tmp_path)
     page = (tmp_path / "th0.html").read_text()
-    assert "heating red, cooling blue" in page or "temperature" in page
+    assert "<h2>Residual against temperature and dT/dt</h2>" in page
     assert "hysteresis" in page
+    thermal = [f for f in figures if "heating red, cooling blue" in f.axes[0].get_title()]
+    assert len(thermal) == 2  # one per device, th0's first
+    lines = {ln.get_label(): ln for ln in thermal[0].axes[0].get_lines()}
+    assert mcolors.same_color(lines["heating"].get_color(), "tab:red")
+    assert mcolors.same_color(lines["cooling"].get_color(), "tab:blue")
+    rec = batch.recording(0)
+    e = np.asarray(dg.residuals[0, : rec.n])
+    kernel = np.ones(121) / 121  # one minute at 2 Hz
+    smooth = np.convolve(rec.temp, kernel, mode="same")
+    slope = np.gradient(smooth, rec.t) * 60.0  # °C/min
+    edge = slice(60, rec.n - 60)  # the moving mean is cut short at the ends
+    index = {(float(x), float(y)): i for i, (x, y) in enumerate(zip(rec.temp, e.mean(1)))}
+    for label, sign in (("heating", 1.0), ("cooling", -1.0)):
+        pts = [index[(float(x), float(y))] for x, y in zip(*lines[label].get_data())]
+        on_ramp = [i for i in pts if edge.start <= i < edge.stop and abs(slope[i]) > 0.3]
+        assert len(on_ramp) > 100, label
+        agree = np.mean(np.sign(slope[on_ramp]) == sign)
+        assert agree > 0.95, (label, agree)
 
 
 def test_atomic_write_keeps_the_old_file_on_failure(tmp_path):
