@@ -55,17 +55,63 @@ def mocap_pairs(d, interval=29):
     return meas[good], np.asarray(ref)[good]
 
 
-def test_bias_from_the_initial_rest(trial):
-    b0 = rest_bias(trial)
-    # measured: 0.19, 0.12, −0.23 °/s; noise 0.1 °/s per sample
-    np.testing.assert_allclose(b0 / DEG, [0.193, 0.115, -0.226], atol=0.005)
-    # the three 10 s breaks and the final rest agree within 0.015 °/s (a slow drift)
-    still = np.linalg.norm(trial["gyro"] - b0, axis=1) < 0.02
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], still.astype(int), [0]])))
-    rests = [(a, b) for a, b in zip(edges[::2], edges[1::2]) if b - a > 5 * trial["fs"]]
-    assert len(rests) >= 4
-    for a, b in rests[1:]:
-        assert np.abs(trial["gyro"][a:b].mean(0) - b0).max() < 0.015 * DEG
+@pytest.fixture(scope="module")
+def s1(trial):
+    """S1 (static-kalman) on the trial from the first sample with a reference attitude."""
+    d = trial
+    i0 = int(np.flatnonzero(d["ok"])[0])
+    return i0, static_kalman(d["gyro"][i0:], d["accel"][i0:], d["t"][i0:], quat=d["quat"][i0:])
+
+
+def _runs(flag):
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], flag.astype(int), [0]])))
+    return list(zip(edges[::2], edges[1::2]))
+
+
+def test_bias_from_the_initial_rest(trial, s1):
+    """diffgyro's rest bias: S1's E(0) from the initial rest and its tracked offset at every
+    later rest S1 finds, each against the raw rates of the same samples."""
+    i0, r = s1
+    e0 = r.initial_offset
+    # measured: E(0) over the first 1000 samples (3.5 s) 0.1926, 0.1137, −0.2311 °/s; within
+    # the noise (0.1 °/s per sample, 0.003 °/s for 1000) of the mean over the 30 s rest
+    np.testing.assert_allclose(e0 / DEG, [0.1926, 0.1137, -0.2311], atol=5e-4)
+    np.testing.assert_allclose(e0, rest_bias(trial), atol=0.006 * DEG)
+    # S1's static windows: the rest of the initial 30 s, the three 10 s breaks, the final rest
+    gyro = trial["gyro"][i0:]
+    starts, w = r.window_start, r.window
+    rests = [(a, b) for a, b in _runs(r.static) if (b - a) * w > 5 * trial["fs"]]
+    assert len(rests) == 5
+    for a, b in rests:
+        tracked = r.offset_track[b - 1]
+        # the filter follows the rest: within 0.005 °/s of the mean of its second half ...
+        half = gyro[starts[(a + b) // 2]: starts[b - 1] + w].mean(0)
+        assert np.abs(tracked - half).max() < 0.005 * DEG, (a, b, (tracked - half) / DEG)
+        # ... and the bias drifts slowly: within 0.015 °/s of E(0) over the 203 s
+        assert np.abs(tracked - e0).max() < 0.015 * DEG
+
+
+def test_s1_windows_and_filter_follow_the_patent(trial, s1):
+    """S1's thresholds, static windows and offset track on the real trial against the patent's
+    steps written out here as a plain loop (step numbers of the static_kalman docstring)."""
+    i0, r = s1
+    gyro, accel = trial["gyro"][i0:], trial["accel"][i0:]
+    init, w = 1000, r.window
+    sig = np.concatenate([accel, gyro], axis=1)
+    thresholds = r.margin * np.ptp(sig[:init], axis=0)                       # step 2
+    np.testing.assert_allclose(r.thresholds, thresholds, rtol=1e-12)
+    x, p = gyro[:init].mean(0), gyro[:init].var(0)                           # step 1
+    q = (1e-4) * DEG**2
+    for j, start in enumerate(r.window_start):
+        win = sig[start:start + w]
+        static = bool(np.all(np.ptp(win, axis=0) < thresholds))              # step 3
+        assert r.static[j] == static, j
+        if static:                                                           # step 4
+            pp = p + q
+            kg = pp / (pp + win[:, 3:].var(0))
+            x, p = x + kg * (win[:, 3:].mean(0) - x), (1.0 - kg) * pp
+        np.testing.assert_allclose(r.offset_track[j], x, rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(r.variance_track[j], p, rtol=1e-9)
 
 
 def test_scale_and_bias_against_motion_capture(trial):
@@ -94,16 +140,15 @@ def test_heading_drift_with_and_without_compensation(trial):
     assert abs(raw[-1]) > 25 * abs(biased[-1])
 
 
-def test_recipes_on_the_trial(trial):
+def test_recipes_on_the_trial(trial, s1):
     d = trial
-    i0 = int(np.flatnonzero(d["ok"])[0])
+    i0, r1 = s1
     # S1: offsets from the rest windows, heading against the motion capture
-    s1 = static_kalman(d["gyro"][i0:], d["accel"][i0:], d["t"][i0:], quat=d["quat"][i0:])
     ok = d["ok"][i0:]
-    assert 0.3 < s1.static.mean() < 0.7           # the rests are found, the motions are not
-    assert np.nanmax(np.abs(s1.heading_error_raw[ok])) > 30 * DEG
-    assert np.nanmax(np.abs(s1.heading_error_tracked[ok])) < 3.0 * DEG
-    assert np.nanmax(np.abs(s1.heading_error_fixed[ok])) < 3.0 * DEG
+    assert 0.3 < r1.static.mean() < 0.7           # the rests are found, the motions are not
+    assert np.nanmax(np.abs(r1.heading_error_raw[ok])) > 30 * DEG
+    assert np.nanmax(np.abs(r1.heading_error_tracked[ok])) < 3.0 * DEG
+    assert np.nanmax(np.abs(r1.heading_error_fixed[ok])) < 3.0 * DEG
     # S3 from the IMU's own accelerometer and (uncalibrated) magnetometer: its scale is a few
     # per cent off the motion capture's (the magnetometer heading is distorted), so its
     # compensation drifts more in heading than the bias from the rest alone
