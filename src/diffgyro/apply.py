@@ -28,6 +28,7 @@ For one device with calibration record ``dev`` (an entry of the file's
    ``aux(NAME,k)``         ``x_s**1 .. x_s**k`` (k = 1 if left out), x = extra column NAME
                            clamped to ``dev["aux"][NAME]["range"]``, ``x_s = (x − centre) /
                            scale`` with that entry's ``centre`` and ``scale``
+   ``random_walk``         none: the walk is tracked while fitting, not stored
    ======================  ===============================================
 
 4. ``gyro_i = Ω_i + columns_i · beta_i``; compensation solves this for Ω
@@ -142,13 +143,15 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
             xs = env["aux_s"][column]
             c = np.stack([xs**j for j in range(1, order + 1)], -1)
             cols.append(np.repeat(c[:, None, :], 3, axis=1))
+        elif name == "random_walk":
+            continue
         elif name == "warmup":
             tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
             q += 1
             cols.append(np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1))
         else:
             raise ValueError(f"apply.py knows the built-in terms only, not {name!r}")
-    return np.concatenate(cols, axis=-1)
+    return np.concatenate(cols, axis=-1) if cols else np.zeros((n, 3, 0))
 
 
 def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0,
