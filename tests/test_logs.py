@@ -357,7 +357,13 @@ def test_truncated_bag_is_one_line(tmp_path, capsys):
     write_bag(path, [_truth(0)], "ros1")
     cut = tmp_path / "cut.bag"
     cut.write_bytes(path.read_bytes()[:5000])
-    _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut))
+    _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut), "truncated",
+                    "rosbag reindex")
+    write_bag(tmp_path / "m", [_truth(0)], "mcap")
+    mcap = tmp_path / "cut.mcap"
+    mcap.write_bytes(next((tmp_path / "m").glob("*.mcap")).read_bytes()[:20000])
+    _one_line_error(["fit", str(mcap), "-m", "bias_poly(0)"], capsys, str(mcap), "truncated",
+                    "mcap recover")
 
 
 def test_dataflash_without_imu_is_one_line(tmp_path, capsys):
@@ -377,3 +383,129 @@ def test_rosbag2_folder_is_read_whole_not_streamed(tmp_path, capsys):
     assert main(["fit", str(tmp_path / "run"), "-m", "bias_poly(1)", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
     assert [d["device"] for d in doc["devices"]] == ["run/imu0/data"]
+
+
+# --------------------------------------------------------------------------- truncated logs
+
+
+def _ulog_messages(data: bytes):
+    """(offset, type, payload) of each message, from the ULog definition: a 16-byte file
+    header, then per message a uint16 payload size, a uint8 type and the payload."""
+    ofs = 16
+    while ofs + 3 <= len(data):
+        size, kind = struct.unpack_from("<HB", data, ofs)
+        yield ofs, chr(kind), data[ofs + 3:ofs + 3 + size]
+        ofs += 3 + size
+
+
+def _ulog_samples_before(data: bytes, topic: str, end: int) -> int:
+    """The data ('D') messages of ``topic`` that start before byte ``end``."""
+    ids, n = set(), 0
+    for ofs, kind, payload in _ulog_messages(data):
+        if ofs >= end:
+            break
+        if kind == "A" and payload[3:].decode() == topic:  # multi_id u8, msg_id u16, name
+            ids.add(struct.unpack_from("<H", payload, 1)[0])
+        elif kind == "D" and struct.unpack_from("<H", payload)[0] in ids:
+            n += 1
+    return n
+
+
+def _same_prefix(cut, full, whole: bool = False) -> None:
+    """``cut``'s recordings start as ``full``'s (all of them when ``whole``)."""
+    assert [r.device.split("/")[1] for r in cut] == [r.device.split("/")[1] for r in full]
+    for c, f in zip(cut, full, strict=True):
+        assert c.n == f.n if whole else c.n < f.n
+        np.testing.assert_array_equal(c.t, f.t[:c.n])
+        np.testing.assert_array_equal(c.gyro, f.gyro[:c.n])
+
+
+@pytest.mark.parametrize("which", ["sample_log_small", "generated"])
+def test_truncated_ulog_warns_and_keeps_the_complete_samples(which, tmp_path):
+    """Cut inside a message: one warning naming the file, the byte where the whole messages
+    end and the samples kept; they are those of the file cut at that byte (no warning), a
+    prefix of the full log's, as many as its data messages before that byte."""
+    if which == "generated":
+        write_ulog(tmp_path / "full.ulg", [_truth(0), _truth(1)])
+        data, topic = (tmp_path / "full.ulg").read_bytes(), "sensor_gyro"
+    else:
+        data, topic = (PX4 / "sample_log_small.ulg").read_bytes(), "sensor_combined"
+    assert sum(3 + len(p) for _, _, p in _ulog_messages(data)) == len(data) - 16
+    boundary, _, payload = next(m for m in _ulog_messages(data)
+                                if m[0] > 0.6 * len(data) and m[1] == "D")
+    assert len(payload) > 4
+    (tmp_path / "whole.ulg").write_bytes(data[:boundary])
+    (tmp_path / "cut.ulg").write_bytes(data[:boundary + 5])
+    whole_report, cut_report = LoadReport(), LoadReport()
+    whole = load(tmp_path / "whole.ulg", report=whole_report)
+    cut = load(tmp_path / "cut.ulg", report=cut_report)
+    assert not [w for w in whole_report.warnings if "truncated after" in w]
+    (line,) = [w for w in cut_report.warnings if "truncated after" in w]
+    n = sum(r.n for r in cut)
+    span = max(r.t[-1] for r in cut) - min(r.t[0] for r in cut)
+    for words in (str(tmp_path / "cut.ulg"), f"last 5 bytes, from byte {boundary},",
+                  f"using the {n} complete samples"):
+        assert words in line, line
+    assert float(line.split("truncated after ")[1].split(" s ")[0]) == pytest.approx(span, rel=0.06)
+    assert n == _ulog_samples_before(data, topic, boundary)
+    _same_prefix(cut, whole, whole=True)
+    full = PX4 / "sample_log_small.ulg" if which != "generated" else tmp_path / "full.ulg"
+    _same_prefix(cut, load(full, report=LoadReport()))
+
+
+def _dataflash_cut(data: bytes, text: bool, keep: float) -> tuple[int, int]:
+    """A byte inside the message at about ``keep`` of the file, and where that message starts
+    (text: lines; binary: FMT messages of 89 bytes, then IMU messages of 3 + 45 bytes)."""
+    inside = int(keep * len(data))
+    if text:
+        return inside, data.rfind(b"\n", 0, inside) + 1
+    start = 2 * 89 + (inside - 2 * 89) // 48 * 48
+    return start + 20, start
+
+
+@pytest.mark.parametrize("text", [False, True], ids=["bin", "log"])
+def test_truncated_dataflash_warns_and_keeps_the_complete_samples(text, tmp_path, capsys):
+    truth = [_truth(0), _truth(1)]
+    full = tmp_path / ("full.log" if text else "full.bin")
+    write_dataflash(full, truth, text=text)
+    data = full.read_bytes()
+    inside, start = _dataflash_cut(data, text, 0.6)
+    cut = tmp_path / ("cut.log" if text else "cut.bin")
+    cut.write_bytes(data[:inside])
+    report = LoadReport()
+    recs = load(cut, report=report)
+    (line,) = report.warnings
+    n = sum(r.n for r in recs)
+    for words in (str(cut), f"from byte {start},", f"last {inside - start} bytes",
+                  f"using the {n} complete samples of 2 devices"):
+        assert words in line, line
+    # the IMU messages before the cut, in the order they were written (time, instance)
+    events = sorted((int(us), k) for k, d in enumerate(truth) for us in d["us"].tolist())
+    head = data[:start]
+    written = head.count(b"\nIMU") if text else (len(head) - 2 * 89) // 48
+    assert n == written and written > 0.5 * len(events)
+    for k, rec in enumerate(recs):
+        assert rec.n == sum(1 for _, j in events[:written] if j == k)
+        np.testing.assert_array_equal(rec.gyro, _f32(truth[k]["gyro"][:rec.n]))
+    assert main(["fit", str(cut), "-m", "bias_poly(0)"]) == 0  # one warning line, then fits
+    err = capsys.readouterr().err.strip().splitlines()
+    assert [e for e in err if "truncated after" in e] == ["diffgyro: " + line]
+    # a whole file, and (binary) one padded with zeros as block logs are: no warning
+    padded = tmp_path / "padded.bin"
+    padded.write_bytes(data + (b"" if text else b"\0" * 200))
+    report = LoadReport()
+    load(full, report=report)
+    load(padded, report=report) if not text else None
+    assert report.warnings == []
+
+
+def test_truncated_log_with_no_whole_sample_is_one_line(tmp_path, capsys):
+    write_dataflash(tmp_path / "full.bin", [_truth(0)], text=False)
+    cut = tmp_path / "cut.bin"
+    cut.write_bytes((tmp_path / "full.bin").read_bytes()[:2 * 89 + 20])
+    _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut),
+                    "no IMU messages", "truncated", f"from byte {2 * 89}")
+    ulog = tmp_path / "cut.ulg"
+    ulog.write_bytes((PX4 / "sample_log_small.ulg").read_bytes()[:2000])
+    _one_line_error(["fit", str(ulog), "-m", "bias_poly(0)"], capsys, str(ulog),
+                    "no gyro data", "truncated")

@@ -7,6 +7,8 @@ checks like any table (column mapping, units, NaN and time checks). The
 format follows the extension and is checked against the file's first bytes.
 The libraries (pyulog, rosbags, pymavlink) are imported only when a log is
 read; without them the error says ``pip install "diffgyro[logs]"``.
+A ULog or DataFlash log whose last message is cut off is read up to its last
+whole message, with one warning line (:func:`.table.truncated`).
 The field mapping of each format is in docs/formats.md.
 """
 

@@ -16,6 +16,7 @@ Temperature topics that do not pair up so are an error listing them.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -24,6 +25,18 @@ from ..errors import DataError
 from .table import LogTable, interp_join, require, table
 
 IMU = "sensor_msgs/msg/Imu"
+# rosbags needs a bag's index (ROS 1) / summary (MCAP), written at its end: a bag cut off
+# (recording killed, copy interrupted) fails with one of these
+_INDEX_LOST = re.compile(r"index|end magic|magic is invalid|summary", re.IGNORECASE)
+_REBUILD = {".bag": "'rosbag reindex'", ".mcap": "'mcap recover'"}
+
+
+def _truncated_hint(path: Path, err: Exception) -> str | None:
+    """What to do about a bag whose index is lost (``None``: the error is something else)."""
+    if not _INDEX_LOST.search(str(err)):
+        return None
+    tool = _REBUILD.get(path.suffix.lower(), "'mcap recover' (MCAP) or 'ros2 bag reindex'")
+    return f"the bag looks truncated, its index at the end missing or damaged: {tool} rebuilds it"
 TEMPERATURE = "sensor_msgs/msg/Temperature"
 
 
@@ -109,8 +122,8 @@ def read(path: Path, file: str, prefix: str, topic: str | None = None,
     except DataError:
         raise
     except Exception as err:  # rosbags' reader/deserializer errors, sqlite, truncated chunks
-        raise DataError(f"cannot read as ROS bag ({type(err).__name__}: {err})",
-                        file=file) from None
+        raise DataError(f"cannot read as ROS bag ({type(err).__name__}: {err})", file=file,
+                        hint=_truncated_hint(path, err)) from None
     devices = []
     for name in imus:
         r = rows[name]

@@ -10,7 +10,7 @@ import pandas as pd
 
 from ..errors import DataError
 
-__all__ = ["LogTable", "interp_join", "require", "table"]
+__all__ = ["LogTable", "cut_at", "interp_join", "require", "table", "truncated"]
 
 
 @dataclass
@@ -79,3 +79,20 @@ def table(devices: list[dict[str, np.ndarray | str]], file: str,
         parts.append(pd.DataFrame(cols))
     frame = pd.concat(parts, ignore_index=True)
     return LogTable(frame, warnings)
+
+
+def truncated(file: str, cut: int, size: int, devices: list[dict]) -> str:
+    """The warning line for a log cut off at byte ``cut`` of ``size`` (the bytes from there
+    are not a whole message): how much gyro data was read, and that only it is used."""
+    n = sum(len(d["t"]) for d in devices)
+    t = np.concatenate([np.asarray(d["t"], dtype=np.float64) for d in devices])
+    span = float(t.max() - t.min()) if t.size else 0.0
+    of = f" of {len(devices)} devices" if len(devices) > 1 else ""
+    when = f"{span:.1f}" if span >= 1 else f"{span:.3g}"
+    return (f"warning: file {file}: truncated after {when} s of gyro data "
+            f"({cut_at(cut, size)}); using the {n} complete samples{of}")
+
+
+def cut_at(cut: int, size: int) -> str:
+    """Where a log is cut off, in words."""
+    return f"its last {size - cut} bytes, from byte {cut}, are not a whole message"

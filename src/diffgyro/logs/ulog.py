@@ -24,22 +24,65 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .table import LogTable, interp_join, require, table
+from .table import LogTable, cut_at, interp_join, require, table, truncated
 
 MIN_RATE = 10.0  # samples per second below which sensor_gyro is "not logged at rate"
 _TOPICS = ["sensor_gyro", "sensor_accel", "sensor_combined"]
 _INVALID_RELATIVE = 2147483647  # PX4's RELATIVE_TIMESTAMP_INVALID
 
 
+class _CutWatch:
+    """The file as pyulog reads it, noting where a message is cut off by the end of the file.
+
+    pyulog reads each message as its 3-byte header (payload size, type), then the payload
+    of that size, and stops without a word when either read comes up short; ``cut`` is
+    then the offset of that message's header (``None``: the file ends between messages).
+    """
+
+    def __init__(self, fh):
+        self._fh, self._pos = fh, 0
+        self._header, self._payload = 0, None  # last header's offset, its payload size
+        self.cut: int | None = None
+
+    def read(self, n: int = -1) -> bytes:
+        data = self._fh.read(n)
+        start, self._pos = self._pos, self._pos + len(data)
+        if self._payload is not None and n == self._payload:
+            if len(data) < n and self.cut is None:
+                self.cut = self._header
+            self._payload = None
+        elif n == 3:
+            self._header = start
+            self._payload = int.from_bytes(data[:2], "little") if len(data) == 3 else None
+            if 0 < len(data) < 3 and self.cut is None:
+                self.cut = start
+        else:
+            self._payload = None
+        return data
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        self._pos = self._fh.seek(offset, whence)
+        self._payload = None
+        return self._pos
+
+    def tell(self) -> int:
+        return self._pos
+
+    def close(self) -> None:
+        self._fh.close()
+
+
 def _open(path: Path, file: str):
+    """The parsed log and, when its last message is cut off, the offset of that message."""
     pyulog = require("pyulog", "pyulog", file)
     try:
-        with contextlib.redirect_stdout(io.StringIO()):  # pyulog prints its warnings
-            ulog = pyulog.ULog(str(path), _TOPICS)
+        with open(path, "rb") as fh, contextlib.redirect_stdout(io.StringIO()):
+            watch = _CutWatch(fh)  # pyulog prints its warnings: kept off stdout
+            ulog = pyulog.ULog(watch, _TOPICS)
     except Exception as err:  # pyulog raises ULogException, OSError, struct/index errors
         raise DataError(f"cannot read as PX4 ULog ({type(err).__name__}: {err})",
                         file=file) from None
-    return ulog
+    return ulog, watch.cut
 
 
 def _seconds(d) -> np.ndarray:
@@ -96,13 +139,16 @@ def _combined(ulog, prefix: str) -> dict | None:
 
 def read(path: Path, file: str, prefix: str) -> LogTable:
     """Read ``path`` (a ULog) as a :class:`LogTable`; see the module docstring."""
-    ulog = _open(path, file)
+    ulog, cut = _open(path, file)
+    size = path.stat().st_size
     devices, meta, slow = _gyro_devices(ulog, prefix)
     warnings = []
     if not devices:
         combined = _combined(ulog, prefix)
         if combined is None:
             broken = "; the file is corrupted" if ulog.file_corruption else ""
+            if cut is not None:
+                broken += f"; the file is truncated: {cut_at(cut, size)}"
             raise DataError(f"no gyro data in the log (no sensor_gyro or sensor_combined "
                             f"samples{broken})", file=file)
         why = ("is not logged" if not slow else
@@ -116,6 +162,8 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
                         f"< {MIN_RATE:g} samples/s are left out")
     if ulog.file_corruption:
         warnings.append(f"warning: file {file}: pyulog found corrupted data and skipped it")
+    if cut is not None:
+        warnings.append(truncated(file, cut, size, devices))
     out = table(devices, file, warnings)
     out.metadata = meta
     return out
