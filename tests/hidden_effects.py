@@ -1,4 +1,4 @@
-"""Recordings with one hidden effect, made independently of ``diffgyro.simulate``.
+"""Recordings with hidden effects (one, or several joined by ``+``), made independently of ``diffgyro.simulate``.
 
 The diagnosis must hold on data the project did not simulate, so these
 recordings come from separate, deliberately plain numpy code: three test
@@ -250,6 +250,8 @@ def effect_signal(name: str, rng: np.random.Generator, env: dict) -> np.ndarray:
         return env["force"] @ rng.normal(size=(3, 3)).T
     if name == "vdd":                # bias follows the logged supply voltage
         return np.outer((env["vdd"] - 5.0) / 0.05, c)
+    if name == "temp_x_dtemp":       # outside the vocabulary: a gradient sensitivity ∝ T
+        return np.outer((env["die"] - env["die"].mean()) / 20.0 * env["ddie"] * 60.0, c)
     if name == "random_walk":
         steps = rng.normal(size=(n, 3))
         steps[0] = 0.0
@@ -308,7 +310,9 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
 
     The hidden effect is scaled so the part the base model cannot absorb has
     RMS ``size × noise.white``. Effect ``"vdd"`` is a bias that follows a logged
-    supply voltage, recorded as the extra column ``vdd``.
+    supply voltage, recorded as the extra column ``vdd``. Several effects joined
+    by ``+`` (``"gradient+bias_poly"``) are hidden together, each scaled so on its
+    own; ``"temp_x_dtemp"`` (bias ∝ T·dT/dt of the die) is outside every built-in term.
     """
     from diffgyro.data import Batch
     from diffgyro.fit import batch_signals
@@ -335,7 +339,7 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     env = {"t": p.t, "dt": dt, "die": die, "ddie": ddie, "air": air, "rate": true_rate,
            "force": force}
     aux = {}
-    if effect == "vdd":
+    if "vdd" in (effect or "").split("+"):
         env["vdd"] = aux["vdd"] = supply_voltage(p.t, seed)
 
     # the base model's errors, with realistic coefficients (fitted exactly by the base model)
@@ -369,8 +373,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
                      rate=rate_ref if p.has_rate else None, device=device or f"{plan}-{effect}-{seed}",
                      aux=aux)
     hidden = np.zeros((n, 3))
-    if effect is not None and size > 0:
-        pattern = effect_signal(effect, rng, env)
+    for name in (effect.split("+") if effect is not None and size > 0 else ()):
+        pattern = effect_signal(name, rng, env)
         # part of the pattern the base model cannot absorb, in principle: the base design
         # evaluated on the true die temperature (read-out lag and steps are extra)
         true_rec = Recording(t=p.t, gyro=gyro_clean, temp=die, temp_ext=p.chamber, accel=force,
@@ -384,8 +388,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
             resid[:, i] = pattern[:, i] - x[:, i, :] @ coef
         rms = math.sqrt(np.mean(resid**2))
         if rms < 0.05 * math.sqrt(np.mean(pattern**2)):
-            raise ValueError(f"{effect} is almost absorbed by {base_spec} on this plan")
-        hidden = pattern * (size * noise.white / max(rms, 1e-300))
+            raise ValueError(f"{name} is almost absorbed by {base_spec} on this plan")
+        hidden += pattern * (size * noise.white / max(rms, 1e-300))
     # noise
     white = rng.normal(size=(n, 3)) * noise.white
     if noise.lowpass > 0:  # MA(1) with lag-1 correlation ρ, same variance

@@ -31,14 +31,19 @@ everything significant:
 * **A random walk must not win by default** (:mod:`.random_walk`): a smoother
   can follow any slowly varying residual, so ``random_walk`` is scored
   separately and enters the ranking only when no deterministic term closes the
-  gap (``rw_prefer``) *and* the residual's Allan deviation rises at long τ.
+  gap (``rw_prefer``), nor the best one followed by the best second term
+  (:mod:`.greedy`), *and* the residual's Allan deviation rises at long τ; a
+  residual that follows a product no term is linear in (T·dT/dt) is an effect
+  outside the vocabulary, not a walk.
 * **Look-alikes are shown, not hidden** (gradient / thermal lag / inside–outside
   difference; scale asymmetry / nonlinearity; g-sensitivity / misalignment).
 
 The package: :mod:`.thresholds` (the rule's numbers), :mod:`.floor` (white-noise
 level, temperature read-out), :mod:`.candidates` (what is tried),
 :mod:`.scoring` (held-out errors from block sums), :mod:`.random_walk`,
-:mod:`.decision` (significance, ranking, verdict), :mod:`.evidence`
+:mod:`.decision` (significance, ranking, verdict), :mod:`.greedy` (before a
+random walk is named: the best term followed by the best second term),
+:mod:`.evidence`
 (correlations and the explanation), :mod:`.results` (the records),
 :mod:`.run` (the batch, streamed per chunk of devices) and :mod:`.ladder`
 (``--auto``). The thresholds were tuned on recordings made apart from the

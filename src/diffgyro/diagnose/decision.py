@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .candidates import added_term
-from .evidence import explain
+from .evidence import OUTSIDE, explain
 from .results import Candidate, DeviceDiagnosis
 from .thresholds import Thresholds, family_of
 
@@ -75,31 +75,54 @@ class _Scorer:
 SLOW_EDGE = "time constant at the slow end of the search: a slow drift rather than a transient"
 
 
+def _walk_competes(closure: float, rw_c: Candidate, th: Thresholds) -> bool:
+    """The random walk competes unless the physical term(s) close ``rw_prefer`` of the gap or
+    leave less than ``rw_ratio`` times the gap the walk leaves."""
+    return closure < th.rw_prefer and 1.0 - closure > th.rw_ratio * (1.0 - rw_c.closure)
+
+
+def outside_share(ev: dict) -> float:
+    """The largest share of the gap a signal outside the vocabulary explains (evidence)."""
+    return max((float(ev[k].get("explains", 0.0)) for k in OUTSIDE if k in ev), default=0.0)
+
+
 def _rank(det: list[Candidate], rw_c: Candidate | None, excess: float, slope: float,
-          th: Thresholds):
-    """The candidates shown (sorted by held-out RMS), the best, its close alternatives and
-    the verdict; the random walk competes only when no physical term closes the gap."""
+          th: Thresholds, pair: tuple[str, Candidate] | None = None, ev: dict | None = None):
+    """The candidates shown (sorted by held-out RMS), the best, its close alternatives, the
+    verdict and the expected next term; the random walk competes only when no physical
+    term, nor the best one followed by ``pair`` = (its spec, second term), closes the gap
+    (a pair must close ``rw_prefer`` of it: with twice the freedom to follow a wandering
+    residual, it is not offered the ``rw_ratio`` alternative)."""
     det_sig = [c for c in det if c.significant]
     # a term whose time constant ran to the slow end of its search fits a drift, not physics
     physical = [c for c in det_sig if c.note != SLOW_EDGE]
     best_phys = min(physical, key=lambda c: c.heldout_rms) if physical else None
     best_det = min(det_sig, key=lambda c: c.heldout_rms) if det_sig else None
-    in_contention = rw_c is not None and (
-        best_phys is None or (best_phys.closure < th.rw_prefer
-                              and 1.0 - best_phys.closure > th.rw_ratio * (1.0 - rw_c.closure)))
+    in_contention = rw_c is not None and (best_phys is None
+                                          or _walk_competes(best_phys.closure, rw_c, th))
+    nxt = None
+    if (in_contention and pair is not None and best_phys is not None
+            and pair[0] == best_phys.spec and pair[1].closure >= th.rw_prefer):
+        in_contention, nxt, best_det = False, pair[1], best_phys  # the pair closes the gap
+    ev = ev or {}
+    outside = False
     if rw_c is not None:
         rw_c.significant = bool(rw_c.significant and in_contention and excess >= th.rw_excess_min
                                 and math.isfinite(slope) and slope >= th.rw_slope_min)
+        # the residual follows a signal no term is linear in: an unknown effect, not a walk
+        outside = rw_c.significant and outside_share(ev) >= th.outside_share
+        rw_c.significant = rw_c.significant and not outside
     shown = det + ([rw_c] if in_contention else [])
     shown.sort(key=lambda c: (c.heldout_rms if math.isfinite(c.heldout_rms) else math.inf))
     sig_all = [c for c in shown if c.significant]
     best = rw_c if rw_c is not None and rw_c.significant else best_det
     # far above the floor with no single term closing it: still not adequate
-    verdict = "missing_effect" if sig_all or excess >= th.unexplained_excess else "adequate"
+    verdict = ("missing_effect" if sig_all or outside or excess >= th.unexplained_excess
+               else "adequate")
     alts = []
     if best is not None:
         alts = [c for c in sig_all if c is not best and c.closure >= th.alt_share * best.closure]
-    return shown, best, alts, verdict
+    return shown, best, alts, verdict, nxt
 
 
 def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_full: np.ndarray,
@@ -107,8 +130,10 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
            ok: np.ndarray, taus, rw_spec: str | None, rw_fold: np.ndarray, rw_full: np.ndarray,
            floor_axes: np.ndarray, floor_allan: float, slope: float, n_valid: int,
            th: Thresholds, ev: dict, blocks: dict | None = None,
-           edge: np.ndarray | None = None, base_spec: str | None = None) -> DeviceDiagnosis:
-    """Scores, significance, ranking and verdict of one device from its per-fold numbers."""
+           edge: np.ndarray | None = None, base_spec: str | None = None,
+           pair=None) -> DeviceDiagnosis:
+    """Scores, significance, ranking and verdict of one device from its per-fold numbers;
+    ``pair`` (:class:`.greedy.Pair`): the best term followed by the best second term."""
     floor = float(np.sqrt(np.mean(floor_axes**2)))
     sc = _Scorer(cnt=cnt, base_fold=base_fold, f2=max(floor**2, 1e-300), n_valid=n_valid, th=th,
                  blocks=blocks, base_spec=base_spec)
@@ -130,13 +155,20 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
         rw_c = sc.score("random_walk", rw_spec, rw_fold, rw_full, stochastic=True)
         rw_c.note = ("local-level smoother of the residual; walk variance by maximum likelihood on "
                      "the training blocks")
-    shown, best, alts, verdict = _rank(det, rw_c, sc.excess, slope, th)
+    pair_c = None
+    if pair is not None:
+        sec = pair.second
+        pair_c = sc.score(sec.effect, sec.spec, pair.fold_sse, pair.full_sse, tau=sec.tau)
+        pair_c.term = sec.term
+        pair_c.note = f"held-out numbers of the pair: the best term, then `{sec.term}`"
+    shown, best, alts, verdict, nxt = _rank(
+        det, rw_c, sc.excess, slope, th, None if pair_c is None else (pair.first, pair_c), ev)
     d = DeviceDiagnosis(
         device=name, status=status, rms=rms_b, heldout_rms=math.sqrt(max(sc.hb2, 0.0)),
         white_noise_rms=floor, white_noise_axes=[float(v) for v in floor_axes],
         floor_allan=floor_allan,
         verdict=verdict, candidates=shown, best=best, alternatives=alts, random_walk=rw_c,
-        allan_slope=slope, evidence=ev, skipped=skipped)
+        allan_slope=slope, evidence=ev, skipped=skipped, next=nxt)
     d.explanation = explain(d)
     return d
 

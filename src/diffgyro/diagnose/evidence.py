@@ -18,12 +18,21 @@ def _corr(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.dot(a, b) / den) if den > 0 else 0.0
 
 
-def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict) -> dict:
+#: Evidence signals no built-in term is linear in (products of signals): a residual that
+#: follows one of them is an effect outside the vocabulary, not a random walk.
+OUTSIDE = ("temp_dtemp", "dtemp2")
+
+
+def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
+             floor_axes: np.ndarray | None = None) -> dict:
     """What the residual follows: correlations a person can check in the figures.
 
     ``residual`` (n, 3) of the base model; ``sig_dev`` the device's derived
     signals as numpy (dtemp, heating). Per signal: the largest |r| over the
-    axes, its axis, and where helpful the residual's mean in two regimes.
+    axes, its axis, and where helpful the residual's mean in two regimes. With
+    the white-noise level per axis ``floor_axes``, each signal also gets
+    ``explains``: the share of the residual's variance above that level a
+    straight line in the signal explains on that axis (r² · var / (var − σ²)).
     """
     e = residual
     n = e.shape[0]
@@ -36,6 +45,10 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict) -> dict:
         rs = [_corr(e[:, i], s[:, i] if per_axis else s) for i in range(3)]
         i = int(np.argmax(np.abs(rs)))
         out[name] = {"r": round(rs[i], 3), "axis": "xyz"[i], "label": label or name}
+        if floor_axes is not None:
+            var = float(np.var(e[:, i]))
+            gap = var - float(floor_axes[i]) ** 2
+            out[name]["explains"] = round(min(rs[i] ** 2 * var / gap, 1.0), 3) if gap > 0 else 0.0
 
     t = rec.t - rec.t[0]
     add("time", t, label="time since start")
@@ -45,6 +58,9 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict) -> dict:
         dtemp = sig_dev.get("dtemp")
         if dtemp is not None:
             add("dtemp", dtemp, label="dT/dt")
+            tc = rec.temp - np.mean(rec.temp)
+            add("temp_dtemp", tc * dtemp, label="T·dT/dt (T centred)")
+            add("dtemp2", dtemp**2, label="(dT/dt)²")
         heat = sig_dev.get("heating")
         if heat is not None and np.any(heat > 0) and np.any(heat < 0):
             add("heating", heat, label="heating vs cooling")
@@ -124,6 +140,31 @@ def _fmt(x) -> str:
     return "n/a" if x is None or not math.isfinite(x) else f"{x:.2g}"
 
 
+#: Where the README shows how to add a term of one's own.
+REGISTER_HINT = "see the README's `@register` example, \"A new effect from outside the package\""
+
+
+def followed_most(ev: dict) -> tuple[str, dict] | None:
+    """The evidence signal with the largest |r| (time itself left out), or None."""
+    sigs = [(k, v) for k, v in ev.items() if isinstance(v, dict) and "r" in v and k != "time"]
+    return max(sigs, key=lambda kv: abs(kv[1]["r"])) if sigs else None
+
+
+def _outside(ev: dict) -> str:
+    """The end of a missing-effect explanation that names no term: the signal the residual
+    follows most, and how to add a term for it."""
+    top = followed_most(ev)
+    if top is None or abs(top[1]["r"]) < 0.3:
+        return ("several effects may be missing at once, or one outside the vocabulary that no "
+                f"logged signal shows: register a term for it; {REGISTER_HINT}.")
+    name, v = top
+    share = f", {100 * v['explains']:.0f} % of the excess" if "explains" in v else ""
+    return (f"no term of the vocabulary follows it, but the residual follows {v['label']} most "
+            f"(r = {v['r']:+.2f} on axis {v['axis']}{share}): an effect outside the vocabulary "
+            f"(or several at once): register a term whose column follows {v['label']}; "
+            f"{REGISTER_HINT}.")
+
+
 def explain(d: DeviceDiagnosis) -> str:
     """A short explanation in words naming the evidence."""
     white = max(d.white_noise_rms, 1e-300)
@@ -139,14 +180,19 @@ def explain(d: DeviceDiagnosis) -> str:
         return text + "."
     b = d.best
     if b is None:
-        near = [c for c in d.candidates if c.closure > 0][:3]
+        near = [c for c in d.candidates if c.closure > 0 and not c.stochastic][:3]
         text = (f"{d.device}: missing effect — held-out RMS {_fmt(d.heldout_rms)} rad/s is "
                 f"{d.heldout_rms / white:.1f}× the {floor}, and no single term "
                 f"closes enough of the gap")
         if near:
             text += " (best: " + ", ".join(f"`{c.spec}` {_fmt(c.heldout_rms)}, closes "
                                            f"{100 * c.closure:.0f} %" for c in near) + ")"
-        return text + ": several effects may be missing at once, or one outside the vocabulary."
+        text += ": " + _outside(d.evidence)
+        rw = d.random_walk
+        if rw is not None and rw.closure > 0.5:
+            text += (f" A random-walk smoother would also follow this residual (held-out "
+                     f"{_fmt(rw.heldout_rms)}), but it would not calibrate future data.")
+        return text
     sig_name, phrase = EFFECT_SIGNAL.get(b.effect, (None, f"follows the `{b.effect}` term"))
     column = _term_column(b)
     if column is not None:
@@ -172,6 +218,10 @@ def explain(d: DeviceDiagnosis) -> str:
         fam = family_of(b.effect)
         same = fam is not None and all(family_of(c.effect) == fam for c in d.alternatives)
         text += f" Close alternatives{f' ({fam} family)' if same else ''}: {alts}."
+    if d.next is not None:
+        text += (f" Two effects are missing: `{_named(b)}` alone closes {100 * b.closure:.0f} % "
+                 f"of the gap, and the next round is expected to add `{d.next.term}` (with both: "
+                 f"held-out {_fmt(d.next.heldout_rms)}, {100 * d.next.closure:.0f} % closed).")
     if b.effect != "random_walk" and d.random_walk is not None and d.random_walk.closure > 0.5:
         text += (f" A random-walk smoother would also follow this residual (held-out "
                  f"{_fmt(d.random_walk.heldout_rms)}), but `{_named(b)}` explains it with a "

@@ -76,6 +76,9 @@ class DeviceDiagnosis:
     #: The model-free floor ``fit`` reports for the device (:mod:`diffgyro.noise`).
     noise_floor: float = math.nan
     noise_axes: list[float] = field(default_factory=list)
+    #: The second term the next round is expected to add after ``best`` (:mod:`.greedy`),
+    #: scored as the pair base + best + next against the base model; None when not needed.
+    next: Candidate | None = None
 
     @property
     def excess(self) -> float:
@@ -101,6 +104,7 @@ class DeviceDiagnosis:
             "excess": number(self.excess),
             "allan_slope": number(self.allan_slope),
             "random_walk": self.random_walk.record() if self.random_walk else None,
+            "next": self.next.record() if self.next else None,
             "evidence": self.evidence,
             "skipped": self.skipped,
             "explanation": self.explanation,

@@ -24,6 +24,7 @@ from .candidates import CandidateSpec, candidate_specs, term_column
 from .decision import allan_slope, decide, unfitted
 from .evidence import evidence
 from .floor import suggest_dtemp_window, white_noise_rms
+from .greedy import pairs as greedy_pairs
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
 from .scoring import base_scores, block_windows, candidate_scores, window
@@ -270,10 +271,10 @@ def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
 
 
 def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported,
-            skips: dict):
+            skips: dict, pair=None):
     """One device's :class:`DeviceDiagnosis` from its scores (floors: the white-noise level
     the decision uses); slope and floor_allan too. ``skips``: the column candidates it skips
-    and why (:func:`_column_skips`), listed by term."""
+    and why (:func:`_column_skips`), listed by term; ``pair``: :class:`.greedy.Pair`."""
     nv = int(batch.n_valid[i])
     total = float(batch.t[i, nv - 1] - batch.t[i, 0])
     adev, tau = al.adev[i], al.tau[i]
@@ -284,7 +285,7 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
             and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
         return unfitted(batch.devices[i], res.status_detail(i), floors[i]), slope, floor_allan
     sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
-    ev = evidence(out["residual"][i, :nv], batch.recording(i), sd)
+    ev = evidence(out["residual"][i, :nv], batch.recording(i), sd, floors[i])
     ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
     d = decide(
         batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
@@ -292,7 +293,7 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
         out["cand_sse"][i], out["cand_full"][i], ok, _taus(cands, out["cand_theta"][i]), rw_spec,
         out["rw_interp"][i], out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
         blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
-        edge=out["cand_edge"][i], base_spec=model.spec)
+        edge=out["cand_edge"][i], base_spec=model.spec, pair=pair)
     for name in unsupported:
         d.skipped[name] = UNSUPPORTED
     for c in cands:  # column candidates are listed by term (aux(vdd)), not under one name
@@ -323,6 +324,7 @@ def diagnose(
     *,
     thresholds: Thresholds | None = None,
     base_fit=None,
+    greedy: bool = True,
     **fit_options,
 ) -> Diagnosis:
     """Diagnose every device of ``batch`` against ``model``.
@@ -331,6 +333,8 @@ def diagnose(
     registered effect the data supports). ``base_fit`` reuses a
     :class:`~diffgyro.fit.FitResult` of ``model`` on this batch. Other
     keywords are fit options (``n_folds``, ``n_blocks``, ``dtemp_window``...).
+    ``greedy``: before a random walk is named, try the best term followed by the
+    best second term (:mod:`.greedy`).
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
@@ -374,6 +378,13 @@ def diagnose(
         slopes.append(slope)
         floor_allans.append(fa)
     opts = res.options
+    if greedy:
+        nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+                       "dtemp_window": opts.dtemp_window, **fit_options}
+        for i, pair in greedy_pairs(devices, batch, candidates, th, nested_opts, diagnose).items():
+            devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                                 unsupported, skips[i], pair)[0]
+            devices[i].noise_floor, devices[i].noise_axes = reported[i]
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,

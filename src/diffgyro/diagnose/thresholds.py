@@ -43,6 +43,12 @@ class Thresholds:
     floor's or more is ``missing_effect`` even when no single term is
     significant (several effects missing at once, or one outside the
     vocabulary); it then names none.
+
+    A random walk is not named when a signal no term is linear in (a product
+    such as T·dT/dt, :data:`.evidence.OUTSIDE`) explains at least
+    ``outside_share`` of the residual's variance above the floor: the
+    verdict is then ``missing_effect`` with no term named (an effect outside
+    the vocabulary), never the smoother.
     """
 
     t_min: float = 3.0
@@ -61,6 +67,7 @@ class Thresholds:
     local_gain_min: float = 0.005
     local_closure_min: float = 0.5
     unexplained_excess: float = 1.0
+    outside_share: float = 0.5
 
 
 #: Effects that mimic each other on common test plans (reported together).

@@ -1,0 +1,68 @@
+"""Several missing effects, and one outside the vocabulary: neither is a random walk.
+
+Data: thermal runs made apart from the project's simulator (``hidden_effects.py``)
+whose base model ``bias_poly(2)`` lacks both the dT/dt gradient and the cubic
+temperature term (each alone closes about half of the gap, and a random-walk
+smoother follows the sum, so a one-term rule names the walk), or whose bias
+follows T·dT/dt, which no built-in term is linear in.
+"""
+
+from __future__ import annotations
+
+import hidden_effects as H
+import pytest
+
+from diffgyro.data import Batch
+from diffgyro.diagnose import diagnose, diagnose_auto
+
+BASE = "bias_poly(2)"
+TWO = "gradient+bias_poly"
+NOISE = H.Noise(white=2e-4, flicker=0.1, drift=0.1)
+
+
+def _thermal(effect: str, seed: int, size: float) -> H.Hidden:
+    return H.make_recording("thermal", effect, BASE, seed, size=size, noise=NOISE, hours=2.0,
+                            device=f"{effect}-{seed}")
+
+
+@pytest.fixture(scope="module")
+def two_effects():
+    hs = [_thermal(TWO, 500, 1.5)]
+    batch = Batch.from_recordings([h.recording for h in hs])
+    return hs, diagnose_auto(BASE, batch, max_steps=2)
+
+
+def test_a_deterministic_term_first_and_the_next_one_named(two_effects):
+    """The walk would close the gap, but so does the best term followed by the best second
+    term: the verdict names the first, ``next`` (and the explanation) the second."""
+    _, ladder = two_effects
+    for d, rec in zip(ladder.first.devices, ladder.first.records()):
+        assert d.verdict == "missing_effect" and d.best is not None, d.explanation
+        assert not d.best.stochastic and d.random_walk is not None and not d.random_walk.significant
+        assert d.best.closure < 0.85 and d.random_walk.closure > 0.85  # one term alone: walk wins
+        assert d.next is not None and d.next.closure >= 0.85
+        assert {d.best.effect, d.next.effect} & {"gradient", "bias_poly"}
+        assert f"expected to add `{d.next.term}`" in d.explanation
+        assert rec["next"]["term"] == d.next.term and rec["best_term"] == d.best.term
+
+
+def test_two_rounds_of_auto_reach_the_noise(two_effects):
+    hs, ladder = two_effects
+    added = [s.added for s in ladder.steps[1:]]
+    assert len(added) == 2 and "random_walk" not in added, added
+    for h, got, v in zip(hs, ladder.steps[-1].heldout_rms, ladder.steps[-1].verdicts):
+        assert v == "adequate"
+        assert abs(got / h.noise_rms - 1.0) <= 0.10, (got / h.noise_rms, added)
+
+
+def test_an_effect_outside_the_vocabulary_names_the_signal_not_a_term():
+    """Bias ∝ T·dT/dt: no term closes a material part of the gap and the walk, which would,
+    is not named; the explanation names the product and points to ``@register``."""
+    h = _thermal("temp_x_dtemp", 700, 2.0)
+    d = diagnose(BASE, Batch.from_recordings([h.recording]), greedy=False).devices[0]
+    assert d.verdict == "missing_effect" and d.best is None, d.explanation
+    assert not any(c.significant for c in d.candidates)
+    assert d.random_walk is not None and d.random_walk.closure > 0.85
+    assert d.evidence["temp_dtemp"]["explains"] >= 0.5
+    assert "T·dT/dt" in d.explanation and "@register" in d.explanation, d.explanation
+    assert d.record()["best"] is None and d.record()["next"] is None
