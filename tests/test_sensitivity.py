@@ -214,8 +214,10 @@ def test_correlated_noise_corrected_intervals_stay_honest(correlated):
           f"(bandwidth {float(np.median(nw['bandwidth'])):.0f}), block bootstrap "
           f"{100 * bootstrap:.1f} % (block {float(np.median(boot['block'])):.0f})")
     assert plain < 0.75
-    assert ar >= 0.90
-    assert kernel >= 0.85 and bootstrap >= 0.85
+    # coverage claims hold from both sides: near the nominal 95 %, and not bought with
+    # intervals so wide that they cover nearly always (measured 93.4, 91.4, 90.8 %)
+    assert 0.90 <= ar <= 0.98
+    assert 0.85 <= kernel <= 0.98 and 0.85 <= bootstrap <= 0.98
     assert ar > plain + 0.15
 
 
