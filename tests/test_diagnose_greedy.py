@@ -11,7 +11,9 @@ from __future__ import annotations
 
 import hidden_effects as H
 import pytest
+from rich.console import Console
 
+from diffgyro.cli.diagnose import print_diagnosis
 from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose, diagnose_auto
 
@@ -44,6 +46,9 @@ def test_a_deterministic_term_first_and_the_next_one_named(two_effects):
         assert {d.best.effect, d.next.effect} & {"gradient", "bias_poly"}
         assert f"expected to add `{d.next.term}`" in d.explanation
         assert rec["next"]["term"] == d.next.term and rec["best_term"] == d.best.term
+    console = Console(record=True, width=240)
+    print_diagnosis(ladder.first, console)  # the CLI table: "add" shows both
+    assert f"{d.best.term}, then {d.next.term}" in console.export_text()
 
 
 def test_two_rounds_of_auto_reach_the_noise(two_effects):

@@ -32,6 +32,14 @@ def _fmt(x) -> str:
     return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
 
 
+def _add(d) -> str:
+    """The term to add (and the one the next round is expected to add after it)."""
+    if d.best is None:
+        return ""
+    text = d.best.term or d.best.effect
+    return text + (f", then {d.next.term}" if d.next is not None else "")
+
+
 def print_diagnosis(diag, console) -> None:
     """A rich table of the devices, then each device's explanation."""
     from rich.table import Table
@@ -44,7 +52,7 @@ def print_diagnosis(diag, console) -> None:
     for d in diag.devices:
         colour = "green" if d.verdict == "adequate" else "red"
         table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
-                      _fmt(d.noise_floor), (d.best.term or d.best.effect) if d.best else "",
+                      _fmt(d.noise_floor), _add(d),
                       _fmt(d.best.heldout_rms) if d.best else "",
                       ", ".join(c.term or c.effect for c in d.alternatives))
     console.print(table)
