@@ -252,6 +252,8 @@ def effect_signal(name: str, rng: np.random.Generator, env: dict) -> np.ndarray:
         return np.outer((env["vdd"] - 5.0) / 0.05, c)
     if name == "temp_x_dtemp":       # outside the vocabulary: a gradient sensitivity ∝ T
         return np.outer((env["die"] - env["die"].mean()) / 20.0 * env["ddie"] * 60.0, c)
+    if name == "sin_duty":           # outside the vocabulary: a periodic function of a column
+        return np.outer(np.sin(2.0 * math.pi * 2.5 * env["duty"]), c)
     if name == "random_walk":
         steps = rng.normal(size=(n, 3))
         steps[0] = 0.0
@@ -271,6 +273,16 @@ def supply_voltage(t: np.ndarray, seed: int) -> np.ndarray:
     for at in rng.uniform(t[0], t[-1], 5):
         steps[t >= at] += rng.choice([-1.0, 1.0]) * rng.uniform(0.01, 0.03)
     return 5.0 + wander + steps - steps.mean() + rng.normal(size=n) * 5e-4
+
+
+def duty_cycle(t: np.ndarray, seed: int) -> np.ndarray:
+    """A logged heater or fan duty in [0, 1]: levels held for about 20 s each (a stream of
+    its own, independent of the temperatures)."""
+    rng = np.random.default_rng([seed, 7007])
+    dt = float(t[1] - t[0])
+    hold = np.maximum(1, rng.exponential(20.0 / dt, size=t.shape[0]).astype(int))
+    levels = np.repeat(rng.uniform(0.0, 1.0, size=hold.size), hold)
+    return levels[: t.shape[0]]
 
 
 def _flicker(n: int, dt: float, rng: np.random.Generator) -> np.ndarray:
@@ -312,7 +324,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     RMS ``size × noise.white``. Effect ``"vdd"`` is a bias that follows a logged
     supply voltage, recorded as the extra column ``vdd``. Several effects joined
     by ``+`` (``"gradient+bias_poly"``) are hidden together, each scaled so on its
-    own; ``"temp_x_dtemp"`` (bias ∝ T·dT/dt of the die) is outside every built-in term.
+    own; ``"temp_x_dtemp"`` (bias ∝ T·dT/dt of the die) and ``"sin_duty"`` (bias ∝
+    sin(5π·duty) of a logged duty column ``duty``) are outside every built-in term.
     """
     from diffgyro.data import Batch
     from diffgyro.fit import batch_signals
@@ -341,6 +354,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     aux = {}
     if "vdd" in (effect or "").split("+"):
         env["vdd"] = aux["vdd"] = supply_voltage(p.t, seed)
+    if "sin_duty" in (effect or "").split("+"):
+        env["duty"] = aux["duty"] = duty_cycle(p.t, seed)
 
     # the base model's errors, with realistic coefficients (fitted exactly by the base model)
     base = np.zeros((n, 3))
@@ -414,5 +429,5 @@ def replace_recording(rec: Recording, gyro: np.ndarray) -> Recording:
                      rate=rec.rate, device=rec.device, source=rec.source, aux=rec.aux)
 
 
-__all__ = ["Hidden", "Noise", "PLANS", "draw_noise", "effect_signal", "make_recording", "replace",
-           "supply_voltage"]
+__all__ = ["Hidden", "Noise", "PLANS", "draw_noise", "duty_cycle", "effect_signal", "make_recording",
+           "replace", "supply_voltage"]

@@ -71,3 +71,17 @@ def test_an_effect_outside_the_vocabulary_names_the_signal_not_a_term():
     assert d.evidence["temp_dtemp"]["explains"] >= 0.5
     assert "T·dT/dt" in d.explanation and "@register" in d.explanation, d.explanation
     assert d.record()["best"] is None and d.record()["next"] is None
+
+
+def test_a_function_of_a_logged_column_names_the_column():
+    """Bias ∝ sin(5π·duty) of a logged duty column: ``aux(duty)`` (a line) closes nothing and
+    a smoother cannot follow 20 s levels; the explanation names `duty`, followed not along a
+    line (η), and suggests a higher order or a registered term."""
+    h = _thermal("sin_duty", 710, 2.0)
+    d = diagnose(BASE, Batch.from_recordings([h.recording]), greedy=False).devices[0]
+    assert d.verdict == "missing_effect" and d.best is None, d.explanation
+    assert "bias_poly(2)+aux(duty)" in [c.spec for c in d.candidates]
+    ev = d.evidence["aux:duty"]
+    assert ev["eta"] > 0.8 and abs(ev["r"]) < 0.3, ev
+    assert "follows `duty` most, not along a line" in d.explanation, d.explanation
+    assert "aux(duty,k)" in d.explanation and "@register" in d.explanation

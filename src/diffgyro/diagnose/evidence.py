@@ -99,7 +99,28 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
             out["accel"] = {"r": round(math.sqrt(max(best[0], 0.0)), 3), "axis": "xyz"[best[1]],
                             "label": "specific force"}
     for name, x in rec.aux.items():  # extra logged columns, as aux:NAME
-        add(aux_key(name), x, label=f"`{name}`")
+        key = aux_key(name)
+        add(key, x, label=f"`{name}`")
+        if key in out:  # any function of the column, not only a line
+            etas = _eta(e, np.asarray(x, float))
+            i = int(np.argmax(etas))
+            out[key].update(eta=round(float(etas[i]), 3), eta_axis="xyz"[i])
+    return out
+
+
+def _eta(e: np.ndarray, s: np.ndarray, bins: int = 32) -> np.ndarray:
+    """Correlation ratio η per axis: the share (as a root) of the residual's variance its
+    mean over ``bins`` quantile bins of the signal explains, whatever the function."""
+    edges = np.unique(np.quantile(s, np.linspace(0.0, 1.0, bins + 1)[1:-1]))
+    k = np.searchsorted(edges, s, side="right")
+    cnt = np.bincount(k, minlength=edges.size + 1).astype(float)
+    ok = cnt > 0
+    out = np.zeros(3)
+    for i in range(3):
+        x = e[:, i] - e[:, i].mean()
+        var = float(np.mean(x * x))
+        m = np.bincount(k, weights=x, minlength=cnt.size)[ok] / cnt[ok]
+        out[i] = math.sqrt(min(float(np.sum(cnt[ok] * m * m)) / x.size / var, 1.0)) if var > 0 else 0.0
     return out
 
 
@@ -144,20 +165,32 @@ def _fmt(x) -> str:
 REGISTER_HINT = "see the README's `@register` example, \"A new effect from outside the package\""
 
 
+def _strength(v: dict) -> float:
+    """How closely the residual follows a signal: |r|, or η (any function) for a column."""
+    return max(abs(v["r"]), v.get("eta", 0.0))
+
+
 def followed_most(ev: dict) -> tuple[str, dict] | None:
-    """The evidence signal with the largest |r| (time itself left out), or None."""
+    """The evidence signal the residual follows most (|r|, or η for an extra column; time
+    itself left out), or None."""
     sigs = [(k, v) for k, v in ev.items() if isinstance(v, dict) and "r" in v and k != "time"]
-    return max(sigs, key=lambda kv: abs(kv[1]["r"])) if sigs else None
+    return max(sigs, key=lambda kv: _strength(kv[1])) if sigs else None
 
 
 def _outside(ev: dict) -> str:
     """The end of a missing-effect explanation that names no term: the signal the residual
     follows most, and how to add a term for it."""
     top = followed_most(ev)
-    if top is None or abs(top[1]["r"]) < 0.3:
+    if top is None or _strength(top[1]) < 0.3:
         return ("several effects may be missing at once, or one outside the vocabulary that no "
                 f"logged signal shows: register a term for it; {REGISTER_HINT}.")
     name, v = top
+    if v.get("eta", 0.0) > abs(v["r"]) + 0.2:  # a column, followed but not along a line
+        return (f"no term of the vocabulary follows it, but the residual follows {v['label']} "
+                f"most, not along a line (η = {v['eta']:.2f} on axis {v['eta_axis']}, "
+                f"r = {v['r']:+.2f}): an effect outside the vocabulary: try a higher order of "
+                f"`aux({name.split(':', 1)[1]},k)` or register a term whose column is that "
+                f"function of it; {REGISTER_HINT}.")
     share = f", {100 * v['explains']:.0f} % of the excess" if "explains" in v else ""
     return (f"no term of the vocabulary follows it, but the residual follows {v['label']} most "
             f"(r = {v['r']:+.2f} on axis {v['axis']}{share}): an effect outside the vocabulary "
