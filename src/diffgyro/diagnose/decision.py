@@ -212,7 +212,8 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
 
     ``row`` holds ``raw`` (one device's slice of :attr:`Diagnosis.raw`),
     ``cand_names``, ``cand_specs`` and ``diag`` (its record). Returns the record
-    the device would get with ``thresholds``.
+    the device would get with ``thresholds``. The greedy pair (:mod:`.greedy`) is not
+    re-scored: its numbers are not saved, so this is the one-term rule.
     """
     r = row["raw"]
     names, specs = row["cand_names"], row["cand_specs"]

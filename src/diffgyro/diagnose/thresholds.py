@@ -26,7 +26,9 @@ class Thresholds:
     less than ``rw_ratio`` times the gap the random walk leaves; a term whose
     time constant ran to the slow end of its search (a warm-up with τ of a
     quarter of the record) fits a drift, not a physical transient, and does
-    not count. ``alt_share``: a significant candidate is a close
+    not count. The best physical term followed by the best second term
+    (:mod:`.greedy`) is preferred to the walk when the pair closes at least
+    ``rw_prefer`` of the gap (the verdict names the first term). ``alt_share``: a significant candidate is a close
     alternative when it closes at least this share of what the best closes.
 
     An effect confined to a small part of the record (a warm-up transient,
