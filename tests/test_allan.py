@@ -207,7 +207,9 @@ def test_batch_json_and_figure(tmp_path):
     doc = json.loads(json.dumps(to_json(r, batch.devices)))  # must be valid JSON (no NaN)
     assert [d["device"] for d in doc["devices"]] == ["unit0", "unit1"]
     gx = doc["devices"][1]["axes"]["gx"]
-    assert set(gx) == {"tau", "adev", "arw", "bias_instability", "rrw"}
+    assert set(gx) - {"missing"} == {"tau", "adev", "arw", "bias_instability", "rrw"}
+    assert set(gx.get("missing", {})) == {k for k in ("arw", "bias_instability", "rrw")
+                                          if gx[k] is None}  # a reason for each null
     assert len(gx["tau"]) == len(gx["adev"]) > 10
     assert max(gx["tau"]) <= 3000 * 0.05 / 4 + 1e-9
     ref = allantools.oadev(recs[1].gyro[:, 0], rate=20.0, data_type="freq", taus=np.array(gx["tau"]))[1]

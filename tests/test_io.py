@@ -29,7 +29,7 @@ def make_recording(device: str, n: int, seed: int, signals=("temp", "accel")) ->
     t = np.cumsum(rng.uniform(0.001, 0.02, n)) + rng.uniform(0, 1e3)
     # values across many decades and a few awkward ones, to test exact round trips
     gyro = rng.standard_normal((n, 3)) * 10.0 ** rng.integers(-12, 3, (n, 3))
-    gyro[0] = [-0.0, 5e-324, 1.7976931348623157e308]
+    gyro[0] = [-0.0, 5e-324, 99999999.99999999]  # within io.LIMITS (±1e8 rad/s)
     gyro[1] = [0.1, 1 / 3, 2.0**-1074 * 3]
     kw = {}
     if "temp" in signals:
@@ -38,8 +38,9 @@ def make_recording(device: str, n: int, seed: int, signals=("temp", "accel")) ->
         kw["temp_ext"] = 20 + rng.standard_normal(n)
     if "accel" in signals:
         kw["accel"] = rng.standard_normal((n, 3)) + [0, 0, 9.81]
-    if "mag" in signals:
+    if "mag" in signals:  # any unit, no physical limit: the extreme floats go here
         kw["mag"] = rng.standard_normal((n, 3)) * 40
+        kw["mag"][0] = [1.7976931348623157e308, -1.7976931348623157e308, 2.0**-1074]
     if "rate" in signals:
         kw["rate"] = rng.standard_normal((n, 3))
     if "quat" in signals:
@@ -104,8 +105,9 @@ def test_round_trip_of_a_batch_and_single_recording(tmp_path):
                 max_size=30))
 def test_csv_round_trip_any_finite_float(values):
     n = len(values) // 3
-    gyro = np.asarray(values[: 3 * n]).reshape(n, 3)
-    rec = Recording(t=np.arange(n) * 0.5 + 1e-9, gyro=gyro, device="d")
+    mag = np.asarray(values[: 3 * n]).reshape(n, 3)  # magnetometer: any unit, no limit
+    gyro = np.clip(mag, -1e8, 1e8)                    # gyro: within io.LIMITS
+    rec = Recording(t=np.arange(n) * 0.5 + 1e-9, gyro=gyro, mag=mag, device="d")
     with tempfile.TemporaryDirectory() as d:
         back = load(save(rec, Path(d) / "x.csv"))[0]
     assert_same(rec, back)
@@ -435,8 +437,8 @@ def test_drop_invalid_reports_counts_per_device(tmp_path):
     np.testing.assert_array_equal(recs[1].t, [0, 2, 3])  # B lost row 4 (t = 1)
     assert [(d.device, d.rows, d.first_row) for d in report.dropped] == [("A", 2, 3),
                                                                          ("B", 1, 4)]
-    assert report.lines()[0] == (f"dropped 2 rows with NaN/inf/empty cells in file {path} "
-                                 "device A (first: row 3)")
+    assert report.lines()[0] == ("dropped 2 rows with empty, NaN, inf or non-physical cells "
+                                 f"in file {path} device A (first: row 3)")
     # non-numeric text and bad times are still errors
     assert "non-numeric" in str(error_of(write(tmp_path / "t.csv", long_text({(3, "gx"): "x"})),
                                          drop_invalid=True))
@@ -456,8 +458,8 @@ def test_load_from_cli_prints_drop_report(tmp_path, capsys):
                           sampling_rate=10.0, drop_invalid=True)
     assert isinstance(batch, Batch) and batch.devices == ("x",)
     np.testing.assert_allclose(batch.gyro[0, 1], np.deg2rad([7, 8, 9]))
-    assert f"dropped 1 row with NaN/inf/empty cells in file {path} device x" in \
-        capsys.readouterr().err
+    assert ("dropped 1 row with empty, NaN, inf or non-physical cells "
+            f"in file {path} device x") in capsys.readouterr().err
 
 
 # ---------------------------------------------------------------- batches

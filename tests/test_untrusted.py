@@ -294,3 +294,163 @@ def test_deeply_nested_python_object_is_rejected_without_recursion_error():
     obj["devices"][0]["quality"]["rms"] = deep
     with pytest.raises(SpecError):
         calibration.from_json(obj)
+
+
+# --------------------------------------------------------------------------- recordings
+
+
+def strict_json(text: str):
+    """json.loads refusing NaN/Infinity (Python's default extensions)."""
+    def refuse(token):
+        raise ValueError(f"non-standard JSON token {token}")
+    return json.loads(text, parse_constant=refuse)
+
+
+def thermal_rows(device: str, n: int = 240, temp_span: float = 20.0, seed: int = 0) -> list[str]:
+    """A device with a known quadratic bias in temperature (rad/s) and white noise."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n, dtype=float)
+    temp = 25.0 + temp_span * np.sin(np.pi * t / n)
+    ts = temp - 25.0
+    bias = np.array([1e-3, -2e-3, 5e-4])[None] + np.outer(ts, [2e-5, 1e-5, -3e-5]) \
+        + np.outer(ts**2, [1e-6, 0.0, 2e-7])
+    gyro = bias + rng.normal(scale=1e-4, size=(n, 3))
+    return [f"{device},{t[i]:g},{gyro[i, 0]:.17g},{gyro[i, 1]:.17g},{gyro[i, 2]:.17g},{temp[i]:.17g}"
+            for i in range(n)]
+
+
+HEADER = "device,t,gx,gy,gz,temp"
+
+
+def run_cli(argv, capsys):
+    from diffgyro.cli import main
+
+    capsys.readouterr()
+    code = main(argv)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_constant_temperature_device_gets_a_reason_and_the_batch_its_fits(tmp_path, capsys):
+    """Issue 22: a constant temperature fitted with bias_poly(2) gave NaN in --json and a
+    traceback. Now: valid JSON, exit 0, the device says why, its neighbour is fitted."""
+    path = tmp_path / "two.csv"
+    path.write_text("\n".join([HEADER, *thermal_rows("steady", temp_span=0.0),
+                               *thermal_rows("swept", seed=1)]) + "\n")
+    cal = tmp_path / "cal.json"
+    code, out, err = run_cli(["fit", str(path), "--model", "bias_poly(2)", "--json",
+                              "--out", str(cal)], capsys)
+    assert code == 0, err
+    recs = {r["device"]: r for r in strict_json(out)["devices"]}
+    steady, swept = recs["steady"], recs["swept"]
+    assert steady["status"] == "insufficient_range"
+    assert "temperature constant at 25.0 °C" in steady["status_detail"]
+    assert "bias_poly(2) needs a temperature span" in steady["status_detail"]
+    assert swept["status"] == "ok", swept["status_detail"]
+    doc = strict_json(cal.read_text())
+    assert [d["status"] for d in doc["devices"]] == ["insufficient_range", "ok"]
+    dc = doc["devices"][1]["temp_centre"] - 25.0  # c0 is the bias at the centring point
+    truth = 1e-3 + 2e-5 * dc + 1e-6 * dc**2
+    assert abs(swept["params"]["x"]["bias_poly(2).c0"] - truth) < 3e-5
+
+
+def test_impossible_gyro_value_is_refused_naming_the_row(tmp_path, capsys):
+    """Issue 22: one gyro sample of 1e308 made the device 'failed' with no reason."""
+    rows = thermal_rows("u1")
+    rows[3] = rows[3].replace(rows[3].split(",")[2], "1e308", 1)  # row 4, column gx
+    path = tmp_path / "big.csv"
+    path.write_text("\n".join([HEADER, *rows]) + "\n")
+    code, out, err = run_cli(["fit", str(path), "--model", "bias_poly(2)", "--json"], capsys)
+    assert code == 2 and out == ""
+    line, = err.strip().splitlines()
+    assert str(path) in line and "device u1" in line and "column gx" in line and "row 4" in line
+    assert "1e+308 rad/s is not physical" in line
+    code, out, err = run_cli(["fit", str(path), "--model", "bias_poly(2)", "--json",
+                              "--drop-invalid"], capsys)
+    assert code == 0
+    assert "dropped 1 row" in err and "row 4" in err
+    rec, = strict_json(out)["devices"]
+    assert rec["status"] == "ok" and rec["n_samples"] == len(rows) - 1
+
+
+@pytest.mark.parametrize("column, value, unit_opts, words", [
+    ("temp", "-273.2", [], "below absolute zero"),
+    ("temp", "501", [], "above 500 °C"),
+    ("temp", "-1", ["--temp-unit", "K"], "-274.15 °C (read -1) is not physical (below absolute"),
+    ("gz", "-1.1e8", [], "beyond ±1e+08 rad/s"),
+    ("gz", "6e9", ["--gyro-unit", "deg/s"], "gyro value 1.0472e+08 rad/s (read 6e+09) is not"),
+])
+def test_physical_limits_at_load(tmp_path, capsys, column, value, unit_opts, words):
+    from diffgyro.io import LIMITS
+
+    rows = thermal_rows("u1", n=40)
+    k = HEADER.split(",").index(column)
+    cells = rows[6].split(",")
+    cells[k] = value
+    rows[6] = ",".join(cells)
+    path = tmp_path / "x.csv"
+    path.write_text("\n".join([HEADER, *rows]) + "\n")
+    code, _, err = run_cli(["fit", str(path), "--model", "bias_poly(1)", *unit_opts], capsys)
+    assert code == 2, err
+    line, = err.strip().splitlines()
+    assert f"column {column}" in line and "row 7" in line and words in line, line
+    assert LIMITS["gyro"] == (-1e8, 1e8) and LIMITS["temp"] == (-273.15, 500.0)
+
+
+def test_accelerometer_limit_and_the_limits_in_the_api(tmp_path):
+    from diffgyro.errors import DataError
+    from diffgyro.io import load
+
+    path = tmp_path / "a.csv"
+    path.write_text("t,gx,gy,gz,ax,ay,az\n0,0,0,0,0,0,9.8\n1,0,0,0,2e8,0,9.8\n2,0,0,0,0,0,9.8\n")
+    with pytest.raises(DataError, match=r"column ax, row 2: accelerometer value 2e\+08 m/s²"):
+        load(path)
+    rec, = load(path, drop_invalid=True)
+    assert rec.n == 2 and rec.accel[:, 0].tolist() == [0.0, 0.0]
+    # raw 24-bit ADC counts (the recipes calibrate counts) are not refused
+    path.write_text("t,gx,gy,gz,ax,ay,az\n0,8388607,-8388608,0,8388607,0,-8388608\n"
+                    "1,0,0,0,0,0,9.8\n")
+    rec, = load(path)
+    assert rec.gyro[0, :2].tolist() == [8388607.0, -8388608.0]
+
+
+def test_every_json_command_says_why_a_device_is_not_ok(tmp_path, capsys):
+    """The constant-temperature device through diagnose, recipe, allan and compensate:
+    strict JSON (exit 0) with the reason beside each missing number, or one line naming
+    the file and the reason (exit 2)."""
+    path = tmp_path / "two.csv"
+    path.write_text("\n".join([HEADER, *thermal_rows("steady", temp_span=0.0),
+                               *thermal_rows("swept", seed=1)]) + "\n")
+    reason = "temperature constant at 25.0 °C: bias_poly(2) needs a temperature span"
+    code, out, err = run_cli(["diagnose", str(path), "--model", "bias_poly(2)", "--json",
+                              "--candidates", "bias_poly"], capsys)
+    assert code == 0, err
+    steady = strict_json(out)["devices"][0]
+    assert steady["rms"] is None and reason in steady["status"] and reason in steady["explanation"]
+
+    code, out, err = run_cli(["recipe", "binned-thermal", str(path), "--json",
+                              "--bin-width", "2.5"], capsys)
+    assert code == 0, err
+    steady, swept = strict_json(out)["devices"]
+    assert steady == {"device": "steady", "status": "failed", "status_detail":
+                      "failed: only 1 temperature bins of 2.5 °C hold 10 samples or more"}
+    assert swept["status"] == "ok" and len(swept["bin_temp"]) == 8
+    code, out, err = run_cli(["recipe", "binned-thermal", str(path), "--bin-width", "2.5"], capsys)
+    assert code == 0 and f"file {path}, device steady: only 1 temperature bins" in err
+
+    code, out, err = run_cli(["allan", str(path), "--json"], capsys)
+    assert code == 0, err
+    for dev in strict_json(out)["devices"]:
+        for ax in dev["axes"].values():
+            nulls = {k for k in ("arw", "bias_instability", "rrw") if ax[k] is None}
+            assert nulls == set(ax.get("missing", {})), ax  # a reason for each null, no other
+            if dev["device"] == "steady":  # white noise: the -1/2 line only
+                assert ax["arw"] is not None and "rate-random-walk" in ax["missing"]["rrw"]
+
+    cal = tmp_path / "cal.json"
+    assert run_cli(["fit", str(path), "--model", "bias_poly(2)", "--out", str(cal)],
+                   capsys)[0] == 0
+    code, out, err = run_cli(["compensate", str(path), "--cal", str(cal),
+                              "--out", str(tmp_path / "c.csv")], capsys)
+    line, = err.strip().splitlines()
+    assert code == 2 and f"file {cal}, device steady" in line and reason in line

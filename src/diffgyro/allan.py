@@ -562,7 +562,8 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
 
 
 def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
-    """The DESIGN.md §4 ``allan --json`` object (NaN becomes null; τ only where defined)."""
+    """The DESIGN.md §4 ``allan --json`` object (NaN becomes null, and the axis' ``missing``
+    says why; τ only where defined)."""
     tau = np.asarray(result.tau)
     adev = np.asarray(result.adev)
     ro = result.readouts
@@ -578,8 +579,21 @@ def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
                 "bias_instability": number(ro.bias_instability[d, a]),
                 "rrw": number(ro.rrw[d, a]),
             }
+            missing = {k: _MISSING[k] if keep.any() else "no τ with a defined Allan deviation "
+                       "(too few valid samples)" for k in _MISSING if ax[name][k] is None}
+            if missing:  # why a read-out is null, in plain words
+                ax[name]["missing"] = missing
         out.append({"device": dev, "axes": ax})
     return {"devices": out}
+
+
+#: Why a read-out is null (the curve does not show its term; see the module notes).
+_MISSING = {
+    "arw": "the curve shows no white-noise (-1/2 slope) region at the measured τ",
+    "bias_instability": "the curve shows no flat (slope 0) floor at the measured τ",
+    "rrw": "the curve shows no rate-random-walk (+1/2 slope) region at the measured τ "
+           "(a longer static recording may)",
+}
 
 
 def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax=None, title=None):

@@ -390,7 +390,8 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:
         if d.status != "ok":
-            raise SpecError(f"calibration of device {d.device!r} has status {d.status}; "
+            why = d.status_detail if d.status_detail not in ("", d.status) else d.status
+            raise SpecError(f"calibration of device {d.device!r} is not ok ({why}); "
                             "refusing to apply it", device=d.device)
     params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
                     theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))

@@ -55,6 +55,7 @@ from .linalg import (  # noqa: F401  (re-exported)
 )
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
+from .status import collinear_terms, explain
 
 # --------------------------------------------------------------------------- signals
 
@@ -332,10 +333,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
 
     # status, most basic problem first
     range_flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
-    owner = jnp.asarray([terms.index(t) for t in model.column_terms()], jnp.int32)
-    weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])  # (3, p)
-    collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
-        jnp.zeros((len(terms),), bool)
+    collinear = collinear_terms(model, direction, rank_ok)
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
     status = fit_status(n_valid, min_samples(p + q), converged, finite, range_flags, rank_ok)
     return dict(beta=beta, theta=theta, cov=cov, rms=rms, heldout_rms=heldout_rms,
@@ -402,16 +400,11 @@ class FitResult(eqx.Module):
         return STATUS_NAMES[int(self.status[i])]
 
     def status_detail(self, i: int) -> str:
-        """Status with the terms it concerns, e.g. ``rank_deficient: temp_diff, bias_poly(1)``."""
-        name = self.status_name(i)
-        terms = self.model.deterministic
-        if name == "insufficient_range":
-            bad = [t.spec for t, f in zip(terms, np.asarray(self.range_flags[i])) if f]
-            return f"{name}: {', '.join(bad)}"
-        if name == "rank_deficient":
-            bad = [t.spec for t, f in zip(terms, np.asarray(self.collinear[i])) if f]
-            return f"{name}: collinear {', '.join(bad) or 'terms'}"
-        return name
+        """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
+        return explain(self.status_name(i), self.model, range_flags=self.range_flags[i],
+                       collinear=self.collinear[i],
+                       temp_range=None if self.temp_range is None else self.temp_range[i],
+                       n_samples=self.n_samples[i], steps=self.steps[i])
 
     def device_params(self, i: int) -> Params:
         return jax.tree.map(lambda a: a[i], self.params)

@@ -67,6 +67,7 @@ from .linalg import rank_check, scale_gram
 from .model import ErrorModel
 from .noise import start as host_noise
 from .signals import Signals, TempNorm, make_signals, masked_range, temp_norm_from
+from .status import collinear_terms
 
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
 CHUNK = 32
@@ -957,11 +958,7 @@ def _finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
         gg = jnp.einsum("imknr,im,in->ikr", curvature, b_m, b_m)
         cov = _covariance_separable(a, xg, gg, sigma2)
 
-    terms = model.deterministic
-    owner = jnp.asarray([terms.index(tm) for tm in model.column_terms()], jnp.int32)
-    weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])
-    collinear = jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0)) if p else \
-        jnp.zeros((len(terms),), bool)
+    collinear = collinear_terms(model, direction, rank_ok)
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
     status = fit_status(n_valid, min_samples(p + nq), converged, finite, raw["range_flags"],
                         rank_ok)

@@ -15,8 +15,18 @@ file counted from 1 after the header line (blank lines are not rows); Parquet
 and NPZ rows are numbered the same way (row 1 = first record). Rows are never
 reordered: a device's samples keep their file order, devices keep the order of
 their first appearance. Nothing is dropped unless ``drop_invalid=True``, and
-then only rows with empty/NaN/inf cells, with the count reported in a
+then only rows with invalid cells, with the count reported in a
 :class:`LoadReport`.
+
+**Invalid cells** are empty, NaN or infinite values, values that overflow in
+the unit conversion, and values no instrument gives (:data:`LIMITS`, in SI
+units after conversion): a rate (``gx..gz``, ``rx..rz``) or a specific force
+(``ax..az``) beyond ±10⁸, a temperature (``temp``, ``temp_ext``) below
+absolute zero (−273.15 °C) or above 500 °C. The rate and force limits lie far
+above physics (the fastest rotors turn at ~10⁴ rad/s, shock accelerometers
+read ~10⁶ m/s²) and above a 24-bit converter's full scale (8.4·10⁶), so raw
+ADC counts, which the multi- and six-position recipes calibrate, still load.
+Each is refused like NaN, naming file, device, column and row.
 
 Writing (:func:`save`) uses the shortest round-trip decimal form for float64,
 so loading a saved file gives bitwise identical values.
@@ -38,7 +48,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
+from .data import COLUMN_TO_SIGNAL, OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
 from .errors import DataError
 from .jsonio import AtomicFile
 from .logs import LOG_SUFFIXES, log_format
@@ -46,7 +56,10 @@ from .logs import LOG_SUFFIXES, log_format
 __all__ = [
     "UNITS",
     "Dropped",
+    "LIMITS",
     "LoadReport",
+    "cell_problem",
+    "check_cells",
     "check_min_samples",
     "load",
     "load_batch",
@@ -196,6 +209,72 @@ def _check_columns(columns: Mapping[str, str] | None) -> dict[str, str]:
 
 
 # ---------------------------------------------------------------------------
+# physical limits
+
+#: Closed interval of physically possible values (SI units) per signal; a value
+#: outside is refused at load like NaN (see the module notes).
+LIMITS: dict[str, tuple[float, float]] = {
+    "gyro": (-1e8, 1e8), "rate": (-1e8, 1e8),          # rad/s (or raw counts)
+    "accel": (-1e8, 1e8),                              # m/s² (or raw counts)
+    "temp": (-273.15, 500.0), "temp_ext": (-273.15, 500.0),  # °C
+}
+_SI_UNIT = {"gyro": "rad/s", "rate": "rad/s", "accel": "m/s²", "temp": "°C",
+            "temp_ext": "°C", "t": "s"}
+_WHAT = {"gyro": "gyro", "rate": "reference rate", "accel": "accelerometer",
+         "temp": "temperature", "temp_ext": "external temperature"}
+NAN, INF, OVERFLOW, BEYOND = 1, 2, 3, 4
+
+
+def check_cells(raw: np.ndarray, numeric: Sequence[str],
+                conv: Mapping[str, tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
+    """Values of the standard columns ``numeric`` (rows × columns) in SI units, and a
+    code per cell: 0 valid, else :data:`NAN`, :data:`INF`, :data:`OVERFLOW` (in the unit
+    conversion) or :data:`BEYOND` (outside :data:`LIMITS`)."""
+    si = np.array(raw, dtype=np.float64, copy=True)
+    code = np.zeros(si.shape, np.int8)
+    code[np.isnan(si)] = NAN
+    code[np.isinf(si)] = INF
+    for j, std in enumerate(numeric):
+        sig = "t" if std == "t" else COLUMN_TO_SIGNAL[std]
+        if sig in conv:
+            scale, offset = conv[sig]
+            with np.errstate(over="ignore", invalid="ignore"):
+                si[:, j] = si[:, j] * scale + offset
+            code[(code[:, j] == 0) & ~np.isfinite(si[:, j]), j] = OVERFLOW
+        if sig in LIMITS:
+            lo, hi = LIMITS[sig]
+            with np.errstate(invalid="ignore"):
+                out = (si[:, j] < lo) | (si[:, j] > hi)
+            code[(code[:, j] == 0) & out, j] = BEYOND
+    return si, code
+
+
+def cell_problem(code: int, raw: float, std: str, conv: Mapping) -> tuple[str, str]:
+    """The problem and the hint of an invalid cell (a :func:`check_cells` code)."""
+    drop = "use --drop-invalid (drop_invalid=True) to skip such rows; the count is reported"
+    if code == NAN:
+        return "missing or NaN value", drop
+    if code == INF:
+        return "infinite value", drop
+    if code == OVERFLOW:
+        return "value overflows in unit conversion", drop
+    sig = COLUMN_TO_SIGNAL[std]
+    lo, hi = LIMITS[sig]
+    scale, offset = conv.get(sig, (1.0, 0.0))
+    unit = _SI_UNIT[sig]
+    value = f"{raw * scale + offset:.6g} {unit}" + ("" if sig not in conv else f" (read {raw:.6g})")
+    if sig.startswith("temp"):
+        bound = f"below absolute zero, {lo} {unit}" if raw * scale + offset < lo else \
+            f"above {hi:g} {unit}"
+    else:
+        bound = f"beyond ±{hi:g} {unit}"
+    option = {"gyro": "--gyro-unit", "rate": "--gyro-unit", "accel": "--acc-unit"}.get(
+        sig, "--temp-unit")
+    return (f"{_WHAT[sig]} value {value} is not physical ({bound})",
+            f"check the unit ({option}) and the column mapping; or {drop}")
+
+
+# ---------------------------------------------------------------------------
 # drop report
 
 
@@ -210,7 +289,8 @@ class Dropped:
 
     def message(self) -> str:
         s = "" if self.rows == 1 else "s"
-        return (f"dropped {self.rows} row{s} with NaN/inf/empty cells in file {self.file} "
+        return (f"dropped {self.rows} row{s} with empty, NaN, inf or non-physical cells "
+                f"in file {self.file} "
                 f"device {self.device} (first: row {self.first_row})")
 
 
@@ -747,28 +827,26 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
     out = []
     for dev, rows in zip(uniques.tolist(), groups, strict=True):
         dev = str(dev)
-        vals = values[rows]
+        si, code = check_cells(values[rows], numeric, conv)
         k_index = np.arange(rows.shape[0], dtype=np.float64)  # position within the device
-        bad = ~np.isfinite(vals)
-        bad_rows = bad.any(axis=1)
+        bad_rows = code.any(axis=1)
         if bad_rows.any():
             first = int(np.flatnonzero(bad_rows)[0])
             if not drop_invalid:
-                j = int(np.flatnonzero(bad[first])[0])
-                what = "missing or NaN value" if np.isnan(vals[first, j]) else "infinite value"
-                raise DataError(what, file=file, device=dev,
+                j = int(np.flatnonzero(code[first])[0])
+                problem, hint = cell_problem(int(code[first, j]), float(values[rows[first], j]),
+                                             numeric[j], conv)
+                raise DataError(problem, file=file, device=dev,
                                 column=_label(numeric[j], present[numeric[j]]),
-                                row=int(rows[first]) + 1,
-                                hint="use --drop-invalid (drop_invalid=True) to skip such rows; "
-                                     "the count is reported")
+                                row=int(rows[first]) + 1, hint=hint)
             if report is not None:
                 report.dropped.append(Dropped(file, dev, int(bad_rows.sum()),
                                               int(rows[first]) + 1))
             keep = ~bad_rows
-            vals, rows, k_index = vals[keep], rows[keep], k_index[keep]
+            si, rows, k_index = si[keep], rows[keep], k_index[keep]
         # extra columns may hold gaps: checked when a model uses them (diffgyro.aux)
         aux = {name: np.ascontiguousarray(a[rows]) for name, a in aux_all.items()}
-        cols = {std: vals[:, j] for j, std in enumerate(numeric)}
+        cols = {std: si[:, j] for j, std in enumerate(numeric)}
         t = cols["t"] if "t" in cols else k_index / sampling_rate
         fields: dict[str, np.ndarray] = {}
         for sig in ["t", *signals]:
@@ -778,16 +856,6 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
                 arr = cols[SIGNALS[sig][0]]
             else:
                 arr = np.stack([cols[c] for c in SIGNALS[sig]], axis=1)
-            if sig in conv and not (sig == "t" and "t" not in cols):
-                scale, offset = conv[sig]
-                with np.errstate(over="ignore", invalid="ignore"):
-                    arr = arr * scale + offset
-                bad = ~np.isfinite(arr)
-                if bad.any():
-                    i = int(np.flatnonzero(bad.reshape(arr.shape[0], -1).any(axis=1))[0])
-                    col = "t" if sig == "t" else SIGNALS[sig][0]
-                    raise DataError("value overflows in unit conversion", file=file, device=dev,
-                                    column=_label(col, where[col]), row=int(rows[i]) + 1)
             fields[sig] = np.ascontiguousarray(arr, dtype=np.float64)
         _check_time(fields["t"], rows, file, dev,
                     _label("t", present["t"]) if "t" in present else "t (from sampling rate)",

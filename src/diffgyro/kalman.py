@@ -54,6 +54,7 @@ from .core import (
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .model import ErrorModel, Params
+from .status import explain
 
 LOG_2PI = math.log(2.0 * math.pi)
 #: Prior variance of the walk's start when no constant bias is modelled, (rad/s)².
@@ -440,7 +441,13 @@ class RandomWalkFit(eqx.Module):
         return STATUS_NAMES[int(self.status[i])]
 
     def status_detail(self, i: int) -> str:
-        return self.status_name(i)
+        """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
+        name = self.status_name(i)
+        if name == "insufficient_data":
+            need = max(20, 4 * (self.model.n_params + self.model.n_nonlinear + 2))
+            return (f"{name}: {int(self.n_samples[i])} observed samples; the state-space fit "
+                    f"of {self.model.spec} needs at least {need}")
+        return explain(name, self.model, n_samples=self.n_samples[i], steps=self.steps[i])
 
     def device_params(self, i: int) -> Params:
         return jax.tree.map(lambda a: a[i], self.params)

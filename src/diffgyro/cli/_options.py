@@ -73,7 +73,7 @@ SamplingRate = Annotated[
 ]
 DropInvalid = Annotated[
     bool,
-    typer.Option("--drop-invalid", help="Skip rows with empty, NaN or inf cells "
+    typer.Option("--drop-invalid", help="Skip rows with empty, NaN, inf or non-physical cells "
                                         "(the count is reported) instead of stopping."),
 ]
 Topic = Annotated[

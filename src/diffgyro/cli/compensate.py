@@ -37,19 +37,24 @@ def compensate_command(
     import warnings
 
     from diffgyro import calibration, io
+    from diffgyro.errors import DataError
 
     calib = calibration.load(cal)
     batch = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        corrected, clamped = calibration.compensate(calib, batch)
+        try:
+            corrected, clamped = calibration.compensate(calib, batch)
+        except DataError as err:  # the calibration's problem: name its file
+            if err.file is not None:
+                raise
+            raise type(err)(err.problem, file=str(cal), device=err.device, column=err.column,
+                            row=err.row, hint=err.hint) from None
     for dev, n in clamped.items():
         print(f"diffgyro: warning: device {dev}: {n} samples outside the calibrated temperature "
               f"range were clamped to it", file=sys.stderr)
     if Path(out).resolve() == Path(data).resolve():
-        from diffgyro.errors import DataError
-
         raise DataError("refusing to overwrite the input file", file=str(out),
                         hint="choose another --out")
     io.save(corrected, out)

@@ -33,20 +33,15 @@ DtempWindow = Annotated[float | None, typer.Option(
                            "'diffgyro diagnose' chooses; streamed runs: 60 s).")]
 
 
-def samples_needed(model) -> int:
-    """The fewest samples a device needs for ``model`` (as fit's status uses)."""
-    k = model.n_params + model.n_nonlinear
-    return max(2 * k, k + 4)
-
-
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                    sampling_rate, drop_invalid, *, topic=None, temp_topic=None):
     """Load data for ``model``: a DataError if every device is too short for it."""
+    from diffgyro.core import min_samples
     from diffgyro.io import check_min_samples
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
-    need = samples_needed(model)
+    need = min_samples(model.n_params + model.n_nonlinear)
     recs = batch.recordings()
     if all(r.n < need for r in recs):
         check_min_samples(recs[0], need, f"model {model.spec!r}")

@@ -143,23 +143,49 @@ def recipe_command(
         if not recordings:
             raise DataError(f"device {device!r} is not in the data", file=str(data))
     conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
-    results = []
+    results, failed = [], {}
     for rec in recordings:
-        res = recipe.run(rec, **given)
+        try:
+            res = recipe.run(rec, **given)
+        except DataError as err:  # name the file; with several devices, one failure is a record
+            err = _naming_file(err, str(data), rec.device)
+            if len(recordings) == 1:
+                raise err from None
+            failed[rec.device] = err
+            results.append((rec.device, None))
+            continue
         if name == "six-position":  # the contract: input units
             res = res.scaled(1.0 / conv.get("gyro", (1.0, 0.0))[0],
                              1.0 / conv.get("accel", (1.0, 0.0))[0])
         results.append((rec.device, res))
+    if len(failed) == len(results):
+        raise next(iter(failed.values()))
     if len(results) == 1:
         payload = to_json_safe(results[0][1].to_dict())
     else:
-        payload = {"devices": [{"device": d, **to_json_safe(r.to_dict())} for d, r in results]}
+        payload = {"devices": [
+            {"device": d, "status": "ok", **to_json_safe(r.to_dict())} if r is not None else
+            {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}"}
+            for d, r in results]}
+    results = [(d, r) for d, r in results if r is not None]
     if out is not None:
         atomic_write_text(out, dumps(payload, indent=2) + "\n")
     if as_json:
         typer.echo(dumps(payload))
         return
+    for err in failed.values():
+        typer.echo(f"diffgyro: warning: {err}", err=True)
     _print_human(name, recipe, results)
+
+
+def _naming_file(err, file: str, device: str):
+    """``err`` with the file and device filled in where it names neither."""
+    from diffgyro.errors import DataError
+
+    if err.file is not None:
+        return err
+    return DataError(err.problem, file=file, device=err.device or device, column=err.column,
+                     row=err.row, hint=err.hint)
 
 
 def _print_human(name, recipe, results) -> None:

@@ -49,3 +49,6 @@ class Aux(AbstractEffect):
     def range_problem(self, sig):
         lo, hi = masked_range(sig.aux[self.column], sig.mask)
         return jnp.maximum(MIN_SCALED_SPAN - (hi - lo), 0.0)
+
+    def range_need(self) -> str:
+        return f"a column {self.column!r} that varies (it is constant in this recording)"

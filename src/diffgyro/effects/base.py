@@ -136,6 +136,16 @@ class AbstractEffect(eqx.Module):
         temperature span for the order); zero otherwise. Traceable."""
         return jnp.zeros(())
 
+    def range_need(self) -> str:
+        """What the data must show for this term, in plain words (the reason given
+        when :meth:`range_problem` is positive)."""
+        return "data that excite it"
+
+    @property
+    def min_temp_span(self) -> float:
+        """Temperature span (°C) the term needs; 0 when it needs none."""
+        return 0.0
+
     @property
     def n_params(self) -> int:
         return len(self.param_names())

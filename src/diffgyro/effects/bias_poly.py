@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import equinox as eqx
 
-from ._common import per_axis, powers, span_problem
+from ._common import MIN_SPAN_PER_ORDER, per_axis, powers, span_problem
 from .base import AbstractEffect, register
 
 
@@ -38,3 +38,10 @@ class BiasPoly(AbstractEffect):
 
     def range_problem(self, sig):
         return span_problem(sig, self.order)
+
+    @property
+    def min_temp_span(self) -> float:
+        return MIN_SPAN_PER_ORDER * self.order
+
+    def range_need(self) -> str:
+        return f"a temperature span of at least {self.min_temp_span:g} °C"

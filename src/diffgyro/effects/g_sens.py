@@ -31,3 +31,6 @@ class GSens(AbstractEffect):
         f = jnp.where(sig.mask[:, None], sig.accel, jnp.nan)
         spread = jnp.nanmax(f, axis=0) - jnp.nanmin(f, axis=0)
         return jnp.maximum(1.0 - jnp.sort(spread)[1], 0.0)
+
+    def range_need(self) -> str:
+        return "a specific force (ax, ay, az) that varies by at least 1 m/s² on two axes"

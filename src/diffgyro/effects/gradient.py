@@ -27,3 +27,6 @@ class Gradient(AbstractEffect):
     def range_problem(self, sig):
         peak = jnp.max(jnp.where(sig.mask, jnp.abs(sig.dtemp), 0.0))
         return jnp.maximum(0.05 / 60.0 - peak, 0.0)
+
+    def range_need(self) -> str:
+        return "a temperature rate |dT/dt| reaching 0.05 °C/min"

@@ -28,3 +28,6 @@ class Hysteresis(AbstractEffect):
         h = jnp.where(sig.mask, sig.heating, 0.0)
         both = (jnp.max(h) > 0) & (jnp.min(h) < 0)
         return jnp.where(both, 0.0, 1.0)
+
+    def range_need(self) -> str:
+        return "both heating and cooling in the recording"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._common import rate_problem
+from ._common import MIN_RATE, rate_problem
 from .base import AXES, AbstractEffect, register
 
 _OTHERS = ((1, 2), (0, 2), (0, 1))
@@ -32,3 +32,6 @@ class Misalignment(AbstractEffect):
 
     def range_problem(self, sig):
         return rate_problem(sig)
+
+    def range_need(self) -> str:
+        return f"a true rate above {MIN_RATE:g} rad/s on every axis (rx, ry, rz)"

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from ._common import rate_problem
+from ._common import MIN_RATE, rate_problem
 from .base import AbstractEffect, register
 
 
@@ -30,3 +30,6 @@ class ScaleAsym(AbstractEffect):
         pos = jnp.max(jnp.where(sig.mask[:, None], sig.rate, 0.0), axis=0)
         neg = jnp.max(jnp.where(sig.mask[:, None], -sig.rate, 0.0), axis=0)
         return rate_problem(sig) + jnp.sum(jnp.maximum(1e-3 - jnp.minimum(pos, neg), 0.0))
+
+    def range_need(self) -> str:
+        return f"true rates of both signs beyond {MIN_RATE:g} rad/s on every axis (rx, ry, rz)"

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._common import rate_problem
+from ._common import MIN_RATE, rate_problem
 from .base import AbstractEffect, register
 
 
@@ -25,3 +25,6 @@ class ScaleNonlin(AbstractEffect):
 
     def range_problem(self, sig):
         return rate_problem(sig)
+
+    def range_need(self) -> str:
+        return f"a true rate above {MIN_RATE:g} rad/s on every axis (rx, ry, rz)"

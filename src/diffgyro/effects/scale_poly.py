@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import equinox as eqx
 
-from ._common import powers, rate_problem, span_problem
+from ._common import MIN_RATE, MIN_SPAN_PER_ORDER, powers, rate_problem, span_problem
 from .base import AbstractEffect, register
 
 
@@ -37,3 +37,11 @@ class ScalePoly(AbstractEffect):
 
     def range_problem(self, sig):
         return rate_problem(sig) + span_problem(sig, self.order)
+
+    @property
+    def min_temp_span(self) -> float:
+        return MIN_SPAN_PER_ORDER * self.order
+
+    def range_need(self) -> str:
+        return (f"a true rate above {MIN_RATE:g} rad/s on every axis (rx, ry, rz) and a "
+                f"temperature span of at least {self.min_temp_span:g} °C")

@@ -27,3 +27,6 @@ class TempDiff(AbstractEffect):
     def range_problem(self, sig):
         d = jnp.where(sig.mask, sig.temp - sig.temp_ext, jnp.nan)
         return jnp.maximum(0.5 - (jnp.nanmax(d) - jnp.nanmin(d)), 0.0)
+
+    def range_need(self) -> str:
+        return "a difference temp − temp_ext that varies by at least 0.5 °C"

@@ -6,7 +6,15 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._common import LOG_TAU_RANGE, duration, log_grid, powers, span_problem, time_constant
+from ._common import (
+    LOG_TAU_RANGE,
+    MIN_SPAN_PER_ORDER,
+    duration,
+    log_grid,
+    powers,
+    span_problem,
+    time_constant,
+)
 from .base import AbstractEffect, register
 
 
@@ -120,6 +128,13 @@ class ThermalLag(AbstractEffect):
 
     def range_problem(self, sig):
         return span_problem(sig, 1)
+
+    @property
+    def min_temp_span(self) -> float:
+        return MIN_SPAN_PER_ORDER * 1
+
+    def range_need(self) -> str:
+        return f"a temperature span of at least {self.min_temp_span:g} °C"
 
     def nonlinear_values(self, theta):
         return time_constant(theta)

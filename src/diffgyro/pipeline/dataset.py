@@ -440,46 +440,37 @@ def _only_wanted(rec: Recording, cfg: ReadConfig) -> Recording:
 def _recording(dev: str, file: str, cols: FileColumns, values: dict[str, np.ndarray],
                rows: np.ndarray, cfg: ReadConfig) -> Recording:
     """One device's rows as a validated Recording in SI units (DataError otherwise)."""
+    from ..io import cell_problem, check_cells
+
     numeric = cols.numeric
     k_index = np.arange(rows.shape[0], dtype=np.float64)
-    stack = np.stack([values[c] for c in numeric], axis=1)
-    bad = ~np.isfinite(stack)
-    bad_rows = bad.any(axis=1)
+    raw = np.stack([values[c] for c in numeric], axis=1)
+    si, code = check_cells(raw, numeric, cfg.conv)
+    bad_rows = code.any(axis=1)
     if bad_rows.any():
         first = int(np.flatnonzero(bad_rows)[0])
         if not cfg.drop_invalid:
-            j = int(np.flatnonzero(bad[first])[0])
-            what = "missing or NaN value" if np.isnan(stack[first, j]) else "infinite value"
-            raise DataError(what, file=file, device=dev, column=cols.present[numeric[j]],
-                            row=int(rows[first]),
-                            hint="use --drop-invalid to skip such rows; the count is reported")
+            j = int(np.flatnonzero(code[first])[0])
+            problem, hint = cell_problem(int(code[first, j]), float(raw[first, j]), numeric[j],
+                                         cfg.conv)
+            raise DataError(problem, file=file, device=dev, column=cols.present[numeric[j]],
+                            row=int(rows[first]), hint=hint.replace(" (drop_invalid=True)", ""))
         keep = ~bad_rows
-        values = {c: v[keep] for c, v in values.items()}
-        rows, k_index = rows[keep], k_index[keep]
+        si, rows, k_index = si[keep], rows[keep], k_index[keep]
+    values = {c: si[:, j] for j, c in enumerate(numeric)}
     n = rows.shape[0]
     if n < cfg.min_samples:
         dropped = " after dropping invalid rows" if bad_rows.any() else ""
         raise DataError(f"{n} sample{'' if n == 1 else 's'}{dropped}: fewer samples than "
                         f"loading needs ({cfg.min_samples})", file=file, device=dev)
     fields: dict[str, np.ndarray] = {}
-    fields["t"] = values["t"] if "t" in values else k_index / float(cfg.sampling_rate)
+    fields["t"] = np.ascontiguousarray(values["t"]) if "t" in values else \
+        k_index / float(cfg.sampling_rate)
     fields["gyro"] = np.stack([values[c] for c in SIGNALS["gyro"]], axis=1)
     for sig in cols.signals:
         names = SIGNALS[sig]
-        fields[sig] = values[names[0]] if len(names) == 1 else np.stack(
-            [values[c] for c in names], axis=1)
-    conv = cfg.conv
-    for sig, arr in list(fields.items()):
-        if sig in conv and not (sig == "t" and "t" not in values):
-            scale, offset = conv[sig]
-            with np.errstate(over="ignore", invalid="ignore"):
-                arr = arr * scale + offset
-            if not np.all(np.isfinite(arr)):
-                i = int(np.flatnonzero(~np.isfinite(arr.reshape(n, -1)).all(axis=1))[0])
-                col = "t" if sig == "t" else SIGNALS[sig][0]
-                raise DataError("value overflows in unit conversion", file=file, device=dev,
-                                column=cols.present.get(col, col), row=int(rows[i]))
-        fields[sig] = np.ascontiguousarray(arr, dtype=np.float64)
+        fields[sig] = np.ascontiguousarray(values[names[0]] if len(names) == 1 else np.stack(
+            [values[c] for c in names], axis=1))
     t = fields["t"]
     step = np.diff(t)
     back = np.flatnonzero(~(step > 0))

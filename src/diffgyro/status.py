@@ -1,0 +1,82 @@
+"""A device's fit status in plain words: why a device is not ``ok``.
+
+Every fitting path (closed form, the sums path, the state-space path) sets a
+device's status with :func:`diffgyro.core.fit_status`, most basic problem first,
+and every record says why a device is not ``ok`` with :func:`explain` (its
+``status_detail``): which term the data cannot support and what it needs, which
+terms the data do not tell apart (the rank check: never a silent truncation),
+or what went wrong in the solve. A number a record cannot give (``null`` in
+JSON) is missing for the reason its ``status_detail`` states.
+"""
+
+from __future__ import annotations
+
+import math
+
+import jax.numpy as jnp
+import numpy as np
+
+from .core import STATUS_NAMES, min_samples  # noqa: F401  (status names, the sample rule)
+
+
+def collinear_terms(model, direction, rank_ok):
+    """Per deterministic term: does it weigh in a direction the data do not excite?
+    ``direction`` (3, p) is the smallest eigenvector of each axis' scaled Gram matrix."""
+    terms = model.deterministic
+    if not model.n_params:
+        return jnp.zeros((len(terms),), bool)
+    owner = jnp.asarray([terms.index(t) for t in model.column_terms()], jnp.int32)
+    weak = (jnp.abs(direction) > 0.3) & (~rank_ok[:, None])  # (3, p)
+    return jnp.zeros((len(terms),), bool).at[owner].max(jnp.any(weak, axis=0))
+
+
+def _temperature_fact(temp_range) -> tuple[str, float] | None:
+    if temp_range is None:
+        return None
+    lo, hi = (float(v) for v in np.asarray(temp_range, float))
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        return None
+    if hi - lo == 0.0:
+        return f"temperature constant at {lo:.1f} °C", 0.0
+    return f"temperature spans only {hi - lo:.3g} °C ({lo:.1f} to {hi:.1f} °C)", hi - lo
+
+
+def _range_reason(term, temp_range) -> str:
+    need = term.range_need()
+    fact = _temperature_fact(temp_range)
+    if fact is not None and fact[1] < term.min_temp_span:
+        return f"{fact[0]}: {term.spec} needs {need}"
+    return f"{term.spec} needs {need}"
+
+
+def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=None,
+            n_samples=None, steps=None) -> str:
+    """``status_detail``: the status name, and for a device not ``ok`` why, in plain words."""
+    terms = model.deterministic
+    if name == "ok":
+        return name
+    if name == "insufficient_data":
+        need = min_samples(model.n_params + model.n_nonlinear)
+        have = "" if n_samples is None else f"{int(n_samples)} valid samples; "
+        return f"{name}: {have}model {model.spec} needs at least {need}"
+    if name == "insufficient_range":
+        flags = np.asarray(range_flags if range_flags is not None else [], bool)
+        bad = [t for t, f in zip(terms, flags) if f]
+        reasons = "; ".join(_range_reason(t, temp_range) for t in bad)
+        return f"{name}: {reasons or 'the data do not vary what the model needs'}"
+    if name == "rank_deficient":
+        flags = np.asarray(collinear if collinear is not None else [], bool)
+        bad = [t.spec for t, f in zip(terms, flags) if f]
+        which = ", ".join(bad) if bad else "the model's terms"
+        return (f"{name}: collinear {which}: the data do not excite "
+                f"{'these terms' if len(bad) > 1 else 'the design'} independently "
+                f"(near-singular design, not truncated); record data that vary them apart, "
+                f"or fit a model without one of them")
+    if name == "not_converged":
+        after = "" if steps is None else f" after {int(steps)} steps"
+        return (f"{name}: the time-constant solve stopped{after} without converging "
+                f"(or short of the best start point); the coefficients are not trusted")
+    if name == "failed":
+        return (f"{name}: the solve gave non-finite numbers (coefficients or residual); "
+                f"no calibration for this device: check its data for extreme values")
+    return name
