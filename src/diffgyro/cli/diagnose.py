@@ -140,27 +140,10 @@ def diagnose_command(
     from rich.console import Console
 
     from diffgyro.diagnose import diagnose, diagnose_auto
-    from diffgyro.jsonio import dumps
-    from diffgyro.model import ErrorModel
 
-    from .fit import load_for_model
-
-    spec = ErrorModel.from_spec(model)  # SpecError (a DataError) for a bad spec: exit 2
-    batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
-    names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
-    if names:
-        from diffgyro.effects import parse_term, registry
-
-        for n in names:
-            if n not in registry():
-                parse_term(n)  # SpecError naming the valid effects
-    missing = spec.requires() - set(batch.signals) - {"t"}
-    if missing:
-        from diffgyro.errors import DataError
-
-        raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
-                        file=batch.sources[0] if batch.sources else None)
+    spec, batch, names = _load_checked(model, data, candidates, columns, gyro_unit, acc_unit,
+                                       temp_unit, time_unit, sampling_rate, drop_invalid, topic,
+                                       temp_topic)
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -179,12 +162,46 @@ def diagnose_command(
             write_report(diag, batch, report, ladder=ladder)
     if out is not None:
         _write_calibration(ladder.final if ladder is not None else diag, batch, out, err)
+    _print_result(diag, ladder, as_json, report)
+
+
+def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                  sampling_rate, drop_invalid, topic, temp_topic):
+    """The parsed model, the loaded batch and the candidate names; a DataError (exit 2) for a
+    bad spec, an unknown candidate or a signal the model needs that the data lacks."""
+    from diffgyro.model import ErrorModel
+
+    from .fit import load_for_model
+
+    spec = ErrorModel.from_spec(model)
+    batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+    names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
+    if names:
+        from diffgyro.effects import parse_term, registry
+
+        for n in names:
+            if n not in registry():
+                parse_term(n)  # SpecError naming the valid effects
+    missing = spec.requires() - set(batch.signals) - {"t"}
+    if missing:
+        from diffgyro.errors import DataError
+
+        raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
+                        file=batch.sources[0] if batch.sources else None)
+    return spec, batch, names
+
+
+def _print_result(diag, ladder, as_json: bool, report: Path | None) -> None:
+    """The JSON object (with the ladder and the final diagnosis after --auto), or the tables."""
     if as_json:
-        out = diag.to_json()
+        from diffgyro.jsonio import dumps
+
+        obj = diag.to_json()
         if ladder is not None:
-            out["ladder"] = ladder.records()
-            out["final"] = ladder.final.to_json()
-        typer.echo(dumps(out))
+            obj["ladder"] = ladder.records()
+            obj["final"] = ladder.final.to_json()
+        typer.echo(dumps(obj))
         return
     console = wide_console()
     print_diagnosis(diag, console)
