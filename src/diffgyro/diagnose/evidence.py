@@ -35,7 +35,6 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
     straight line in the signal explains on that axis (r² · var / (var − σ²)).
     """
     e = residual
-    n = e.shape[0]
     out: dict = {}
 
     def add(name, s, per_axis=False, label=None):
@@ -74,30 +73,9 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
         add("rate", rec.rate, per_axis=True, label="input rate")
         add("abs_rate", np.abs(rec.rate), per_axis=True, label="|input rate|")
         add("rate3", rec.rate**3, per_axis=True, label="rate³")
-        cross = [(abs(_corr(e[:, i], rec.rate[:, j])), _corr(e[:, i], rec.rate[:, j]), i, j)
-                 for i in range(3) for j in range(3) if i != j and np.std(rec.rate[:, j]) > 0]
-        if cross:
-            _, r, i, j = max(cross)
-            out["cross_rate"] = {"r": round(r, 3), "axis": "xyz"[i],
-                                 "label": f"the {'xyz'[j]} input rate"}
-        hi = np.abs(rec.rate) > np.median(np.abs(rec.rate[np.abs(rec.rate) > 1e-3])) if np.any(
-            np.abs(rec.rate) > 1e-3) else None
-        if hi is not None:
-            out["high_rate_rms"] = float(np.sqrt(np.mean(e[hi] ** 2))) if hi.any() else None
-            out["low_rate_rms"] = float(np.sqrt(np.mean(e[~hi] ** 2))) if (~hi).any() else None
-    if rec.accel is not None:
-        f = rec.accel
-        if np.ptp(f, axis=0).max() > 1.0:
-            best = (0.0, 0)
-            for i in range(3):
-                a = np.column_stack([f - f.mean(0), np.ones(n)])
-                coef, *_ = np.linalg.lstsq(a, e[:, i], rcond=None)
-                pred = a @ coef
-                r2 = 1 - np.sum((e[:, i] - pred) ** 2) / max(np.sum((e[:, i] - e[:, i].mean()) ** 2), 1e-300)
-                if r2 > best[0]:
-                    best = (r2, i)
-            out["accel"] = {"r": round(math.sqrt(max(best[0], 0.0)), 3), "axis": "xyz"[best[1]],
-                            "label": "specific force"}
+        out.update(_rate_regimes(e, rec.rate))
+    if rec.accel is not None and np.ptp(rec.accel, axis=0).max() > 1.0:
+        out["accel"] = _accel_fit(e, rec.accel)
     for name, x in rec.aux.items():  # extra logged columns, as aux:NAME
         key = aux_key(name)
         add(key, x, label=f"`{name}`")
@@ -106,6 +84,39 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
             i = int(np.argmax(etas))
             out[key].update(eta=round(float(etas[i]), 3), eta_axis="xyz"[i])
     return out
+
+
+def _rate_regimes(e: np.ndarray, rate: np.ndarray) -> dict:
+    """The other axes' rate the residual follows most (cross_rate), and the residual's RMS
+    above and below the median |rate| of the moving samples."""
+    out: dict = {}
+    cross = [(abs(_corr(e[:, i], rate[:, j])), _corr(e[:, i], rate[:, j]), i, j)
+             for i in range(3) for j in range(3) if i != j and np.std(rate[:, j]) > 0]
+    if cross:
+        _, r, i, j = max(cross)
+        out["cross_rate"] = {"r": round(r, 3), "axis": "xyz"[i],
+                             "label": f"the {'xyz'[j]} input rate"}
+    moving = np.abs(rate) > 1e-3
+    if np.any(moving):
+        hi = np.abs(rate) > np.median(np.abs(rate[moving]))
+        out["high_rate_rms"] = float(np.sqrt(np.mean(e[hi] ** 2))) if hi.any() else None
+        out["low_rate_rms"] = float(np.sqrt(np.mean(e[~hi] ** 2))) if (~hi).any() else None
+    return out
+
+
+def _accel_fit(e: np.ndarray, f: np.ndarray) -> dict:
+    """The best axis's multiple correlation of the residual with the specific force."""
+    n = e.shape[0]
+    best = (0.0, 0)
+    for i in range(3):
+        a = np.column_stack([f - f.mean(0), np.ones(n)])
+        coef, *_ = np.linalg.lstsq(a, e[:, i], rcond=None)
+        pred = a @ coef
+        r2 = 1 - np.sum((e[:, i] - pred) ** 2) / max(np.sum((e[:, i] - e[:, i].mean()) ** 2), 1e-300)
+        if r2 > best[0]:
+            best = (r2, i)
+    return {"r": round(math.sqrt(max(best[0], 0.0)), 3), "axis": "xyz"[best[1]],
+            "label": "specific force"}
 
 
 def _eta(e: np.ndarray, s: np.ndarray, bins: int = 32) -> np.ndarray:
