@@ -41,6 +41,7 @@ import math
 import os
 import re
 import warnings
+import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -391,7 +392,7 @@ class _Source:
         try:
             with opener(self.path, "rb") as fh:
                 head = fh.read(65536)
-        except (OSError, EOFError, lzma.LZMAError) as err:
+        except (OSError, EOFError, lzma.LZMAError, zlib.error) as err:  # damaged compression
             raise DataError(f"cannot read file ({err})", file=self.file) from None
         if not head.strip():
             raise DataError("empty file (no header, no data)", file=self.file)
@@ -438,7 +439,7 @@ class _Source:
             raise DataError("empty file (no header, no data)", file=self.file) from None
         except UnicodeDecodeError:
             raise DataError("not UTF-8 text", file=self.file, hint="save the CSV as UTF-8") from None
-        except (ValueError, OSError, EOFError, OverflowError, lzma.LZMAError) as err:
+        except (ValueError, OSError, EOFError, OverflowError, lzma.LZMAError, zlib.error) as err:
             raise _ReadFailure(err) from None
 
     def _read_csv_columns(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame:

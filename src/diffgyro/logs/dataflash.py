@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import os
 from pathlib import Path
 
 import numpy as np
@@ -52,13 +53,34 @@ def _text_cut(path: Path) -> int | None:
     return size - len(tail) + at + 1 if at >= 0 else (0 if size <= 65536 else None)
 
 
+@contextlib.contextmanager
+def _quiet_fd(fd: int):
+    """Send what is written to file descriptor ``fd`` to the null device meanwhile."""
+    try:
+        saved = os.dup(fd)
+    except OSError:  # no such descriptor (an embedded interpreter): nothing to quiet
+        yield
+        return
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, fd)
+        yield
+    finally:
+        os.dup2(saved, fd)
+        os.close(saved)
+        os.close(null)
+
+
 def _messages(path: Path, file: str) -> tuple[dict[int, list[tuple]], int | None]:
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
     text = path.suffix.lower() == ".log"
     rows: dict[int, list[tuple]] = {}
     has_temp: dict[int, bool] = {}
     try:
-        with contextlib.redirect_stdout(io.StringIO()):  # pymavlink prints on bad data
+        # pymavlink prints on bad data (Python's stdout and stderr, and its C indexer
+        # straight to file descriptor 2): our one line says it
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()), \
+                _quiet_fd(2):
             log = (dfreader.DFReader_text if text else dfreader.DFReader_binary)(
                 str(path), zero_time_base=False)
             while (m := log.recv_match(type=_TYPES)) is not None:
