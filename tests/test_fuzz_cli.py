@@ -230,7 +230,7 @@ def commands(path: str, ground: dict) -> dict[str, list[str]]:
                      "--candidates", "bias_poly,gradient"],
         "allan": ["allan", path, "--json"],
         "recipe": ["recipe", "binned-thermal", path, "--json", "--bin-width", "2.5"],
-        "compensate": ["compensate", path, "--cal", str(ground["cal"]),
+        "compensate": ["compensate", path, "--cal", str(ground["cal"]), "--json",
                        "--out", str(out / "corrected.csv")],
         "export": ["export", path, "--format", "px4", "--out", str(out / "tc.params")],
     }
@@ -318,8 +318,10 @@ def test_the_good_recording_passes_every_command(ground, command, ext):
         assert "is not in the calibration (it has unit-a, unit-b)" in line
         return
     assert code == 0, err
-    if command != "compensate":
-        strict_json(out)
+    doc = strict_json(out)
+    if command == "compensate":
+        assert doc["devices"] == [{"device": d, "n_samples": N, "clamped": 0}
+                                  for d in ("unit-a", "unit-b")]
 
 
 def test_the_good_calibration_exports(ground):

@@ -31,6 +31,9 @@ def compensate_command(
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
+    as_json: Annotated[bool, typer.Option("--json", help="Print what was written as JSON: the "
+                                          "file, and per device its samples and how many were "
+                                          "clamped to the calibrated range.")] = False,
 ) -> None:
     """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
     calibrated range are clamped to it, with a warning."""
@@ -58,3 +61,10 @@ def compensate_command(
         raise DataError("refusing to overwrite the input file", file=str(out),
                         hint="choose another --out")
     io.save(corrected, out)
+    if as_json:
+        from diffgyro.jsonio import dumps
+
+        counts = [int(v) for v in corrected.mask.sum(axis=1)]
+        typer.echo(dumps({"out": str(out), "model": calib.model, "devices": [
+            {"device": d, "n_samples": n, "clamped": int(clamped.get(d, 0))}
+            for d, n in zip(corrected.devices, counts, strict=True)]}))
