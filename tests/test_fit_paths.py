@@ -108,8 +108,8 @@ def test_mask_with_holes():
 
 def test_many_groups(monkeypatch):
     # tiny groups: many compiled calls, the last one padded with repeats
-    monkeypatch.setattr(fs, "GROUP_SAMPLES", 4096)
-    monkeypatch.setattr(fs, "FUSED_GROUP_FACTOR", 1)
+    monkeypatch.setattr(fs.groups, "GROUP_SAMPLES", 4096)
+    monkeypatch.setattr(fs.groups, "FUSED_GROUP_FACTOR", 1)
     batch = Batch.from_recordings(_thermal_recordings([1800] * 11, seed=2))
     assert fs.group_size(batch.n_devices, batch.length) == 2
     spec = "bias_poly(1)"
@@ -301,13 +301,13 @@ def test_block_windows_equal_chunked_sums(n, n_blocks):
         mask = jnp.arange(n) < nv
         pos = jnp.asarray(fs.block_starts([nv], n_blocks)[0])
         c = fs.chunk_size(max(int(nv), 1), n_blocks, n)
-        t1, f1 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c)
-        t2, f2 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, pos)
+        t1, f1 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c)
+        t2, f2 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, pos)
         np.testing.assert_allclose(np.asarray(t2), np.asarray(t1), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(f2), np.asarray(f1), rtol=1e-12, atol=1e-12)
         assert float(t2[-1]) == nv and float(jnp.sum(f2[:, -1])) == nv
         if nv == n and n % n_blocks == 0:  # whole blocks: a reshape, no windows, no mask
-            t3, f3 = fs._fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c,
+            t3, f3 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c,
                                    fs.ALIGNED)
             np.testing.assert_allclose(np.asarray(t3), np.asarray(t1), rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(np.asarray(f3), np.asarray(f1), rtol=1e-12, atol=1e-12)
@@ -333,14 +333,14 @@ def test_valid_counts(n):
 
 
 def test_group_results_pack_into_one_array_and_back_exactly():
-    from diffgyro.fit_sums import _pack, _unpack_results
+    from diffgyro.fit_sums import pack, unpack_results
 
     rng = np.random.default_rng(0)
     out = {"beta": rng.normal(size=(4, 3, 2)), "status": np.array([0, 3, 7, 2**20], np.int32),
            "flags": rng.random((4, 2)) > 0.5, "rms": rng.normal(size=4)}
-    packed, spec = jax.jit(lambda o: _pack(o, jnp.float64))(out)
+    packed, spec = jax.jit(lambda o: pack(o, jnp.float64))(out)
     assert packed.shape == (4, 6 + 1 + 2 + 1)
-    back = _unpack_results(np.asarray(packed), spec)
+    back = unpack_results(np.asarray(packed), spec)
     for k, v in out.items():
         assert back[k].dtype == v.dtype and back[k].shape == v.shape
         np.testing.assert_array_equal(back[k], v)
@@ -358,7 +358,7 @@ def test_models_with_time_constants_run_in_small_groups(monkeypatch):
         sizes[model.n_nonlinear > 0] = gyro.shape[0]
         raise Seen  # the group size is all this test needs: nothing is compiled
 
-    for program in (fs._group_fused, fs._group_compact):
+    for program in (fs.group_fused, fs.group_compact):
         monkeypatch.setattr(program, "eval_shape", spy)
     n, d = 10_000, 40
     rng = np.random.default_rng(0)

@@ -1,4 +1,4 @@
-"""The sums path's Newton solver (``fit_sums._newton``): problems solved in turn to
+"""The sums path's Newton solver (``fit_sums.newton``): problems solved in turn to
 their known minima, step caps, a non-finite start, results equal under vmap."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.fit_sums import _newton
+from diffgyro.fit_sums import newton as newton_loop
 
 CENTRES = np.array([[0.3, -1.2], [2.0, 0.5], [-0.7, 0.1]])  # problem j's minimum
 
@@ -26,10 +26,10 @@ def quartic(centres):
 
 
 def newton(evaluate, theta0, caps):
-    """``_newton`` told the aux pytree of :func:`quartic`."""
+    """``fit_sums.newton`` told the aux pytree of :func:`quartic`."""
     aux = {"at": jax.ShapeDtypeStruct((2,), theta0.dtype),
            "problem": jax.ShapeDtypeStruct((1,), theta0.dtype)}
-    return _newton(evaluate, theta0, caps, 1e-10, aux)
+    return newton_loop(evaluate, theta0, caps, 1e-10, aux)
 
 
 def test_every_problem_reaches_its_minimum_in_turn():

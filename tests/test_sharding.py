@@ -147,7 +147,7 @@ def test_two_cpu_devices_fit_on_the_first(spec):
     """fit()'s sums path with two CPU devices runs every group on the first (side by side
     on two they deadlocked); results equal to one device's, in order."""
     script = f"""
-    import diffgyro.fit_sums as fs
+    import diffgyro.fit_sums.groups as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate
     fs.MAX_GROUP_DEVICES = 4   # 11 devices: 3 groups, the last one partial
@@ -164,7 +164,7 @@ def test_two_cpu_devices_fit_on_the_first(spec):
     """
     out = run_forced(script, timeout=300)
     assert out.pop("devices") == [0]
-    import diffgyro.fit_sums as fs
+    import diffgyro.fit_sums.groups as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate
 
@@ -185,7 +185,7 @@ def test_largest_groups_on_two_cpu_devices_finish():
     """Groups at the cap (MAX_GROUP_DEVICES) of short recordings with two CPU devices
     present: two groups of 256 side by side never finished in XLA's CPU runtime."""
     script = """
-    import diffgyro.fit_sums as fs
+    import diffgyro.fit_sums.groups as fs
     from diffgyro import Batch
     from diffgyro.fit import fit
     d, n = 3 * fs.MAX_GROUP_DEVICES, 640

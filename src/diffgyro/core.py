@@ -45,7 +45,7 @@ class FitOptions(eqx.Module):
     #: "lm": one Levenberg–Marquardt solve over all parameters (the reference path).
     solver: str = eqx.field(static=True, default="closed")
     #: "sums" reads the samples once per trial of the time constants and never forms the
-    #: design (fit_sums.py; Newton on the projected cost for time constants); "direct"
+    #: design (the fit_sums package; Newton on the projected cost for time constants); "direct"
     #: forms it (optimistix LM for time constants); "auto": "sums" with the closed-form
     #: solver (linear models and time constants alike), "direct" with ``solver="lm"``.
     path: str = eqx.field(static=True, default="auto")

@@ -555,7 +555,7 @@ def _aux_fields(extra) -> dict:
 
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
               theta0=None, extra=({}, {})) -> FitResult:
-    """The sums path (fit_sums.py): one blocked pass per trial of the time constants."""
+    """The sums path (:mod:`diffgyro.fit_sums`): one blocked pass per trial of the time constants."""
     from .fit_sums import solve_sums
 
     out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]))
