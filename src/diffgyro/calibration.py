@@ -123,6 +123,13 @@ def units_of(model: ErrorModel) -> dict:
                                                            "temperature": "°C"}
 
 
+def aux_entries(result: FitResult, i: int) -> dict:
+    """Device ``i``'s centre, scale and calibrated range of every extra column the fit read."""
+    return {k: {"centre": float(nm.centre[i]), "scale": float(nm.scale[i]),
+                "range": np.asarray(result.aux_range[k][i], float).tolist()}
+            for k, nm in result.aux_norm.items()}
+
+
 def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
     """A calibration file's content from a fit (``batch`` adds the input hash)."""
     from . import __version__
@@ -139,9 +146,7 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
             np.asarray(result.temp_range[i], float).tolist(),
             quality={k: s[k] for k in ("rms", "heldout_rms", "noise_floor", "n_samples", "steps")},
             params=s["params"],
-            aux={k: {"centre": float(nm.centre[i]), "scale": float(nm.scale[i]),
-                     "range": np.asarray(result.aux_range[k][i], float).tolist()}
-                 for k, nm in result.aux_norm.items()}))
+            aux=aux_entries(result, i)))
     return Calibration(
         model=result.model.spec, devices=devices, dtemp_window=float(result.options.dtemp_window),
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),

@@ -113,7 +113,7 @@ def calibration_entries(result) -> list[dict]:
     import jax
     import numpy as np
 
-    from ..calibration import entry_json
+    from ..calibration import aux_entries, entry_json
     from ..fit import STATUS_NAMES
 
     model = result.model
@@ -131,10 +131,6 @@ def calibration_entries(result) -> list[dict]:
     status = np.asarray(result.status)
     centre, scale = np.asarray(result.norm.centre, float), np.asarray(result.norm.scale, float)
     trange = None if result.temp_range is None else np.asarray(result.temp_range, float)
-    aux_norm = getattr(result, "aux_norm", None) or {}
-    aux_range = {k: np.asarray(result.aux_range[k], float) for k in aux_norm}
-    aux_centre = {k: np.asarray(nm.centre, float) for k, nm in aux_norm.items()}
-    aux_scale = {k: np.asarray(nm.scale, float) for k, nm in aux_norm.items()}
     out = []
     for i, name in enumerate(result.devices):
         params = {ax: {lab: float(v) for lab, v in zip(labels[k], beta[i, k])}
@@ -152,8 +148,7 @@ def calibration_entries(result) -> list[dict]:
                         "steps": int(steps[i])},
             "params": params,
             "status_detail": st if st == "ok" else result.status_detail(i),
-            "aux": {k: {"centre": float(aux_centre[k][i]), "scale": float(aux_scale[k][i]),
-                        "range": aux_range[k][i].tolist()} for k in aux_norm}}))
+            "aux": aux_entries(result, i)}))
     return out
 
 
