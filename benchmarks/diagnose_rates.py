@@ -120,9 +120,9 @@ def _right(d: dict, effect: str | None, look: dict) -> tuple[bool, bool]:
 def summary(rows, th=None):
     """Rates per (plan, base, hidden effect); ``th``: re-decide with those thresholds from
     the saved per-fold numbers (the one-term rule: no greedy pair), else the records."""
-    from diffgyro.diagnose import FAMILIES, redecide
+    from diffgyro.diagnose import families, redecide
 
-    look = {n: set(v) for v in FAMILIES.values() for n in v}
+    look = {n: set(v) for v in families().values() for n in v}
     stats = {}
     for r in rows:
         d = redecide(r, th) if th is not None else r["diag"]

@@ -24,10 +24,10 @@ import pytest
 
 from diffgyro.data import Batch
 from diffgyro.diagnose import (
-    FAMILIES,
     Thresholds,
     candidate_specs,
     diagnose,
+    families,
     suggest_dtemp_window,
     temperature_quantum,
     white_noise_rms,
@@ -35,7 +35,7 @@ from diffgyro.diagnose import (
 from diffgyro.fit import fit
 from diffgyro.model import ErrorModel
 
-LOOK_ALIKE = {n: set(v) for v in FAMILIES.values() for n in v}
+LOOK_ALIKE = {n: set(v) for v in families().values() for n in v}
 
 #: (plan, base model, {hidden effect or None: devices})
 CATALOGUE = [

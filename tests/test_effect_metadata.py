@@ -51,3 +51,84 @@ def test_the_random_walk_starts_at_zero_beside_a_declared_constant(batch):
     plain = fit_random_walk("plain_offset+random_walk", batch, max_steps=20)
     np.testing.assert_allclose(got.loglik, want.loglik, rtol=1e-9)
     assert not np.allclose(plain.loglik, want.loglik, rtol=1e-6)
+
+
+class SlowBias(AbstractEffect):
+    """A user's transient term declaring the diagnose metadata a built-in carries."""
+
+    name = "slow_bias"
+    description = "bias following dT/dt through a fitted lag"
+    follows = "dtemp"
+    evidence_phrase = "creeps after every temperature change"
+    family = "thermal transient"
+    tau_from_dtemp_window = True
+
+    def param_names(self):
+        return ("c",)
+
+    def nonlinear_names(self):
+        return ("tau",)
+
+    def nonlinear_grid(self, sig):
+        return jnp.log(jnp.array([[1.0], [10.0], [1000.0]]))
+
+    def columns(self, sig, theta):
+        return jnp.zeros((sig.t.shape[0], 3, 1), sig.t.dtype) + theta[0]
+
+
+class SlowBiasUndeclared(SlowBias):
+    name = "slow_bias_plain"
+    evidence_phrase = None
+    family = None
+    tau_from_dtemp_window = False
+
+
+@pytest.fixture()
+def user_terms():
+    from diffgyro.effects import base
+
+    register(SlowBias)
+    register(SlowBiasUndeclared)
+    yield
+    for c in (SlowBias, SlowBiasUndeclared):
+        base._REGISTRY.pop(c.name, None)
+
+
+def test_diagnose_reads_family_phrase_and_lag_floor_from_the_class(user_terms):
+    from diffgyro.diagnose import explain, families, family_of
+    from diffgyro.diagnose.candidates import CandidateSpec
+    from diffgyro.diagnose.results import Candidate, DeviceDiagnosis
+    from diffgyro.diagnose.scoring import candidate_grid
+    from diffgyro.model import ErrorModel
+    from diffgyro.signals import make_signals
+
+    assert family_of("slow_bias") == family_of("thermal_lag") == "thermal transient"
+    assert "slow_bias" in families()["thermal transient"]
+    assert family_of("slow_bias_plain") is None
+
+    def said(effect):
+        best = Candidate(effect=effect, spec=f"bias_poly(1)+{effect}", heldout_rms=1e-4,
+                         significant=True, gain=5.0, closure=0.95, t=9.0, folds_improved=5,
+                         rms=1e-4, term=effect)
+        d = DeviceDiagnosis(device="d0", status="ok", rms=2e-4, heldout_rms=2e-4,
+                            white_noise_rms=1e-4, white_noise_axes=[1e-4] * 3, floor_allan=1e-4,
+                            verdict="missing_effect", candidates=[best], best=best,
+                            alternatives=[], random_walk=None, allan_slope=0.0,
+                            evidence={"dtemp": {"r": 0.93, "axis": "x", "label": "dT/dt"}})
+        return explain(d)
+
+    assert "creeps after every temperature change (r = +0.93 on axis x" in said("slow_bias")
+    assert "follows the `slow_bias_plain` term" in said("slow_bias_plain")
+
+    n = 8
+    sig = make_signals(jnp.arange(n, dtype=float), jnp.zeros((n, 3)), jnp.ones(n, bool),
+                       temp=jnp.linspace(20.0, 30.0, n))
+    base = ErrorModel.from_spec("bias_poly(1)")
+    lows = {}
+    for name in ("slow_bias", "slow_bias_plain", "thermal_lag"):
+        spec = CandidateSpec(effect=name, term=ErrorModel.from_spec(name).terms[0],
+                             model=base + name)
+        grid, _ = candidate_grid(spec, base, sig, jnp.zeros((0,)), min_lag=60.0)
+        lows[name] = float(np.exp(grid[0, 0]))
+    assert lows["slow_bias"] == pytest.approx(60.0) == lows["thermal_lag"]
+    assert lows["slow_bias_plain"] == pytest.approx(1.0)

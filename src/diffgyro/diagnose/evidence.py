@@ -7,6 +7,7 @@ import math
 import numpy as np
 
 from ..data import Recording, aux_key
+from ..effects import registry
 from .results import DeviceDiagnosis
 from .thresholds import family_of
 
@@ -135,23 +136,6 @@ def _eta(e: np.ndarray, s: np.ndarray, bins: int = 32) -> np.ndarray:
     return out
 
 
-#: The signal that names each built-in effect in an explanation.
-EFFECT_SIGNAL = {
-    "gradient": ("dtemp", "scales with dT/dt"),
-    "thermal_lag": ("dtemp", "lags the temperature (follows dT/dt with a delay)"),
-    "temp_diff": ("temp_diff", "follows the inside–outside temperature difference"),
-    "hysteresis": ("heating", "separates heating from cooling and keeps the offset through soaks"),
-    "bias_poly": ("temp", "curves with temperature beyond the current polynomial"),
-    "warmup": ("early", "decays in the first minutes after power-on"),
-    "scale_poly": ("rate", "grows in proportion to the input rate"),
-    "scale_asym": ("abs_rate", "differs between positive and negative input rates"),
-    "scale_nonlin": ("rate3", "grows faster than the input rate (∝ rate³)"),
-    "misalignment": ("cross_rate", "follows the other axes' rates"),
-    "g_sens": ("accel", "follows the specific force (changes with orientation)"),
-    "random_walk": ("time", "wanders in time with no physical signal explaining it"),
-}
-
-
 def _term_column(c) -> str | None:
     """The extra column a candidate's term reads (``aux(vdd)``: vdd), or None."""
     from ..effects import parse_term
@@ -237,7 +221,9 @@ def explain(d: DeviceDiagnosis) -> str:
             text += (f" A random-walk smoother would also follow this residual (held-out "
                      f"{_fmt(rw.heldout_rms)}), but it would not calibrate future data.")
         return text
-    sig_name, phrase = EFFECT_SIGNAL.get(b.effect, (None, f"follows the `{b.effect}` term"))
+    cls = registry().get(b.effect)
+    sig_name = cls.follows if cls is not None else None
+    phrase = (cls.evidence_phrase if cls is not None else None) or f"follows the `{b.effect}` term"
     column = _term_column(b)
     if column is not None:
         sig_name, phrase = aux_key(column), f"follows `{column}`"
@@ -249,9 +235,9 @@ def explain(d: DeviceDiagnosis) -> str:
         if sig_name == "heating" and "mean_heating" in ev:
             what += (f"; mean {_fmt(ev['mean_heating'])} rad/s heating vs "
                      f"{_fmt(ev['mean_cooling'])} cooling")
-    if b.effect == "random_walk":
+    if b.stochastic:
         what += f"; Allan slope of the residual at long τ {d.allan_slope:+.2f} (+½ for a random walk)"
-    if b.effect in ("scale_asym", "scale_nonlin", "scale_poly") and d.evidence.get("high_rate_rms"):
+    if family_of(b.effect) == "rate-dependent scale factor" and d.evidence.get("high_rate_rms"):
         what += (f"; residual RMS {_fmt(d.evidence['high_rate_rms'])} at high rates vs "
                  f"{_fmt(d.evidence.get('low_rate_rms'))} at low")
     tau = f" (τ ≈ {b.tau:.0f} s)" if b.tau else ""
@@ -266,7 +252,7 @@ def explain(d: DeviceDiagnosis) -> str:
         text += (f" Two effects are missing: `{_named(b)}` alone closes {100 * b.closure:.0f} % "
                  f"of the gap, and the next round is expected to add `{d.next.term}` (with both: "
                  f"held-out {_fmt(d.next.heldout_rms)}, {100 * d.next.closure:.0f} % closed).")
-    if b.effect != "random_walk" and d.random_walk is not None and d.random_walk.closure > 0.5:
+    if not b.stochastic and d.random_walk is not None and d.random_walk.closure > 0.5:
         text += (f" A random-walk smoother would also follow this residual (held-out "
                  f"{_fmt(d.random_walk.heldout_rms)}), but `{_named(b)}` explains it with a "
                  f"physical signal and calibrates future data.")

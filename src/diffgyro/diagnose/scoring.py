@@ -37,10 +37,6 @@ from ..signals import Signals
 from .candidates import CandidateSpec
 from .thresholds import GRID_POINTS
 
-#: Candidates whose time constant is searched from the dT/dt window up: a lag shorter than
-#: the window that estimates dT/dt is the ``gradient`` term at the data's resolution.
-LAG_FROM_DTEMP_WINDOW = ("thermal_lag",)
-
 
 def block_windows(mask: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
     """Sample index (B, w) and inside flag (B, w) of every fold block's window.
@@ -147,7 +143,7 @@ def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, mi
     grid = term.nonlinear_grid(sig)
     if grid.shape[1] == 1:
         lo, hi = jnp.min(grid[:, 0]), jnp.max(grid[:, 0])
-        if term.name in LAG_FROM_DTEMP_WINDOW and min_lag > 0:
+        if term.tau_from_dtemp_window and min_lag > 0:
             lo = jnp.maximum(lo, math.log(min_lag))
             hi = jnp.maximum(hi, lo + math.log(4.0))
         grid = jnp.linspace(lo, hi, GRID_POINTS)[:, None]

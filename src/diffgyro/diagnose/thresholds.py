@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..effects import registry
+
 
 @dataclass(frozen=True)
 class Thresholds:
@@ -72,13 +74,6 @@ class Thresholds:
     outside_share: float = 0.5
 
 
-#: Effects that mimic each other on common test plans (reported together).
-FAMILIES: dict[str, tuple[str, ...]] = {
-    "thermal transient": ("gradient", "thermal_lag", "temp_diff", "hysteresis"),
-    "rate-dependent scale factor": ("scale_asym", "scale_nonlin", "scale_poly"),
-    "orientation-dependent bias": ("g_sens", "misalignment"),
-}
-
 #: Time-constant grid density for candidate terms with one nonlinear parameter.
 GRID_POINTS = 24
 #: Walk variance grid (q·dt / r) searched by the local-level smoother.
@@ -86,7 +81,15 @@ RW_GRID = tuple(10.0 ** np.linspace(-10.0, -1.0, 19))
 
 
 def family_of(name: str) -> str | None:
-    for fam, names in FAMILIES.items():
-        if name in names:
-            return fam
-    return None
+    """The look-alike family of the registered effect ``name`` (its ``family``), or None."""
+    cls = registry().get(name)
+    return None if cls is None else cls.family
+
+
+def families() -> dict[str, tuple[str, ...]]:
+    """Every look-alike family of the registered effects and its members' names."""
+    out: dict[str, tuple[str, ...]] = {}
+    for name, cls in registry().items():
+        if cls.family is not None:
+            out[cls.family] = (*out.get(cls.family, ()), name)
+    return out

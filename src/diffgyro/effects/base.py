@@ -67,6 +67,15 @@ class AbstractEffect(eqx.Module):
     #: ``cross_rate`` (the other axes' rates), ``accel``, ``early`` (the first minutes),
     #: ``time``, or ``aux:NAME`` (an extra logged column); None: no single signal.
     follows: ClassVar[str | None] = None
+    #: How an explanation says the residual behaves when this term is missing
+    #: ("scales with dT/dt"); None: "follows the `NAME` term".
+    evidence_phrase: ClassVar[str | None] = None
+    #: Terms of one family mimic each other on common test plans; diagnose reports a
+    #: family's close candidates together (e.g. ``"thermal transient"``). None: no family.
+    family: ClassVar[str | None] = None
+    #: True when a time constant shorter than the window that estimates dT/dt is the
+    #: ``gradient`` term at the data's resolution: diagnose searches τ from that window up.
+    tau_from_dtemp_window: ClassVar[bool] = False
 
     @property
     def spec(self) -> str:

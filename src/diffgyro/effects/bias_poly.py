@@ -16,6 +16,7 @@ class BiasPoly(AbstractEffect):
     name = "bias_poly"
     constant_bias = True
     follows = "temp"
+    evidence_phrase = "curves with temperature beyond the current polynomial"
     description = "per-axis bias, polynomial of temperature (k = 0: constant)"
     unit = "rad/s per T_s^j"
     order_arg = True

@@ -13,6 +13,8 @@ class GSens(AbstractEffect):
 
     name = "g_sens"
     follows = "accel"
+    evidence_phrase = "follows the specific force (changes with orientation)"
+    family = "orientation-dependent bias"
     description = "3×3 g-sensitivity: bias proportional to specific force"
     needs = frozenset({"accel"})
     unit = "rad/s per m/s²"

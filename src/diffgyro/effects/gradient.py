@@ -14,6 +14,8 @@ class Gradient(AbstractEffect):
 
     name = "gradient"
     follows = "dtemp"
+    evidence_phrase = "scales with dT/dt"
+    family = "thermal transient"
     description = "bias proportional to dT/dt"
     needs = frozenset({"temp"})
     unit = "rad/s per °C/s"

@@ -14,6 +14,8 @@ class Hysteresis(AbstractEffect):
 
     name = "hysteresis"
     follows = "heating"
+    evidence_phrase = "separates heating from cooling and keeps the offset through soaks"
+    family = "thermal transient"
     description = "bias offset set by whether the sensor last heated or cooled, kept through soaks"
     needs = frozenset({"temp"})
     unit = "rad/s"

@@ -16,6 +16,8 @@ class Misalignment(AbstractEffect):
 
     name = "misalignment"
     follows = "cross_rate"
+    evidence_phrase = "follows the other axes' rates"
+    family = "orientation-dependent bias"
     description = "six off-diagonal cross-axis couplings"
     needs = frozenset({"rate"})
     unit = "rad (small angle, dimensionless)"

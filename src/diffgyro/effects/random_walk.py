@@ -20,6 +20,7 @@ class RandomWalk(AbstractEffect):
 
     name = "random_walk"
     follows = "time"
+    evidence_phrase = "wanders in time with no physical signal explaining it"
     description = "stochastic bias random walk, Kalman-smoothed, variance by maximum likelihood"
     unit = "(rad/s)²/s"
     stochastic = True

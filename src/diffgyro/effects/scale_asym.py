@@ -14,6 +14,8 @@ class ScaleAsym(AbstractEffect):
 
     name = "scale_asym"
     follows = "abs_rate"
+    evidence_phrase = "differs between positive and negative input rates"
+    family = "rate-dependent scale factor"
     description = "scale factor differs for positive and negative input rates"
     needs = frozenset({"rate"})
     unit = "1 (dimensionless)"

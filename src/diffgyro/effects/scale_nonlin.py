@@ -12,6 +12,8 @@ class ScaleNonlin(AbstractEffect):
 
     name = "scale_nonlin"
     follows = "rate3"
+    evidence_phrase = "grows faster than the input rate (∝ rate³)"
+    family = "rate-dependent scale factor"
     description = "scale-factor error growing with rate² (output term ∝ Ω³)"
     needs = frozenset({"rate"})
     unit = "(rad/s)^-2"

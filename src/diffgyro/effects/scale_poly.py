@@ -15,6 +15,8 @@ class ScalePoly(AbstractEffect):
     order: int = eqx.field(static=True, default=0)
     name = "scale_poly"
     follows = "rate"
+    evidence_phrase = "grows in proportion to the input rate"
+    family = "rate-dependent scale factor"
     description = "per-axis scale-factor error, polynomial of temperature"
     unit = "1 per T_s^j (dimensionless)"
     order_arg = True

@@ -14,6 +14,8 @@ class TempDiff(AbstractEffect):
 
     name = "temp_diff"
     follows = "temp_diff"
+    evidence_phrase = "follows the inside–outside temperature difference"
+    family = "thermal transient"
     description = "bias proportional to (temp − temp_ext)"
     needs = frozenset({"temp", "temp_ext"})
     unit = "rad/s per °C"

@@ -81,6 +81,9 @@ class ThermalLag(AbstractEffect):
     order: int = eqx.field(static=True, default=1)
     name = "thermal_lag"
     follows = "dtemp"
+    evidence_phrase = "lags the temperature (follows dT/dt with a delay)"
+    family = "thermal transient"
+    tau_from_dtemp_window = True
     description = "the bias polynomial sees temperature through a first-order lag with fitted time constant"
     needs = frozenset({"temp"})
     unit = "rad/s per T_s^j"

@@ -14,6 +14,7 @@ class Warmup(AbstractEffect):
 
     name = "warmup"
     follows = "early"
+    evidence_phrase = "decays in the first minutes after power-on"
     description = "exponential bias transient after power-on, fitted amplitude and time constant"
     needs = frozenset({"t"})
     unit = "rad/s"
