@@ -102,9 +102,10 @@ def recipe_command(
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
 ) -> None:
     """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object)."""
-    from diffgyro.errors import DataError
+    # Over 80 lines only through its signature: typer reads each recipe option from a
+    # parameter of this function; the work is in the helpers below.
     from diffgyro.io import resolve_units
-    from diffgyro.jsonio import atomic_write_text, dumps, to_json_safe
+    from diffgyro.jsonio import atomic_write_text, dumps
     from diffgyro.recipes import get
 
     recipe = get(name)
@@ -116,6 +117,37 @@ def recipe_command(
         "reference": reference, "interval": interval, "all_faces": all_faces,
         "init_seconds": init_seconds, "pose_means": pose_means,
     }
+    given = _recipe_options(recipe, name, data, given, sections, sampling_rate)
+    recordings = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                               sampling_rate, drop_invalid, batch=False,
+                               topic=topic, temp_topic=temp_topic)
+    if device is not None:
+        recordings = [r for r in recordings if r.device == device]
+        if not recordings:
+            from diffgyro.errors import DataError
+
+            raise DataError(f"device {device!r} is not in the data", file=str(data))
+    conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
+    results, failed = _run_devices(recipe, name, recordings, given, conv, str(data))
+    payload = _payload(results, failed)
+    results = [(d, r) for d, r in results if r is not None]
+    if out is not None:
+        atomic_write_text(out, dumps(payload, indent=2) + "\n")
+    if as_json:
+        typer.echo(dumps(payload))
+        return
+    for err in failed.values():
+        typer.echo(f"diffgyro: warning: {err}", err=True)
+    _print_human(name, recipe, results)
+
+
+def _recipe_options(recipe, name: str, data: Path, given: dict, sections: Path | None,
+                    sampling_rate: float | None) -> dict:
+    """The options given on the command line that recipe ``name`` takes; an option it
+    does not take is an error naming its options. Its sections file defaults to
+    ``DATA_list.json`` beside the data."""
+    from diffgyro.errors import DataError
+
     given = {k: v for k, v in given.items() if v is not None}
     accepted = set(recipe.options())
     for key in given:
@@ -134,21 +166,20 @@ def recipe_command(
         raise DataError(f"option --sections does not apply to recipe {name}")
     if "sampling_rate" in accepted and sampling_rate is not None:
         given["sampling_rate"] = sampling_rate
+    return given
 
-    recordings = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                               sampling_rate, drop_invalid, batch=False,
-                               topic=topic, temp_topic=temp_topic)
-    if device is not None:
-        recordings = [r for r in recordings if r.device == device]
-        if not recordings:
-            raise DataError(f"device {device!r} is not in the data", file=str(data))
-    conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
+
+def _run_devices(recipe, name: str, recordings, given: dict, conv: dict, file: str):
+    """(device, result or None) per recording and the errors of the failed ones; with one
+    device its error is raised, and so is the first when every device failed."""
+    from diffgyro.errors import DataError
+
     results, failed = [], {}
     for rec in recordings:
         try:
             res = recipe.run(rec, **given)
         except DataError as err:  # name the file; with several devices, one failure is a record
-            err = _naming_file(err, str(data), rec.device)
+            err = _naming_file(err, file, rec.device)
             if len(recordings) == 1:
                 raise err from None
             failed[rec.device] = err
@@ -160,22 +191,19 @@ def recipe_command(
         results.append((rec.device, res))
     if len(failed) == len(results):
         raise next(iter(failed.values()))
+    return results, failed
+
+
+def _payload(results, failed) -> dict:
+    """The JSON result: the recipe's own object for one device, else a record per device."""
+    from diffgyro.jsonio import to_json_safe
+
     if len(results) == 1:
-        payload = to_json_safe(results[0][1].to_dict())
-    else:
-        payload = {"devices": [
-            {"device": d, "status": "ok", **to_json_safe(r.to_dict())} if r is not None else
-            {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}"}
-            for d, r in results]}
-    results = [(d, r) for d, r in results if r is not None]
-    if out is not None:
-        atomic_write_text(out, dumps(payload, indent=2) + "\n")
-    if as_json:
-        typer.echo(dumps(payload))
-        return
-    for err in failed.values():
-        typer.echo(f"diffgyro: warning: {err}", err=True)
-    _print_human(name, recipe, results)
+        return to_json_safe(results[0][1].to_dict())
+    return {"devices": [
+        {"device": d, "status": "ok", **to_json_safe(r.to_dict())} if r is not None else
+        {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}"}
+        for d, r in results]}
 
 
 def _naming_file(err, file: str, device: str):
