@@ -75,6 +75,35 @@ def test_equals_the_definition_and_the_jax_version(case):
     assert np.isnan(got[no_pair]).all() and np.isfinite(got[~no_pair]).all()
 
 
+@pytest.mark.parametrize("n", [2, 3, 4, 1000, 1001])
+def test_every_pair_valid_equals_the_definition(n):
+    # every pair valid (fit's usual case, selected without the masked path's padding):
+    # odd and even counts, ties, a constant axis, heavy tails, an axis whose MAD
+    # collapses, NaN samples of either sign (those blocks go again through the masked
+    # path, which leaves the NaN differences out) and ±0
+    rng = np.random.default_rng(n)
+    g = rng.normal(size=(6, n, 3)) * 1e-3 + rng.standard_cauchy(size=(6, n, 3)) * 1e-5
+    g[0, : n // 3, 1] = 0.25
+    g[1, :, 2] = -1.0
+    g[2, :, 0] = np.cumsum(np.where(rng.random(n) < 0.15, rng.normal(size=n), 0.0))  # most Δ 0
+    g[3, :, 1] = np.where(rng.random(n) < 0.5, 0.0, -0.0)
+    mask = np.ones((6, n), bool)
+    want = definition(g, None, mask)
+    np.testing.assert_allclose(noise.noise_axes(g, None, mask), want, rtol=1e-13, atol=0)
+    g[4, n // 2, 0] = np.nan
+    g[5, n - 1, 2] = -np.nan
+    g[2, 0, 0] = np.inf * 0.0  # the x86 default NaN, sign bit set
+    got = noise.noise_axes(g, None, mask)
+    np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13, atol=0,
+                               equal_nan=True)
+    jaxed = np.asarray(jax.vmap(_noise_floor)(jnp.asarray(g), jnp.asarray(mask)))
+    np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
+    g[4, n // 2, 0] = g[5, n - 1, 2] = 0.0
+    g[2, n // 2, 0] = np.nan  # the only NaN now on the axis whose MAD collapsed
+    np.testing.assert_allclose(noise.noise_axes(g, None, mask), definition(g, None, mask),
+                               rtol=1e-13, atol=0)
+
+
 def test_single_sample_devices_have_no_floor():
     assert np.isnan(noise.noise_axes(np.zeros((2, 1, 3)), None, np.ones((2, 1), bool))).all()
 

@@ -51,16 +51,25 @@ def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"
     step = max(1, BLOCK_SAMPLES // n)
     for a in range(0, d, step):
         b = min(a + step, d)
-        y = np.asarray(gyro[a:b], dtype)
-        if rate is not None:
-            y = y - np.asarray(rate[a:b], dtype)
-        rows = np.empty((b - a, 3, n - 1), dtype)  # a row of differences per axis
-        np.subtract(y[:, 1:].transpose(0, 2, 1), y[:, :-1].transpose(0, 2, 1), out=rows)
-        rows = rows.reshape(-1, n - 1)
         pair = np.asarray(mask[a:b], bool)
         pair = pair[:, 1:] & pair[:, :-1]
-        out[a:b] = sigma_from_differences(rows, pair).reshape(-1, 3)
+        sigma = _sigma_equal(_differences(gyro, rate, a, b, dtype), n - 1) if pair.all() else None
+        if sigma is None or np.isnan(sigma).any():  # pairs left out, or NaN differences
+            sigma = sigma_from_differences(_differences(gyro, rate, a, b, dtype), pair)
+        out[a:b] = sigma.reshape(-1, 3)
     return out
+
+
+def _differences(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
+                 a: int, b: int, dtype) -> Float[np.ndarray, "r m"]:
+    """Lag-1 differences of ``gyro − rate`` of devices ``a:b``, a row per device and axis."""
+    y = np.asarray(gyro[a:b], dtype)
+    if rate is not None:
+        y = y - np.asarray(rate[a:b], dtype)
+    n = y.shape[1]
+    rows = np.empty((b - a, 3, n - 1), dtype)
+    np.subtract(y[:, 1:].transpose(0, 2, 1), y[:, :-1].transpose(0, 2, 1), out=rows)
+    return rows.reshape(-1, n - 1)
 
 
 def sigma_from_differences(rows: Float[np.ndarray, "r m"],
@@ -93,29 +102,33 @@ def sigma_from_differences(rows: Float[np.ndarray, "r m"],
 
 def _sigma_equal(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
     """:func:`sigma_from_differences` of the first ``count`` order statistics of each
-    row (the rest are +inf), in place.
+    row (the rest are +inf), in place; NaN for a row holding a NaN.
 
-    The deviations are ≥ 0, and the bit patterns of non-negative IEEE-754 numbers
-    (+inf and NaN last) order as integers of their width do: their order
-    statistics are selected on that view, where a selection costs half what it
-    costs on floats, with the same result. After the MAD's selection the lower
-    half of each row lies below its upper middle (≤ 2 · MAD), inside the window,
-    so only the upper half is compared with it.
+    The deviations' order statistics are selected on the integer view of the
+    floats (see :func:`_middle`), where a selection costs about half what it
+    costs on floats. Left of the median's place the values are ≤ it and right of it ≥, so the
+    deviations are ``median − Δy`` and ``Δy − median`` (the numbers
+    ``|Δy − median|`` gives). After the MAD's selection the lower half of each row
+    lies below its upper middle (≤ 2 · MAD), inside the window, so only the upper
+    half is compared with it; the few deviations outside are zeroed and each row's
+    squares summed.
     """
-    med = _middle(r, count)
-    np.abs(np.subtract(r, med[:, None], out=r), out=r)  # the deviations (inf stays inf)
-    window = 4.0 * 1.4826 * _middle(r.view(f"i{r.itemsize}"), count, r.dtype)
     k = count // 2
-    lower, top = r[:, :k], r[:, k:]
-    within = top <= window[:, None]
-    upper = np.where(within, top, 0.0)
-    inside = k + np.count_nonzero(within, axis=1)
-    ms = (np.einsum("ij,ij->i", lower, lower) + np.einsum("ij,ij->i", upper, upper))
+    med = _middle(r, count)[:, None]
+    np.subtract(med, r[:, :k], out=r[:, :k])
+    np.subtract(r[:, k:], med, out=r[:, k:])
+    window = 4.0 * 1.4826 * _middle(r, count, bits=True)
+    top = r[:, k:]
+    outside = top > window[:, None]
+    inside = r.shape[1] - np.array([np.count_nonzero(o) for o in outside])
+    collapsed = inside < COLLAPSED * count
+    trimmed = _trimmed_ms(r[collapsed], count) if collapsed.any() else None
+    top[outside] = 0.0
+    ms = np.array([np.dot(row, row) for row in r])  # NaN stays: never outside
     ms /= np.maximum(inside, 1)
     ms /= TRUNC4
-    collapsed = inside < COLLAPSED * count
-    if collapsed.any():
-        ms[collapsed] = _trimmed_ms(r[collapsed], count)
+    if trimmed is not None:
+        ms[collapsed] = np.where(np.isnan(ms[collapsed]), np.nan, trimmed)
     return np.sqrt(ms / 2.0)
 
 
@@ -152,17 +165,20 @@ def lerp(a: np.ndarray, b: np.ndarray, t: float) -> np.ndarray:
     return b - (b - a) * (1.0 - t) if t >= 0.5 else a + (b - a) * t
 
 
-def _middle(r: np.ndarray, count: int, as_type=None) -> Float[np.ndarray, " r"]:
+def _middle(r: np.ndarray, count: int, bits: bool = False) -> Float[np.ndarray, " r"]:
     """Median of the ``count`` smallest of each row: the middle one, or the mean of the
     middle two (one selection: the lower of the two is the largest below the upper).
-    ``as_type``: the dtype the selected values are read as (the rows hold its bits)."""
+
+    ``bits``: the rows are ≥ 0 and are selected on their integer view (the bit
+    patterns of non-negative IEEE-754 numbers, +inf and NaN last, order as integers
+    of their width do).
+    """
     k = count // 2
-    r.partition(k, axis=1)
+    (r.view(f"i{r.itemsize}") if bits else r).partition(k, axis=1)
     upper = r[:, k].copy()
     if count % 2 == 0:
-        lower = r[:, :k].max(axis=1)
-        return 0.5 * (lower.view(as_type) + upper.view(as_type)) if as_type else 0.5 * (lower + upper)
-    return upper.view(as_type) if as_type else upper
+        return 0.5 * (r[:, :k].max(axis=1) + upper)
+    return upper
 
 
 def noise_floor(axes: Float[np.ndarray, "d 3"]) -> Float[np.ndarray, " d"]:
