@@ -12,6 +12,7 @@ from ..signals import TempNorm, make_signals, masked_range, temp_norm_from
 from .layout import Layout, design_products, signal_products
 from .separable import separable_sums
 from .sums import fold_sums
+from .types import DeviceSums, FoldSums
 
 
 def device_signals(opts, t, gyro, mask, rate, temp, temp_ext, accel, aux, centre, scale, dt):
@@ -45,7 +46,7 @@ def linear_sums(model: ErrorModel, layout: Layout, opts, c: int, sig, mask, nv, 
                                   n_folds, c, pos)
     held, train = per_fold, tot[None] - per_fold
     steps, converged = jnp.asarray(1, jnp.int32), jnp.asarray(True)
-    return dict(tot=tot, held=held, train=train, theta=theta, steps=steps, converged=converged)
+    return FoldSums(tot, held, train, theta, steps, converged)
 
 
 def device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyro, mask, rate,
@@ -65,16 +66,11 @@ def device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyr
         sums = linear_sums(model, layout, opts, c, sig, mask, nv, y, y0, pos)
     else:
         sums = separable_sums(model, layout, opts, c, sig, mask, nv, y, y0, theta0, pos)
-    raw_cov = sums.pop("covariance", None)
+    sums = eqx.tree_at(lambda s: (s.steps, s.converged), sums,
+                       (jnp.asarray(sums.steps, jnp.int32), jnp.asarray(sums.converged)))
     terms = model.deterministic
-    raw = dict(tot=sums["tot"], held=sums["held"], train=sums["train"], theta=sums["theta"],
-               steps=jnp.asarray(sums["steps"], jnp.int32),
-               converged=jnp.asarray(sums["converged"]), y0=y0,
-               range_flags=model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool))
-    if nq:
-        raw["covariance"] = raw_cov  # indexed by :func:`.layout.covariance_pairs`
-    if temp is not None:
-        raw["temp_range"] = jnp.stack(masked_range(temp, mask))
-    if sig.norm is not None:
-        raw["norm_centre"], raw["norm_scale"] = sig.norm.centre, sig.norm.scale
-    return raw
+    flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
+    temp_range = jnp.stack(masked_range(temp, mask)) if temp is not None else None
+    norm = sig.norm
+    return DeviceSums(sums, y0, flags, temp_range, None if norm is None else norm.centre,
+                      None if norm is None else norm.scale)

@@ -11,9 +11,10 @@ from ..model import ErrorModel
 from ..status import collinear_terms
 from .layout import Layout, covariance_pairs, moving_columns
 from .normal_equations import cho_inverse, cho_solve, cholesky, residual_ss, unpack_sums
+from .types import DeviceSums
 
 
-def finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
+def finish(model: ErrorModel, layout: Layout, opts, raw: DeviceSums) -> dict:
     """One device's results from its sums (:func:`.device.device`): the full and the folds'
     solutions, residual and held-out errors, covariance, rank check and status.
 
@@ -21,10 +22,11 @@ def finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     (:func:`.programs.group_finish`), inlined in fused linear models' group programs.
     """
     p, nq = layout.p, model.n_nonlinear
-    theta, converged = raw["theta"], raw["converged"]
-    a, cc, q, n_valid = unpack_sums(layout, raw["tot"])
-    af, cf, qf, nf = unpack_sums(layout, raw["held"])
-    at, ct, _, _ = unpack_sums(layout, raw["train"])
+    sums = raw.sums
+    theta, converged = sums.theta, sums.converged
+    a, cc, q, n_valid = unpack_sums(layout, sums.tot)
+    af, cf, qf, nf = unpack_sums(layout, sums.held)
+    at, ct, _, _ = unpack_sums(layout, sums.train)
     dtype = a.dtype
 
     # with every column shared by the axes the three Gram matrices are one: factor,
@@ -44,7 +46,7 @@ def finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
     sse = jnp.maximum(residual_ss(a, cc, q, beta_s), 0.0)
     shift = jnp.zeros((3, p), dtype)
     if layout.const_col is not None:
-        shift = shift.at[:, layout.const_col].set(raw["y0"])
+        shift = shift.at[:, layout.const_col].set(raw.y0)
     beta = beta_s + shift
     rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * n_valid, 1.0))
 
@@ -62,25 +64,25 @@ def finish(model: ErrorModel, layout: Layout, opts, raw: dict) -> dict:
         cols = moving_columns(model)
         b_m, n_m = beta_s[:, cols], len(cols)  # (3, M)
         _, cross_at, curvature_at = covariance_pairs(model, layout)
-        cross = raw["covariance"][cross_at].reshape(3, p, n_m, nq)  # Σ x_a ∂x_m/∂θ_k
+        cross = sums.covariance[cross_at].reshape(3, p, n_m, nq)  # Σ x_a ∂x_m/∂θ_k
         # Σ ∂x_m/∂θ_k ∂x_n/∂θ_r
-        curvature = raw["covariance"][curvature_at].reshape(3, n_m, nq, n_m, nq)
+        curvature = sums.covariance[curvature_at].reshape(3, n_m, nq, n_m, nq)
         xg = jnp.einsum("iamk,im->iak", cross, b_m)
         gg = jnp.einsum("imknr,im,in->ikr", curvature, b_m, b_m)
         cov = _covariance_separable(a, xg, gg, sigma2)
 
     collinear = collinear_terms(model, direction, rank_ok)
     finite = jnp.all(jnp.isfinite(beta)) & jnp.all(jnp.isfinite(theta)) & jnp.isfinite(rms)
-    status = fit_status(n_valid, min_samples(p + nq), converged, finite, raw["range_flags"],
+    status = fit_status(n_valid, min_samples(p + nq), converged, finite, raw.range_flags,
                         rank_ok)
     out = dict(beta=beta, theta=theta, cov=cov, rms=rms,
                heldout_rms=heldout_rms, fold_mse=fold_mse,
-               sigma=jnp.sqrt(sigma2), steps=raw["steps"],
-               status=jnp.asarray(status, jnp.int32), range_flags=raw["range_flags"],
+               sigma=jnp.sqrt(sigma2), steps=sums.steps,
+               status=jnp.asarray(status, jnp.int32), range_flags=raw.range_flags,
                collinear=collinear, rank_ratio=jnp.min(ratio), n_samples=n_valid)
     for k in ("temp_range", "norm_centre", "norm_scale"):
-        if k in raw:
-            out[k] = raw[k]
+        if getattr(raw, k) is not None:
+            out[k] = getattr(raw, k)
     return out
 
 

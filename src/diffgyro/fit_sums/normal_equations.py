@@ -9,6 +9,7 @@ import numpy as np
 
 from ..linalg import scale_gram
 from .layout import Layout, varying_products
+from .types import SplitSums
 
 
 def cholesky(a):
@@ -79,6 +80,6 @@ def residual_ss(a, c, q, beta):
 def unpack_sums(layout: Layout, s):
     """:func:`unpack` of a product vector, or of the fixed and moving sums apart (a model
     with time constants: :func:`unpack_split`)."""
-    if isinstance(s, dict):
-        return unpack_split(layout, s["fixed"], s["moving"])
+    if isinstance(s, SplitSums):
+        return unpack_split(layout, s.fixed, s.moving)
     return unpack(layout, s)

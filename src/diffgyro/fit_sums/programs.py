@@ -35,7 +35,7 @@ def group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, tem
 
 def finished(model, layout, opts, raw):
     """A group's results from its sums, packed (:func:`pack`)."""
-    return pack(jax.vmap(lambda r: finish(model, layout, opts, r))(raw), raw["y0"].dtype)
+    return pack(jax.vmap(lambda r: finish(model, layout, opts, r))(raw), raw.y0.dtype)
 
 
 group_fused = filter_jit(compiler_options=REASSOCIATE)(group_program)

@@ -23,6 +23,7 @@ from .newton import newton
 from .normal_equations import cho_solve, cholesky, residual_ss, unpack_split
 from .projection import product_jet, projected_cost
 from .sums import chunked_sum, fold_sums
+from .types import FoldSums, SplitSums
 
 
 class MovingSums:
@@ -177,10 +178,9 @@ def separable_sums(model: ErrorModel, layout: Layout, opts, c: int, sig, mask, n
     # a local optimum worse than the best grid point is not the answer
     converged = conv_all[0] & (cost_all[0] <= costs[best] * (1.0 + 1e-9) + 1e-300)
     # fixed and moving sums apart: the finish unpacks them (:func:`.normal_equations.unpack_sums`)
-    return dict(tot=dict(fixed=fix_tot, moving=v_train[0]),
-                held=dict(fixed=fix_fold, moving=v_held[1:]),
-                train=dict(fixed=fix_tot[None] - fix_fold, moving=v_train[1:]),
-                theta=theta, steps=steps, converged=converged, covariance=cov[0])
+    return FoldSums(SplitSums(fix_tot, v_train[0]), SplitSums(fix_fold, v_held[1:]),
+                    SplitSums(fix_tot[None] - fix_fold, v_train[1:]), theta, steps, converged,
+                    covariance=cov[0])
 
 
 def refits(layout: Layout, opts, moving: MovingSums, mask, fix_tot, fix_fold, start):
