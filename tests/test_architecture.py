@@ -26,12 +26,6 @@ from pathlib import Path
 SRC = Path(__file__).resolve().parents[1] / "src"
 PACKAGE = SRC / "diffgyro"
 
-#: Private imports that other work removes (module, imported from, name). Shrink only.
-ALLOWED_PRIVATE = {
-    # one noise-floor statistic in diffgyro.noise (issue 23, one mechanism per idea)
-    ("diffgyro.kalman", "diffgyro.fit", "_noise_floor"),
-}
-
 
 def _is_private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
@@ -130,7 +124,7 @@ def test_no_private_cross_imports():
             found.add((importer, target, name))  # another package's private module
         if name is not None and _is_private(name) and importer != target:
             found.add((importer, target, name))
-    assert sorted(found - ALLOWED_PRIVATE) == []
+    assert sorted(found) == []
 
 
 def test_every_module_imports_first():

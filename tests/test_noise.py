@@ -1,5 +1,5 @@
 """The host noise floor (``diffgyro.noise``): the same numbers as the pure-JAX
-``fit._noise_floor`` and as its definition written with numpy's median and quantile,
+``fit.device_noise_floor`` and as its definition written with numpy's median and quantile,
 chunked on threads, the same numbers from both fit paths, and the simulated σ on
 plain and quantised output."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from diffgyro import Batch, Recording, noise
-from diffgyro.fit import _noise_floor, fit
+from diffgyro.fit import device_noise_floor, fit
 
 
 def definition(y, rate, mask):
@@ -69,7 +69,7 @@ def test_equals_the_definition_and_the_jax_version(case):
     np.testing.assert_allclose(got, definition(g, rate, mask), rtol=1e-13, atol=0,
                                equal_nan=True)
     y = jnp.asarray(g if rate is None else g - rate)
-    jaxed = np.asarray(jax.vmap(_noise_floor)(y, jnp.asarray(mask)))
+    jaxed = np.asarray(jax.vmap(device_noise_floor)(y, jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     no_pair = ~(mask[:, 1:] & mask[:, :-1]).any(axis=1)
     assert np.isnan(got[no_pair]).all() and np.isfinite(got[~no_pair]).all()
@@ -96,7 +96,7 @@ def test_every_pair_valid_equals_the_definition(n):
     got = noise.noise_axes(g, None, mask)
     np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13, atol=0,
                                equal_nan=True)
-    jaxed = np.asarray(jax.vmap(_noise_floor)(jnp.asarray(g), jnp.asarray(mask)))
+    jaxed = np.asarray(jax.vmap(device_noise_floor)(jnp.asarray(g), jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     g[4, n // 2, 0] = g[5, n - 1, 2] = 0.0
     g[2, n // 2, 0] = np.nan  # the only NaN now on the axis whose MAD collapsed

@@ -207,7 +207,7 @@ def _middle_deviations(s, n, med, split, k):
     return kth, after
 
 
-def _noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
+def device_noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
     """White-noise σ per axis from successive differences (model-free), over pairs of
     valid samples: :func:`diffgyro.noise.sigma_from_differences` from one sort."""
     if y.shape[0] < 2:
@@ -328,7 +328,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     heldout_rms = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * jnp.sum(cnt), 1.0))
     fold_mse = sse / jnp.maximum(3 * cnt, 1.0)
 
-    noise_axes = _noise_floor(y, sig.mask) if opts.noise_floor else jnp.full((3,), jnp.nan, y.dtype)
+    noise_axes = device_noise_floor(y, sig.mask) if opts.noise_floor else jnp.full((3,), jnp.nan, y.dtype)
     cov, sigma = _covariance(model, sig, params, w, resid, n_valid)
 
     # status, most basic problem first

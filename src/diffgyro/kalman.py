@@ -484,7 +484,7 @@ class RandomWalkFit(eqx.Module):
 
 
 def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
-    from .fit import _noise_floor  # the floor fit() reports
+    from .fit import device_noise_floor  # the floor fit() reports
 
     nf = learn_noise(model, sig, obs, p0, keep, reml=reml, max_steps=max_steps)
     obs = obs & sig.mask
@@ -505,7 +505,7 @@ def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
 
     sse, cnt = jax.vmap(fold_fit)(jnp.arange(n_folds))
     heldout = jnp.sqrt(jnp.sum(sse) / jnp.maximum(3 * jnp.sum(cnt), 1.0))
-    noise_axes = _noise_floor(sig.gyro - sig.rate, obs)
+    noise_axes = device_noise_floor(sig.gyro - sig.rate, obs)
     finite = jnp.all(jnp.isfinite(sb.bias)) & jnp.isfinite(nf.loglik) & jnp.all(jnp.isfinite(nf.q))
     p = model.n_params + model.n_nonlinear
     status = jnp.where(n_obs < max(20, 4 * (p + 2)), INSUFFICIENT_DATA,
