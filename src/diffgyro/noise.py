@@ -9,16 +9,17 @@ steps and outliers out. The same statistic as :func:`diffgyro.fit.device_noise_f
 (the pure-JAX version the differentiable paths use), with the same exact order
 statistics.
 
-Why on the host: the statistic needs three order statistics per device and axis. XLA has
-no selection primitive, so a compiled version sorts every axis of every device
-(several times the cost of a linear fit) and its program costs half a second of
-compile per group shape. numpy's introselect (``ndarray.partition``) finds a
-median in linear time without a sort. What it costs is mostly where the data
-lie: a median is taken on a block of a few devices' differences small enough to
-stay in the core's cache while it is differenced, selected, turned into
-deviations and selected again (about 2 ns per difference and selection; out of
-cache, twice that). Threads take chunks of devices side by side while the
-compiled fits run; numpy releases the GIL while it partitions.
+Why on the host: the statistic needs two order statistics per device and axis
+(three where the MAD collapses). XLA has no selection primitive, so a compiled
+version sorts every axis of every device (several times the cost of a linear
+fit) and its program costs half a second of compile per group shape. numpy's
+introselect (``ndarray.partition``) selects in linear time without a sort. A
+block of a few devices' differences, small enough to stay in a core's cache,
+is differenced, selected, turned into deviations and selected again; where
+every pair is valid (fit's usual case) nothing else passes over it but a
+comparison with the window and a sum of squares. Threads take chunks of
+devices side by side while the compiled fits run; numpy releases the GIL while
+it partitions.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from .jit import available_cores
 #: Device-samples per chunk of work given to a thread.
 CHUNK_SAMPLES = 1 << 18
 #: Device-samples per block a thread differences and selects in its cache (3 axes ×
-#: 8 bytes each: about 200 kB, within a core's L2).
+#: 8 bytes each: about 1.5 MB, within a core's L2).
 BLOCK_SAMPLES = 1 << 16
 
 
