@@ -21,8 +21,10 @@ and time are bounded whatever the record length.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array
 
 from .scoring import block_folds
 from .thresholds import RW_GRID
@@ -114,8 +116,20 @@ def _series(e_w, xb_w, t_w, inside, b_base, m: int):
     return jnp.concatenate([e_f, e_s[None]], axis=0), cnt, t_s, fold_s
 
 
+class RandomWalkScores(eqx.Module):
+    """The local-level smoother on the base residual: held-out SSE per fold, smoothed
+    ``rw_interp`` and forecast ``rw_fore`` (K, 3), the full-record SSE ``rw_full`` (3,), the
+    walk variance ``rw_q`` (3,, (rad/s)²/s) and every block's held-out SSE ``rw_blk`` (B,)."""
+
+    rw_interp: Array
+    rw_fore: Array
+    rw_full: Array
+    rw_q: Array
+    rw_blk: Array
+
+
 def random_walk_scores(e_w, xb_w, t_w, inside, b_base, base_sse, base_blk, base_full,
-                       floor_axes, dt0, m: int) -> dict:
+                       floor_axes, dt0, m: int) -> RandomWalkScores:
     """Held-out (smoothed and forecast) SSE per fold (K, 3), the full-record SSE (3,), the
     walk variance (3,) and every block's held-out SSE (B,) of the local-level smoother."""
     n_folds = b_base.shape[0]
@@ -152,5 +166,5 @@ def random_walk_scores(e_w, xb_w, t_w, inside, b_base, base_sse, base_blk, base_
     own = jnp.sum(held * ((e_f - ms3[:n_folds]) ** 2 - e_f**2), axis=(0, 2))  # (N,)
     rw_blk = base_blk + own.reshape(n_blocks, -1).sum(-1)
     rw_q = qg[qi[n_folds]] * r / dt0  # (3,) (rad/s)²/s
-    return dict(rw_interp=rw_interp, rw_fore=rw_fore, rw_full=rw_full, rw_q=rw_q, rw_blk=rw_blk)
+    return RandomWalkScores(rw_interp, rw_fore, rw_full, rw_q, rw_blk)
 

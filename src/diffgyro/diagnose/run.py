@@ -8,6 +8,7 @@ is that of one device's per-sample arrays, whatever the batch.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import equinox as eqx
@@ -27,7 +28,7 @@ from .floor import suggest_dtemp_window, white_noise_rms
 from .greedy import pairs as greedy_pairs
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
-from .scoring import base_scores, block_windows, candidate_scores, window
+from .scoring import CandidateScores, base_scores, block_windows, candidate_scores, window
 from .thresholds import Thresholds
 
 #: About this many samples (devices × padded length) go through one compiled call.
@@ -154,10 +155,11 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
               for c in cands]
     base_full = jnp.sum(e * e, 0)
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
-    rw = random_walk_scores(e_w, xb_w, window(sig.t, idx, inside), inside, b["b_base"],
-                            b["base_sse"], b["base_blk"], base_full, floor_axes, dt0, rw_m)
-    out = dict(cnt=b["cnt"], base_sse=b["base_sse"], base_full=base_full, blk_cnt=b["blk_cnt"],
-               base_blk=b["base_blk"], residual=e, **rw, **_stacked(scores, n_folds, n_blocks, dtype))
+    rw = random_walk_scores(e_w, xb_w, window(sig.t, idx, inside), inside, b.b_base,
+                            b.base_sse, b.base_blk, base_full, floor_axes, dt0, rw_m)
+    out = dict(cnt=b.cnt, base_sse=b.base_sse, base_full=base_full, blk_cnt=b.blk_cnt,
+               base_blk=b.base_blk, residual=e, **_fields(rw),
+               **_stacked(scores, n_folds, n_blocks, dtype))
     if sig.dtemp is not None:
         out["dtemp"] = sig.dtemp
     if sig.heating is not None:
@@ -165,19 +167,24 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     return out
 
 
-def _stacked(scores: list[dict], n_folds: int, n_blocks: int, dtype) -> dict:
+def _stacked(scores: list[CandidateScores], n_folds: int, n_blocks: int, dtype) -> dict:
     """The candidates' scores stacked on a leading axis (one NaN placeholder when there are
     none: lax.map dislikes empty outputs)."""
     if not scores:
         return dict(cand_sse=jnp.full((1, n_folds, 3), jnp.nan, dtype),
                     cand_full=jnp.full((1, 3), jnp.nan, dtype), cand_theta=jnp.full((1, 1), jnp.nan, dtype),
                     cand_blk=jnp.full((1, n_blocks), jnp.nan, dtype), cand_edge=jnp.zeros((1,), bool))
-    q = max(int(s["theta"].shape[0]) for s in scores)
-    theta = [jnp.pad(s["theta"], (0, q - s["theta"].shape[0]), constant_values=jnp.nan) for s in scores]
-    return dict(cand_sse=jnp.stack([s["held"] for s in scores]),
-                cand_full=jnp.stack([s["full"] for s in scores]), cand_theta=jnp.stack(theta),
-                cand_blk=jnp.stack([s["blk"] for s in scores]),
-                cand_edge=jnp.stack([s["edge"] for s in scores]))
+    q = max(int(s.theta.shape[0]) for s in scores)
+    theta = [jnp.pad(s.theta, (0, q - s.theta.shape[0]), constant_values=jnp.nan) for s in scores]
+    return dict(cand_sse=jnp.stack([s.held for s in scores]),
+                cand_full=jnp.stack([s.full for s in scores]), cand_theta=jnp.stack(theta),
+                cand_blk=jnp.stack([s.blk for s in scores]),
+                cand_edge=jnp.stack([s.edge for s in scores]))
+
+
+def _fields(module: eqx.Module) -> dict:
+    """A module's fields by name: the engine's output is keyed like :attr:`Diagnosis.raw`."""
+    return {f.name: getattr(module, f.name) for f in dataclasses.fields(module)}
 
 
 @eqx.filter_jit

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -102,7 +103,36 @@ def _train(s):
 # --------------------------------------------------------------------------- the base model
 
 
-def base_scores(xb_w, e_w, inside, n_folds: int) -> dict:
+class BaseScores(eqx.Module):
+    """The base model's block sums (``a_b`` XᵀX (B, 3, p, p), ``c_b`` Xᵀe (B, 3, p), ``q_b``
+    eᵀe (B, 3)), its fold sums ``ee`` (K, 3) and counts ``cnt`` (K,), the blocks' counts
+    ``blk_cnt`` (B,), each fold's training solution ``b_base`` (K, 3, p), its held-out SSE
+    ``base_sse`` (K, 3) and every block's held-out SSE ``base_blk`` (B,)."""
+
+    a_b: Array
+    c_b: Array
+    q_b: Array
+    ee: Array
+    cnt: Array
+    blk_cnt: Array
+    b_base: Array
+    base_sse: Array
+    base_blk: Array
+
+
+class CandidateScores(eqx.Module):
+    """Base + one candidate: held-out SSE per fold ``held`` (K, 3), full-fit SSE ``full``
+    (3,), the time constant ``theta`` (q,; NaN without one), every block's held-out SSE
+    ``blk`` (B,) and ``edge``: the time constant at the slow end of its grid."""
+
+    held: Array
+    full: Array
+    theta: Array
+    blk: Array
+    edge: Array
+
+
+def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
     """Block and fold sums of the base design and residual; each fold's training solution,
     its held-out SSE per axis and every block's held-out SSE."""
     a_b = jnp.einsum("bwip,bwiq->bipq", xb_w, xb_w)  # (B, 3, p, p)
@@ -121,8 +151,7 @@ def base_scores(xb_w, e_w, inside, n_folds: int) -> dict:
     else:
         b_base = jnp.zeros((n_folds, 3, 0), e_w.dtype)
         base_sse, base_blk = ee, jnp.sum(q_b, -1)
-    return dict(a_b=a_b, c_b=c_b, q_b=q_b, ee=ee, cnt=cnt, blk_cnt=blk_cnt, b_base=b_base,
-                base_sse=base_sse, base_blk=base_blk)
+    return BaseScores(a_b, c_b, q_b, ee, cnt, blk_cnt, b_base, base_sse, base_blk)
 
 
 # --------------------------------------------------------------------------- candidates
@@ -157,23 +186,23 @@ def column_sums(z, xb_w, e_w, idx, inside):
             jnp.einsum("bwik,bwi->bik", zw, e_w))
 
 
-def score_set(base: dict, sums, n_folds: int):
+def score_set(base: BaseScores, sums, n_folds: int):
     """Scores of base + one column set from its block sums: per-fold training SSE (K,),
     held-out SSE (K, 3), full-fit SSE (3,), its total and every block's held-out SSE (B,)."""
     zx, zz, ze = sums
-    top = jnp.concatenate([base["a_b"], jnp.swapaxes(zx, -1, -2)], axis=-1)
+    top = jnp.concatenate([base.a_b, jnp.swapaxes(zx, -1, -2)], axis=-1)
     gb = jnp.concatenate([top, jnp.concatenate([zx, zz], axis=-1)], axis=-2)  # (B, 3, P, P)
-    cb = jnp.concatenate([base["c_b"], ze], axis=-1)
+    cb = jnp.concatenate([base.c_b, ze], axis=-1)
     gm, cv = fold_of_blocks(gb, n_folds), fold_of_blocks(cb, n_folds)
     gtot, ctot = jnp.sum(gm, 0), jnp.sum(cv, 0)
     d = jnp.sqrt(jnp.maximum(jnp.diagonal(gtot, axis1=-2, axis2=-1), 1e-300))  # (3, P)
-    ee = base["ee"]
+    ee = base.ee
     b = solve_scaled(gtot[None] - gm, ctot[None] - cv, d[None])  # (K, 3, P)
     sse_tr = jnp.sum(_train(ee) - jnp.sum(b * (ctot[None] - cv), -1), -1)
     sse_h = held_sse(b, gm, cv, ee)
     b_all = solve_scaled(gtot, ctot, d)
     sse_all = jnp.sum(ee, 0) - jnp.sum(b_all * ctot, -1)
-    blk = jnp.sum(held_sse(b[block_folds(gb.shape[0], n_folds)], gb, cb, base["q_b"]), -1)
+    blk = jnp.sum(held_sse(b[block_folds(gb.shape[0], n_folds)], gb, cb, base.q_b), -1)
     clean = lambda a: jnp.where(jnp.isfinite(a), a, jnp.inf)  # noqa: E731
     return clean(sse_tr), sse_h, sse_all, clean(jnp.sum(sse_all)), blk
 
@@ -194,12 +223,11 @@ def _vertex(costs, i, grid):
 
 
 def candidate_scores(c, base_model, sig, theta_b, min_lag, base, xb_w, e_w, idx, inside,
-                     n_folds: int) -> dict:
-    """Held-out SSE per fold (K, 3), full SSE (3,), time constant, per-block held-out SSE
-    (B,) and the slow-edge flag of base + one candidate."""
+                     n_folds: int) -> CandidateScores:
+    """The :class:`CandidateScores` of base + one candidate."""
     grid, columns = candidate_grid(c, base_model, sig, theta_b, min_lag)
     folds = jnp.arange(n_folds)
-    fb = block_folds(base["a_b"].shape[0], n_folds)
+    fb = block_folds(base.a_b.shape[0], n_folds)
     tr, sh, sall, tot, blk = _scores_on(grid, columns, base, xb_w, e_w, idx, inside, n_folds)
     pick = jnp.argmin(tr, axis=0)  # (K,) the grid point each fold's training blocks choose
     best = jnp.argmin(tot)
@@ -222,7 +250,7 @@ def candidate_scores(c, base_model, sig, theta_b, min_lag, base, xb_w, e_w, idx,
         edge = theta[0] >= grid[-1, 0] - 0.5 * (grid[1, 0] - grid[0, 0])
     else:
         edge = jnp.asarray(False)
-    return dict(held=held, full=full, theta=theta, blk=blk_pick, edge=edge)
+    return CandidateScores(held, full, theta, blk_pick, edge)
 
 
 _ = (Float,)  # jaxtyping names used in annotations only
