@@ -1,7 +1,8 @@
 """Static-period detection: S1's range thresholds and an IMU-TK-style variance detector.
 
 Both are pure JAX functions of one device's samples with static window sizes,
-so they vmap over a batch (:func:`detect_batch`). They return a per-sample
+so they vmap over a batch (:func:`detect_batch`); each is compiled once per
+shape and options (``eqx.filter_jit``: arrays traced, the rest static). They return a per-sample
 boolean ``static`` (padding excluded through ``mask``).
 
 * :func:`s1_range_detector` — the S1 seed, faithfully: thresholds
@@ -51,6 +52,7 @@ def _windows(x, mask, start: int, window: int):
     return xs.reshape(k, window, *x.shape[1:]), ms.reshape(k, window)
 
 
+@eqx.filter_jit
 def s1_range_detector(
     accel: Float[Array, "n 3"],
     gyro: Float[Array, "n 3"],
@@ -99,6 +101,7 @@ class VarianceDetection(eqx.Module):
     sigma_init: Float[Array, ""]
 
 
+@eqx.filter_jit
 def rolling_variance(x: Float[Array, "n c"], mask: Bool[Array, " n"], half: int) -> Float[Array, "n c"]:
     """Variance of every column over the valid samples of ``i−half .. i+half`` (cumulative sums).
 
@@ -122,6 +125,7 @@ def rolling_variance(x: Float[Array, "n c"], mask: Bool[Array, " n"], half: int)
     return jnp.maximum(sxx / s1 - (sx / s1) ** 2, 0.0)
 
 
+@eqx.filter_jit
 def otsu_threshold(values: Float[Array, " n"], mask: Bool[Array, " n"], bins: int = 256) -> Float[Array, ""]:
     """Otsu's threshold of the valid ``values``: maximises the between-class variance
     (the middle of the best split when an empty gap between the modes makes it a plateau)."""
@@ -145,6 +149,7 @@ def otsu_threshold(values: Float[Array, " n"], mask: Bool[Array, " n"], bins: in
     return lo + (0.5 * (first + last) + 1.0) * width
 
 
+@eqx.filter_jit
 def drop_short_runs(flag: Bool[Array, " n"], min_length: int) -> Bool[Array, " n"]:
     """``flag`` with every run of True shorter than ``min_length`` samples cleared."""
     n = flag.shape[0]
@@ -155,6 +160,7 @@ def drop_short_runs(flag: Bool[Array, " n"], min_length: int) -> Bool[Array, " n
     return flag & (length[run] >= min_length)
 
 
+@eqx.filter_jit
 def variance_detector(
     accel: Float[Array, "n 3"],
     *,
