@@ -83,13 +83,21 @@ def batch_signals(
         norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
                         scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
 
+    return _stacked_signals(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
+                            arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
+                            {k: arr(v) for k, v in (aux or {}).items()}, dtemp_window)
+
+
+@eqx.filter_jit
+def _stacked_signals(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux, dtemp_window):
+    """:func:`make_signals` vmapped over devices, compiled once per shape (eager, every
+    primitive would be dispatched and compiled on its own)."""
+
     def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux):
         return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
                             norm=norm, dtemp_window=dtemp_window, dt=dt, aux=aux)
 
-    return jax.vmap(one)(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
-                         arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
-                         {k: arr(v) for k, v in (aux or {}).items()})
+    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux)
 
 
 # --------------------------------------------------------------------------- one device
@@ -460,8 +468,14 @@ class FitResult(eqx.Module):
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
         sig = self.signals(batch)
-        pred = jax.vmap(self.model.predict)(self.params, sig)
+        pred = _predict_batch(self.model, self.params, sig)
         return (sig.gyro - pred) * sig.mask[..., None]
+
+
+@eqx.filter_jit
+def _predict_batch(model: ErrorModel, params: Params, sig: Signals) -> Float[Array, "d n 3"]:
+    """Predicted rate of every device, compiled once per model and shape."""
+    return jax.vmap(model.predict)(params, sig)
 
 
 def fit(

@@ -6,6 +6,8 @@ from __future__ import annotations
 import dataclasses
 from typing import ClassVar
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -88,18 +90,20 @@ def toolkit_compensate(spec: str, fit_on: Recording, apply_to: Recording | None 
     ``error`` is the model's whole error (bias, scale, ...) on ``apply_to``
     at its compensated rate (default: ``fit_on`` itself).
     """
-    import jax
-
     from ..data import Batch
     from ..fit import fit
 
     apply_to = fit_on if apply_to is None else apply_to
     out = fit(spec, fit_on, **options)
     batch = Batch.from_recordings([apply_to])
-    sig = out.signals(batch)
-    comp = jax.vmap(out.model.compensate)(out.params, sig)
-    comp = np.asarray(comp)[0, : apply_to.n]
+    comp = np.asarray(_compensate(out.model, out.params, out.signals(batch)))[0, : apply_to.n]
     return out, comp, np.asarray(apply_to.gyro) - comp
+
+
+@eqx.filter_jit
+def _compensate(model, params, sig):
+    """Compensated rate of every device, compiled once per model and shape."""
+    return jax.vmap(model.compensate)(params, sig)
 
 
 def single_axis(rec: Recording, axis: int) -> Recording:
