@@ -206,35 +206,23 @@ def test_thermal_lag_jet_equals_forward_mode(order):
     temp = 20.0 + np.cumsum(rng.normal(size=n))
     sig = make_signals(jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), temp=jnp.asarray(temp))
     term = ThermalLag(order=order)
+
+    @jax.jit  # one program per order for the five time constants
+    def jets(th):
+        return (term.columns_jet(sig, th), AbstractEffect.columns_jet(term, sig, th),
+                term.columns(sig, th))
+
     for log_tau in (np.log(40.0), np.log(0.7), 9.0, 20.0, -10.0):
-        th = jnp.asarray([log_tau])
-        got = term.columns_jet(sig, th)
-        ref = AbstractEffect.columns_jet(term, sig, th)
-        np.testing.assert_allclose(np.asarray(got[0]), np.asarray(term.columns(sig, th)),
-                                   rtol=0, atol=1e-13)
+        got, ref, cols = jets(jnp.asarray([log_tau]))
+        np.testing.assert_allclose(np.asarray(got[0]), np.asarray(cols), rtol=0, atol=1e-13)
         for g, r in zip(got, ref):
             assert g.shape == r.shape
             scale = max(float(jnp.max(jnp.abs(r))), 1e-300)
             assert float(jnp.max(jnp.abs(g - r))) <= 1e-12 * scale + 1e-15
 
 
-def test_separable_sums_equals_direct_forward_mode_jet():
-    # warmup has no jet of its own: the sums path differentiates its columns in forward
-    # mode; same optimum and held-out error as LM on the design
-    batch, truth = simulate("warmup", 4, effects="bias_poly(0)+warmup", seed=4,
-                            noise={"rrw": 0.0, "bias_instability": 0.0, "quantum": 0.0})
-    spec = "bias_poly(0)+warmup"
-    direct = fit(spec, batch, path="direct")
-    sums = fit(spec, batch, path="sums")
-    ok = (np.asarray(direct.status) == 0) & (np.asarray(sums.status) == 0)
-    assert ok.sum() >= 3
-    np.testing.assert_allclose(np.asarray(sums.params.theta)[ok],
-                               np.asarray(direct.params.theta)[ok], rtol=0, atol=1e-6)
-    b1, b2 = np.asarray(direct.params.beta)[ok], np.asarray(sums.params.beta)[ok]
-    assert np.max(np.abs(b1 - b2) / np.max(np.abs(b1), axis=-1, keepdims=True)) < 1e-6
-    for name in ("rms", "heldout_rms", "sigma"):
-        np.testing.assert_allclose(np.asarray(getattr(sums, name))[ok],
-                                   np.asarray(getattr(direct, name))[ok], rtol=1e-6)
+# the sums path on a term without a jet of its own (warmup: forward mode) against LM on
+# the design: tests/test_fit.py::test_nonlinear_start_far_away_is_flagged_alone
 
 
 def test_layout_shares_products():
@@ -284,6 +272,11 @@ def test_reference_rate_is_subtracted_for_bias_only_models():
     assert float(np.max(np.asarray(sums.rms))) < 1e-4
 
 
+def _products(src, mask):
+    return [jnp.where(mask, src[:, 0], 0.0), jnp.where(mask, src[:, 1] * src[:, 2], 0.0),
+            mask.astype(src.dtype)]
+
+
 @pytest.mark.parametrize("n,n_blocks", [(1000, 100), (1024, 100), (97, 7), (64, 100), (10, 3)])
 def test_block_windows_equal_chunked_sums(n, n_blocks):
     """The window sums of devices whose valid samples come first (block starts from the
@@ -292,23 +285,22 @@ def test_block_windows_equal_chunked_sums(n, n_blocks):
     rng = np.random.default_rng(n)
     lengths = np.unique(np.clip([n, n - 1, n - n_blocks + 1, (3 * n) // 4, 2, 0], 0, n))
     x = jnp.asarray(rng.normal(size=(n, 3)))
-
-    def products(src, mask):
-        return [jnp.where(mask, src[:, 0], 0.0), jnp.where(mask, src[:, 1] * src[:, 2], 0.0),
-                mask.astype(src.dtype)]
-
+    # compiled as in the fit's programs: the windows once per (n, n_blocks), the chunked
+    # sums once per chunk size
+    sums = jax.jit(fs.fold_sums, static_argnums=(0, 4, 5, 6, 7))
+    windows = jax.jit(lambda x, mask, nv, pos: fs.fold_sums(_products, x, mask, nv, n_blocks,
+                                                            5, 1, pos))
     for nv in lengths:
         mask = jnp.arange(n) < nv
         pos = jnp.asarray(fs.block_starts([nv], n_blocks)[0])
         c = fs.chunk_size(max(int(nv), 1), n_blocks, n)
-        t1, f1 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c)
-        t2, f2 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c, pos)
+        t1, f1 = sums(_products, x, mask, jnp.asarray(nv), n_blocks, 5, c)
+        t2, f2 = windows(x, mask, jnp.asarray(nv), pos)
         np.testing.assert_allclose(np.asarray(t2), np.asarray(t1), rtol=1e-12, atol=1e-12)
         np.testing.assert_allclose(np.asarray(f2), np.asarray(f1), rtol=1e-12, atol=1e-12)
         assert float(t2[-1]) == nv and float(jnp.sum(f2[:, -1])) == nv
         if nv == n and n % n_blocks == 0:  # whole blocks: a reshape, no windows, no mask
-            t3, f3 = fs.fold_sums(products, x, mask, jnp.asarray(nv), n_blocks, 5, c,
-                                   fs.ALIGNED)
+            t3, f3 = sums(_products, x, mask, jnp.asarray(nv), n_blocks, 5, c, fs.ALIGNED)
             np.testing.assert_allclose(np.asarray(t3), np.asarray(t1), rtol=1e-12, atol=1e-12)
             np.testing.assert_allclose(np.asarray(f3), np.asarray(f1), rtol=1e-12, atol=1e-12)
 
