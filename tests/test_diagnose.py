@@ -6,11 +6,11 @@ problems on recordings made *apart from* the project's simulator
 white + flicker + random-walk noise, output quantisation, temperature read-out
 lag and quantisation, all drawn per device), with hidden-effect sizes from
 0.5× to 3× the white noise σ (RMS of what the base model cannot absorb).
-Every problem is diagnosed in one batch per (plan, base model), so each
-compiled function is built once; the seeds are fixed, so the rates are
-reproducible. ``benchmarks/diagnose_rates.py`` runs the same catalogue
-bigger.
-"""
+Every (plan, base model) is diagnosed in one batch, so each compiled function
+is built once; the seeds are fixed, so the results are reproducible. The
+catalogue is sized for a unit test (4 devices per hidden effect, 16 clean);
+``benchmarks/diagnose_rates.py`` measures the per-class rates on the same kind
+of catalogue with many more devices."""
 
 from __future__ import annotations
 
@@ -39,13 +39,13 @@ LOOK_ALIKE = {n: set(v) for v in families().values() for n in v}
 
 #: (plan, base model, {hidden effect or None: devices})
 CATALOGUE = [
-    ("thermal", "bias_poly(2)", {"gradient": 8, "temp_diff": 8, "thermal_lag": 8, "hysteresis": 8,
-                                 "warmup": 8, "random_walk": 8, "bias_poly": 8, None: 16}),
-    ("rate_table", "bias_poly(1)+scale_poly(0)", {"scale_asym": 6, "scale_nonlin": 6,
-                                                  "misalignment": 6, "g_sens": 6, None: 8}),
-    ("rate_table", "bias_poly(1)", {"scale_poly": 6}),
-    ("multi_position", "bias_poly(1)+scale_poly(0)+misalignment", {"g_sens": 6, "warmup": 6,
-                                                                    "random_walk": 6, None: 8}),
+    ("thermal", "bias_poly(2)", {"gradient": 4, "temp_diff": 4, "thermal_lag": 4, "hysteresis": 4,
+                                 "warmup": 4, "random_walk": 4, "bias_poly": 4, None: 8}),
+    ("rate_table", "bias_poly(1)+scale_poly(0)", {"scale_asym": 4, "scale_nonlin": 4,
+                                                  "misalignment": 4, "g_sens": 4, None: 4}),
+    ("rate_table", "bias_poly(1)", {"scale_poly": 4}),
+    ("multi_position", "bias_poly(1)+scale_poly(0)+misalignment", {"g_sens": 4, "warmup": 4,
+                                                                    "random_walk": 4, None: 4}),
 ]
 
 
@@ -70,11 +70,9 @@ def catalogue():
         groups.setdefault((plan, base), []).append(h)
     rows = []
     for (plan, base), hs in groups.items():
-        for start in range(0, len(hs), 16):
-            part = hs[start:start + 16]
-            dg = diagnose(base, Batch.from_recordings([h.recording for h in part]))
-            for h, d in zip(part, dg.devices):
-                rows.append({"plan": plan, "base": base, "effect": h.effect, "hidden": h, "diag": d})
+        dg = diagnose(base, Batch.from_recordings([h.recording for h in hs]))
+        for h, d in zip(hs, dg.devices):
+            rows.append({"plan": plan, "base": base, "effect": h.effect, "hidden": h, "diag": d})
     return rows
 
 
@@ -93,6 +91,10 @@ EFFECTS = sorted({e for *_, effects in CATALOGUE for e in effects if e is not No
 @pytest.mark.slow
 @pytest.mark.parametrize("effect", EFFECTS)
 def test_hidden_effect_is_named(catalogue, effect):
+    """Every device of the class (4, or 8 for g_sens and warmup, which two plans hide) names
+    the effect first, or a documented look-alike first and it second. Power: a diagnosis
+    naming the effect with probability 0.7 passes 4 devices with probability 0.24, one
+    with 0.5 with 0.06 (per-class rates over many devices: benchmarks/diagnose_rates.py)."""
     rows = [r for r in catalogue if r["effect"] == effect]
     hits = [_named(r["diag"], effect) for r in rows]
     misses = [(r["diag"].device, r["diag"].verdict, [c.effect for c in r["diag"].candidates[:3]])
@@ -125,6 +127,8 @@ def test_adding_the_effect_reaches_the_noise(catalogue, effect):
 
 @pytest.mark.slow
 def test_clean_devices_are_adequate(catalogue):
+    """All 16 clean devices (8 thermal, 4 rate table, 4 multi-position) adequate: a false
+    alarm rate of 0.1 fails this with probability 0.81, one of 0.2 with 0.97."""
     rows = [r for r in catalogue if r["effect"] is None]
     ok = [r["diag"].verdict == "adequate" for r in rows]
     bad = [(r["diag"].device, [c.effect for c in r["diag"].candidates if c.significant])
