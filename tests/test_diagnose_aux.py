@@ -49,10 +49,16 @@ def _with_extras(rec: Recording, k: int) -> Recording:
 
 
 @pytest.fixture(scope="module")
-def vdd_rows():
+def vdd_devices():
+    """Six devices whose bias follows ``vdd``, each logging the extra columns."""
     hs = [_vdd_device(k) for k in range(6)]
-    batch = Batch.from_recordings([_with_extras(h.recording, k) for k, h in enumerate(hs)])
-    return hs, diagnose(BASE, batch)
+    return hs, [_with_extras(h.recording, k) for k, h in enumerate(hs)]
+
+
+@pytest.fixture(scope="module")
+def vdd_rows(vdd_devices):
+    hs, recs = vdd_devices
+    return hs, diagnose(BASE, Batch.from_recordings(recs))
 
 
 def test_candidates_are_the_unused_columns():
@@ -106,10 +112,12 @@ def test_explanation_json_and_skipped(vdd_rows):
                                                                          "aux(probe)"))
 
 
-def test_cli_auto_adds_the_column_term(tmp_path, capsys):
-    """``diagnose --auto --out``: the ladder adds aux(vdd), every device ends adequate, and
-    the calibration keeps the column's centring for compensate."""
-    paths = [str(save(_vdd_device(k).recording, tmp_path / f"unit{k}.csv")) for k in (3, 4)]
+def test_cli_auto_adds_the_column_term(vdd_devices, vdd_rows, tmp_path, capsys):
+    """``diagnose --auto --out`` on the same six devices (written to CSV, so its first rung
+    reuses the programs ``vdd_rows`` compiled): the ladder adds aux(vdd) and nothing else,
+    every device ends adequate, and the calibration keeps the column's centring for
+    compensate."""
+    paths = [str(save(rec, tmp_path / f"unit{k}.csv")) for k, rec in enumerate(vdd_devices[1])]
     cal = tmp_path / "cal.json"
     code = main(["diagnose", *paths, "--model", BASE, "--json", "--auto", "--out", str(cal)])
     cap = capsys.readouterr()
