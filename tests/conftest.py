@@ -1,13 +1,24 @@
-"""Shared test set-up: float64, the persistent compilation cache, compiled programs
-released before a worker runs out of memory mappings, module fixtures built on one
+"""Shared test set-up: an XLA flag for compile time, float64, the persistent compilation
+cache, compiled programs released before a worker runs out of memory mappings, module fixtures built on one
 xdist worker only, and shared paths."""
 
 from __future__ import annotations
 
 import os
-from pathlib import Path
 
-import pytest
+# The suite builds hundreds of XLA programs and runs most of them once or twice: compile
+# them with XLA's loop emitters instead of its MLIR fusion emitters (as fit() already does
+# for its costlier programs, diffgyro.fit_sums.compile_options.FAST_COMPILE): the same
+# programs, about a third less compile time, somewhat slower to run. (LLVM without
+# optimisation would halve compile time again, but changes results: an LM fit that
+# converges in 28 steps ran out of its 100.) Set before JAX starts its CPU client; child
+# processes the tests start inherit it; the flag is part of the persistent cache's key.
+os.environ["XLA_FLAGS"] = " ".join([os.environ.get("XLA_FLAGS", ""),
+                                    "--xla_cpu_use_fusion_emitters=false"]).strip()
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
 
 import diffgyro
 from diffgyro.jit import release_compiled_if_crowded
