@@ -128,7 +128,7 @@ def test_diagnose_reads_family_phrase_and_lag_floor_from_the_class(user_terms):
     for name in ("slow_bias", "slow_bias_plain", "thermal_lag"):
         spec = CandidateSpec(effect=name, term=ErrorModel.from_spec(name).terms[0],
                              model=base + name)
-        grid, _ = candidate_grid(spec, base, sig, jnp.zeros((0,)), min_lag=60.0)
+        grid, _ = candidate_grid(spec, base, sig, jnp.zeros((0,)), np.log(60.0))
         lows[name] = float(np.exp(grid[0, 0]))
     assert lows["slow_bias"] == pytest.approx(60.0) == lows["thermal_lag"]
     assert lows["slow_bias_plain"] == pytest.approx(1.0)

@@ -9,6 +9,7 @@ is that of one device's per-sample arrays, whatever the batch.
 from __future__ import annotations
 
 import dataclasses
+import math
 import warnings
 
 import equinox as eqx
@@ -119,7 +120,8 @@ def _signals(inp: dict, dtemp_window: float):
 
 @eqx.filter_jit
 def _ranges(cands, inputs, dtemp_window):
-    """Per device of a chunk: > 0 where its data cannot support a candidate."""
+    """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
+    an array: traced, one program for every window)."""
     def one(inp):
         s = _signals(inp, dtemp_window)
         return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
@@ -138,9 +140,10 @@ def _white_noise(batch: Batch) -> np.ndarray:
 
 
 def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
-                   n_folds: int, min_lag: float, rw_m: int, dtemp_window: float, inp: dict,
+                   n_folds: int, log_min_lag, rw_m: int, dtemp_window, inp: dict,
                    beta_b, theta_b, floor_axes, idx, inside) -> dict:
-    """Held-out scores of the base model, every deterministic candidate and the random walk."""
+    """Held-out scores of the base model, every deterministic candidate and the random walk
+    (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`)."""
     sig = _signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
@@ -151,7 +154,8 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     xb_w = window(jnp.where(jnp.isfinite(xb), xb, 0.0), idx, inside)
     e_w = window(e, idx, inside)
     b = base_scores(xb_w, e_w, inside, n_folds)
-    scores = [candidate_scores(c, base, sig, theta_b, min_lag, b, xb_w, e_w, idx, inside, n_folds)
+    scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xb_w, e_w, idx, inside,
+                               n_folds)
               for c in cands]
     base_full = jnp.sum(e * e, 0)
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
@@ -188,14 +192,23 @@ def _fields(module: eqx.Module) -> dict:
 
 
 @eqx.filter_jit
-def _engine(base, cands, n_blocks, n_folds, min_lag, rw_m, dtemp_window, inputs, beta, theta,
+def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, dtemp_window, inputs, beta, theta,
             floors, idx, inside):
     def one(args):
         inp, b, th, fl, ix, ins = args
-        return _device_scores(base, cands, n_blocks, n_folds, min_lag, rw_m, dtemp_window, inp, b,
-                              th, fl, ix, ins)
+        return _device_scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, dtemp_window,
+                              inp, b, th, fl, ix, ins)
 
     return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside))
+
+
+def _windows(dtemp_window: float):
+    """The dT/dt window (s) as the compiled programs take it: arrays, traced, so that every
+    window shares one program; and the log of the shortest time constant a lag term's grid
+    starts at (the window, −inf for none), taken on the host."""
+    w = float(dtemp_window)
+    log_min_lag = math.log(w) if w > 0 else -math.inf
+    return jnp.asarray(log_min_lag, jnp.float64), jnp.asarray(w, jnp.float64)
 
 
 def _gather(chunks: list[dict], n_dev: int) -> dict:
@@ -207,8 +220,8 @@ def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
     """Ranges of every candidate and floors, streamed per chunk of devices."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
-    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx, aux),
-                                 float(res.options.dtemp_window)))
+    window_s = _windows(res.options.dtemp_window)[1]
+    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
@@ -221,12 +234,13 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     rw_m = segment_length(length, opts.n_blocks)
     beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
     windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
+    log_min_lag, window_s = _windows(opts.dtemp_window)
     out = []
     for _, idx in _chunks(n_dev, size):
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
-        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, float(opts.dtemp_window), rw_m,
-                    float(opts.dtemp_window), _inputs(batch, res, idx, aux), jnp.asarray(beta[idx]),
+        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m,
+                    window_s, _inputs(batch, res, idx, aux), jnp.asarray(beta[idx]),
                     jnp.asarray(theta[idx]), jnp.asarray(floors[idx]), jnp.asarray(ix), jnp.asarray(ins))
         out.append(jax.device_get(o))
     out = _gather(out, n_dev)

@@ -157,9 +157,11 @@ def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
 # --------------------------------------------------------------------------- candidates
 
 
-def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, min_lag: float):
+def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, log_min_lag):
     """The nonlinear-parameter grid (g, q) of a candidate and its columns at one grid point
-    (n, 3, k): the columns it adds to the base design."""
+    (n, 3, k): the columns it adds to the base design. ``log_min_lag``: log of the shortest
+    time constant (s) a lag term's grid starts at (the dT/dt window; −inf: none), an array,
+    so that a new window does not compile the scoring again."""
     term = c.term
     dtype = sig.gyro.dtype
     if c.old is not None:  # an order raised: the new columns at the base's time constants
@@ -172,9 +174,10 @@ def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, mi
     grid = term.nonlinear_grid(sig)
     if grid.shape[1] == 1:
         lo, hi = jnp.min(grid[:, 0]), jnp.max(grid[:, 0])
-        if term.tau_from_dtemp_window and min_lag > 0:
-            lo = jnp.maximum(lo, math.log(min_lag))
-            hi = jnp.maximum(hi, lo + math.log(4.0))
+        if term.tau_from_dtemp_window:
+            floored = log_min_lag > -jnp.inf
+            lo = jnp.where(floored, jnp.maximum(lo, log_min_lag), lo)
+            hi = jnp.where(floored, jnp.maximum(hi, lo + math.log(4.0)), hi)
         grid = jnp.linspace(lo, hi, GRID_POINTS)[:, None]
     return grid, lambda th_: term.columns(sig, th_)
 
@@ -222,10 +225,10 @@ def _vertex(costs, i, grid):
     return grid[i, 0] + jnp.clip(off, -1.0, 1.0) * (grid[1, 0] - grid[0, 0])
 
 
-def candidate_scores(c, base_model, sig, theta_b, min_lag, base, xb_w, e_w, idx, inside,
+def candidate_scores(c, base_model, sig, theta_b, log_min_lag, base, xb_w, e_w, idx, inside,
                      n_folds: int) -> CandidateScores:
     """The :class:`CandidateScores` of base + one candidate."""
-    grid, columns = candidate_grid(c, base_model, sig, theta_b, min_lag)
+    grid, columns = candidate_grid(c, base_model, sig, theta_b, log_min_lag)
     folds = jnp.arange(n_folds)
     fb = block_folds(base.a_b.shape[0], n_folds)
     tr, sh, sall, tot, blk = _scores_on(grid, columns, base, xb_w, e_w, idx, inside, n_folds)
