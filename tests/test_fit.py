@@ -162,7 +162,12 @@ def test_bad_devices_do_not_sink_the_batch():
                                rtol=1e-12, atol=1e-18)
 
 
-def test_nonlinear_start_far_away_is_flagged_alone():
+def test_nonlinear_start_far_away_is_flagged_alone(xla_defaults):
+    # the seven good devices converge from the true τ within LM's tolerance only with XLA's
+    # default arithmetic (fused multiply-adds): without them two run out of steps; so this
+    # test runs in a child with the default flags (conftest's xla_defaults)
+    if not xla_defaults:
+        return
     spec = "bias_poly(0)+warmup"
     batch, truth = _sim("warmup", spec, n=8, seed=4, duration=1800.0, sample_rate=0.5)
     theta0 = np.tile(np.asarray(truth.params.theta)[:, :1], 1)
