@@ -1,6 +1,6 @@
 """Shared test set-up: XLA flags for compile time, float64, the persistent compilation
-cache, compiled programs released before a worker runs out of memory mappings, module fixtures built on one
-xdist worker only, and shared paths."""
+cache, compiled programs released before a worker runs out of memory mappings, module
+fixtures built on one xdist worker only, and shared paths."""
 
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import os
 # them with XLA's loop emitters instead of its MLIR fusion emitters (as fit() already does
 # for its costlier programs, diffgyro.fit_sums.compile_options.FAST_COMPILE) and without
 # LLVM's optimisation passes: the same programs, about half the compile time, slower to
-# run, results equal to rounding (no fused multiply-adds). A test whose outcome rests on
-# the last bits of the arithmetic runs in a child with XLA's defaults (``xla_defaults``).
+# run, results equal to rounding. A test whose outcome rests on the last bits of the
+# arithmetic runs in a child with XLA's defaults (``xla_defaults``).
 # Set before JAX starts its CPU client; child processes inherit it; the flags are part of
 # the persistent cache's key. Users and benchmarks/ keep XLA's defaults.
 TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")

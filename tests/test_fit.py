@@ -163,9 +163,10 @@ def test_bad_devices_do_not_sink_the_batch():
 
 
 def test_nonlinear_start_far_away_is_flagged_alone(xla_defaults):
-    # the seven good devices converge from the true τ within LM's tolerance only with XLA's
-    # default arithmetic (fused multiply-adds): without them two run out of steps; so this
-    # test runs in a child with the default flags (conftest's xla_defaults)
+    # the seven good devices converge from the true τ within LM's tolerance with XLA's
+    # default compile flags; compiled without LLVM's optimisation (the suite's flags) two run
+    # out of steps, their columns bit-identical: LM's path rests on the last bits of its own
+    # arithmetic. So this test runs in a child with the default flags (conftest's xla_defaults)
     if not xla_defaults:
         return
     spec = "bias_poly(0)+warmup"
