@@ -79,8 +79,8 @@ diffgyro.enable_compilation_cache()
 started = time.perf_counter()
 DPH = 180 / np.pi * 3600  # rad/s -> °/h
 QUICK = bool(os.environ.get("DIFFGYRO_NOTEBOOK_QUICK"))
-N_DEVICES, N_BOOT, N_MC = (40, 40, 60) if QUICK else (120, 100, 250)
-STEPS, BUDGET_STEPS, BUDGET_ITERATIONS = (60, 40, 3) if QUICK else (200, 150, 6)
+N_DEVICES, N_BOOT, N_MC = (40, 40, 40) if QUICK else (120, 100, 250)
+STEPS, BUDGET_STEPS, BUDGET_ITERATIONS = (40, 40, 3) if QUICK else (200, 150, 6)
 
 model = ErrorModel.from_spec("bias_poly(3)+scale_poly(2)+gradient")
 op = OperatingRange(temps=(-40.0, 70.0), rate=10 * DEG)   # where the calibration is used
@@ -146,7 +146,7 @@ print(f"the honest band is {ratio.min():.1f}–{ratio.max():.1f}× the plain one
 
 # %%
 sig = jax.tree.map(lambda a: a[0], result.signals(batch))
-infl = compensation_sensitivity(model, sig, jnp.asarray([-40.0, 15.0, 70.0]), rate=0.0)
+infl = jax.jit(lambda s: compensation_sensitivity(model, s, jnp.asarray([-40.0, 15.0, 70.0])))(sig)
 fig, ax = plt.subplots(figsize=(10, 3))
 for j, t_op in enumerate([-40, 15, 70]):
     ax.plot(env.t / 3600, infl[j, 0, :, 0], lw=0.8, label=f"at {t_op} °C")
@@ -225,7 +225,7 @@ plt.show()
 # %% [markdown]
 # ## 5. Does the prediction hold? Monte Carlo
 #
-# 250 simulated devices per plan (60 in quick mode) (each with its own sensor lag,
+# 250 simulated devices per plan (40 in quick mode) (each with its own sensor lag,
 # self-heating and coefficients, white noise), calibrated with `fit`; the
 # worst case over the operating range of the RMS compensation error is
 # compared with the prediction.

@@ -379,6 +379,7 @@ class Prediction(eqx.Module):
         return jnp.max(self.total)
 
 
+@eqx.filter_jit
 def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
                  op: OperatingRange, truth: Params | None = None, truth_model: ErrorModel | None = None,
                  systematic: bool | None = None, fit_options=None) -> Prediction:
@@ -676,16 +677,8 @@ def simulate_devices(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
                                              if model.n_nonlinear else np.zeros((d, 0)))
     params = Params(beta=jnp.asarray(beta), theta=jnp.asarray(theta))
 
-    @jax.jit
-    def make(tau, heat, params):
-        def one(tau, heat, pr):
-            env = plan_environment(plan, config, tau, heat)
-            sig = env_signals(env, norm, reference=False, dtemp_window=config.dtemp_window)
-            return env, model.predict(pr, sig)
-
-        return jax.vmap(one)(tau, heat, params)
-
-    env, clean = make(jnp.asarray(tau), jnp.asarray(heat), params)
+    env, clean = _simulate_clean(plan, config, model, norm, jnp.asarray(tau), jnp.asarray(heat),
+                                 params)
     dt = float(env.dt[0])
     n = config.n_samples
     arw = np.broadcast_to(np.asarray(arw, float), (3,))
@@ -701,6 +694,17 @@ def simulate_devices(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
                   accel=np.asarray(env.accel), rate=np.asarray(env.rate_ref),
                   devices=tuple(f"sim{seed}-{i:04d}" for i in range(d)), sources=(None,) * d)
     return batch, params
+
+
+@eqx.filter_jit
+def _simulate_clean(plan, config, model, norm, tau, heat, params):
+    """Every device's environment and noiseless output (one program per plan shape and model)."""
+    def one(tau, heat, pr):
+        env = plan_environment(plan, config, tau, heat)
+        sig = env_signals(env, norm, reference=False, dtemp_window=config.dtemp_window)
+        return env, model.predict(pr, sig)
+
+    return jax.vmap(one)(tau, heat, params)
 
 
 class MonteCarlo(eqx.Module):

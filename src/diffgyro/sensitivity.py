@@ -442,6 +442,7 @@ def compensation_jacobian(model: ErrorModel, params: Params, norm: TempNorm, tem
     return jac, corr
 
 
+@eqx.filter_jit
 def _band_arrays(model: ErrorModel, params: Params, norm: TempNorm, cov, temps, rate, dtemp):
     g, corr = compensation_jacobian(model, params, norm, temps, rate, dtemp)
     return corr, jnp.sqrt(jnp.maximum(jnp.einsum("mik,kl,mil->mi", g, cov, g), 0.0))
