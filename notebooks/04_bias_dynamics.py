@@ -23,9 +23,14 @@
 #    `q`, `r` measure the same noise.
 # 2. Hour-long runs with motion and short pauses: heading drift with no
 #    compensation, with S1, with the learned filter and with the smoother.
+#
+# With the environment variable `DIFFGYRO_NOTEBOOK_QUICK` set (the test suite
+# sets it) the static run is half an hour and there are four hour-long runs
+# instead of eight; every step is the same.
 
 # %%
 import math
+import os
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -37,18 +42,19 @@ from diffgyro.kalman import fit_random_walk, heading_errors
 
 diffgyro.enable_x64()
 diffgyro.enable_compilation_cache()
+QUICK = bool(os.environ.get("DIFFGYRO_NOTEBOOK_QUICK"))
 
 # %% [markdown]
 # ## 1. One static run: Allan read-outs and learned noise agree
 #
-# Two hours at 5 Hz; white noise of angle random walk `N` and a bias random
+# Two hours at 5 Hz (half an hour in quick mode); white noise of angle random walk `N` and a bias random
 # walk of rate random walk `K`. The Allan read-outs are `N` (σ at τ = 1 s on
 # the −½ line) and `K` (σ at τ = 3 s on the +½ line); the Kalman model gives
 # `√(r·dt)` and `√q` for the same two numbers.
 
 # %%
 rng = np.random.default_rng(4)
-fs, hours = 5.0, 2.0
+fs, hours = 5.0, (0.5 if QUICK else 2.0)
 dt = 1.0 / fs
 n = int(hours * 3600 * fs)
 arw_true, rrw_true = 5e-4, 2e-5  # rad/s/√Hz, rad/s²/√Hz
@@ -96,7 +102,7 @@ def simulate_pause_run(seed, hours=1.05, fs=2.0, arw=1.5e-3, rrw=3e-5, first=60.
     return t, gyro, rate, bias, static
 
 
-fs2, n_dev = 2.0, 8
+fs2, n_dev = 2.0, (4 if QUICK else 8)
 runs = [simulate_pause_run(s, fs=fs2) for s in range(n_dev)]
 batch = Batch.from_recordings([Recording(t=r[0], gyro=r[1], device=f"run{i}") for i, r in enumerate(runs)])
 static = np.zeros(batch.mask.shape, bool)
