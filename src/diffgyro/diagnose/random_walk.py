@@ -30,7 +30,7 @@ from .scoring import block_folds
 from .thresholds import RW_GRID
 
 #: Longest series (segments of every block) the smoother runs on.
-RW_POINTS = 1 << 15
+RW_POINTS = 1 << 12
 
 
 def segment_length(length: int, n_blocks: int, points: int | None = None) -> int:
