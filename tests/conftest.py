@@ -10,15 +10,13 @@ import os
 # them with XLA's loop emitters instead of its MLIR fusion emitters (as fit() already does
 # for its costlier programs, diffgyro.fit_sums.compile_options.FAST_COMPILE) and without
 # LLVM's optimisation passes: the same programs, about half the compile time, slower to
-# run, results equal to rounding. A test whose outcome rests on the last bits of the
-# arithmetic runs in a child with XLA's defaults (``xla_defaults``).
-# Set before JAX starts its CPU client; child processes inherit it; the flags are part of
-# the persistent cache's key. Users and benchmarks/ keep XLA's defaults.
+# run, results equal to rounding. Set before JAX starts its CPU client; child processes
+# inherit them; the flags are part of the persistent cache's key. Users and benchmarks/
+# keep XLA's defaults.
 TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimization_level=0")
-XLA_DEFAULTS = os.environ.get("DIFFGYRO_TEST_XLA_DEFAULTS") == "1"
 os.environ["XLA_FLAGS"] = " ".join(
     [f for f in os.environ.get("XLA_FLAGS", "").split() if f not in TEST_XLA_FLAGS]
-    + ([] if XLA_DEFAULTS else list(TEST_XLA_FLAGS)))
+    + list(TEST_XLA_FLAGS))
 
 from pathlib import Path  # noqa: E402
 
@@ -56,19 +54,3 @@ def pytest_collection_modifyitems(config, items):
         if any(d.scope == "module" and d.baseid.split("::")[0] == module
                for defs in info.name2fixturedefs.values() for d in defs):
             item.add_marker(pytest.mark.xdist_group(module))
-
-
-@pytest.fixture
-def xla_defaults(request) -> bool:
-    """Runs the requesting test in a child pytest with XLA's default compile flags: True in
-    that child (the test then runs its body), False here once the child has passed."""
-    import subprocess
-    import sys
-
-    if XLA_DEFAULTS:
-        return True
-    env = dict(os.environ, DIFFGYRO_TEST_XLA_DEFAULTS="1")
-    out = subprocess.run([sys.executable, "-m", "pytest", "-q", "-n", "0", "-p", "no:cacheprovider",
-                          request.node.nodeid], env=env, cwd=ROOT, capture_output=True, text=True)
-    assert out.returncode == 0, out.stdout[-4000:] + out.stderr[-2000:]
-    return False

@@ -162,13 +162,7 @@ def test_bad_devices_do_not_sink_the_batch():
                                rtol=1e-12, atol=1e-18)
 
 
-def test_nonlinear_start_far_away_is_flagged_alone(xla_defaults):
-    # the seven good devices converge from the true τ within LM's tolerance with XLA's
-    # default compile flags; compiled without LLVM's optimisation (the suite's flags) two run
-    # out of steps, their columns bit-identical: LM's path rests on the last bits of its own
-    # arithmetic. So this test runs in a child with the default flags (conftest's xla_defaults)
-    if not xla_defaults:
-        return
+def test_nonlinear_start_far_away_is_flagged_alone():
     spec = "bias_poly(0)+warmup"
     batch, truth = _sim("warmup", spec, n=8, seed=4, duration=1800.0, sample_rate=0.5)
     theta0 = np.tile(np.asarray(truth.params.theta)[:, :1], 1)
