@@ -156,8 +156,6 @@ def simulate(
     true coefficients refer to (pass it to ``fit(..., aux_norm=)``).
     The same arguments and seed always give identical output.
     """
-    # Over 80 lines only through its signature and docstring: the body is the four steps
-    # below, each a call to the helpers of this package.
     if isinstance(n_devices, bool) or not isinstance(n_devices, int | np.integer) or n_devices < 1:
         raise DataError(f"number of devices must be a positive integer, not {n_devices!r}")
     d = int(n_devices)
