@@ -13,11 +13,41 @@ from diffgyro import Batch, Recording, noise
 from diffgyro.fit import device_noise_floor, fit
 
 
-def definition(y, rate, mask):
-    """The floor per device and axis, written out with numpy's median and quantile: the
-    truncation-corrected RMS of |Δy − median| inside 4 · 1.4826 · MAD, or, when fewer
-    than 90 % are inside (the MAD collapsed on quantised output), of all but the largest
-    0.5 %, over √2."""
+def exact(d):
+    """The floor of one row of valid differences, written out with numpy's median and
+    quantile: the truncation-corrected RMS of |Δy − median| inside 4 · 1.4826 · MAD, or,
+    when fewer than 90 % are inside (the MAD collapsed on quantised output), of all but
+    the largest 0.5 %, over √2."""
+    dev = np.abs(d - np.median(d))
+    inside = dev <= 4 * 1.4826 * np.median(dev)
+    ms = np.mean(dev[inside] ** 2) / noise.TRUNC4
+    if inside.sum() < 0.9 * dev.size:  # the MAD collapsed (coarse quantisation)
+        ms = np.mean(dev[dev <= np.quantile(dev, 0.995)] ** 2)
+        if not ms > 0:
+            ms = np.mean(dev**2)
+    return np.sqrt(ms / 2)
+
+
+def subsampled(d):
+    """The floor of a row of more than SUBSAMPLE valid differences, written out with
+    numpy's median and variance: the variance of the differences inside the window placed
+    by the median and MAD of the evenly spread subsample; the exact floor where the
+    subsample cannot place it (fewer than 95 % inside, a quarter of it tied at its
+    median, an infinite difference)."""
+    k = noise.SUBSAMPLE
+    sub = d[(2 * np.arange(k) + 1) * d.size // (2 * k)]
+    med = np.median(sub)
+    dev = np.abs(sub - med)
+    half = 4 * 1.4826 * np.median(dev)
+    inside = (d - med) ** 2 <= half**2
+    if inside.sum() < 0.95 * d.size or (dev == 0).sum() >= 0.25 * k or np.isinf(d).any():
+        return exact(d)
+    return np.sqrt(np.var(d[inside]) / noise.TRUNC4 / 2)
+
+
+def definition(y, rate, mask, floor=None):
+    """The floor per device and axis (``floor`` of each row's valid differences; by
+    default the statistic :mod:`diffgyro.noise` documents)."""
     y = y if rate is None else y - rate
     out = np.full((y.shape[0], 3), np.nan)
     for i in range(y.shape[0]):
@@ -25,16 +55,8 @@ def definition(y, rate, mask):
         for k in range(3):
             d = np.diff(y[i, :, k])[pair]
             d = d[~np.isnan(d)]
-            if d.size == 0:
-                continue
-            dev = np.abs(d - np.median(d))
-            inside = dev <= 4 * 1.4826 * np.median(dev)
-            ms = np.mean(dev[inside] ** 2) / noise.TRUNC4
-            if inside.sum() < 0.9 * dev.size:  # the MAD collapsed (coarse quantisation)
-                ms = np.mean(dev[dev <= np.quantile(dev, 0.995)] ** 2)
-                if not ms > 0:
-                    ms = np.mean(dev**2)
-            out[i, k] = np.sqrt(ms / 2)
+            if d.size:
+                out[i, k] = (floor or (subsampled if d.size > noise.SUBSAMPLE else exact))(d)
     return out
 
 
@@ -43,7 +65,7 @@ def catalogue():
     gaps, a device without one valid pair, heavy tails, with and without a rate."""
     rng = np.random.default_rng(11)
     cases = []
-    for n in (2, 3, 4, 11, 1001):
+    for n in (2, 3, 4, 11, 1001, 2500):  # 2500: the window placed from a subsample
         d = 4
         g = rng.normal(size=(d, n, 3)) * 1e-3 + rng.standard_cauchy(size=(d, n, 3)) * 1e-5
         g[:, : n // 3, 1] = 0.25  # ties
@@ -75,7 +97,7 @@ def test_equals_the_definition_and_the_jax_version(case):
     assert np.isnan(got[no_pair]).all() and np.isfinite(got[~no_pair]).all()
 
 
-@pytest.mark.parametrize("n", [2, 3, 4, 1000, 1001])
+@pytest.mark.parametrize("n", [2, 3, 4, 1000, 1001, 3000])
 def test_every_pair_valid_equals_the_definition(n):
     # every pair valid (fit's usual case, selected without the masked path's padding):
     # odd and even counts, ties, a constant axis, heavy tails, an axis whose MAD
@@ -102,6 +124,40 @@ def test_every_pair_valid_equals_the_definition(n):
     g[2, n // 2, 0] = np.nan  # the only NaN now on the axis whose MAD collapsed
     np.testing.assert_allclose(noise.noise_axes(g, None, mask), definition(g, None, mask),
                                rtol=1e-13, atol=0)
+
+
+@pytest.mark.parametrize("lsb", [0.0, 0.3, 0.7, 1.0, 1.5, 3.0])
+def test_the_subsample_keeps_the_floor_of_quantised_output(lsb):
+    # white noise quantised from finely to coarser than σ (the MAD locks to whole LSBs, then
+    # collapses): within 1 % of the exact statistic, exactly it where the subsample is tied
+    rng = np.random.default_rng(17)
+    y = 0.01 * np.arange(6000)[None, :, None] + rng.normal(size=(4, 6000, 3))
+    if lsb:
+        y = np.round(y / lsb) * lsb
+    mask = np.ones((4, 6000), bool)
+    got = noise.noise_axes(y, None, mask)
+    want = definition(y, None, mask, floor=exact)
+    np.testing.assert_allclose(got, want, rtol=0.01)
+    if lsb >= 1.5:  # a quarter of the subsample or more at its median
+        np.testing.assert_allclose(got, want, rtol=1e-13)
+
+
+def test_a_device_has_one_floor_alone_or_in_a_ragged_batch():
+    # the shorter device of a batch ends masked: its valid differences are packed and get
+    # the window of the same subsample as when it is fitted alone (fit and diagnose agree
+    # whatever the batch); a gap or a NaN sample leaves its differences out of the ranks
+    rng = np.random.default_rng(23)
+    short = rng.normal(size=(1, 3000, 3)) + 0.1 * rng.standard_cauchy(size=(1, 3000, 3))
+    alone = noise.noise_axes(short, None, np.ones((1, 3000), bool))
+    g = np.concatenate([np.pad(short, ((0, 0), (0, 2000), (0, 0))),
+                        rng.normal(size=(1, 5000, 3))])
+    mask = np.ones((2, 5000), bool)
+    mask[0, 3000:] = False
+    np.testing.assert_array_equal(noise.noise_axes(g, None, mask)[:1], alone)
+    mask[1, 1000:1400] = False
+    g[1, 2500, 1] = np.nan
+    got = noise.noise_axes(g, None, mask)
+    np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13)
 
 
 def test_single_sample_devices_have_no_floor():

@@ -234,7 +234,8 @@ def _middle_deviations(s, n, med, split, k):
 
 def device_noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
     """White-noise σ per axis from successive differences (model-free), over pairs of
-    valid samples: :func:`diffgyro.noise.sigma_from_differences` from one sort."""
+    valid samples: :func:`diffgyro.noise.sigma_from_differences` from one sort (and a
+    sort of the subsample on rows longer than :data:`diffgyro.noise.SUBSAMPLE`)."""
     if y.shape[0] < 2:
         return jnp.full((3,), jnp.nan, y.dtype)
     dy = jnp.diff(y, axis=0).T  # (3, n-1)
@@ -263,7 +264,35 @@ def device_noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float
     ms_trim, _ = mean_count(dev <= trim[:, None])
     ms_trim = jnp.where(ms_trim > 0, ms_trim, mean_count(valid)[0])  # a nearly constant output
     ms = jnp.where(inside < noise.COLLAPSED * n, ms_trim, ms / noise.TRUNC4)
+    if dy.shape[-1] > noise.SUBSAMPLE:  # rows long enough to place the window from a subsample
+        ms = jnp.where(n > noise.SUBSAMPLE, _subsampled_ms(dy, pair, n, ms), ms)
     return jnp.where(n > 0, jnp.sqrt(ms / 2.0), jnp.nan)
+
+
+def _subsampled_ms(dy: Float[Array, "3 m"], pair: Bool[Array, "3 m"], n: Int[Array, " 3"],
+                   exact: Float[Array, " 3"]) -> Float[Array, " 3"]:
+    """Twice the squared floor of rows of more than :data:`diffgyro.noise.SUBSAMPLE` valid
+    differences, as :func:`diffgyro.noise._sigma_subsampled` gives it: the window placed
+    from the median and MAD of the subsample, the variance of the differences inside it;
+    ``exact`` where that function keeps the exact statistic."""
+    k = noise.SUBSAMPLE
+    valid = pair & ~jnp.isnan(dy)
+    rank = (2 * jnp.arange(k)[None, :] + 1) * n[:, None] // (2 * k)  # noise.subsample_ranks
+    at = jax.vmap(jnp.searchsorted)(jnp.cumsum(valid, axis=-1), rank + 1)  # the rank-th valid
+    sub = jnp.take_along_axis(dy, jnp.clip(at, 0, dy.shape[-1] - 1), axis=-1)
+    every = jnp.ones(sub.shape, bool)
+    centre = masked_median(sub, every)
+    dev = jnp.abs(sub - centre[:, None])
+    half_width = 4.0 * 1.4826 * masked_median(dev, every)
+    s = dy - centre[:, None]
+    q = s * s
+    inside = valid & (q <= (half_width * half_width)[:, None])  # noise_passes.window_sums
+    count = jnp.sum(inside, axis=-1)
+    mean = jnp.sum(jnp.where(inside, s, 0.0), axis=-1) / jnp.maximum(count, 1)
+    ms = jnp.sum(jnp.where(inside, q, 0.0), axis=-1) / jnp.maximum(count, 1) - mean * mean
+    keep = ((count < noise.EXACT_INSIDE * n) | (jnp.sum(dev == 0, axis=-1) >= noise.EXACT_TIES * k)
+            | jnp.any(valid & jnp.isinf(dy), axis=-1))
+    return jnp.where(keep, exact, jnp.maximum(ms, 0.0) / noise.TRUNC4)
 
 
 def _covariance(model: ErrorModel, sig: Signals, params: Params, w, resid, n_eff):
