@@ -90,6 +90,8 @@ def test_equals_the_definition_and_the_jax_version(case):
     got = noise.noise_axes(g, rate, mask)
     np.testing.assert_allclose(got, definition(g, rate, mask), rtol=1e-13, atol=0,
                                equal_nan=True)
+    np.testing.assert_allclose(noise.noise_axes(g, rate, mask, compiled=True), got, rtol=1e-13,
+                               atol=0, equal_nan=True)  # numba's passes, numpy's numbers
     y = jnp.asarray(g if rate is None else g - rate)
     jaxed = np.asarray(jax.vmap(device_noise_floor)(y, jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
@@ -118,6 +120,8 @@ def test_every_pair_valid_equals_the_definition(n):
     got = noise.noise_axes(g, None, mask)
     np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13, atol=0,
                                equal_nan=True)
+    np.testing.assert_allclose(noise.noise_axes(g, None, mask, compiled=True), got, rtol=1e-13,
+                               atol=0, equal_nan=True)
     jaxed = np.asarray(jax.vmap(device_noise_floor)(jnp.asarray(g), jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     g[4, n // 2, 0] = g[5, n - 1, 2] = 0.0
@@ -135,7 +139,7 @@ def test_the_subsample_keeps_the_floor_of_quantised_output(lsb):
     if lsb:
         y = np.round(y / lsb) * lsb
     mask = np.ones((4, 6000), bool)
-    got = noise.noise_axes(y, None, mask)
+    got = noise.noise_axes(y, None, mask, compiled=True)
     want = definition(y, None, mask, floor=exact)
     np.testing.assert_allclose(got, want, rtol=0.01)
     if lsb >= 1.5:  # a quarter of the subsample or more at its median
@@ -148,15 +152,15 @@ def test_a_device_has_one_floor_alone_or_in_a_ragged_batch():
     # whatever the batch); a gap or a NaN sample leaves its differences out of the ranks
     rng = np.random.default_rng(23)
     short = rng.normal(size=(1, 3000, 3)) + 0.1 * rng.standard_cauchy(size=(1, 3000, 3))
-    alone = noise.noise_axes(short, None, np.ones((1, 3000), bool))
+    alone = noise.noise_axes(short, None, np.ones((1, 3000), bool), compiled=True)
     g = np.concatenate([np.pad(short, ((0, 0), (0, 2000), (0, 0))),
                         rng.normal(size=(1, 5000, 3))])
     mask = np.ones((2, 5000), bool)
     mask[0, 3000:] = False
-    np.testing.assert_array_equal(noise.noise_axes(g, None, mask)[:1], alone)
+    np.testing.assert_array_equal(noise.noise_axes(g, None, mask, compiled=True)[:1], alone)
     mask[1, 1000:1400] = False
     g[1, 2500, 1] = np.nan
-    got = noise.noise_axes(g, None, mask)
+    got = noise.noise_axes(g, None, mask, compiled=True)
     np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13)
 
 
@@ -174,6 +178,14 @@ def test_chunks_on_threads_give_the_one_call_answer(monkeypatch, threads):
     np.testing.assert_allclose(floor, np.sqrt(np.mean(axes**2, axis=1)), rtol=1e-15)
     empty_floor, empty_axes = noise.start(g[:0], None, mask[:0])()
     assert empty_floor.shape == (0,) and empty_axes.shape == (0, 3)
+    # long rows: the batch, not each chunk, chooses the compiled passes
+    g = rng.normal(size=(7, 1100, 3)) + 0.1 * rng.standard_cauchy(size=(7, 1100, 3))
+    mask = np.ones((7, 1100), bool)
+    monkeypatch.setattr(noise, "CHUNK_SAMPLES", 2 * 1100)
+    monkeypatch.setattr(noise, "COMPILED_SAMPLES", 7 * 1100)
+    _, axes = noise.start(g, None, mask, threads=threads)()
+    np.testing.assert_array_equal(axes, noise.noise_axes(g, None, mask, compiled=True))
+    np.testing.assert_array_equal(axes, noise.noise_axes(g, None, mask))
 
 
 def test_both_fit_paths_report_the_same_floor():

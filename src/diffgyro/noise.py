@@ -13,7 +13,9 @@ place the window, so they are taken from an even subsample of :data:`SUBSAMPLE`
 of the row's differences, and the spread is measured about the mean of the
 differences inside the window (where the row's median lies for noise symmetric
 about it, while the subsample's median is off by about 4 % of σ): one compiled
-pass over the row (:mod:`diffgyro.noise_passes`) counts and sums them. The floor then stays
+pass over the row (:mod:`diffgyro.noise_passes`, in batches of at least
+:data:`COMPILED_SAMPLES` device-samples; numpy's operations in smaller ones)
+counts and sums them. The floor then stays
 within 1 % of the exact statistic: at most 0.4 % over every axis of the
 diagnose catalogue's recordings, about 0.1 % for white noise
 (``tests/test_diagnose.py``). Rows whose window the subsample cannot place
@@ -52,49 +54,62 @@ EXACT_INSIDE = 0.95
 #: ... or where this share of its subsample equals the subsample's median (output
 #: quantised to about its noise or coarser: the MAD locks to whole LSBs).
 EXACT_TIES = 0.25
+#: Device-samples of a batch from which its long rows take the compiled passes
+#: (:mod:`diffgyro.noise_passes`; numba's import and first call cost a process about
+#: 0.35 s, repaid by about 4 million device-samples); smaller batches take numpy's,
+#: the same statistic to rounding.
+COMPILED_SAMPLES = 1 << 22
 #: Device-samples per chunk of work given to a thread.
 CHUNK_SAMPLES = 1 << 18
 #: Device-samples per block a thread differences and selects in its cache (3 axes ×
 #: 8 bytes each: about 1.5 MB, within a core's L2).
 BLOCK_SAMPLES = 1 << 16
-#: Device-samples per block of long rows, which are read twice, not selected: larger
-#: blocks (about 6 MB, from the L3 cache) save numpy's calls per block.
+#: Device-samples per block of long rows through the compiled passes, which read them
+#: twice and select only the subsample: larger blocks (about 6 MB, from the L3 cache)
+#: save numpy's calls per block.
 PASS_SAMPLES = 1 << 18
 
 
 def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
-               mask: Bool[np.ndarray, "d n"], dtype=np.float64) -> Float[np.ndarray, "d 3"]:
+               mask: Bool[np.ndarray, "d n"], dtype=np.float64,
+               compiled: bool | None = None) -> Float[np.ndarray, "d 3"]:
     """White-noise σ per device and axis from successive differences of ``gyro − rate``
     over pairs of valid samples (NaN differences left out), NaN where no pair is valid:
-    :func:`sigma_from_differences` of the lag-1 differences."""
+    :func:`sigma_from_differences` of the lag-1 differences. ``compiled``: long rows
+    through the compiled passes (default: from :data:`COMPILED_SAMPLES`)."""
     d, n = np.shape(mask)
+    compiled = d * n >= COMPILED_SAMPLES if compiled is None else compiled
     out = np.full((d, 3), np.nan, dtype)
     if n < 2:
         return out
-    step = max(1, (PASS_SAMPLES if n - 1 > SUBSAMPLE else BLOCK_SAMPLES) // n)
+    step = max(1, (PASS_SAMPLES if compiled and n - 1 > SUBSAMPLE else BLOCK_SAMPLES) // n)
     for a in range(0, d, step):
         b = min(a + step, d)
         pair = np.asarray(mask[a:b], bool)
         pair = pair[:, 1:] & pair[:, :-1]
-        sigma = _sigma_every_pair(gyro, rate, a, b, dtype) if pair.all() else None
+        sigma = _sigma_every_pair(gyro, rate, a, b, dtype, compiled) if pair.all() else None
         if sigma is None or np.isnan(sigma).any():  # pairs left out, or NaN differences
-            sigma = sigma_from_differences(_differences(gyro, rate, a, b, dtype), pair)
+            sigma = sigma_from_differences(_differences(gyro, rate, a, b, dtype), pair, compiled)
         out[a:b] = sigma.reshape(-1, 3)
     return out
 
 
 def _sigma_every_pair(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
-                      a: int, b: int, dtype) -> Float[np.ndarray, " r"]:
+                      a: int, b: int, dtype, compiled: bool) -> Float[np.ndarray, " r"]:
     """:func:`sigma_from_differences` of devices ``a:b`` where every pair is valid (fit's
     usual case; NaN for a row holding a NaN): long rows differenced and subsampled in one
-    compiled pass."""
+    compiled pass when ``compiled``."""
     m = np.shape(gyro)[1] - 1
     if m <= SUBSAMPLE:
         return _sigma_equal(_differences(gyro, rate, a, b, dtype), m)
+    if not compiled:
+        r = _differences(gyro, rate, a, b, dtype)
+        return _sigma_rows(r, r[:, subsample_ranks(m)])
     from .noise_passes import differences
 
     r = None if rate is None else np.asarray(rate[a:b], dtype)
-    return _sigma_rows(*differences(np.asarray(gyro[a:b], dtype), r, subsample_ranks(m)))
+    return _sigma_rows(*differences(np.asarray(gyro[a:b], dtype), r, subsample_ranks(m)),
+                       compiled=True)
 
 
 def _differences(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
@@ -109,8 +124,8 @@ def _differences(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 
     return rows.reshape(-1, n - 1)
 
 
-def sigma_from_differences(rows: Float[np.ndarray, "r m"],
-                           valid: Bool[np.ndarray, "c m"]) -> Float[np.ndarray, " r"]:
+def sigma_from_differences(rows: Float[np.ndarray, "r m"], valid: Bool[np.ndarray, "c m"],
+                           compiled: bool = False) -> Float[np.ndarray, " r"]:
     """White-noise σ behind each row of differences ``Δy`` (``valid`` masks every
     group of ``r / c`` consecutive rows alike), in place; NaN for a row without one.
 
@@ -121,18 +136,19 @@ def sigma_from_differences(rows: Float[np.ndarray, "r m"],
     (where the MAD of differences locks to whole LSBs). Past ~2σ per LSB most
     differences are exactly zero and the MAD collapses: then the RMS of all but
     the largest 0.5 % of the deviations is used. A row of more than
-    :data:`SUBSAMPLE` valid differences: see :func:`_sigma_subsampled`.
+    :data:`SUBSAMPLE` valid differences: see :func:`_sigma_subsampled` (through the
+    compiled passes when ``compiled``).
     """
     per = rows.shape[0] // max(valid.shape[0], 1)
     if valid.all() and not np.isnan(rows.sum()):  # every difference counts (the usual case)
-        return _sigma_rows(rows)
+        return _sigma_rows(rows, compiled=compiled)
     ok = np.repeat(valid, per, axis=0) & ~np.isnan(rows)
     counts = np.count_nonzero(ok, axis=1)
     out = np.full(rows.shape[0], np.nan, rows.dtype)
     for count in np.unique(counts):  # rows with as many valid differences, packed
         if count:
             sel = counts == count
-            out[sel] = _sigma_rows(rows[sel][ok[sel]].reshape(-1, count))
+            out[sel] = _sigma_rows(rows[sel][ok[sel]].reshape(-1, count), compiled=compiled)
     return out
 
 
@@ -147,8 +163,8 @@ def subsample_ranks(count: int) -> np.ndarray:
     return ranks
 
 
-def _sigma_rows(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"] | None = None
-                ) -> Float[np.ndarray, " r"]:
+def _sigma_rows(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"] | None = None,
+                compiled: bool = False) -> Float[np.ndarray, " r"]:
     """:func:`sigma_from_differences` of rows of valid differences (NaN for a row holding
     a NaN), given their :func:`subsample_ranks` columns or not: exact up to
     :data:`SUBSAMPLE` differences and on the rows the subsample cannot place the window
@@ -157,21 +173,20 @@ def _sigma_rows(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"] | Non
     if count <= SUBSAMPLE:
         return _sigma_equal(r, count)
     if sub is None:
-        from .noise_passes import take
-
-        sub = take(r, subsample_ranks(count))
-    sigma = _sigma_subsampled(r, sub)
+        sub = r[:, subsample_ranks(count)]
+    sigma = _sigma_subsampled(r, sub, compiled)
     exact = np.isnan(sigma)
     if exact.any():
         sigma[exact] = _sigma_equal(r[exact], count)
     return sigma
 
 
-def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
-                      ) -> Float[np.ndarray, " r"]:
+def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"],
+                      compiled: bool = False) -> Float[np.ndarray, " r"]:
     """The floor of long rows (every difference valid) with the window placed from the
     subsample: its median and MAD (numpy's introselect); then one compiled pass over
-    every difference (:func:`diffgyro.noise_passes.window_sums`) for the standard
+    every difference (:func:`diffgyro.noise_passes.window_sums` when ``compiled``, else
+    numpy's operations, the same numbers to rounding) for the standard
     deviation of those inside the window, truncation-corrected, over √2. NaN where the
     exact statistic is needed: a NaN or an infinite difference, fewer than
     :data:`EXACT_INSIDE` inside, :data:`EXACT_TIES` of the subsample at its median.
@@ -182,8 +197,10 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
     noise, at most 0.4 % over the diagnose catalogue (heavy tails put more mass at the
     edge), held under 1 % by ``tests/test_diagnose.py`` and ``tests/test_noise.py``.
     """
-    from .noise_passes import deviations, window_sums
-
+    if compiled:
+        from .noise_passes import deviations, window_sums
+    else:
+        deviations, window_sums = _deviations, _window_sums
     m, k = r.shape[1], sub.shape[1]
     centre = _middle(sub, k)
     dev, ties = deviations(sub, centre)
@@ -194,6 +211,23 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
     ms = np.maximum(s2 / inside - mean * mean, 0.0) / TRUNC4
     exact = (count < EXACT_INSIDE * m) | (ties >= EXACT_TIES * k)
     return np.where(exact, np.nan, np.sqrt(ms / 2.0))
+
+
+def _deviations(sub: Float[np.ndarray, "r k"], centre: Float[np.ndarray, " r"]
+                ) -> tuple[Float[np.ndarray, "r k"], np.ndarray]:
+    """:func:`diffgyro.noise_passes.deviations` with numpy."""
+    dev = np.abs(sub - centre[:, None])
+    return dev, np.count_nonzero(dev == 0, axis=1)
+
+
+def _window_sums(rows: Float[np.ndarray, "r m"], centre: Float[np.ndarray, " r"],
+                 half_width: Float[np.ndarray, " r"]) -> Float[np.ndarray, "r 3"]:
+    """:func:`diffgyro.noise_passes.window_sums` with numpy."""
+    s = rows - centre[:, None]
+    q = s * s
+    inside = (q <= (half_width * half_width)[:, None]).astype(rows.dtype)
+    return np.stack([inside.sum(axis=1), np.einsum("ij,ij->i", s, inside),
+                     np.einsum("ij,ij->i", q, inside)], axis=1)
 
 
 def _sigma_equal(r: Float[np.ndarray, "r m"], count: int) -> Float[np.ndarray, " r"]:
@@ -293,10 +327,11 @@ def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | N
     """
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
+    compiled = d * n >= COMPILED_SAMPLES  # the whole batch's choice, whatever its chunks
     # a thread per core this process may run on
     pool = ThreadPoolExecutor(threads or available_cores(), thread_name_prefix="diffgyro-noise")
     jobs = [pool.submit(noise_axes, gyro[a:a + step], None if rate is None else rate[a:a + step],
-                        mask[a:a + step], dtype) for a in range(0, d, step)]
+                        mask[a:a + step], dtype, compiled) for a in range(0, d, step)]
     pool.shutdown(wait=False)  # the threads end with the last chunk
 
     def result() -> tuple[np.ndarray, np.ndarray]:

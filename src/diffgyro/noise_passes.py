@@ -49,20 +49,6 @@ def differences(y: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] 
 
 
 @njit(cache=True, nogil=True)
-def _take(rows, ranks, out):  # pragma: no cover - compiled
-    for i in range(rows.shape[0]):
-        for q in range(ranks.shape[0]):
-            out[i, q] = rows[i, ranks[q]]
-
-
-def take(rows: Float[np.ndarray, "r m"], ranks: Int[np.ndarray, " k"]) -> Float[np.ndarray, "r k"]:
-    """``rows[:, ranks]``."""
-    out = np.empty((rows.shape[0], ranks.shape[0]), rows.dtype)
-    _take(rows, np.ascontiguousarray(ranks, np.int64), out)
-    return out
-
-
-@njit(cache=True, nogil=True)
 def _deviations(sub, centre, dev, ties):  # pragma: no cover - compiled
     for i in range(sub.shape[0]):
         c = centre[i]
