@@ -276,8 +276,8 @@ def case_bias_poly3(devices, samples, subset, repeats, bw, full_fit=True):
                         note="fit(noise_floor=False): coefficients, held-out folds, covariance, "
                              "status"))
     if full_fit:
-        # the default fit() also computes the model-free noise floor (two medians per device
-        # and axis, on the host)
+        # the default fit() also computes the model-free noise floor (per device and axis,
+        # on the host's threads beside the fit)
         def candidate_full():
             r = fit("bias_poly(3)", batch)
             return np.asarray(block(r.params.beta))

@@ -49,9 +49,9 @@ class FitOptions(eqx.Module):
     #: forms it (optimistix LM for time constants); "auto": "sums" with the closed-form
     #: solver (linear models and time constants alike), "direct" with ``solver="lm"``.
     path: str = eqx.field(static=True, default="auto")
-    #: The model-free noise floor: two medians per device and axis (on the host's
-    #: threads, :mod:`diffgyro.noise`), the costliest part of a linear fit; False
-    #: skips it (NaN) when only coefficients matter.
+    #: The model-free noise floor per device and axis (on the host's threads beside
+    #: the compiled fit, :mod:`diffgyro.noise`); False skips it (NaN) when only
+    #: coefficients matter.
     noise_floor: bool = eqx.field(static=True, default=True)
 
     def replace(self, **kw) -> FitOptions:
