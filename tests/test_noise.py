@@ -160,8 +160,11 @@ def test_a_device_has_one_floor_alone_or_in_a_ragged_batch():
     np.testing.assert_array_equal(noise.noise_axes(g, None, mask, compiled=True)[:1], alone)
     mask[1, 1000:1400] = False
     g[1, 2500, 1] = np.nan
+    g[1, 4000, 2] = np.inf  # its two differences are valid, infinite: the exact statistic
     got = noise.noise_axes(g, None, mask, compiled=True)
     np.testing.assert_allclose(got, definition(g, None, mask), rtol=1e-13)
+    np.testing.assert_allclose(noise.noise_axes(g, None, mask, compiled=False), got, rtol=1e-13)
+    assert np.isfinite(got).all()
 
 
 def test_single_sample_devices_have_no_floor():
