@@ -650,7 +650,8 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
     import os
     import tempfile
 
-    cache = os.environ.get("DIFFGYRO_CACHE_DIR", "")
+    own_cache = tempfile.TemporaryDirectory()  # the children's cache when none is set
+    cache = os.environ.get("DIFFGYRO_CACHE_DIR") or own_cache.name
     rows = []
     for d, n in NATIVE_LADDER.get(samples, ((devices, samples),)):
         pair = []
@@ -666,6 +667,7 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
                 print(f"  {command}:native {d} x {n}: {r['s']:.2f} s, {r['rss_GB']:.3f} GB", flush=True)
         pair[1]["time_vs_fit"] = pair[1]["diffgyro_s"] / pair[0]["diffgyro_s"]
         rows += pair
+    own_cache.cleanup()
     first = next(r for r in rows if r["case"] == "diagnose:native")
     for r in rows:
         if r["case"] == "diagnose:native":
