@@ -53,8 +53,9 @@ the sums), :mod:`.projection` and :mod:`.newton` (variable projection, Newton on
 time constants), :mod:`.separable` (a device's sums with time constants),
 :mod:`.device` (the per-device program), :mod:`.finish` (solves, covariance, rank
 check, status), :mod:`.programs` (the compiled group programs and their packed
-results), :mod:`.groups` (group and chunk sizes), :mod:`.compile_options` (XLA
-options); :func:`solve_sums` here runs them over a batch.
+results), :mod:`.inputs` (their per-device inputs on the host), :mod:`.groups`
+(group and chunk sizes), :mod:`.compile_options` (XLA options); :func:`solve_sums`
+here runs them over a batch.
 """
 
 from __future__ import annotations
@@ -62,7 +63,6 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from ..core import sampling_intervals
 from ..data import Batch, aux_key
 from ..jit import collector_paused, parallel_devices
 from ..model import ErrorModel
@@ -80,74 +80,18 @@ from .groups import (
     group_size,
     valid_counts,
 )
+from .inputs import GroupInputs, group_inputs, host_arrays
 from .layout import INPUTS, Layout, covariance_pairs, layout_of, moving_columns, varying_products
 from .newton import newton
 from .programs import group_compact, group_finish, group_for, group_fused, pack, unpack_results
 from .sums import ALIGNED, block_starts, fold_sums
 
 __all__ = ["ALIGNED", "CHUNK", "FAST_COMPILE", "FUSED_GROUP_FACTOR", "GROUP_SAMPLES", "INPUTS",
-           "Layout", "MAX_GROUP_DEVICES", "NONLINEAR_GROUP_DIVISOR", "ONCE", "REASSOCIATE",
+           "GroupInputs", "Layout", "MAX_GROUP_DEVICES", "NONLINEAR_GROUP_DIVISOR", "ONCE", "REASSOCIATE",
            "block_starts", "chunk_size", "covariance_pairs", "fold_sums", "group_compact",
            "group_finish", "group_for", "group_fused", "group_size", "groups", "layout_of",
            "moving_columns", "newton", "pack", "solve_sums", "unpack_results", "valid_counts",
            "varying_products"]
-
-#: Per-device inputs of the group program, in the order it takes them.
-ORDER = ("t", "gyro", "mask", "rate", "temp", "temp_ext", "accel", "aux", "centre", "scale", "dt")
-
-
-def _host_arrays(model: ErrorModel, batch: Batch, norm, need, theta0, dtype, aux: dict) -> dict:
-    """The batch's arrays the model reads (None where it reads none), by name."""
-    d = batch.n_devices
-    # dT/dt (and the heating state) only for a model that reads them
-    dt = sampling_intervals(batch) if "dt" in need else None
-    centre = scale = None
-    if norm is not None and batch.temp is not None:
-        centre = np.broadcast_to(np.asarray(norm.centre, dtype), (d,))
-        scale = np.broadcast_to(np.asarray(norm.scale, dtype), (d,))
-    arrays = {"gyro": batch.gyro, "mask": batch.mask, "centre": centre, "scale": scale, "dt": dt,
-              "theta0": None if theta0 is None else np.broadcast_to(
-                  np.asarray(theta0, dtype), (d, model.n_nonlinear))}
-    for k in INPUTS:
-        arr = getattr(batch, k)
-        # the reference rate is always read: the fit is of gyro − rate
-        arrays[k] = arr if (arr is not None and (k in need or k in ("temp", "rate"))) else None
-    if "t" not in need:
-        arrays["t"] = None
-    arrays["aux"] = {k: v for k, v in aux.items() if aux_key(k) in need}
-    return arrays
-
-
-def _group_inputs(arrays: dict, mask, counts, n_blocks: int, j: int, g: int, dtype):
-    """Group j's host arrays (the last group padded by repeating its last device), its
-    device count, whether every device's valid samples come first, its chunk and block
-    starts (:data:`.sums.ALIGNED`, in the arrays as ``pos``, or None)."""
-    nv_all, prefix_all = counts
-    d, n = mask.shape
-    start = j * g
-    stop = min(start + g, d)
-    sl = slice(start, stop) if stop - start == g else np.minimum(np.arange(start, start + g),
-                                                                stop - 1)
-    nv = nv_all[sl]
-    prefix = bool(np.all(prefix_all[sl]))
-    c = chunk_size(int(nv.min()), n_blocks, n)
-    host = {k: (np.asarray(mask[sl], bool) if k == "mask"
-                else np.ascontiguousarray(np.asarray(arrays[k][sl], dtype)))
-            for k in ORDER if arrays[k] is not None and k != "aux"}
-    host["aux"] = {k: np.ascontiguousarray(np.asarray(v[sl], dtype))
-                   for k, v in arrays["aux"].items()}
-    host["nv"] = nv.astype(np.int32)
-    if arrays["theta0"] is not None:
-        host["theta0"] = np.ascontiguousarray(arrays["theta0"][sl])
-    if prefix and nv.min() == n and n % n_blocks == 0:
-        pos = ALIGNED
-    elif prefix:
-        host["pos"] = block_starts(nv, n_blocks)
-        pos = None
-    else:
-        pos = None
-    return stop - start, prefix, c, host, pos
-
 
 def _compile_first(group, apart: bool, args, finish: tuple, device):
     """Trace and compile every program on the first group's arguments (the collector
@@ -181,7 +125,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     d, n = batch.n_devices, batch.length
     fused = layout.pointwise and all(layout.shared)
     g = groups.devices_per_call(d, n, bool(model.n_nonlinear), fused)
-    arrays = _host_arrays(model, batch, norm, need, theta0, dtype, aux)
+    arrays = host_arrays(model, batch, norm, need, theta0, dtype, aux)
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
@@ -193,11 +137,10 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     counts = valid_counts(batch.mask)
 
     def run(j: int):
-        m, prefix, c, host, pos = _group_inputs(arrays, batch.mask, counts, opts.n_blocks, j, g,
-                                                dtype)
-        put = jax.device_put(host, devices[j % len(devices)])  # one call for the whole group
-        args = (model, layout, opts, c, prefix, *[put.get(k) for k in (*ORDER, "nv", "theta0")],
-                put.get("pos", pos), apart)
+        m, prefix, c, inputs, shared = group_inputs(arrays, counts, opts.n_blocks, j, g, dtype)
+        put = jax.device_put(inputs, devices[j % len(devices)])  # one call for the whole group
+        args = (model, layout, opts, c, prefix, *put.program_args(),
+                shared if put.pos is None else put.pos, apart)
         if j == 0:  # the first group traces and compiles every program
             specs.append(_compile_first(group, apart, args, finish, devices[0]))
         out = group(*args)
