@@ -53,10 +53,11 @@ def host_arrays(model: ErrorModel, batch: Batch, norm, need, theta0, dtype,
     if norm is not None and batch.temp is not None:
         centre = np.broadcast_to(np.asarray(norm.centre, dtype), (d,))
         scale = np.broadcast_to(np.asarray(norm.scale, dtype), (d,))
-    # the reference rate is always read: the fit is of gyro − rate
-    read = {k: getattr(batch, k) if (getattr(batch, k) is not None
-                                     and (k in need or k in ("temp", "rate"))) else None
-            for k in INPUTS}
+    read = {}
+    for k in INPUTS:
+        arr = getattr(batch, k)
+        # the reference rate is always read: the fit is of gyro − rate
+        read[k] = arr if (arr is not None and (k in need or k in ("temp", "rate"))) else None
     if "t" not in need:
         read["t"] = None
     return GroupInputs(
