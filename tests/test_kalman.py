@@ -3,6 +3,7 @@ learned noise on simulated batches, S1's offset filter, and S1 compared on headi
 
 from __future__ import annotations
 
+import json
 import math
 
 import jax
@@ -10,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from diffgyro import calibration
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import batch_signals, fit
 from diffgyro.kalman import (
@@ -187,6 +189,12 @@ def test_fit_dispatches_random_walk_models():
     np.testing.assert_allclose(np.asarray(res.residuals(batch)), np.asarray(res.residual), atol=1e-12)
     again = res.smooth(batch)
     np.testing.assert_allclose(np.asarray(again.loglik.sum(-1)), np.asarray(res.loglik), rtol=1e-9)
+    # its calibration file keeps the spec, β and the learned walk variance, and reads back
+    cal = calibration.from_json(json.loads(json.dumps(calibration.from_fit(res, batch).to_json())))
+    assert cal.model == "bias_poly(0)+random_walk"
+    dev = cal.devices[1]
+    np.testing.assert_allclose(dev.beta, np.asarray(res.params.beta[1]), rtol=1e-12)
+    assert dev.params["y"]["random_walk.q"] == pytest.approx(float(res.q[1, 1]))
 
 
 def _s1_reference(rz, static, window, init, q):

@@ -433,6 +433,16 @@ class RandomWalkFit(eqx.Module):
         return (sig.gyro - sig.rate - sb.bias) * sig.mask[..., None]
 
     @property
+    def aux_norm(self) -> dict:
+        """Centring of extra columns by name: none (fit() refuses aux terms beside a walk)."""
+        return {}
+
+    @property
+    def aux_range(self) -> dict:
+        """Calibrated range of extra columns by name: none, as :attr:`aux_norm`."""
+        return {}
+
+    @property
     def rrw(self) -> Float[Array, "d 3"]:
         """Rate random walk √q, rad/s²/√Hz."""
         return jnp.sqrt(self.q)
