@@ -1,15 +1,18 @@
-"""The random-walk check on a block-averaged residual changes no verdict on the test catalogue.
+"""Segment means change no verdict on the test catalogue.
 
-``diagnose`` smooths the base residual on segment means once a record is
-longer than ``diffgyro.diagnose.random_walk.RW_POINTS`` samples (see
-docs/diagnose.md). This script diagnoses every problem of the catalogue of
-``tests/test_diagnose.py`` (recordings of ``tests/hidden_effects.py``, 2 Hz,
-a few thousand to tens of thousands of samples) twice, sample by sample
-(``RW_POINTS`` past every record's length) and with ``RW_POINTS`` at
-``--points`` (default: its value in diffgyro), and compares the verdicts,
-the effect named and the random walk's held-out RMS.
+``diagnose`` works on segment means of a long record in two places (see
+docs/diagnose.md): the random-walk check smooths the base residual's means
+past ``diffgyro.diagnose.random_walk.RW_POINTS`` samples (``--check
+random_walk``), and a time constant's grid is searched on the means past
+``diffgyro.diagnose.scoring.SEARCH_POINTS`` (``--check search``). This script
+diagnoses every problem of the catalogue of ``tests/test_diagnose.py``
+(recordings of ``tests/hidden_effects.py``, 2 Hz, a few thousand to tens of
+thousands of samples) twice, sample by sample (the limit past every record's
+length) and with the limit at ``--points`` (default: its value in diffgyro),
+and compares the verdicts, the effect named, the held-out RMS and the random
+walk's held-out RMS.
 
-    python benchmarks/diagnose_block_average.py --out results/x.json
+    python benchmarks/diagnose_block_average.py --check search --points 4096 --out results/x.json
 """
 
 from __future__ import annotations
@@ -54,7 +57,9 @@ def _summary(d) -> dict:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--points", type=int, help="RW_POINTS of the second run (default: diffgyro's)")
+    ap.add_argument("--check", choices=("random_walk", "search"), default="random_walk",
+                    help="which segment means: the random-walk check's or the time-constant search's")
+    ap.add_argument("--points", type=int, help="the limit of the second run (default: diffgyro's)")
     ap.add_argument("--out", type=Path, help="results JSON")
     args = ap.parse_args(argv)
 
@@ -62,10 +67,11 @@ def main(argv=None) -> int:
 
     diffgyro.enable_x64()
     from diffgyro.data import Batch
-    from diffgyro.diagnose import diagnose
+    from diffgyro.diagnose import diagnose, scoring
     from diffgyro.diagnose import random_walk as rw_mod
 
-    default = rw_mod.RW_POINTS
+    mod, name = (rw_mod, "RW_POINTS") if args.check == "random_walk" else (scoring, "SEARCH_POINTS")
+    default = getattr(mod, name)
     points = args.points or default
     rows, t0 = [], time.perf_counter()
     for base, part in _groups():
@@ -73,12 +79,12 @@ def main(argv=None) -> int:
         length = int(batch.t.shape[1])
         runs = []
         for pts in (1 << 30, points):  # sample by sample, then segment means
-            rw_mod.RW_POINTS = pts
+            setattr(mod, name, pts)
             try:
                 runs.append(diagnose(base, batch))
             finally:
-                rw_mod.RW_POINTS = default
-        m = rw_mod.segment_length(length, runs[0].options["n_blocks"], points)
+                setattr(mod, name, default)
+        m = scoring.segment_length(length, runs[0].options["n_blocks"], points)
         for h, a, b in zip(part, runs[0].devices, runs[1].devices):
             rows.append({"effect": h.effect, "samples": int(h.recording.t.shape[0]), "segment": m,
                          "sample_level": _summary(a), "block_averaged": _summary(b)})
@@ -86,16 +92,19 @@ def main(argv=None) -> int:
             and r["sample_level"]["best"] == r["block_averaged"]["best"] for r in rows]
     ratio = [r["block_averaged"]["rw_heldout_rms"] / r["sample_level"]["rw_heldout_rms"]
              for r in rows if r["sample_level"]["rw_heldout_rms"]]
-    out = {"devices": len(rows), "points": points, "default_points": default,
+    held = [r["block_averaged"]["heldout_rms"] / r["sample_level"]["heldout_rms"] for r in rows]
+    out = {"check": args.check, "devices": len(rows), "points": points, "default_points": default,
            "same_verdict_and_effect": int(sum(same)),
            "changed": [r for r, s in zip(rows, same) if not s],
            "rw_heldout_ratio": {"min": float(np.min(ratio)), "median": float(np.median(ratio)),
                                 "max": float(np.max(ratio))},
+           "heldout_ratio": {"min": float(np.min(held)), "median": float(np.median(held)),
+                             "max": float(np.max(held))},
            "segment_lengths": sorted({r["segment"] for r in rows}),
            "seconds": time.perf_counter() - t0, "rows": rows}
     print(f"{out['same_verdict_and_effect']}/{out['devices']} devices: same verdict and effect; "
-          f"segments of {out['segment_lengths']} samples; random walk held-out RMS ratio "
-          f"{out['rw_heldout_ratio']}")
+          f"segments of {out['segment_lengths']} samples; held-out RMS ratio {out['heldout_ratio']}; "
+          f"random walk held-out RMS ratio {out['rw_heldout_ratio']}")
     if args.out:
         from diffgyro.jsonio import atomic_write_text, dumps
 

@@ -26,7 +26,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array
 
-from .scoring import block_folds
+from .scoring import block_folds, segment_sums
+from .scoring import segment_length as scoring_segment_length
 from .thresholds import RW_GRID
 
 #: Longest series (segments of every block) the smoother runs on.
@@ -34,19 +35,8 @@ RW_POINTS = 1 << 12
 
 
 def segment_length(length: int, n_blocks: int, points: int | None = None) -> int:
-    """Samples per segment mean: 1 when the record fits in ``points``."""
-    points = RW_POINTS if points is None else points
-    w = max(-(-length // n_blocks), 1)
-    per_block = max(points // n_blocks, 1)
-    return max(1, -(-w // per_block))
-
-
-def _segments(a_w, m: int):
-    """(B, w, ...) -> (B, S, ...) sums over segments of ``m`` samples (S = ceil(w / m))."""
-    b, w = a_w.shape[:2]
-    s = -(-w // m)
-    pad = [(0, 0), (0, s * m - w)] + [(0, 0)] * (a_w.ndim - 2)
-    return jnp.pad(a_w, pad).reshape((b, s, m) + a_w.shape[2:]).sum(axis=2)
+    """Samples per segment mean: 1 when the record fits in ``points`` (:data:`RW_POINTS`)."""
+    return scoring_segment_length(length, n_blocks, RW_POINTS if points is None else points)
 
 
 def local_level(e, obs, cnt, t, r, q_rel, p0, dt0, keep: bool = True):
@@ -101,11 +91,11 @@ def _series(e_w, xb_w, t_w, inside, b_base, m: int):
     (K + 1, N, 3), the segment counts (N,), times (N,) and folds (N,)."""
     n_blocks = e_w.shape[0]
     n_folds = b_base.shape[0]
-    cnt = _segments(inside.astype(e_w.dtype), m)  # (B, S)
+    cnt = segment_sums(inside.astype(e_w.dtype), m)  # (B, S)
     den = jnp.maximum(cnt, 1.0)
-    e_s = _segments(e_w, m) / den[..., None]
-    x_s = _segments(xb_w, m) / den[..., None, None]
-    t_s = _segments(jnp.where(inside, t_w, 0.0), m) / den
+    e_s = segment_sums(e_w, m) / den[..., None]
+    x_s = segment_sums(xb_w, m) / den[..., None, None]
+    t_s = segment_sums(jnp.where(inside, t_w, 0.0), m) / den
     fold_s = jnp.broadcast_to(jnp.asarray(block_folds(n_blocks, n_folds))[:, None], cnt.shape)
     flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
     e_s, x_s, cnt, fold_s, t_s = flat(e_s), flat(x_s), flat(cnt), flat(fold_s), flat(t_s)

@@ -29,7 +29,16 @@ from .floor import suggest_dtemp_window, white_noise_rms
 from .greedy import pairs as greedy_pairs
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
-from .scoring import CandidateScores, base_scores, block_windows, candidate_scores, window
+from .scoring import (
+    CandidateScores,
+    base_scores,
+    block_windows,
+    candidate_scores,
+    flat_axes,
+    segments,
+    window,
+)
+from .scoring import segment_length as search_length
 from .thresholds import Thresholds
 
 #: About this many samples (devices × padded length) go through one compiled call.
@@ -140,10 +149,12 @@ def _white_noise(batch: Batch) -> np.ndarray:
 
 
 def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
-                   n_folds: int, log_min_lag, rw_m: int, dtemp_window, inp: dict,
+                   n_folds: int, log_min_lag, rw_m: int, search_m: int, dtemp_window, inp: dict,
                    beta_b, theta_b, floor_axes, idx, inside) -> dict:
     """Held-out scores of the base model, every deterministic candidate and the random walk
-    (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`)."""
+    (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
+    ``search_m``: samples per segment of the random-walk check and the time-constant
+    search)."""
     sig = _signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
@@ -154,8 +165,10 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     xb_w = window(jnp.where(jnp.isfinite(xb), xb, 0.0), idx, inside)
     e_w = window(e, idx, inside)
     b = base_scores(xb_w, e_w, inside, n_folds)
-    scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xb_w, e_w, idx, inside,
-                               n_folds)
+    xe_w = flat_axes(xb_w, e_w)
+    searched = any(c.old is None and c.term.n_nonlinear for c in cands)  # a time-constant grid
+    seg = segments(sig, xb_w, e_w, idx, inside, search_m, n_folds) if searched else None
+    scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xe_w, idx, inside, seg, n_folds)
               for c in cands]
     base_full = jnp.sum(e * e, 0)
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
@@ -192,12 +205,12 @@ def _fields(module: eqx.Module) -> dict:
 
 
 @eqx.filter_jit
-def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, dtemp_window, inputs, beta, theta,
-            floors, idx, inside):
+def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
+            beta, theta, floors, idx, inside):
     def one(args):
         inp, b, th, fl, ix, ins = args
-        return _device_scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, dtemp_window,
-                              inp, b, th, fl, ix, ins)
+        return _device_scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m,
+                              dtemp_window, inp, b, th, fl, ix, ins)
 
     return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside))
 
@@ -232,6 +245,7 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
     rw_m = segment_length(length, opts.n_blocks)
+    search_m = search_length(length, opts.n_blocks)
     beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
     windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
     log_min_lag, window_s = _windows(opts.dtemp_window)
@@ -239,7 +253,7 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     for _, idx in _chunks(n_dev, size):
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
-        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m,
+        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
                     window_s, _inputs(batch, res, idx, aux), jnp.asarray(beta[idx]),
                     jnp.asarray(theta[idx]), jnp.asarray(floors[idx]), jnp.asarray(ix), jnp.asarray(ins))
         out.append(jax.device_get(o))

@@ -14,13 +14,24 @@ axis, and no column set of every sample outlives its own sums:
   in :mod:`diffgyro.fit_sums`), a fold's training system is the total minus
   its own, and its held-out error ``Q − 2βᵀc + βᵀAβ`` comes from its own sums;
   the same formula on one block's sums gives that block's held-out error;
-* a time constant's grid is walked one point at a time (``lax.map``): only
-  the per-block sums of each point are kept, each fold picks its point on its
-  training blocks (so the held-out number pays for the search), and a
-  parabola through the neighbours refines it.
+* a time constant is searched on the record's segment means (:class:`Segments`:
+  means of ``m`` consecutive valid samples inside one block, weighted by their
+  counts, ``m = 1`` below :data:`SEARCH_POINTS` samples): its grid is walked
+  one point at a time (``lax.map``), each fold picks its point on its training
+  blocks (so the held-out number pays for the search) and a parabola through
+  the neighbours refines it; the held-out and full-record numbers are then
+  computed from the samples at each fold's pick and at the full record's, so
+  the search alone sees the coarser series.
 
 Memory is that of a few per-sample arrays of one device (its signals, the base
 design, one column set), whatever the number of candidates and grid points.
+
+The segment sums stand in for the sample sums when the columns barely change
+over ``m`` samples: ``Σ_i z_i x_i = Σ_s n_s z̄_s x̄_s`` up to the covariance of
+``z`` and ``x`` inside a segment. The lag and warm-up columns have time
+constants of seconds and up (the dT/dt window is the floor), the segments last
+``m / fs`` (0.1 s for 200 Hz × 1 h), so the search picks the same point; the
+numbers the decision reads never come from segments.
 """
 
 from __future__ import annotations
@@ -37,6 +48,9 @@ from ..model import ErrorModel
 from ..signals import Signals
 from .candidates import CandidateSpec
 from .thresholds import GRID_POINTS
+
+#: Longest series (segment means of every block) a time constant's grid is searched on.
+SEARCH_POINTS = 1 << 15
 
 
 def block_windows(mask: np.ndarray, n_blocks: int) -> tuple[np.ndarray, np.ndarray]:
@@ -63,6 +77,23 @@ def window(a: Array, idx: Int[Array, "B w"], inside: Bool[Array, "B w"]) -> Arra
     """(n, ...) -> (B, w, ...): the samples of every block's window, zero outside it."""
     g = a[idx]
     return jnp.where(inside.reshape(inside.shape + (1,) * (a.ndim - 1)), g, 0.0)
+
+
+def segment_length(length: int, n_blocks: int, points: int | None = None) -> int:
+    """Samples per segment so that every block's segments total at most ``points``
+    (default :data:`SEARCH_POINTS`; 1 when the record fits)."""
+    points = SEARCH_POINTS if points is None else points
+    w = max(-(-length // n_blocks), 1)
+    per_block = max(points // n_blocks, 1)
+    return max(1, -(-w // per_block))
+
+
+def segment_sums(a_w: Array, m: int) -> Array:
+    """(B, w, ...) -> (B, S, ...): sums over segments of ``m`` samples (S = ceil(w / m))."""
+    b, w = a_w.shape[:2]
+    s = -(-w // m)
+    pad = [(0, 0), (0, s * m - w)] + [(0, 0)] * (a_w.ndim - 2)
+    return jnp.pad(a_w, pad).reshape((b, s, m) + a_w.shape[2:]).sum(axis=2)
 
 
 def fold_of_blocks(blocks: Array, n_folds: int) -> Array:
@@ -157,20 +188,57 @@ def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
 # --------------------------------------------------------------------------- candidates
 
 
+class Segments(eqx.Module):
+    """The record as segment means, for the time-constant search: the signals (B·S,), the
+    base design and residual scaled by √count (B, S, 3, p), (B, S, 3) (so their products
+    sum to count-weighted ones), √count ``root`` (B, S) and the base model's sums on them."""
+
+    sig: Signals
+    xb: Array
+    e: Array
+    root: Array
+    base: BaseScores
+
+
+def segments(sig: Signals, xb_w, e_w, idx, inside, m: int, n_folds: int) -> Segments:
+    """The :class:`Segments` of one device: means of ``m`` consecutive valid samples of every
+    block (an empty segment keeps the time of the last one before it: no time passes)."""
+    dtype = e_w.dtype
+    n = sig.t.shape[0]
+    cnt = segment_sums(inside.astype(dtype), m)  # (B, S)
+    den = jnp.maximum(cnt, 1.0)
+
+    def mean(a):
+        if not (eqx.is_array(a) and a.ndim >= 1 and a.shape[0] == n):
+            return a
+        sums = segment_sums(window(a.astype(dtype), idx, inside), m)
+        return (sums / den.reshape(den.shape + (1,) * (a.ndim - 1))).reshape((-1,) + a.shape[1:])
+
+    seg = jax.tree_util.tree_map(mean, sig)
+    ok = cnt.reshape(-1) > 0
+    t = jax.lax.cummax(jnp.where(ok, seg.t, -jnp.inf))
+    seg = eqx.tree_at(lambda s: (s.t, s.mask), seg, (jnp.where(jnp.isfinite(t), t, 0.0), ok))
+    root = jnp.sqrt(cnt)
+    scale = 1.0 / jnp.sqrt(den)
+    xb = segment_sums(xb_w, m) * scale[..., None, None]
+    e = segment_sums(e_w, m) * scale[..., None]
+    return Segments(seg, xb, e, root, base_scores(xb, e, cnt > 0, n_folds))
+
+
 def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, log_min_lag):
-    """The nonlinear-parameter grid (g, q) of a candidate and its columns at one grid point
-    (n, 3, k): the columns it adds to the base design. ``log_min_lag``: log of the shortest
-    time constant (s) a lag term's grid starts at (the dT/dt window; −inf: none), an array,
-    so that a new window does not compile the scoring again."""
+    """The nonlinear-parameter grid (g, q) of a candidate and its columns ``(signals, θ) ->
+    (n, 3, k)``: the columns it adds to the base design. ``log_min_lag``: log of the
+    shortest time constant (s) a lag term's grid starts at (the dT/dt window; −inf: none),
+    an array, so that a new window does not compile the scoring again."""
     term = c.term
     dtype = sig.gyro.dtype
     if c.old is not None:  # an order raised: the new columns at the base's time constants
         k_old = c.old.n_params
         q_slice = [qs for t, _, qs in base.slices() if t == c.old]
         th = theta_b[q_slice[0]] if q_slice else jnp.zeros((0,), dtype)
-        return th[None], lambda th_: term.columns(sig, th_)[..., k_old:]
+        return th[None], lambda s, th_: term.columns(s, th_)[..., k_old:]
     if term.n_nonlinear == 0:
-        return jnp.zeros((1, 0), dtype), lambda th_: term.columns(sig, th_)
+        return jnp.zeros((1, 0), dtype), term.columns
     grid = term.nonlinear_grid(sig)
     if grid.shape[1] == 1:
         lo, hi = jnp.min(grid[:, 0]), jnp.max(grid[:, 0])
@@ -179,14 +247,34 @@ def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, lo
             lo = jnp.where(floored, jnp.maximum(lo, log_min_lag), lo)
             hi = jnp.where(floored, jnp.maximum(hi, lo + math.log(4.0)), hi)
         grid = jnp.linspace(lo, hi, GRID_POINTS)[:, None]
-    return grid, lambda th_: term.columns(sig, th_)
+    return grid, term.columns
 
 
-def column_sums(z, xb_w, e_w, idx, inside):
-    """Per-block sums ZᵀX (B, 3, k, p), ZᵀZ (B, 3, k, k), Zᵀe (B, 3, k) of one column set."""
-    zw = window(jnp.where(jnp.isfinite(z), z, 0.0), idx, inside)
-    return (jnp.einsum("bwik,bwip->bikp", zw, xb_w), jnp.einsum("bwik,bwil->bikl", zw, zw),
-            jnp.einsum("bwik,bwi->bik", zw, e_w))
+def column_sums(zw, xe_w):
+    """Per-block sums ZᵀX (B, 3, k, p), ZᵀZ (B, 3, k, k), Zᵀe (B, 3, k) of one windowed
+    column set ``zw`` (B, w, 3, k); ``xe_w`` (B, w, 3p + 3) is the base design and residual
+    with the axes flattened. Two batched matrix products over every pair of axes, the
+    cross-axis blocks dropped: XLA's CPU dot runs them faster than per-axis contractions
+    over the window."""
+    b, w, _, k = zw.shape
+    p = (xe_w.shape[-1] - 3) // 3
+    zf = zw.reshape(b, w, 3 * k)
+    dims = (((1,), (1,)), ((0,), (0,)))
+    zz = jax.lax.dot_general(zf, zf, dims).reshape(b, 3, k, 3, k)
+    zxe = jax.lax.dot_general(zf, xe_w, dims)  # (B, 3k, 3p + 3)
+    zx = zxe[..., : 3 * p].reshape(b, 3, k, 3, p)
+    ze = zxe[..., 3 * p:].reshape(b, 3, k, 3)
+
+    def own_axis(a):  # (B, 3, k, 3, ...) -> (B, 3, k, ...): axis i with axis i
+        return jnp.moveaxis(jnp.diagonal(a, axis1=1, axis2=3), -1, 1)
+
+    return own_axis(zx), own_axis(zz), own_axis(ze)
+
+
+def flat_axes(xb_w, e_w):
+    """The base design and residual (B, w, 3p + 3) as :func:`column_sums` reads them."""
+    b, w = e_w.shape[:2]
+    return jnp.concatenate([xb_w.reshape(b, w, -1), e_w], axis=-1)
 
 
 def score_set(base: BaseScores, sums, n_folds: int):
@@ -210,9 +298,10 @@ def score_set(base: BaseScores, sums, n_folds: int):
     return clean(sse_tr), sse_h, sse_all, clean(jnp.sum(sse_all)), blk
 
 
-def _scores_on(thetas, columns, base, xb_w, e_w, idx, inside, n_folds):
-    """Scores of every θ row of ``thetas``, the columns formed one θ at a time."""
-    sums = jax.lax.map(lambda th: column_sums(columns(th), xb_w, e_w, idx, inside), thetas)
+def _scores_on(thetas, windowed, base, xe_w, n_folds):
+    """Scores of every θ row of ``thetas``; ``windowed(θ)``: the column set in the window
+    layout (B, w, 3, k), formed one θ at a time."""
+    sums = jax.lax.map(lambda th: column_sums(windowed(th), xe_w), thetas)
     return jax.vmap(lambda s: score_set(base, s, n_folds))(sums)
 
 
@@ -225,35 +314,56 @@ def _vertex(costs, i, grid):
     return grid[i, 0] + jnp.clip(off, -1.0, 1.0) * (grid[1, 0] - grid[0, 0])
 
 
-def candidate_scores(c, base_model, sig, theta_b, log_min_lag, base, xb_w, e_w, idx, inside,
-                     n_folds: int) -> CandidateScores:
-    """The :class:`CandidateScores` of base + one candidate."""
+def _search(grid, columns, seg: Segments, n_folds: int):
+    """Each fold's time constant chosen on its training segments and the full record's
+    (K + 1, q): the best grid point, then (one time constant) the parabola vertex through
+    its neighbours where that scores better still."""
+    b, s = seg.root.shape
+
+    def windowed(th):
+        z = columns(seg.sig, th)
+        z = jnp.where(jnp.isfinite(z), z, 0.0).reshape((b, s) + z.shape[1:])
+        return z * seg.root[..., None, None]
+
+    xe = flat_axes(seg.xb, seg.e)
+    tr, _, _, tot, _ = _scores_on(grid, windowed, seg.base, xe, n_folds)
+    pick = jnp.concatenate([jnp.argmin(tr, axis=0), jnp.argmin(tot)[None]])  # (K + 1,)
+    cost = jnp.concatenate([tr, tot[:, None]], axis=1)  # (g, K + 1)
+    chosen = grid[pick]
+    if grid.shape[0] >= 3 and grid.shape[1] == 1:
+        th2 = jax.vmap(_vertex, in_axes=(1, 0, None))(cost, pick, grid)[:, None]
+        tr2, _, _, tot2, _ = _scores_on(th2, windowed, seg.base, xe, n_folds)
+        cost2 = jnp.concatenate([tr2, tot2[:, None]], axis=1)  # (K + 1, K + 1)
+        own = jnp.arange(n_folds + 1)
+        better = cost2[own, own] < cost[pick, own]  # keep the refinement only where it helps
+        chosen = jnp.where(better[:, None], th2, chosen)
+    return chosen
+
+
+def candidate_scores(c, base_model, sig, theta_b, log_min_lag, base, xe_w, idx, inside,
+                     seg: Segments | None, n_folds: int) -> CandidateScores:
+    """The :class:`CandidateScores` of base + one candidate (``seg``: the record's
+    :class:`Segments`, needed when the candidate has a time-constant grid)."""
     grid, columns = candidate_grid(c, base_model, sig, theta_b, log_min_lag)
     folds = jnp.arange(n_folds)
     fb = block_folds(base.a_b.shape[0], n_folds)
-    tr, sh, sall, tot, blk = _scores_on(grid, columns, base, xb_w, e_w, idx, inside, n_folds)
-    pick = jnp.argmin(tr, axis=0)  # (K,) the grid point each fold's training blocks choose
-    best = jnp.argmin(tot)
-    tr_pick, held = tr[pick, folds], sh[pick, folds]
-    blk_pick = blk[pick[fb], jnp.arange(fb.size)]
-    full, tot_best = sall[best], tot[best]
-    theta = grid[best] if grid.shape[1] else jnp.full((1,), jnp.nan, sig.gyro.dtype)
-    if grid.shape[0] >= 3 and grid.shape[1] == 1:  # refine between grid points, again per fold
-        th2 = jnp.concatenate([jax.vmap(_vertex, in_axes=(1, 0, None))(tr, pick, grid),
-                               _vertex(tot, best, grid)[None]])  # (K + 1,)
-        tr2, sh2, sall2, tot2, blk2 = _scores_on(th2[:, None], columns, base, xb_w, e_w, idx,
-                                                 inside, n_folds)
-        better = tr2[folds, folds] < tr_pick  # keep the refinement only where it helps
-        held = jnp.where(better[:, None], sh2[folds, folds], held)
-        blk_pick = jnp.where(better[fb], blk2[fb, jnp.arange(fb.size)], blk_pick)
-        full_better = tot2[n_folds] < tot_best
-        full = jnp.where(full_better, sall2[n_folds], full)
-        theta = jnp.where(full_better, th2[n_folds:], theta)
-    if grid.shape[0] >= 2 and grid.shape[1] == 1:
+
+    def windowed(th):
+        z = columns(sig, th)
+        return window(jnp.where(jnp.isfinite(z), z, 0.0), idx, inside)
+
+    if grid.shape[0] == 1:
+        _, sh, sall, _, blk = _scores_on(grid, windowed, base, xe_w, n_folds)
+        theta = grid[0] if grid.shape[1] else jnp.full((1,), jnp.nan, sig.gyro.dtype)
+        return CandidateScores(sh[0], sall[0], theta, blk[0], jnp.asarray(False))
+    chosen = _search(grid, columns, seg, n_folds)  # (K + 1, q)
+    _, sh, sall, _, blk = _scores_on(chosen, windowed, base, xe_w, n_folds)
+    theta = chosen[n_folds]
+    if grid.shape[1] == 1:
         edge = theta[0] >= grid[-1, 0] - 0.5 * (grid[1, 0] - grid[0, 0])
     else:
         edge = jnp.asarray(False)
-    return CandidateScores(held, full, theta, blk_pick, edge)
+    return CandidateScores(sh[folds, folds], sall[n_folds], theta, blk[fb, jnp.arange(fb.size)], edge)
 
 
 _ = (Float,)  # jaxtyping names used in annotations only
