@@ -36,17 +36,18 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
     straight line in the signal explains on that axis (r² · var / (var − σ²)).
     """
     e = residual
+    axes = [np.ascontiguousarray(e[:, i], float) for i in range(3)]  # a column's dot is strided
     out: dict = {}
 
     def add(name, s, per_axis=False, label=None):
         s = np.asarray(s, float)
         if s.ndim == 1 and (not np.all(np.isfinite(s)) or np.std(s) == 0):
             return
-        rs = [_corr(e[:, i], s[:, i] if per_axis else s) for i in range(3)]
+        rs = [_corr(axes[i], np.ascontiguousarray(s[:, i]) if per_axis else s) for i in range(3)]
         i = int(np.argmax(np.abs(rs)))
         out[name] = {"r": round(rs[i], 3), "axis": "xyz"[i], "label": label or name}
         if floor_axes is not None:
-            var = float(np.var(e[:, i]))
+            var = float(np.var(axes[i]))
             gap = var - float(floor_axes[i]) ** 2
             out[name]["explains"] = round(min(rs[i] ** 2 * var / gap, 1.0), 3) if gap > 0 else 0.0
 
