@@ -55,7 +55,7 @@ def recording() -> Recording:
 def _calibration(spec: str, seed: int) -> dict:
     model = ErrorModel.from_spec(spec)
     rng = np.random.default_rng(seed)
-    theta = [THETA[t.name] for t in model.deterministic for _ in range(t.n_nonlinear)]
+    theta = [THETA[t.name] for t in model.terms for _ in range(t.n_nonlinear)]
     dev = {"device": "imu0", "status": "ok",
            "beta": (rng.normal(size=(3, model.n_params)) * 0.02).tolist(), "theta": theta,
            "temp_centre": 28.0, "temp_scale": 16.0, "temp_range": [14.0, 45.0]}

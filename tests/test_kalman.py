@@ -13,6 +13,7 @@ import pytest
 
 from diffgyro import calibration
 from diffgyro.data import Batch, Recording
+from diffgyro.effects import AbstractNoise, BiasPoly, RandomWalk
 from diffgyro.fit import batch_signals, fit
 from diffgyro.kalman import (
     RandomWalkFit,
@@ -182,6 +183,11 @@ def test_fit_dispatches_random_walk_models():
     batch = _walk_batch(rng, 2, 800, 1.0, 1e-8, 1e-6)
     res = fit("bias_poly(0)+random_walk", batch)
     assert isinstance(res, RandomWalkFit)
+    # the walk is the model's noise component; its terms are the deterministic ones
+    assert res.model.noise == RandomWalk()
+    assert res.model.terms == (BiasPoly(order=0),)
+    assert not any(isinstance(t, AbstractNoise) for t in res.model.terms)
+    assert res.model.spec == "bias_poly(0)+random_walk"
     assert res.bias.shape == (2, batch.length, 3)
     np.testing.assert_allclose(np.asarray(res.residual),
                                (batch.gyro - np.asarray(res.bias)) * batch.mask[..., None], atol=1e-15)
@@ -192,6 +198,7 @@ def test_fit_dispatches_random_walk_models():
     # its calibration file keeps the spec, β and the learned walk variance, and reads back
     cal = calibration.from_json(json.loads(json.dumps(calibration.from_fit(res, batch).to_json())))
     assert cal.model == "bias_poly(0)+random_walk"
+    assert cal.error_model == res.model
     dev = cal.devices[1]
     np.testing.assert_allclose(dev.beta, np.asarray(res.params.beta[1]), rtol=1e-12)
     assert dev.params["y"]["random_walk.q"] == pytest.approx(float(res.q[1, 1]))
@@ -286,18 +293,16 @@ def test_learned_model_beats_s1_on_heading_drift():
     assert rms["smoothed"] < rms["learned"]
 
 
-def test_random_walk_spec_parses_and_adds_no_columns():
+def test_random_walk_adds_no_columns():
     model = ErrorModel.from_spec("bias_poly(2)+random_walk")
-    assert model.spec == "bias_poly(2)+random_walk"
-    assert model.n_params == 3
-    assert [t.name for t in model.terms if t.stochastic] == ["random_walk"]
+    assert model.n_params == 3 and model.n_nonlinear == 0
     rng = np.random.default_rng(1)
     t = np.arange(100.0)
     batch = Batch.from_recordings([Recording(t=t, gyro=rng.normal(size=(100, 3)),
                                              temp=np.linspace(10, 40, 100))], bucket=False)
     sig = jax.tree.map(lambda a: a[0], batch_signals(batch))
-    assert model.terms[1].columns(sig, jnp.zeros(0)).shape == (100, 3, 0)
-    assert model.design(sig, jnp.zeros(0)).shape == (100, 3, 3)
+    np.testing.assert_array_equal(model.design(sig, jnp.zeros(0)),
+                                  ErrorModel.from_spec("bias_poly(2)").design(sig, jnp.zeros(0)))
 
 
 def test_learn_noise_on_observed_subset_is_exact():

@@ -206,7 +206,7 @@ def test_fast_calibration_entries_equal_from_fit():
     from diffgyro.signals import TempNorm
 
     model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient+aux(vdd)")
-    d, p, q, t = 4, model.n_params, model.n_nonlinear, len(model.deterministic)
+    d, p, q, t = 4, model.n_params, model.n_nonlinear, len(model.terms)
     rng = np.random.default_rng(0)
     beta = rng.standard_normal((d, 3, p))
     beta[2, 1, 0] = np.nan

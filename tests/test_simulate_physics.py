@@ -55,8 +55,8 @@ HEATING = 0.05 / 60.0  # °C/s: the hysteresis latch's threshold
 
 def _params(spec: str) -> Params:
     model = ErrorModel.from_spec(spec)
-    beta = np.concatenate([np.asarray(COEFFS[t.name], float) for t in model.deterministic], axis=1)
-    theta = np.array([LOG_TAU[t.name] for t in model.deterministic if t.n_nonlinear])
+    beta = np.concatenate([np.asarray(COEFFS[t.name], float) for t in model.terms], axis=1)
+    theta = np.array([LOG_TAU[t.name] for t in model.terms if t.n_nonlinear])
     return Params(beta=beta, theta=theta)
 
 
@@ -140,7 +140,7 @@ def test_every_exact_term_against_its_formula():
     gyro, sig, truth = _run(EXACT)
     model = ErrorModel.from_spec(EXACT)
     parts = {t.name: _term(t.name, np.asarray(COEFFS[t.name], float), sig, truth.norm)
-             for t in model.deterministic}
+             for t in model.terms}
     for name, part in parts.items():
         assert np.abs(part).max() > 5e-4, name
     want = sig["w"] + sum(parts.values())
@@ -191,5 +191,5 @@ def test_formulas_catch_a_wrong_coefficient():
     coeffs = {k: np.asarray(v, float) for k, v in COEFFS.items()}
     coeffs["gradient"] = coeffs["gradient"] * 2.0
     model = ErrorModel.from_spec(EXACT)
-    want = sig["w"] + sum(_term(t.name, coeffs[t.name], sig, truth.norm) for t in model.deterministic)
+    want = sig["w"] + sum(_term(t.name, coeffs[t.name], sig, truth.norm) for t in model.terms)
     assert np.abs(gyro - want).max() > 1e-4

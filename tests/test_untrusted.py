@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from diffgyro import calibration
 from diffgyro.calibration import Calibration, DeviceCalibration
-from diffgyro.effects import format_spec, parse_spec, registry
+from diffgyro.effects import AbstractNoise, format_spec, parse_spec, registry
 from diffgyro.errors import DataError, SpecError
 from diffgyro.model import ErrorModel
 
@@ -45,11 +45,14 @@ def test_spec_parser_gives_terms_or_a_spec_error(text):
         terms = parse_spec(text)
     except SpecError:
         return
-    # a spec that parses is canonical after one round and builds a model
+    # a spec that parses is canonical after one round and builds a model: its effect
+    # terms in order, then its noise component
     canonical = format_spec(terms)
     assert format_spec(parse_spec(canonical)) == canonical
-    model = ErrorModel(terms)
-    assert model.spec == canonical
+    noise = [t for t in terms if isinstance(t, AbstractNoise)]
+    model = ErrorModel(tuple(t for t in terms if t not in noise), noise[0] if noise else None)
+    assert model.spec == format_spec([t for t in terms if t not in noise] + noise)
+    assert ErrorModel.from_spec(canonical) == model
 
 
 @FUZZ

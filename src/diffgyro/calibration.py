@@ -32,7 +32,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from .data import Batch, Recording
-from .effects import parse_spec
 from .errors import SpecError
 from .fit import STATUS_NAMES, FitResult, batch_signals
 from .jsonio import atomic_write_text, dumps, to_json_safe
@@ -119,8 +118,8 @@ def data_hash(batch: Batch) -> str:
 
 
 def units_of(model: ErrorModel) -> dict:
-    return {t.spec: t.unit for t in model.deterministic} | {"tau": "s", "rates": "rad/s",
-                                                           "temperature": "°C"}
+    return {t.spec: t.unit for t in model.terms} | {"tau": "s", "rates": "rad/s",
+                                                    "temperature": "°C"}
 
 
 def aux_entries(result: FitResult, i: int) -> dict:
@@ -263,7 +262,7 @@ def from_json(obj) -> Calibration:
         raise SpecError(f"calibration file: format_version {version} is not supported "
                         f"(this diffgyro reads 1..{FORMAT_VERSION})")
     spec = _req(obj, "model", str, "file")
-    model = ErrorModel(parse_spec(spec))
+    model = ErrorModel.from_spec(spec)
     p, q = model.n_params, model.n_nonlinear
     devs = _req(obj, "devices", list, "file")
     if not devs:

@@ -1,5 +1,5 @@
 """Definitions shared by every fit path: options, statuses and the status rule,
-the fold partition, device padding, and the stochastic-fit registry.
+the fold partition, device padding, and the registry of noise-component fits.
 
 The bottom of the fitting code: :mod:`diffgyro.fit` (direct path and the
 front door), :mod:`diffgyro.fit_sums` (sums path) and :mod:`diffgyro.kalman`
@@ -19,6 +19,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from .data import Batch, Recording
+from .effects import AbstractNoise
 from .errors import SpecError
 
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
@@ -131,27 +132,28 @@ def pad_devices(batch: Batch) -> Batch:
     return batch.select(np.minimum(np.arange(m), n - 1))
 
 
-# --------------------------------------------------------------------------- stochastic fits
+# --------------------------------------------------------------------------- noise fits
 
-#: Fit functions of models with a stochastic component, by the component's effect name.
-_STOCHASTIC_FITS: dict[str, Callable] = {}
+#: Fit functions of models with a noise component, by the component's class.
+_NOISE_FITS: dict[type, Callable] = {}
 
 
-def register_stochastic_fit(name: str) -> Callable[[Callable], Callable]:
-    """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models that
-    contain the stochastic effect ``name`` (:func:`diffgyro.kalman.fit_random_walk`
-    registers ``random_walk``). :func:`diffgyro.fit.fit` dispatches through this table,
-    so the direct and sums paths never import the state-space path."""
+def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callable]:
+    """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models whose
+    noise component is a ``cls`` (:func:`diffgyro.kalman.fit_random_walk` registers
+    ``RandomWalk``). :func:`diffgyro.fit.fit` dispatches through this table, so the
+    direct and sums paths never import the state-space path."""
     def add(fn: Callable) -> Callable:
-        _STOCHASTIC_FITS[name] = fn
+        _NOISE_FITS[cls] = fn
         return fn
 
     return add
 
 
-def stochastic_fit(name: str) -> Callable:
-    """The fit registered for stochastic effect ``name``."""
-    if name not in _STOCHASTIC_FITS:
-        raise SpecError(f"no fit is registered for the stochastic effect {name!r}",
-                        hint="register one with diffgyro.core.register_stochastic_fit")
-    return _STOCHASTIC_FITS[name]
+def noise_fit(noise: AbstractNoise) -> Callable:
+    """The fit registered for the class of ``noise`` (or the nearest base class)."""
+    for cls in type(noise).__mro__:
+        if cls in _NOISE_FITS:
+            return _NOISE_FITS[cls]
+    raise SpecError(f"no fit is registered for the noise component {noise.spec!r}",
+                    hint="register one with diffgyro.core.register_noise_fit")

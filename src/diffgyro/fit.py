@@ -39,9 +39,9 @@ from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
     fit_status,
     fold_ids,
     min_samples,
+    noise_fit,
     pad_devices,
     sampling_intervals,
-    stochastic_fit,
 )
 from .data import Batch, Recording
 from .errors import DataError, SpecError
@@ -333,7 +333,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
     and ``collinear``.
     """
     p, q = model.n_params, model.n_nonlinear
-    terms = model.deterministic
+    terms = model.terms
     y = sig.gyro - sig.rate
     w = sig.mask.astype(y.dtype)
     n_valid = jnp.sum(w)
@@ -476,7 +476,7 @@ class FitResult(eqx.Module):
         labels = self.model.param_labels()
         for ax, name in enumerate("xyz"):
             out[name] = {lab: float(v) for lab, v in zip(labels[ax], np.asarray(pr.beta[ax]))}
-        taus = [t for t in self.model.deterministic if t.n_nonlinear]
+        taus = [t for t in self.model.terms if t.n_nonlinear]
         if taus:
             out["shared"] = {}
             for (t, _, qs) in self.model.slices():
@@ -558,12 +558,11 @@ def fit(
         name = sorted(missing)[0]
         raise DataError(f"model {model.spec!r} needs column(s) {col.get(name, name)}, not in the data",
                         file=batch.sources[0] if batch.sources else None, column=col.get(name, name))
-    noise = [t for t in model.terms if t.stochastic]
-    if noise:  # the state-space path (random_walk: diffgyro.kalman), found by its effect
+    if model.noise is not None:  # the state-space path (random_walk: diffgyro.kalman)
         if names:
-            raise SpecError(f"random_walk with aux terms ({model.spec!r}) is not supported",
-                            hint="fit the aux terms without random_walk")
-        fit_noise = stochastic_fit(noise[0].name)
+            raise SpecError(f"{model.noise.spec} with aux terms ({model.spec!r}) is not supported",
+                            hint=f"fit the aux terms without {model.noise.spec}")
+        fit_noise = noise_fit(model.noise)
         return fit_noise(model, batch, norm=norm, options=options, **option_overrides)
     opts = options or FitOptions()
     if option_overrides:

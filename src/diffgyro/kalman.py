@@ -49,8 +49,9 @@ from .core import (
     FitOptions,
     as_batch,
     fold_ids,
-    register_stochastic_fit,
+    register_noise_fit,
 )
+from .effects import RandomWalk
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .model import ErrorModel, Params
@@ -537,7 +538,7 @@ def _fit_batch(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds, ch
     return jax.lax.map(one, (sig, obs, keep), batch_size=chunk)
 
 
-@register_stochastic_fit("random_walk")
+@register_noise_fit(RandomWalk)
 def fit_random_walk(
     model: ErrorModel | str,
     batch,
@@ -574,7 +575,7 @@ def fit_random_walk(
     if static is not None:
         obs = obs & np.asarray(static, bool).reshape(obs.shape)
     if p0 is None:
-        p0 = 0.0 if any(t.constant_bias for t in model.deterministic) else WIDE_PRIOR
+        p0 = 0.0 if any(t.constant_bias for t in model.terms) else WIDE_PRIOR
     idx, ok = observed_indices(obs)
     keep = (jnp.asarray(idx), jnp.asarray(ok))
     out = _fit_batch(model, sig, jnp.asarray(obs), keep, jnp.asarray(p0, sig.gyro.dtype), reml,

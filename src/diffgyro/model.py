@@ -8,6 +8,9 @@ so scale factor and misalignment (contributions ∝ rate) build the matrix
 ``I + S + M`` of DESIGN.md §1 and the bias terms build ``b``. ``compensate``
 inverts this for the true rate with Newton steps (exact in one step for
 models linear in the rate; asymmetry and nonlinearity take a few).
+
+A model may also have a noise component (``random_walk``): a bias that wanders
+in time, smoothed by :mod:`diffgyro.kalman` while fitting and not stored.
 """
 
 from __future__ import annotations
@@ -17,7 +20,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from .effects import AbstractEffect, format_spec, parse_spec
+from .effects import AbstractEffect, AbstractNoise, AbstractTerm, format_spec, parse_spec
+from .errors import SpecError
 from .signals import Signals
 
 
@@ -33,36 +37,54 @@ class Params(eqx.Module):
 
 
 class ErrorModel(eqx.Module):
-    """A gyro error model: the ordered sum of its effect terms."""
+    """A gyro error model: the ordered sum of its deterministic effect terms, plus at most
+    one noise component (``random_walk``) that a state-space smoother tracks while fitting."""
 
     terms: tuple[AbstractEffect, ...] = eqx.field(static=True)
+    noise: AbstractNoise | None = eqx.field(static=True, default=None)
+
+    def __check_init__(self):
+        for t in self.terms:
+            if not isinstance(t, AbstractEffect):
+                raise SpecError(f"{getattr(t, 'spec', t)!r} is not a deterministic effect term",
+                                hint="pass a noise process as ErrorModel(terms, noise=...)")
+        if self.noise is not None and not isinstance(self.noise, AbstractNoise):
+            raise SpecError(f"{getattr(self.noise, 'spec', self.noise)!r} is not a noise process")
 
     @classmethod
     def from_spec(cls, spec: str) -> ErrorModel:
-        return cls(parse_spec(spec))
+        """The model of a spec: its effect terms in order, its noise process (if any) apart."""
+        parts = parse_spec(spec)
+        noise = [t for t in parts if isinstance(t, AbstractNoise)]
+        if len(noise) > 1:
+            raise SpecError(f"model {spec!r} has {len(noise)} noise components "
+                            f"({', '.join(t.spec for t in noise)}); a model takes one")
+        return cls(tuple(t for t in parts if not isinstance(t, AbstractNoise)),
+                   noise[0] if noise else None)
+
+    @property
+    def parts(self) -> tuple[AbstractTerm, ...]:
+        """The effect terms, then the noise component."""
+        return self.terms if self.noise is None else (*self.terms, self.noise)
 
     @property
     def spec(self) -> str:
-        return format_spec(self.terms)
+        return format_spec(self.parts)
 
-    def __add__(self, other: AbstractEffect | ErrorModel | str) -> ErrorModel:
+    def __add__(self, other: AbstractTerm | ErrorModel | str) -> ErrorModel:
         if isinstance(other, str):
             other = ErrorModel.from_spec(other)
-        extra = other.terms if isinstance(other, ErrorModel) else (other,)
-        return ErrorModel.from_spec(format_spec(self.terms + extra))
-
-    @property
-    def deterministic(self) -> tuple[AbstractEffect, ...]:
-        return tuple(t for t in self.terms if not t.stochastic)
+        extra = other.parts if isinstance(other, ErrorModel) else (other,)
+        return ErrorModel.from_spec(format_spec(self.parts + extra))
 
     @property
     def n_params(self) -> int:
         """Linear coefficients per axis."""
-        return sum(t.n_params for t in self.deterministic)
+        return sum(t.n_params for t in self.terms)
 
     @property
     def n_nonlinear(self) -> int:
-        return sum(t.n_nonlinear for t in self.deterministic)
+        return sum(t.n_nonlinear for t in self.terms)
 
     @property
     def is_linear(self) -> bool:
@@ -70,18 +92,19 @@ class ErrorModel(eqx.Module):
 
     @property
     def rate_dependent(self) -> bool:
-        return any(t.rate_dependent for t in self.deterministic)
+        return any(t.rate_dependent for t in self.terms)
 
     def requires(self) -> frozenset[str]:
+        """Data signals the terms and the noise component read."""
         out: set[str] = set()
-        for t in self.terms:
+        for t in self.parts:
             out |= t.requires()
         return frozenset(out)
 
     def slices(self) -> list[tuple[AbstractEffect, slice, slice]]:
-        """(term, slice into beta's last axis, slice into theta) for each deterministic term."""
+        """(term, slice into beta's last axis, slice into theta) for each term."""
         out, p, q = [], 0, 0
-        for t in self.deterministic:
+        for t in self.terms:
             out.append((t, slice(p, p + t.n_params), slice(q, q + t.n_nonlinear)))
             p += t.n_params
             q += t.n_nonlinear
@@ -105,12 +128,12 @@ class ErrorModel(eqx.Module):
         return jnp.concatenate(cols, axis=-1)
 
     def nonlinear_init(self, sig: Signals) -> Float[Array, " q"]:
-        parts = [t.nonlinear_init(sig) for t in self.deterministic]
+        parts = [t.nonlinear_init(sig) for t in self.terms]
         return jnp.concatenate(parts) if parts else jnp.zeros((0,))
 
     def nonlinear_grid(self, sig: Signals) -> Float[Array, "g q"]:
         """Cartesian product of every nonlinear term's candidate starts."""
-        grids = [t.nonlinear_grid(sig) for t in self.deterministic if t.n_nonlinear]
+        grids = [t.nonlinear_grid(sig) for t in self.terms if t.n_nonlinear]
         if not grids:
             return jnp.zeros((1, 0))
         out = grids[0]
@@ -121,8 +144,8 @@ class ErrorModel(eqx.Module):
         return out
 
     def range_problems(self, sig: Signals) -> Float[Array, " terms"]:
-        """Per deterministic term: > 0 where the data cannot support it."""
-        return jnp.stack([t.range_problem(sig) for t in self.deterministic])
+        """Per term: > 0 where the data cannot support it."""
+        return jnp.stack([t.range_problem(sig) for t in self.terms])
 
     def error(self, params: Params, sig: Signals) -> Float[Array, "n 3"]:
         """Sum of all terms' contributions at the signals' true rate."""

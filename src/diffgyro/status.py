@@ -20,9 +20,9 @@ from .core import STATUS_NAMES, min_samples  # noqa: F401  (status names, the sa
 
 
 def collinear_terms(model, direction, rank_ok):
-    """Per deterministic term: does it weigh in a direction the data do not excite?
+    """Per term: does it weigh in a direction the data do not excite?
     ``direction`` (3, p) is the smallest eigenvector of each axis' scaled Gram matrix."""
-    terms = model.deterministic
+    terms = model.terms
     if not model.n_params:
         return jnp.zeros((len(terms),), bool)
     owner = jnp.asarray([terms.index(t) for t in model.column_terms()], jnp.int32)
@@ -52,7 +52,7 @@ def _range_reason(term, temp_range) -> str:
 def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=None,
             n_samples=None, steps=None) -> str:
     """``status_detail``: the status name, and for a device not ``ok`` why, in plain words."""
-    terms = model.deterministic
+    terms = model.terms
     if name == "ok":
         return name
     if name == "insufficient_data":

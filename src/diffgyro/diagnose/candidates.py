@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..effects import AbstractEffect, registry
+from ..effects import AbstractNoise, AbstractTerm, registry
 from ..effects.base import MAX_ORDER, spec_arguments
 from ..model import ErrorModel
 
@@ -14,20 +14,16 @@ class CandidateSpec:
     """One candidate: the model with ``term`` added (or ``old`` raised to ``term``)."""
 
     effect: str
-    term: AbstractEffect
+    term: AbstractTerm
     model: ErrorModel
-    old: AbstractEffect | None = None  # the term it replaces (order raised)
+    old: AbstractTerm | None = None  # the term it replaces (order raised)
 
     @property
     def spec(self) -> str:
         return self.model.spec
 
-    @property
-    def stochastic(self) -> bool:
-        return self.term.stochastic
 
-
-def _new_terms(cls, present: AbstractEffect | None) -> list[AbstractEffect]:
+def _new_terms(cls, present: AbstractTerm | None) -> list[AbstractTerm]:
     """The terms to try for one effect: an absent one at its default order, or at orders 0
     and 1 when it has no default (a constant and a temperature-dependent one); a present
     one with its order raised by one."""
@@ -47,13 +43,13 @@ def column_field(cls) -> str | None:
     return next((f for f, kind in spec_arguments(cls) if kind == "column"), None)
 
 
-def term_column(term: AbstractEffect) -> str | None:
+def term_column(term: AbstractTerm) -> str | None:
     """The extra column a term reads through its column argument (``aux(vdd)``: vdd)."""
     field = column_field(type(term))
     return getattr(term, field) if field else None
 
 
-def _column_terms(cls, model: ErrorModel, columns, explicit) -> list[AbstractEffect]:
+def _column_terms(cls, model: ErrorModel, columns, explicit) -> list[AbstractTerm]:
     """Terms of a column effect: one per extra column the model does not read with it yet
     (``explicit``: those of the given terms)."""
     field = column_field(cls)
@@ -75,12 +71,14 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     such as ``bias_poly(3)``). Order-k columns must be the first columns of
     order k+1 (true of the built-in polynomial terms) for a raised candidate
     to be scored. An effect with a column argument (``aux``) is offered once per
-    extra column in ``columns`` the model does not read with it yet.
+    extra column in ``columns`` the model does not read with it yet. A noise process
+    (``random_walk``) is offered as the model plus that noise component when the model
+    has none.
     """
     from ..effects import parse_term
 
     present = {t.name: t for t in model.terms}
-    wanted: dict[str, list[AbstractEffect] | None] = {}
+    wanted: dict[str, list[AbstractTerm] | None] = {}
     if names is None:
         wanted = {n: None for n in registry()}
     else:
@@ -96,6 +94,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]
+        if issubclass(cls, AbstractNoise) and model.noise is not None:
+            continue  # one noise component per model
         if column_field(cls):
             old, terms = None, _column_terms(cls, model, columns, explicit)
         else:
@@ -109,7 +109,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
             if old is None:
                 new_model = model + term
             else:
-                new_model = ErrorModel(tuple(term if t is old else t for t in model.terms))
+                new_model = ErrorModel(tuple(term if t is old else t for t in model.terms),
+                                       model.noise)
             out.append(CandidateSpec(effect=name, term=term, model=new_model, old=old))
     return out
 

@@ -125,13 +125,13 @@ def diagnose_auto(
         if choice is None:
             break
         effect, spec = choice
-        if effect == "random_walk":
+        if ErrorModel.from_spec(spec).noise is not None:  # the walk: the last rung
             rws = [d.random_walk for d in diag.devices]
             h = [c.heldout_rms if c is not None else d.heldout_rms for c, d in zip(rws, diag.devices)]
             w = [d.white_noise_rms for d in diag.devices]
             verdicts = ["adequate" if (hh**2 - ww**2) / max(ww**2, 1e-300) < th.excess_min
                         else "missing_effect" for hh, ww in zip(h, w)]
-            steps.append(LadderStep(spec=(diag.model + "random_walk").spec, added="random_walk",
+            steps.append(LadderStep(spec=spec, added=effect,
                                     heldout_rms=h, noise_floor=[d.noise_floor for d in diag.devices],
                                     rms=[c.rms if c is not None else d.rms for c, d in zip(rws, diag.devices)],
                                     verdicts=verdicts))

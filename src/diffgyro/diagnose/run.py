@@ -19,6 +19,7 @@ import numpy as np
 
 from .. import aux as aux_cols
 from ..data import Batch, Recording, aux_key
+from ..effects import AbstractNoise, RandomWalk
 from ..jit import release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
@@ -346,8 +347,9 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
     specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
                             names, columns=tuple(problems))
     dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
-    every = [c for c in specs if not c.stochastic and c not in dead]
-    rw_spec = (model + "random_walk").spec if any(c.stochastic for c in specs) else None
+    every = [c for c in specs if not isinstance(c.term, AbstractNoise) and c not in dead]
+    # the smoother scored here is the random walk's; another noise process is not scored
+    rw_spec = next((c.spec for c in specs if isinstance(c.term, RandomWalk)), None)
     read = set(res.aux_norm) | {term_column(c.term) for c in every}
     return every, rw_spec, {k: v for k, v in aux.items() if k in read}, problems, dead
 
@@ -379,11 +381,11 @@ def diagnose(
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
-    if any(t.stochastic for t in model.terms):
+    if model.noise is not None:
         from ..errors import SpecError
 
         raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
-                        hint="drop random_walk from --model: it is tried as a candidate")
+                        hint=f"drop {model.noise.spec} from --model: it is tried as a candidate")
     batch = as_batch(batch)
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options and base_fit is None:

@@ -1,4 +1,5 @@
-"""Effect terms: one small module per physical effect, a registry and the spec grammar."""
+"""Effect terms: one small module per physical effect, the noise process (random_walk), a
+registry and the spec grammar."""
 
 from . import (  # noqa: F401  (importing registers the built-in terms)
     aux,
@@ -19,6 +20,8 @@ from .aux import Aux
 from .base import (
     AXES,
     AbstractEffect,
+    AbstractNoise,
+    AbstractTerm,
     format_spec,
     parse_spec,
     parse_term,
@@ -40,7 +43,8 @@ from .thermal_lag import ThermalLag, first_order_lag
 from .warmup import Warmup
 
 __all__ = [
-    "AXES", "AbstractEffect", "Aux", "BiasPoly", "GSens", "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
+    "AXES", "AbstractEffect", "AbstractNoise", "AbstractTerm", "Aux", "BiasPoly", "GSens",
+    "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
     "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
     "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
     "spec_arguments",

@@ -1,4 +1,4 @@
-"""The abstract effect term, the registry of terms and the model-spec grammar.
+"""The abstract effect term and noise process, their registry and the model-spec grammar.
 
 Every physical effect adds, per gyro axis ``i``, a contribution that is
 linear in the term's per-axis coefficients ``beta[i]`` once its few shared
@@ -11,6 +11,10 @@ bias, scale factor (columns ∝ true rate), misalignment (columns = the other
 axes' rates), g-sensitivity (columns = specific force) and the separable
 nonlinear terms (thermal lag, warm-up), and it is what lets the fits use
 closed-form least squares and variable projection.
+
+A noise process (the bias random walk) is not a sum of columns: it is the
+model's noise component, estimated by a state-space smoother while fitting.
+It shares the registry and the spec grammar (``bias_poly(2)+random_walk``).
 """
 
 from __future__ import annotations
@@ -30,14 +34,15 @@ from ..signals import Signals
 AXES = ("x", "y", "z")
 
 
-class AbstractEffect(eqx.Module):
-    """One physical error term. Subclasses are small final modules.
+class AbstractTerm(eqx.Module):
+    """What every registered spec name carries: a deterministic effect
+    (:class:`AbstractEffect`) or the model's noise component (:class:`AbstractNoise`).
 
     Class attributes describe the term for the registry and the command line:
     ``name`` (the spec name), ``description`` (one line of physics),
     ``needs`` (data signals it reads: ``temp``, ``temp_ext``, ``accel``,
-    ``rate``, ``t``), ``unit`` (unit of its per-axis coefficients) and the
-    arguments its spec takes: ``order_arg`` (an integer order, e.g.
+    ``rate``, ``t``), ``unit`` (unit of its per-axis coefficients; of a noise
+    process, of its learned variance) and the arguments its spec takes: ``order_arg`` (an integer order, e.g.
     ``bias_poly(2)``) or, in general, ``arguments``: ``(field, kind)`` pairs in
     spec order, kind ``"int"`` (an order from ``min_order`` to
     :data:`MAX_ORDER`) or ``"column"`` (the name of an extra logged column,
@@ -54,13 +59,6 @@ class AbstractEffect(eqx.Module):
     min_order: ClassVar[int] = 0
     #: Spec arguments as (field, kind) pairs; empty: ``(("order", "int"),)`` if ``order_arg``.
     arguments: ClassVar[tuple[tuple[str, str], ...]] = ()
-    #: True if the contribution depends on the true rate (inverted by ``compensate``).
-    rate_dependent: ClassVar[bool] = False
-    #: True for terms handled by a state-space smoother rather than by regression.
-    stochastic: ClassVar[bool] = False
-    #: True when the term's first column is a constant (a fixed bias): the linear solver
-    #: centres the other columns against it, and a random walk beside it starts at zero.
-    constant_bias: ClassVar[bool] = False
     #: The signal the term's contribution follows, where its evidence is sought and against
     #: which reports plot the residual: ``temp``, ``dtemp`` (dT/dt), ``temp_diff``
     #: (temp − temp_ext), ``heating`` (heating vs cooling), ``rate``, ``abs_rate``, ``rate3``,
@@ -73,9 +71,6 @@ class AbstractEffect(eqx.Module):
     #: Terms of one family mimic each other on common test plans; diagnose reports a
     #: family's close candidates together (e.g. ``"thermal transient"``). None: no family.
     family: ClassVar[str | None] = None
-    #: True when a time constant shorter than the window that estimates dT/dt is the
-    #: ``gradient`` term at the data's resolution: diagnose searches τ from that window up.
-    tau_from_dtemp_window: ClassVar[bool] = False
 
     @property
     def spec(self) -> str:
@@ -93,6 +88,30 @@ class AbstractEffect(eqx.Module):
         arguments, such as the column of ``aux(NAME)``, overrides this)."""
         return self.follows
 
+    def requires(self) -> frozenset[str]:
+        """Data signals this term reads (may depend on its order)."""
+        return frozenset(self.needs)
+
+
+class AbstractNoise(AbstractTerm):
+    """A noise process: the model's noise component (at most one), estimated by a
+    state-space smoother while fitting instead of by regression, so it has no columns.
+    Its fit is found through :func:`diffgyro.core.register_noise_fit`."""
+
+
+class AbstractEffect(AbstractTerm):
+    """One physical error term: regressor columns per axis. Subclasses are small final
+    modules."""
+
+    #: True if the contribution depends on the true rate (inverted by ``compensate``).
+    rate_dependent: ClassVar[bool] = False
+    #: True when the term's first column is a constant (a fixed bias): the linear solver
+    #: centres the other columns against it, and a random walk beside it starts at zero.
+    constant_bias: ClassVar[bool] = False
+    #: True when a time constant shorter than the window that estimates dT/dt is the
+    #: ``gradient`` term at the data's resolution: diagnose searches τ from that window up.
+    tau_from_dtemp_window: ClassVar[bool] = False
+
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]:
         """Names of the per-axis linear coefficients (one column each)."""
@@ -100,10 +119,6 @@ class AbstractEffect(eqx.Module):
     def labels(self, axis: int) -> tuple[str, ...]:
         """Names of the coefficients of gyro axis ``axis`` as a user reads them."""
         return self.param_names()
-
-    def requires(self) -> frozenset[str]:
-        """Data signals this term reads (may depend on its order)."""
-        return frozenset(self.needs)
 
     def nonlinear_names(self) -> tuple[str, ...]:
         """Names of the shared nonlinear parameters (time constants, in seconds)."""
@@ -164,17 +179,18 @@ class AbstractEffect(eqx.Module):
         return len(self.nonlinear_names())
 
 
-_REGISTRY: dict[str, type[AbstractEffect]] = {}
+_REGISTRY: dict[str, type[AbstractTerm]] = {}
 
 
-def register(cls: type[AbstractEffect]) -> type[AbstractEffect]:
-    """Class decorator: make an effect usable by name in model specs everywhere.
+def register(cls: type[AbstractTerm]) -> type[AbstractTerm]:
+    """Class decorator: make an effect or a noise process usable by name in model specs
+    everywhere.
 
     Registering a name twice replaces the earlier class (so a notebook can be
     re-run); built-in names cannot be replaced by a different class.
     """
-    if not (isinstance(cls, type) and issubclass(cls, AbstractEffect)):
-        raise TypeError("register() takes a subclass of AbstractEffect")
+    if not (isinstance(cls, type) and issubclass(cls, (AbstractEffect, AbstractNoise))):
+        raise TypeError("register() takes a subclass of AbstractEffect or AbstractNoise")
     name = getattr(cls, "name", None)
     if not isinstance(name, str) or not re.fullmatch(r"[a-z][a-z0-9_]*", name):
         raise TypeError(f"effect name {name!r} must be lower_snake_case")
@@ -185,8 +201,8 @@ def register(cls: type[AbstractEffect]) -> type[AbstractEffect]:
     return cls
 
 
-def registry() -> dict[str, type[AbstractEffect]]:
-    """All registered effect classes by name (built-ins first, then user terms)."""
+def registry() -> dict[str, type[AbstractTerm]]:
+    """All registered effect and noise classes by name (built-ins first, then user terms)."""
     return dict(_REGISTRY)
 
 
@@ -198,7 +214,7 @@ MAX_ORDER = 9
 MAX_SPEC_LENGTH = 1000
 
 
-def spec_arguments(cls: type[AbstractEffect]) -> tuple[tuple[str, str], ...]:
+def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
     """The (field, kind) arguments a term's spec takes, in order."""
     if cls.arguments:
         return tuple(cls.arguments)
@@ -227,7 +243,7 @@ def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
     return order
 
 
-def parse_term(text: str) -> AbstractEffect:
+def parse_term(text: str) -> AbstractTerm:
     """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``, ``"aux(vdd,2)"`` -> ``Aux(column="vdd",
     order=2)``; clear errors for bad text."""
     m = _TERM.match(text)
@@ -260,7 +276,7 @@ def parse_term(text: str) -> AbstractEffect:
     return cls(**values)
 
 
-def parse_spec(spec: str) -> tuple[AbstractEffect, ...]:
+def parse_spec(spec: str) -> tuple[AbstractTerm, ...]:
     """Split a spec on ``+`` and parse every term; a name may appear only once."""
     if not isinstance(spec, str) or not spec.strip():
         raise SpecError("empty model spec", hint="e.g. bias_poly(2)+gradient")

@@ -20,7 +20,6 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..calibration import Calibration, DeviceCalibration
-from ..effects import parse_spec
 from ..errors import DataError
 
 #: Highest polynomial order PX4's TC_* and ArduPilot's INS_TCAL* parameters hold.
@@ -57,7 +56,7 @@ class ThermalPoly:
 
 def thermal_poly(cal: Calibration, dev: DeviceCalibration, fmt: str) -> ThermalPoly:
     """The device's ``bias_poly(k ≤ 3)``; any other term or a higher order is refused."""
-    terms = [t for t in parse_spec(cal.model) if not t.stochastic]
+    terms = cal.error_model.terms
     for t in terms:
         if t.name != "bias_poly":
             raise DataError(f"term {t.spec} cannot be written as {fmt} parameters: {fmt} holds "

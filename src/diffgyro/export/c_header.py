@@ -21,7 +21,6 @@ from __future__ import annotations
 import re
 
 from ..calibration import Calibration
-from ..effects import parse_spec
 from ..errors import DataError
 
 NAME = "c-header"
@@ -49,7 +48,7 @@ def _term_code(term, start: int) -> list[str]:
 
 
 def _check(cal: Calibration, device: str) -> list:
-    terms = [t for t in parse_spec(cal.model) if not t.stochastic]
+    terms = cal.error_model.terms
     for t in terms:
         if t.name not in SUPPORTED:
             raise DataError(f"term {t.spec} cannot be written as a c-header: the header implements "

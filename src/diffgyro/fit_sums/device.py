@@ -68,7 +68,7 @@ def device(model: ErrorModel, layout: Layout, opts, c: int, prefix: bool, t, gyr
         sums = separable_sums(model, layout, opts, c, sig, mask, nv, y, y0, theta0, pos)
     sums = eqx.tree_at(lambda s: (s.steps, s.converged), sums,
                        (jnp.asarray(sums.steps, jnp.int32), jnp.asarray(sums.converged)))
-    terms = model.deterministic
+    terms = model.terms
     flags = model.range_problems(sig) > 0 if terms else jnp.zeros((0,), bool)
     temp_range = jnp.stack(masked_range(temp, mask)) if temp is not None else None
     norm = sig.norm

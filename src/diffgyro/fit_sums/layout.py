@@ -152,7 +152,7 @@ def _inputs_read(model: ErrorModel, present: frozenset[str], n: int, q: int) -> 
         s = make_signals(kw.pop("t"), jnp.zeros((n, 3), dtype), jnp.ones(n, bool), **kw, dt=dt,
                          aux=aux)
         out = [model.design(s, jnp.zeros((q,), dtype))]
-        if model.deterministic:
+        if model.terms:
             out.append(model.range_problems(s))
         return out
 

@@ -116,8 +116,8 @@ class ChunkFitter:
     def __init__(self, spec: str, chunk_devices: int, options: dict | None = None,
                  shard: bool | None = None):
         self.model = ErrorModel.from_spec(spec)
-        if any(t.stochastic for t in self.model.terms):
-            raise SpecError("streaming fits do not support random_walk models yet",
+        if self.model.noise is not None:
+            raise SpecError(f"streaming fits do not support {self.model.noise.spec} models yet",
                             hint="fit them without --chunk-devices/--dask")
         options = dict(options or {})
         tol = {k: jnp.asarray(options.pop(k)) for k in ("rtol", "atol", "rank_tol") if k in options}

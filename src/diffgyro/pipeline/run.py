@@ -521,11 +521,10 @@ def _run_key(command, paths, model, chunk_devices, columns, units, drop_invalid,
              sampling_rate, fit_options, task_options):
     """The checked model, input files and read configuration, and the run's key (what a
     work directory must match to be resumed)."""
-    from ..effects import parse_spec
     from ..io import parse_columns, resolve_units
     from ..model import ErrorModel
 
-    em = ErrorModel(parse_spec(model))
+    em = ErrorModel.from_spec(model)
     if any(r.startswith("aux:") for r in em.requires()):  # the readers keep standard columns
         raise DataError(f"the streaming run reads the standard columns only; model {em.spec!r} "
                         f"reads an extra column", hint="fit it with diffgyro fit")

@@ -187,9 +187,9 @@ def draw_params(model: ErrorModel, preset: Preset, n_devices: int, seed: int, te
     Returns Params with beta (d, 3, P) and theta (d, Q) (theta = log τ).
     """
     d = n_devices
-    bias_order = max((t.order for t in model.deterministic if isinstance(t, BiasPoly)), default=-1)
+    bias_order = max((t.order for t in model.terms if isinstance(t, BiasPoly)), default=-1)
     betas, thetas = [], []
-    for term in model.deterministic:
+    for term in model.terms:
         beta, theta = _draw_term(term, preset, d, seed, temp_scale, bias_order)
         betas.append(beta)
         thetas.append(theta)
