@@ -9,7 +9,7 @@ diagnoses every problem of the catalogue of ``tests/test_diagnose.py``
 (recordings of ``tests/hidden_effects.py``, 2 Hz, a few thousand to tens of
 thousands of samples) twice, sample by sample (the limit past every record's
 length) and with the limit at ``--points`` (default: its value in diffgyro),
-and compares the verdicts, the effect named, the held-out RMS and the random
+and compares the verdicts, the effect named, its held-out RMS and the random
 walk's held-out RMS.
 
     python benchmarks/diagnose_block_average.py --check search --points 4096 --out results/x.json
@@ -50,8 +50,10 @@ def _groups():
 
 def _summary(d) -> dict:
     rw = d.random_walk
-    return {"device": d.device, "verdict": d.verdict, "best": d.best.effect if d.best else None,
-            "heldout_rms": d.heldout_rms, "rw_heldout_rms": rw.heldout_rms if rw else None,
+    best = d.best
+    return {"device": d.device, "verdict": d.verdict, "best": best.effect if best else None,
+            "heldout_rms": d.heldout_rms, "best_heldout_rms": best.heldout_rms if best else None,
+            "best_tau": best.tau if best else None, "rw_heldout_rms": rw.heldout_rms if rw else None,
             "rw_significant": bool(rw.significant) if rw else None}
 
 
@@ -92,7 +94,8 @@ def main(argv=None) -> int:
             and r["sample_level"]["best"] == r["block_averaged"]["best"] for r in rows]
     ratio = [r["block_averaged"]["rw_heldout_rms"] / r["sample_level"]["rw_heldout_rms"]
              for r in rows if r["sample_level"]["rw_heldout_rms"]]
-    held = [r["block_averaged"]["heldout_rms"] / r["sample_level"]["heldout_rms"] for r in rows]
+    held = [r["block_averaged"]["best_heldout_rms"] / r["sample_level"]["best_heldout_rms"]
+            for r in rows if r["sample_level"]["best_heldout_rms"] and r["block_averaged"]["best_heldout_rms"]]
     out = {"check": args.check, "devices": len(rows), "points": points, "default_points": default,
            "same_verdict_and_effect": int(sum(same)),
            "changed": [r for r, s in zip(rows, same) if not s],
@@ -103,7 +106,8 @@ def main(argv=None) -> int:
            "segment_lengths": sorted({r["segment"] for r in rows}),
            "seconds": time.perf_counter() - t0, "rows": rows}
     print(f"{out['same_verdict_and_effect']}/{out['devices']} devices: same verdict and effect; "
-          f"segments of {out['segment_lengths']} samples; held-out RMS ratio {out['heldout_ratio']}; "
+          f"segments of {out['segment_lengths']} samples; named term's held-out RMS ratio "
+          f"{out['heldout_ratio']}; "
           f"random walk held-out RMS ratio {out['rw_heldout_ratio']}")
     if args.out:
         from diffgyro.jsonio import atomic_write_text, dumps
