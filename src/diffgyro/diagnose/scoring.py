@@ -36,6 +36,7 @@ numbers the decision reads never come from segments.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -250,6 +251,7 @@ def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, lo
     return grid, term.columns
 
 
+@jax.jit  # traced once per shape, not once per candidate and grid (likewise score_set)
 def column_sums(zw, xe_w):
     """Per-block sums ZᵀX (B, 3, k, p), ZᵀZ (B, 3, k, k), Zᵀe (B, 3, k) of one windowed
     column set ``zw`` (B, w, 3, k); ``xe_w`` (B, w, 3p + 3) is the base design and residual
@@ -277,6 +279,7 @@ def flat_axes(xb_w, e_w):
     return jnp.concatenate([xb_w.reshape(b, w, -1), e_w], axis=-1)
 
 
+@functools.partial(jax.jit, static_argnums=2)
 def score_set(base: BaseScores, sums, n_folds: int):
     """Scores of base + one column set from its block sums: per-fold training SSE (K,),
     held-out SSE (K, 3), full-fit SSE (3,), its total and every block's held-out SSE (B,)."""
