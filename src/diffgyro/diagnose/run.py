@@ -66,23 +66,29 @@ def _chunks(n_devices: int, size: int):
         yield start, np.minimum(np.arange(start, start + size), n_devices - 1)
 
 
+def _put(x: np.ndarray) -> jax.Array:
+    """A host array on the device as it is: ``jnp.asarray`` of a numpy array compiles a
+    staging program for every new shape, ``device_put`` does not."""
+    return jax.device_put(np.asarray(x))
+
+
 def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     """One chunk's samples, the fit's temperature normalisation and sampling intervals and
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
     from ..core import sampling_intervals
 
     def arr(x):
-        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
+        return None if x is None else _put(np.asarray(x, np.float64)[idx])
 
     norm = None
     if res.model.requires() & {"temp"}:
         n = batch.n_devices
-        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(res.norm.centre, jnp.float64), (n,))[idx],
-                        scale=jnp.broadcast_to(jnp.asarray(res.norm.scale, jnp.float64), (n,))[idx])
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
+        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (n,))),
+                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (n,))))
+    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=_put(np.asarray(batch.mask)[idx]),
                 rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=jnp.asarray(sampling_intervals(batch)[idx]),
-                aux={k: jnp.asarray(v[idx]) for k, v in aux.items()})
+                accel=arr(batch.accel), norm=norm, dt=_put(sampling_intervals(batch)[idx]),
+                aux={k: _put(v[idx]) for k, v in aux.items()})
 
 
 def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
@@ -222,7 +228,7 @@ def _windows(dtemp_window: float):
     starts at (the window, −inf for none), taken on the host."""
     w = float(dtemp_window)
     log_min_lag = math.log(w) if w > 0 else -math.inf
-    return jnp.asarray(log_min_lag, jnp.float64), jnp.asarray(w, jnp.float64)
+    return _put(np.float64(log_min_lag)), _put(np.float64(w))
 
 
 def _gather(chunks: list[dict], n_dev: int) -> dict:
@@ -255,8 +261,8 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
         o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
-                    window_s, _inputs(batch, res, idx, aux), jnp.asarray(beta[idx]),
-                    jnp.asarray(theta[idx]), jnp.asarray(floors[idx]), jnp.asarray(ix), jnp.asarray(ins))
+                    window_s, _inputs(batch, res, idx, aux), _put(beta[idx]), _put(theta[idx]),
+                    _put(floors[idx]), _put(ix), _put(ins))
         out.append(jax.device_get(o))
     out = _gather(out, n_dev)
     if not cands:
@@ -274,8 +280,8 @@ def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
     dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
     m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
     nv = np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1)
-    adev, _ = allan_mod.oadev(jnp.asarray(np.moveaxis(resid, -1, 1)[pick]), jnp.asarray(dts[pick, None]),
-                              jnp.asarray(m), jnp.asarray(nv))
+    adev, _ = allan_mod.oadev(_put(np.moveaxis(resid, -1, 1)[pick]), _put(dts[pick, None]),
+                              _put(np.asarray(m)), _put(nv))
     adev = np.asarray(adev)[:n_dev]
     tau = dts[:, None, None] * np.asarray(m)[None, None, :] * np.ones((1, 3, 1))
     return AllanCurves(tau=tau, adev=adev)
@@ -286,7 +292,7 @@ def _taus(cands, theta_row) -> list:
     taus = []
     for c, th in zip(cands, theta_row):
         if c.old is None and c.term.n_nonlinear == 1 and np.isfinite(th).all():
-            taus.append(float(np.asarray(c.term.nonlinear_values(jnp.asarray(th)))[0]))
+            taus.append(float(np.asarray(c.term.nonlinear_values(_put(th)))[0]))
         else:
             taus.append(None)
     return taus
