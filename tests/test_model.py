@@ -100,3 +100,16 @@ def test_a_registered_user_noise_process(user_noise):
         fit(model, rec)
     register_noise_fit(Flicker)(lambda m, batch, **kw: (m, batch.n_devices))
     assert fit(model, rec) == (model, 1)
+
+
+def test_diagnose_lists_a_noise_process_it_does_not_score(user_noise):
+    """diagnose's smoother is the random walk's: another noise process offered is listed
+    under ``skipped`` with the reason, not dropped without a word."""
+    from diffgyro.diagnose import diagnose
+
+    rng = np.random.default_rng(1)
+    t = np.arange(2000.0)
+    rec = Recording(t=t, gyro=1e-3 * rng.normal(size=(2000, 3)), temp=20 + 10 * np.sin(t / 300))
+    d = diagnose("bias_poly(1)", rec, candidates=["flicker_walk", "random_walk"]).devices[0]
+    assert "diagnose scores one noise process" in d.skipped["flicker_walk"]
+    assert d.random_walk is not None and "random_walk" not in d.skipped

@@ -46,6 +46,7 @@ from .thresholds import Thresholds
 CHUNK_SAMPLES = 1 << 18
 
 UNSUPPORTED = "the data cannot support it (range: e.g. no rate, no temperature span)"
+NOISE_UNSCORED = "diagnose scores one noise process, the random walk; fit this one directly"
 
 
 def device_bucket(n: int) -> int:
@@ -347,17 +348,21 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
 
 def _candidates(model: ErrorModel, batch: Batch, res, names):
     """The deterministic candidates, the random walk's spec (or None), the extra columns
-    their terms read (:func:`_extra_columns`), every column's problems per device, and the
-    column candidates no device can use (listed under skipped, never compiled)."""
+    their terms read (:func:`_extra_columns`), every column's problems per device, the
+    column candidates no device can use (listed under skipped, never compiled) and the
+    other noise processes offered (listed under skipped: the smoother scored here is the
+    random walk's)."""
     aux, problems = _extra_columns(batch, model, res)
     specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
                             names, columns=tuple(problems))
     dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
     every = [c for c in specs if not isinstance(c.term, AbstractNoise) and c not in dead]
-    # the smoother scored here is the random walk's; another noise process is not scored
-    rw_spec = next((c.spec for c in specs if isinstance(c.term, RandomWalk)), None)
+    noise = [c for c in specs if isinstance(c.term, AbstractNoise)]
+    walk = next((c for c in noise if isinstance(c.term, RandomWalk)), None)
+    unscored = [c.effect for c in noise if c is not walk]
     read = set(res.aux_norm) | {term_column(c.term) for c in every}
-    return every, rw_spec, {k: v for k, v in aux.items() if k in read}, problems, dead
+    return (every, walk.spec if walk else None, {k: v for k, v in aux.items() if k in read},
+            problems, dead, unscored)
 
 
 def diagnose(
@@ -397,12 +402,14 @@ def diagnose(
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
-    every, rw_spec, aux, problems, dead = _candidates(model, batch, res, candidates)
+    every, rw_spec, aux, problems, dead, unscored = _candidates(model, batch, res, candidates)
     all_ranges, floors = _prepare(batch, res, every, aux)
     skips = _column_skips(every, all_ranges, problems, batch.n_devices)
     for c in dead:
         for i, why in enumerate(problems[term_column(c.term)]):
             skips[i][c.term.spec] = why
+    for name, skip in ((n, s) for n in unscored for s in skips):
+        skip[name] = NOISE_UNSCORED
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
