@@ -8,6 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..model import ErrorModel
 from .candidates import added_term
 from .evidence import OUTSIDE, explain
 from .results import Candidate, DeviceDiagnosis
@@ -152,7 +153,8 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
             det[-1].note = SLOW_EDGE
     rw_c = None
     if rw_spec:
-        rw_c = sc.score("random_walk", rw_spec, rw_fold, rw_full, stochastic=True)
+        walk = ErrorModel.from_spec(rw_spec).noise.name  # random_walk, or a user's subclass of it
+        rw_c = sc.score(walk, rw_spec, rw_fold, rw_full, stochastic=True)
         rw_c.note = ("local-level smoother of the residual; walk variance by maximum likelihood on "
                      "the training blocks")
     pair_c = None
