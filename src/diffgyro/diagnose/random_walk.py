@@ -86,15 +86,16 @@ def rts(mf, pf, pp):
     return jnp.concatenate([ms, mf[-1:]], axis=0)
 
 
-def _series(e_w, xb_w, t_w, inside, b_base, m: int):
+def _series(xe_w, t_w, inside, b_base, m: int):
     """Segment means of each fold's training residual and of the full-fit residual
     (K + 1, N, 3), the segment counts (N,), times (N,) and folds (N,)."""
-    n_blocks = e_w.shape[0]
-    n_folds = b_base.shape[0]
-    cnt = segment_sums(inside.astype(e_w.dtype), m)  # (B, S)
+    n_blocks = xe_w.shape[0]
+    n_folds, _, p = b_base.shape
+    cnt = segment_sums(inside.astype(xe_w.dtype), m)  # (B, S)
     den = jnp.maximum(cnt, 1.0)
-    e_s = segment_sums(e_w, m) / den[..., None]
-    x_s = segment_sums(xb_w, m) / den[..., None, None]
+    xe_s = segment_sums(xe_w, m) / den[..., None]
+    x_s = xe_s[..., : 3 * p].reshape(xe_s.shape[:2] + (3, p))
+    e_s = xe_s[..., 3 * p:]
     t_s = segment_sums(jnp.where(inside, t_w, 0.0), m) / den
     fold_s = jnp.broadcast_to(jnp.asarray(block_folds(n_blocks, n_folds))[:, None], cnt.shape)
     flat = lambda a: a.reshape((-1,) + a.shape[2:])  # noqa: E731
@@ -118,13 +119,13 @@ class RandomWalkScores(eqx.Module):
     rw_blk: Array
 
 
-def random_walk_scores(e_w, xb_w, t_w, inside, b_base, base_sse, base_blk, base_full,
+def random_walk_scores(xe_w, t_w, inside, b_base, base_sse, base_blk, base_full,
                        floor_axes, dt0, m: int) -> RandomWalkScores:
     """Held-out (smoothed and forecast) SSE per fold (K, 3), the full-record SSE (3,), the
     walk variance (3,) and every block's held-out SSE (B,) of the local-level smoother."""
     n_folds = b_base.shape[0]
-    dtype = e_w.dtype
-    e_all, cnt, t_s, fold_s = _series(e_w, xb_w, t_w, inside, b_base, m)
+    dtype = xe_w.dtype
+    e_all, cnt, t_s, fold_s = _series(xe_w, t_w, inside, b_base, m)
     n, s_f = cnt.shape[0], n_folds + 1
     r = jnp.maximum(floor_axes**2, 1e-300)
     obs = jnp.concatenate([(fold_s[None, :] != jnp.arange(n_folds)[:, None]) & (cnt[None] > 0),

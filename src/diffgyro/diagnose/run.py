@@ -35,7 +35,7 @@ from .scoring import (
     base_scores,
     block_windows,
     candidate_scores,
-    flat_axes,
+    design_and_residual,
     segments,
     window,
 )
@@ -170,17 +170,15 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     xb = base.design(sig, theta_b) if base.n_params else jnp.zeros((y.shape[0], 3, 0), dtype)
     e = (y - jnp.einsum("nip,ip->ni", xb, beta_b)) * w[:, None]  # base residual (full fit)
     e = jnp.where(jnp.isfinite(e), e, 0.0)
-    xb_w = window(jnp.where(jnp.isfinite(xb), xb, 0.0), idx, inside)
-    e_w = window(e, idx, inside)
-    b = base_scores(xb_w, e_w, inside, n_folds)
-    xe_w = flat_axes(xb_w, e_w)
+    xe_w = design_and_residual(xb, e, idx, inside)
+    b = base_scores(xe_w, inside, n_folds)
     searched = any(c.old is None and c.term.n_nonlinear for c in cands)  # a time-constant grid
-    seg = segments(sig, xb_w, e_w, idx, inside, search_m, n_folds) if searched else None
+    seg = segments(sig, xe_w, idx, inside, search_m, n_folds) if searched else None
     scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xe_w, idx, inside, seg, n_folds)
               for c in cands]
     base_full = jnp.sum(e * e, 0)
     dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
-    rw = random_walk_scores(e_w, xb_w, window(sig.t, idx, inside), inside, b.b_base,
+    rw = random_walk_scores(xe_w, window(sig.t, idx, inside), inside, b.b_base,
                             b.base_sse, b.base_blk, base_full, floor_axes, dt0, rw_m)
     out = dict(cnt=b.cnt, base_sse=b.base_sse, base_full=base_full, blk_cnt=b.blk_cnt,
                base_blk=b.base_blk, residual=e, **_fields(rw),

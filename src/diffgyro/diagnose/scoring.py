@@ -164,16 +164,20 @@ class CandidateScores(eqx.Module):
     edge: Array
 
 
-def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
-    """Block and fold sums of the base design and residual; each fold's training solution,
-    its held-out SSE per axis and every block's held-out SSE."""
-    a_b = jnp.einsum("bwip,bwiq->bipq", xb_w, xb_w)  # (B, 3, p, p)
-    c_b = jnp.einsum("bwip,bwi->bip", xb_w, e_w)
-    q_b = jnp.sum(e_w * e_w, axis=1)  # (B, 3)
-    blk_cnt = jnp.sum(inside, axis=1).astype(e_w.dtype)
+def base_scores(xe_w, inside, n_folds: int) -> BaseScores:
+    """Block and fold sums of the base design and residual ``xe_w`` (B, w, 3p + 3, the
+    layout of :func:`design_and_residual`); each fold's training solution, its held-out SSE
+    per axis and every block's held-out SSE."""
+    b, _, pe = xe_w.shape
+    p = (pe - 3) // 3
+    g = jax.lax.dot_general(xe_w, xe_w, (((1,), (1,)), ((0,), (0,))))  # (B, 3p + 3, 3p + 3)
+    a_b = own_axis(g[:, :3 * p, :3 * p].reshape(b, 3, p, 3, p))  # (B, 3, p, p)
+    c_b = own_axis(g[:, :3 * p, 3 * p:].reshape(b, 3, p, 3))  # (B, 3, p)
+    q_b = jnp.diagonal(g[:, 3 * p:, 3 * p:], axis1=1, axis2=2)  # (B, 3)
+    dtype = xe_w.dtype
+    blk_cnt = jnp.sum(inside, axis=1).astype(dtype)
     xx, xe, ee = (fold_of_blocks(s, n_folds) for s in (a_b, c_b, q_b))
     cnt = fold_of_blocks(blk_cnt, n_folds)
-    p = xb_w.shape[-1]
     fb = block_folds(a_b.shape[0], n_folds)
     if p:
         dx = jnp.sqrt(jnp.maximum(jnp.diagonal(jnp.sum(xx, 0), axis1=-2, axis2=-1), 1e-300))
@@ -181,7 +185,7 @@ def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
         base_sse = held_sse(b_base, xx, xe, ee)
         base_blk = jnp.sum(held_sse(b_base[fb], a_b, c_b, q_b), -1)
     else:
-        b_base = jnp.zeros((n_folds, 3, 0), e_w.dtype)
+        b_base = jnp.zeros((n_folds, 3, 0), dtype)
         base_sse, base_blk = ee, jnp.sum(q_b, -1)
     return BaseScores(a_b, c_b, q_b, ee, cnt, blk_cnt, b_base, base_sse, base_blk)
 
@@ -191,20 +195,19 @@ def base_scores(xb_w, e_w, inside, n_folds: int) -> BaseScores:
 
 class Segments(eqx.Module):
     """The record as segment means, for the time-constant search: the signals (B·S,), the
-    base design and residual scaled by √count (B, S, 3, p), (B, S, 3) (so their products
-    sum to count-weighted ones), √count ``root`` (B, S) and the base model's sums on them."""
+    base design and residual scaled by √count (B, S, 3p + 3) (so their products sum to
+    count-weighted ones), √count ``root`` (B, S) and the base model's sums on them."""
 
     sig: Signals
-    xb: Array
-    e: Array
+    xe: Array
     root: Array
     base: BaseScores
 
 
-def segments(sig: Signals, xb_w, e_w, idx, inside, m: int, n_folds: int) -> Segments:
+def segments(sig: Signals, xe_w, idx, inside, m: int, n_folds: int) -> Segments:
     """The :class:`Segments` of one device: means of ``m`` consecutive valid samples of every
     block (an empty segment keeps the time of the last one before it: no time passes)."""
-    dtype = e_w.dtype
+    dtype = xe_w.dtype
     n = sig.t.shape[0]
     cnt = segment_sums(inside.astype(dtype), m)  # (B, S)
     den = jnp.maximum(cnt, 1.0)
@@ -219,11 +222,8 @@ def segments(sig: Signals, xb_w, e_w, idx, inside, m: int, n_folds: int) -> Segm
     ok = cnt.reshape(-1) > 0
     t = jax.lax.cummax(jnp.where(ok, seg.t, -jnp.inf))
     seg = eqx.tree_at(lambda s: (s.t, s.mask), seg, (jnp.where(jnp.isfinite(t), t, 0.0), ok))
-    root = jnp.sqrt(cnt)
-    scale = 1.0 / jnp.sqrt(den)
-    xb = segment_sums(xb_w, m) * scale[..., None, None]
-    e = segment_sums(e_w, m) * scale[..., None]
-    return Segments(seg, xb, e, root, base_scores(xb, e, cnt > 0, n_folds))
+    xe = segment_sums(xe_w, m) / jnp.sqrt(den)[..., None]
+    return Segments(seg, xe, jnp.sqrt(cnt), base_scores(xe, cnt > 0, n_folds))
 
 
 def candidate_grid(c: CandidateSpec, base: ErrorModel, sig: Signals, theta_b, log_min_lag):
@@ -266,17 +266,19 @@ def column_sums(zw, xe_w):
     zxe = jax.lax.dot_general(zf, xe_w, dims)  # (B, 3k, 3p + 3)
     zx = zxe[..., : 3 * p].reshape(b, 3, k, 3, p)
     ze = zxe[..., 3 * p:].reshape(b, 3, k, 3)
-
-    def own_axis(a):  # (B, 3, k, 3, ...) -> (B, 3, k, ...): axis i with axis i
-        return jnp.moveaxis(jnp.diagonal(a, axis1=1, axis2=3), -1, 1)
-
     return own_axis(zx), own_axis(zz), own_axis(ze)
 
 
-def flat_axes(xb_w, e_w):
-    """The base design and residual (B, w, 3p + 3) as :func:`column_sums` reads them."""
-    b, w = e_w.shape[:2]
-    return jnp.concatenate([xb_w.reshape(b, w, -1), e_w], axis=-1)
+def own_axis(a):
+    """(B, 3, k, 3, ...) -> (B, 3, k, ...): the products of axis i with axis i."""
+    return jnp.moveaxis(jnp.diagonal(a, axis1=1, axis2=3), -1, 1)
+
+
+def design_and_residual(xb, e, idx, inside):
+    """The base design (n, 3, p) and residual (n, 3) as every block sum reads them: one
+    window layout (B, w, 3p + 3), the axes flattened, zero outside the blocks."""
+    xb = jnp.where(jnp.isfinite(xb), xb, 0.0)
+    return window(jnp.concatenate([xb.reshape(xb.shape[0], -1), e], axis=-1), idx, inside)
 
 
 @functools.partial(jax.jit, static_argnums=2)
@@ -328,14 +330,13 @@ def _search(grid, columns, seg: Segments, n_folds: int):
         z = jnp.where(jnp.isfinite(z), z, 0.0).reshape((b, s) + z.shape[1:])
         return z * seg.root[..., None, None]
 
-    xe = flat_axes(seg.xb, seg.e)
-    tr, _, _, tot, _ = _scores_on(grid, windowed, seg.base, xe, n_folds)
+    tr, _, _, tot, _ = _scores_on(grid, windowed, seg.base, seg.xe, n_folds)
     pick = jnp.concatenate([jnp.argmin(tr, axis=0), jnp.argmin(tot)[None]])  # (K + 1,)
     cost = jnp.concatenate([tr, tot[:, None]], axis=1)  # (g, K + 1)
     chosen = grid[pick]
     if grid.shape[0] >= 3 and grid.shape[1] == 1:
         th2 = jax.vmap(_vertex, in_axes=(1, 0, None))(cost, pick, grid)[:, None]
-        tr2, _, _, tot2, _ = _scores_on(th2, windowed, seg.base, xe, n_folds)
+        tr2, _, _, tot2, _ = _scores_on(th2, windowed, seg.base, seg.xe, n_folds)
         cost2 = jnp.concatenate([tr2, tot2[:, None]], axis=1)  # (K + 1, K + 1)
         own = jnp.arange(n_folds + 1)
         better = cost2[own, own] < cost[pick, own]  # keep the refinement only where it helps
