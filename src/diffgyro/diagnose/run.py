@@ -78,18 +78,21 @@ def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
     from ..core import sampling_intervals
 
+    run = idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size))
+    take = slice(int(idx[0]), int(idx[0]) + idx.size) if run else idx  # a view, not a copy
+
     def arr(x):
-        return None if x is None else _put(np.asarray(x, np.float64)[idx])
+        return None if x is None else _put(np.asarray(x, np.float64)[take])
 
     norm = None
     if res.model.requires() & {"temp"}:
         n = batch.n_devices
         norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (n,))),
                         scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (n,))))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=_put(np.asarray(batch.mask)[idx]),
+    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=_put(np.asarray(batch.mask)[take]),
                 rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=_put(sampling_intervals(batch)[idx]),
-                aux={k: _put(v[idx]) for k, v in aux.items()})
+                accel=arr(batch.accel), norm=norm, dt=_put(sampling_intervals(batch)[take]),
+                aux={k: _put(v[take]) for k, v in aux.items()})
 
 
 def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
