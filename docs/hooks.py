@@ -76,7 +76,7 @@ def _cell(text: str) -> str:
 def effect_table() -> str:
     """Markdown table of the registered effect terms: spec, physics, data, coefficients."""
     _src_on_path()
-    from diffgyro.effects import AbstractNoise, parse_term, registry
+    from diffgyro.effects import parse_term, registry
 
     rows = ["| term | physics | needs | coefficients per axis |", "|---|---|---|---|"]
     for name, cls in registry().items():
@@ -84,8 +84,7 @@ def effect_table() -> str:
         try:
             term = parse_term(name if not cls.order_arg else f"{name}({cls.default_order or 1})")
             needs = ", ".join(sorted(term.requires())) or "—"
-            noise = issubclass(cls, AbstractNoise)
-            coeffs = "variance (learned)" if noise else ", ".join(term.param_names())
+            coeffs = term.coefficient_summary()
         except Exception:  # a term whose example needs arguments the table cannot guess
             needs = coeffs = "—"
         rows.append(f"| `{shown}` | {_cell(cls.description)} | {_cell(needs)} | "

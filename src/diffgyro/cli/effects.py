@@ -11,7 +11,7 @@ from . import app
 @app.command("effects")
 def effects_command() -> None:
     """List the effect terms (name, physics, data needed)."""
-    from diffgyro.effects import AbstractNoise, registry, spec_arguments
+    from diffgyro.effects import registry, spec_arguments
 
     table = Table(title="diffgyro effect terms (join with '+', e.g. bias_poly(2)+gradient)")
     table.add_column("name")
@@ -29,7 +29,6 @@ def effects_command() -> None:
         elif args and cls.default_order is None:
             shown = f"{name}(k)"
         needs = ", ".join(sorted(term.requires())) or "—"
-        noise = issubclass(cls, AbstractNoise)
-        coeffs = "variance (learned)" if noise else ", ".join(term.param_names())
+        coeffs = term.coefficient_summary()
         table.add_row(shown, cls.description, needs, coeffs)
     Console(width=160).print(table)

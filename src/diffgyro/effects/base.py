@@ -92,11 +92,18 @@ class AbstractTerm(eqx.Module):
         """Data signals this term reads (may depend on its order)."""
         return frozenset(self.needs)
 
+    @abc.abstractmethod
+    def coefficient_summary(self) -> str:
+        """What the term fits per axis, as the list of effects shows it."""
+
 
 class AbstractNoise(AbstractTerm):
     """A noise process: the model's noise component (at most one), estimated by a
     state-space smoother while fitting instead of by regression, so it has no columns.
     Its fit is found through :func:`diffgyro.core.register_noise_fit`."""
+
+    def coefficient_summary(self) -> str:
+        return "variance (learned)"
 
 
 class AbstractEffect(AbstractTerm):
@@ -119,6 +126,9 @@ class AbstractEffect(AbstractTerm):
     def labels(self, axis: int) -> tuple[str, ...]:
         """Names of the coefficients of gyro axis ``axis`` as a user reads them."""
         return self.param_names()
+
+    def coefficient_summary(self) -> str:
+        return ", ".join(self.param_names())
 
     def nonlinear_names(self) -> tuple[str, ...]:
         """Names of the shared nonlinear parameters (time constants, in seconds)."""
