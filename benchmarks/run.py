@@ -636,6 +636,47 @@ def native_run(command: str, path, cache: str = "") -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+COMMAND_CHILD = """
+import json, os, time
+t0 = time.perf_counter()
+pid = os.posix_spawn({argv[0]!r}, {argv!r}, dict(os.environ, DIFFGYRO_CACHE_DIR={cache!r}),
+                     file_actions=[(os.POSIX_SPAWN_OPEN, 1, os.devnull, os.O_WRONLY, 0)])
+_, status, usage = os.wait4(pid, 0)  # this child's own peak RSS, not the benchmark's
+print(json.dumps({{"s": time.perf_counter() - t0, "rss_GB": usage.ru_maxrss / 1e6,
+                  "exit": os.waitstatus_to_exitcode(status)}}))
+"""
+
+
+def native_table(npz, path):
+    """The saved record as a Parquet file in the standard schema (one row per sample)."""
+    import pandas as pd
+
+    z = np.load(npz)
+    t = np.broadcast_to(z["t"], z["temp"].shape)
+    frames = [pd.DataFrame({"device": f"imu{i}", "t": t[i], "gx": z["gyro"][i, :, 0],
+                            "gy": z["gyro"][i, :, 1], "gz": z["gyro"][i, :, 2],
+                            "temp": z["temp"][i], "temp_ext": z["temp_ext"][i]})
+              for i in range(z["temp"].shape[0])]
+    pd.concat(frames, ignore_index=True).to_parquet(path)
+
+
+def command_run(command: str, path, cache: str) -> dict:
+    """Wall time and peak RSS of the command a user runs on the Parquet file: ``diffgyro fit
+    -m bias_poly(2) FILE --out CAL`` or ``diffgyro diagnose -m bias_poly(2) FILE``, start to
+    exit (Python start-up, imports, reading the file and printing included)."""
+    import subprocess
+
+    argv = [sys.executable, "-m", "diffgyro", command, "-m", "bias_poly(2)", str(path)]
+    if command == "fit":
+        argv += ["--out", str(Path(path).with_suffix(".json"))]
+    code = COMMAND_CHILD.format(argv=argv, cache=cache)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    r = json.loads(out.stdout.strip().splitlines()[-1])
+    if r["exit"] != 0:
+        raise RuntimeError(f"{' '.join(argv[2:])} exited with {r['exit']}")
+    return r
+
+
 #: The record sizes (devices, samples) of the full diagnose_native case: memory from 100 000
 #: to 1.35 M samples per device (200 Hz × 1 h is 720 000; a PX4 thermal log of three IMUs at
 #: 250 Hz × 1.5 h is 3 × 1.35 M).
@@ -654,24 +695,32 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
     cache = os.environ.get("DIFFGYRO_CACHE_DIR") or own_cache.name
     rows = []
     for d, n in NATIVE_LADDER.get(samples, ((devices, samples),)):
-        pair = []
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "native.npz"
             native_data(path, d, n)
-            for command in ("fit", "diagnose"):
-                native_run(command, path, cache)  # fills the compile cache
-                r = native_run(command, path, cache)
-                pair.append(row(f"{command}:native", d, n, r["s"], None, None, None, None,
-                                None, d * n * 6 * 8, bw, peak_rss_GB=r["rss_GB"],
-                                note=f"{command}('bias_poly(2)') on a 200 Hz thermal run, own process"))
-                print(f"  {command}:native {d} x {n}: {r['s']:.2f} s, {r['rss_GB']:.3f} GB", flush=True)
-        pair[1]["time_vs_fit"] = pair[1]["diffgyro_s"] / pair[0]["diffgyro_s"]
-        rows += pair
+            table = Path(tmp) / "native.parquet"
+            native_table(path, table)
+            for kind, run_one, where in (("native", native_run, path), ("command", command_run, table)):
+                pair = []
+                for command in ("fit", "diagnose"):
+                    run_one(command, where, cache)  # fills the compile cache
+                    r = run_one(command, where, cache)
+                    what = (f"{command}('bias_poly(2)') on a 200 Hz thermal run, own process"
+                            if kind == "native" else
+                            f"the command `diffgyro {command} -m bias_poly(2)` on the record "
+                            "as Parquet, start to exit")
+                    pair.append(row(f"{command}:{kind}", d, n, r["s"], None, None, None, None,
+                                    None, d * n * 6 * 8, bw, peak_rss_GB=r["rss_GB"], note=what))
+                    print(f"  {command}:{kind} {d} x {n}: {r['s']:.2f} s, {r['rss_GB']:.3f} GB",
+                          flush=True)
+                pair[1]["time_vs_fit"] = pair[1]["diffgyro_s"] / pair[0]["diffgyro_s"]
+                rows += pair
     own_cache.cleanup()
-    first = next(r for r in rows if r["case"] == "diagnose:native")
-    for r in rows:
-        if r["case"] == "diagnose:native":
-            r["rss_vs_smallest"] = r["peak_rss_GB"] / first["peak_rss_GB"]
+    for kind in ("native", "command"):
+        first = next(r for r in rows if r["case"] == f"diagnose:{kind}")
+        for r in rows:
+            if r["case"] == f"diagnose:{kind}":
+                r["rss_vs_smallest"] = r["peak_rss_GB"] / first["peak_rss_GB"]
     return rows
 
 
