@@ -389,6 +389,32 @@ def test_missing_device_id(tmp_path):
     assert_names(err, column="device", row=2)
 
 
+@pytest.mark.parametrize("ids, names, rows", [
+    ([" a", "a", "b", "a "], ["a", "b"], [0, 1, 3]),      # text read alike: one device
+    ([2.0, 2.0, 1.0, 2.0], ["2", "1"], [0, 1, 3]),         # whole numbers read as integers
+    ([1.5, 7.0, 1.5, 1.5], ["1.5", "7"], [0, 2, 3]),
+    ([b"x", b"y", b"x", b"x"], ["x", "y"], [0, 2, 3]),
+])
+def test_device_ids_are_read_per_distinct_value(tmp_path, ids, names, rows):
+    n = len(ids)
+    np.savez(tmp_path / "ids.npz", device=np.array(ids), t=np.arange(n, dtype=float),
+             gx=np.arange(n, dtype=float), gy=np.zeros(n), gz=np.zeros(n))
+    recs = load(tmp_path / "ids.npz", min_samples=1)
+    assert [r.device for r in recs] == names
+    np.testing.assert_array_equal(recs[0].gyro[:, 0], rows)  # the first device's file rows
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, None, "  "])
+def test_missing_device_id_in_parquet_names_its_row(tmp_path, bad):
+    import pandas as pd
+
+    numeric = not isinstance(bad, str) and bad is not None
+    ids = [1.0, 1.0, bad, 1.0] if numeric else ["A", "A", bad, "A"]
+    frame = pd.DataFrame({"device": ids, "t": [0.0, 1.0, 2.0, 3.0], "gx": 0.0, "gy": 0.0, "gz": 0.0})
+    frame.to_parquet(tmp_path / "m.parquet")
+    assert_names(error_of(tmp_path / "m.parquet"), column="device", row=3)
+
+
 def test_parquet_nulls_and_text_cells(tmp_path):
     import pandas as pd
 

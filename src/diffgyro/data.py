@@ -119,15 +119,13 @@ def bucket_length(n: int, minimum: int = 64) -> int:
         k += 1
 
 
-def _pad(arr: np.ndarray, length: int, mode: str) -> np.ndarray:
-    extra = length - arr.shape[0]
-    if extra <= 0:
-        return arr
-    if mode == "zero":
-        fill = np.zeros((extra, *arr.shape[1:]), arr.dtype)
-    else:  # hold the last value (keeps temperatures and times in a sane range)
-        fill = np.repeat(arr[-1:], extra, axis=0)
-    return np.concatenate([arr, fill], axis=0)
+def _pad_into(out: np.ndarray, arr: np.ndarray, mode: str) -> None:
+    """``arr`` into the start of ``out``, the rest zeros (``mode="zero"``) or held at the
+    last value (keeps temperatures and times in a sane range)."""
+    n = arr.shape[0]
+    out[:n] = arr
+    if n < out.shape[0]:
+        out[n:] = 0 if mode == "zero" else arr[-1]
 
 
 #: Alignment of batch arrays in bytes: XLA's CPU client reads aligned host memory in place.
@@ -232,24 +230,26 @@ class Batch(eqx.Module):
         for r in recordings:
             dt = float(r.t[-1] - r.t[-2]) if r.n >= 2 else 1.0
             dts.append(dt if dt > 0 else 1.0)
-        t = np.stack([
-            np.concatenate([r.t, r.t[-1] + dt * np.arange(1, length - r.n + 1)]).astype(dtype)
-            for r, dt in zip(recordings, dts)
-        ])
+        t = aligned_empty((len(recordings), length), dtype)
+        for row, r, dt in zip(t, recordings, dts, strict=True):
+            row[:r.n] = r.t
+            row[r.n:] = r.t[-1] + dt * np.arange(1, length - r.n + 1)
         fields["t"] = t
-        def stack(arrays):
-            out = aligned_empty((len(arrays), *arrays[0].shape), dtype)
-            return np.stack(arrays, out=out)
 
-        fields["gyro"] = stack([_pad(np.asarray(r.gyro, dtype), length, "zero") for r in recordings])
+        def stack(arrays, mode="hold"):
+            out = aligned_empty((len(arrays), length, *arrays[0].shape[1:]), dtype)
+            for row, a in zip(out, arrays, strict=True):
+                _pad_into(row, a, mode)
+            return out
+
+        fields["gyro"] = stack([r.gyro for r in recordings], "zero")
         for s in OPTIONAL_SIGNALS:
             if all(getattr(r, s) is not None for r in recordings):
-                fields[s] = stack([_pad(np.asarray(getattr(r, s), dtype), length, "hold")
-                                   for r in recordings])
+                fields[s] = stack([getattr(r, s) for r in recordings])
             else:
                 fields[s] = None
         common = set.intersection(*(set(r.aux) for r in recordings))
-        aux = {k: stack([_pad(np.asarray(r.aux[k], dtype), length, "hold") for r in recordings])
+        aux = {k: stack([r.aux[k] for r in recordings])
                for k in sorted(common)}
         n_valid = np.array([r.n for r in recordings], dtype=np.int64)
         mask = np.arange(length)[None, :] < n_valid[:, None]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
@@ -18,7 +19,7 @@ def label(std: str, name: str) -> str:
     return f"{name} ({std})"
 
 
-def to_float(series: pd.Series, file: str, column: str, devices: np.ndarray) -> np.ndarray:
+def to_float(series: pd.Series, file: str, column: str, devices: DeviceIds) -> np.ndarray:
     """A column as float64; empty and NaN-like cells become NaN; text is an error."""
     if pd.api.types.is_bool_dtype(series.dtype):
         raise DataError("holds true/false values, not numbers", file=file,
@@ -66,24 +67,47 @@ def to_float(series: pd.Series, file: str, column: str, devices: np.ndarray) -> 
     return out
 
 
-def device_ids(series: pd.Series, file: str, column: str) -> np.ndarray:
-    """Device ids as stripped text (integers in Parquet/NPZ become '1', not '1.0')."""
-    if pd.api.types.is_float_dtype(series.dtype):
-        vals = series.to_numpy(dtype=np.float64, na_value=np.nan)
-        cells = [None if not np.isfinite(v) else (str(int(v)) if v.is_integer() else repr(v))
-                 for v in vals.tolist()]
-    else:
-        cells = series.to_numpy(dtype=object, na_value=None).tolist()
-    ids = np.empty(len(cells), dtype=object)
-    for i, cell in enumerate(cells):
-        if isinstance(cell, bytes):
-            cell = cell.decode("utf-8", "replace")
-        if isinstance(cell, float) and math.isnan(cell):
-            cell = None
-        text = "" if cell is None else str(cell).strip()
-        if not text:
-            raise DataError("missing device id", file=file, column=column, row=i + 1)
-        ids[i] = text
-    return ids
+@dataclass(frozen=True)
+class DeviceIds:
+    """Each row's device id: ``names[codes[row]]``, names in order of first appearance."""
+
+    codes: np.ndarray
+    names: list[str]
+
+    def __getitem__(self, row: int) -> str:
+        return self.names[int(self.codes[row])]
+
+    @classmethod
+    def single(cls, n: int, name: str) -> DeviceIds:
+        return cls(np.zeros(n, np.intp), [name])
 
 
+def _id_text(cell, numeric: bool) -> str:
+    """A device id cell as stripped text ('' when missing); in a float column, whole
+    numbers read as integers (Parquet/NPZ ids 1, 2 become '1', '2', not '1.0')."""
+    if isinstance(cell, bytes):
+        cell = cell.decode("utf-8", "replace")
+    if cell is None or (isinstance(cell, float) and math.isnan(cell)):
+        return ""
+    if numeric:
+        cell = float(cell)
+        if not math.isfinite(cell):
+            return ""
+        return str(int(cell)) if cell.is_integer() else repr(cell)
+    return str(cell).strip()
+
+
+def device_ids(series: pd.Series, file: str, column: str) -> DeviceIds:
+    """Device ids as stripped text, made once per distinct cell value (a column of
+    millions of rows holds a few ids); cells that read the same (' a', 'a') are one
+    device. A missing or empty id is an error naming its first row."""
+    raw, distinct = pd.factorize(series, sort=False)  # missing cells: -1
+    numeric = pd.api.types.is_float_dtype(series.dtype)
+    texts = np.asarray([_id_text(c, numeric) for c in distinct.tolist()] + [""], dtype=object)
+    raw = np.where(raw < 0, len(texts) - 1, raw)
+    blank = (texts == "")[raw]
+    if blank.any():
+        raise DataError("missing device id", file=file, column=column,
+                        row=int(np.argmax(blank)) + 1)
+    merged, names = pd.factorize(texts[:-1], sort=False)  # first-appearance order kept
+    return DeviceIds(np.asarray(merged, np.intp)[raw], [str(x) for x in names])

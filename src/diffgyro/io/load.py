@@ -9,16 +9,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pandas as pd
 
 from ..data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
 from ..errors import DataError
 from ..logs import log_format
 from .cells import cell_problem, check_cells
 from .columns import check_columns
-from .convert import device_ids, label, to_float
+from .convert import DeviceIds, device_ids, label, to_float
 from .reports import Dropped, LoadReport
-from .source import COMPRESSION, Source, is_number
+from .source import COMPRESSION, Source, is_number, release_read_buffers
 from .units import resolve_units
 
 
@@ -125,12 +124,11 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
     lay = _layout(src, path, columns, device, sampling_rate)
     devices, values, aux_all = _read(src, lay, columns, report)
     # group rows by device: first-appearance order, file order within a device
-    codes, uniques = pd.factorize(devices, sort=False)
-    order = np.argsort(codes, kind="stable")
-    bounds = np.cumsum(np.bincount(codes, minlength=len(uniques)))[:-1]
-    return [_device_recording(str(dev), rows, values, aux_all, lay, conv, drop_invalid,
+    order = np.argsort(devices.codes, kind="stable")
+    bounds = np.cumsum(np.bincount(devices.codes, minlength=len(devices.names)))[:-1]
+    return [_device_recording(dev, rows, values, aux_all, lay, conv, drop_invalid,
                               sampling_rate, min_samples, report)
-            for dev, rows in zip(uniques.tolist(), np.split(order, bounds), strict=True)]
+            for dev, rows in zip(devices.names, np.split(order, bounds), strict=True)]
 
 
 def _open(path: Path, device, log_options, report) -> Source:
@@ -218,7 +216,7 @@ def _layout(src: Source, path: Path, columns: Mapping[str, str], device,
 
 
 def _read(src: Source, lay: _Layout, columns: Mapping[str, str], report):
-    """Device id per row, the standard numeric columns (rows × columns, file units) and
+    """Device id per row, the standard numeric columns (columns × rows, file units) and
     the numeric extra columns by name; text extra columns are ignored with one line."""
     file, present = lay.file, lay.present
     wanted_std = (["device"] if "device" in present else []) + lay.numeric
@@ -232,16 +230,18 @@ def _read(src: Source, lay: _Layout, columns: Mapping[str, str], report):
     if "device" in present:
         devices = device_ids(frame[present["device"]], file, label("device", present["device"]))
     else:
-        devices = np.full(n, lay.default_device, dtype=object)
-    values = np.empty((n, len(lay.numeric)))
+        devices = DeviceIds.single(n, lay.default_device)
+    values = np.empty((len(lay.numeric), n))  # one contiguous row per column
     for j, std in enumerate(lay.numeric):
-        values[:, j] = to_float(frame[present[std]], file, label(std, present[std]), devices)
+        values[j] = to_float(frame[present[std]], file, label(std, present[std]), devices)
     aux_all: dict[str, np.ndarray] = {}
     for name, col in extra.items():
         try:
             aux_all[name] = to_float(frame[col], file, col, devices)
         except DataError:  # text further down than the first rows
             ignored.append(col)
+    del frame
+    release_read_buffers()
     if ignored:
         _tell(report, report.ignored if report is not None else None,
               f"ignored non-numeric column{'s' if len(ignored) > 1 else ''} "
@@ -254,14 +254,17 @@ def _device_recording(dev: str, rows, values, aux_all, lay: _Layout, conv, drop_
     """One device's recording from its rows: cells checked (or invalid rows dropped), SI
     units, the time base checked."""
     file, present, numeric = lay.file, lay.present, lay.numeric
-    si, code = check_cells(values[rows], numeric, conv)
+    lo, hi = int(rows[0]), int(rows[-1]) + 1
+    # a device's rows are usually one run of the file: a view, not a copy
+    own = values[:, lo:hi] if hi - lo == rows.shape[0] else values[:, rows]
+    si, code = check_cells(own.T, numeric, conv)
     k_index = np.arange(rows.shape[0], dtype=np.float64)  # position within the device
     bad_rows = code.any(axis=1)
     if bad_rows.any():
         first = int(np.flatnonzero(bad_rows)[0])
         if not drop_invalid:
             j = int(np.flatnonzero(code[first])[0])
-            problem, hint = cell_problem(int(code[first, j]), float(values[rows[first], j]),
+            problem, hint = cell_problem(int(code[first, j]), float(values[j, rows[first]]),
                                          numeric[j], conv)
             raise DataError(problem, file=file, device=dev,
                             column=label(numeric[j], present[numeric[j]]),
@@ -272,14 +275,14 @@ def _device_recording(dev: str, rows, values, aux_all, lay: _Layout, conv, drop_
         si, rows, k_index = si[keep], rows[keep], k_index[keep]
     # extra columns may hold gaps: checked when a model uses them (diffgyro.aux)
     aux = {name: np.ascontiguousarray(a[rows]) for name, a in aux_all.items()}
+    # every signal its own array (copied out of si, which is then freed)
     cols = {std: si[:, j] for j, std in enumerate(numeric)}
     fields: dict[str, np.ndarray] = {
-        "t": cols["t"] if "t" in cols else k_index / sampling_rate}
+        "t": np.array(cols["t"]) if "t" in cols else k_index / sampling_rate}
     for sig in lay.signals:
         members = SIGNALS[sig]
-        arr = cols[members[0]] if len(members) == 1 else np.stack([cols[c] for c in members], 1)
-        fields[sig] = np.ascontiguousarray(arr, dtype=np.float64)
-    fields["t"] = np.ascontiguousarray(fields["t"], dtype=np.float64)
+        fields[sig] = np.array(cols[members[0]]) if len(members) == 1 else \
+            np.stack([cols[c] for c in members], 1)
     _check_time(fields["t"], rows, file, dev,
                 label("t", present["t"]) if "t" in present else "t (from sampling rate)",
                 several="device" in present)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import bz2
 import gzip
 import lzma
+import sys
 import warnings
 import zlib
 from collections.abc import Mapping
@@ -218,8 +219,13 @@ class Source:
 
             raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
             try:
-                table = pq.read_table(self.path, columns=[raw[n] for n in wanted])
-                frame = table.to_pandas()
+                # column by column (decoding buffers for one column at a time); text columns
+                # (device ids) as categories: a few distinct ids, not a string per row
+                schema = pq.read_schema(self.path)
+                text = [raw[n] for n in text_cols if _is_text(schema.field(raw[n]).type)]
+                pf = pq.ParquetFile(self.path, read_dictionary=text)
+                frame = pd.DataFrame({raw[n]: pf.read(columns=[raw[n]]).column(0).to_pandas()
+                                      for n in wanted}, copy=False)
             except Exception as err:
                 raise DataError(f"cannot read as Parquet ({type(err).__name__}: {err})",
                                 file=self.file) from None
@@ -239,6 +245,21 @@ class Source:
             n_rows = arr.shape[0]
             cols[name] = arr
         return pd.DataFrame(cols)
+
+
+def release_read_buffers() -> None:
+    """Hand back to the system the memory Arrow's allocator keeps for reuse after a read
+    (about the size of the numeric columns read: 0.25 GB for 4 M rows of six)."""
+    pa = sys.modules.get("pyarrow")
+    if pa is not None:
+        pa.default_memory_pool().release_unused()
+
+
+def _is_text(kind) -> bool:
+    import pyarrow as pa
+
+    return pa.types.is_string(kind) or pa.types.is_large_string(kind) or \
+        pa.types.is_binary(kind) or pa.types.is_large_binary(kind)
 
 
 class _ReadFailure(Exception):
