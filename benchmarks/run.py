@@ -50,6 +50,7 @@ FULL = {
     "allan": (100, 1_000_000),
     "diagnose": (100, 20_000),
     "diagnose_native": (1, 720_000),
+    "load": (3, 1_350_000),
     "compile": (256, 2_000),
 }
 QUICK = {
@@ -60,6 +61,7 @@ QUICK = {
     "allan": (4, 1_000_000),
     "diagnose": (8, 5_000),
     "diagnose_native": (1, 100_000),
+    "load": (3, 200_000),
     "compile": (256, 2_000),
 }
 #: How many devices (series) the per-device Python baselines run, full / quick.
@@ -79,6 +81,7 @@ GOALS = {
     "diagnose": "report devices/s",
     "diagnose_native": "1 device × 720 000 samples: ≤ 1.5 GB peak RSS, ≤ 3× fit's time",
     "compile": "≤2 s per model spec",
+    "load": "report against a bare pandas read",
 }
 
 
@@ -724,6 +727,37 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
     return rows
 
 
+def case_load(devices, samples, subset, repeats, bw):
+    """``io.load_batch`` of a Parquet file in the standard schema (every cell checked, units,
+    time base, padded batch) against the script a user would write: ``pandas.read_parquet``
+    and a ``groupby`` per device into numpy arrays, no checks."""
+    import tempfile
+
+    import pandas as pd
+
+    from diffgyro.io import load_batch
+
+    with tempfile.TemporaryDirectory() as tmp:
+        npz, path = Path(tmp) / "rec.npz", Path(tmp) / "rec.parquet"
+        native_data(npz, devices, samples)
+        native_table(npz, path)
+        npz.unlink()
+
+        def naive():
+            frame = pd.read_parquet(path)
+            return {dev: (g["t"].to_numpy(), g[["gx", "gy", "gz"]].to_numpy(),
+                          g["temp"].to_numpy(), g["temp_ext"].to_numpy())
+                    for dev, g in frame.groupby("device", sort=False)}
+
+        first, dg, base, (batch, outs) = measure(lambda: load_batch(path), {"pandas": naive}, repeats)
+        diff = max(float(np.max(np.abs(batch.gyro[i, :samples] - outs["pandas"][d][1])))
+                   for i, d in enumerate(batch.devices))
+        nbytes = path.stat().st_size
+    return [row("load", devices, samples, dg, first, "pandas.read_parquet + groupby (no checks)",
+                base["pandas"], diff, diff, nbytes, bw,
+                note="load_batch of one Parquet file, the standard schema with temp_ext")]
+
+
 COMPILE_SPECS = ("bias_poly(3)", "bias_poly(2)+scale_poly(2)+gradient+temp_diff",
                  "bias_poly(1)+thermal_lag")
 
@@ -818,6 +852,7 @@ CASES = {
     "allan": case_allan,
     "diagnose": case_diagnose,
     "diagnose_native": case_diagnose_native,
+    "load": case_load,
     "compile": case_compile,
 }
 

@@ -22,13 +22,16 @@ _WHAT = {"gyro": "gyro", "rate": "reference rate", "accel": "accelerometer",
 NAN, INF, OVERFLOW, BEYOND = 1, 2, 3, 4
 
 
-def check_cells(raw: np.ndarray, numeric: Sequence[str],
+def check_cells(raw: Sequence[np.ndarray], numeric: Sequence[str],
                 conv: Mapping[str, tuple[float, float]]) -> tuple[np.ndarray, np.ndarray]:
-    """Values of the standard columns ``numeric`` (rows × columns) in SI units, and a
-    code per cell: 0 valid, else :data:`NAN`, :data:`INF`, :data:`OVERFLOW` (in the unit
-    conversion) or :data:`BEYOND` (outside :data:`LIMITS`)."""
-    si = np.array(raw, dtype=np.float64, copy=True)
-    code = np.zeros(si.shape, np.int8)
+    """Values of the standard columns ``numeric`` (one 1-D array each) in SI units, as
+    rows × columns (each column contiguous), and a code per cell: 0 valid, else
+    :data:`NAN`, :data:`INF`, :data:`OVERFLOW` (in the unit conversion) or :data:`BEYOND`
+    (outside :data:`LIMITS`)."""
+    si = np.empty((raw[0].shape[0], len(raw)), np.float64, order="F")
+    for j, column in enumerate(raw):
+        si[:, j] = column
+    code = np.zeros(si.shape, np.int8, order="F")
     code[np.isnan(si)] = NAN
     code[np.isinf(si)] = INF
     for j, std in enumerate(numeric):

@@ -126,9 +126,12 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
     # group rows by device: first-appearance order, file order within a device
     order = np.argsort(devices.codes, kind="stable")
     bounds = np.cumsum(np.bincount(devices.codes, minlength=len(devices.names)))[:-1]
-    return [_device_recording(dev, rows, values, aux_all, lay, conv, drop_invalid,
-                              sampling_rate, min_samples, report)
-            for dev, rows in zip(devices.names, np.split(order, bounds), strict=True)]
+    recordings = [_device_recording(dev, rows, values, aux_all, lay, conv, drop_invalid,
+                                    sampling_rate, min_samples, report)
+                  for dev, rows in zip(devices.names, np.split(order, bounds), strict=True)]
+    del values, aux_all  # may be views of the file reader's buffers
+    release_read_buffers()
+    return recordings
 
 
 def _open(path: Path, device, log_options, report) -> Source:
@@ -216,7 +219,7 @@ def _layout(src: Source, path: Path, columns: Mapping[str, str], device,
 
 
 def _read(src: Source, lay: _Layout, columns: Mapping[str, str], report):
-    """Device id per row, the standard numeric columns (columns × rows, file units) and
+    """Device id per row, the standard numeric columns (one array each, file units) and
     the numeric extra columns by name; text extra columns are ignored with one line."""
     file, present = lay.file, lay.present
     wanted_std = (["device"] if "device" in present else []) + lay.numeric
@@ -231,17 +234,14 @@ def _read(src: Source, lay: _Layout, columns: Mapping[str, str], report):
         devices = device_ids(frame[present["device"]], file, label("device", present["device"]))
     else:
         devices = DeviceIds.single(n, lay.default_device)
-    values = np.empty((len(lay.numeric), n))  # one contiguous row per column
-    for j, std in enumerate(lay.numeric):
-        values[j] = to_float(frame[present[std]], file, label(std, present[std]), devices)
+    values = [to_float(frame[present[std]], file, label(std, present[std]), devices)
+              for std in lay.numeric]
     aux_all: dict[str, np.ndarray] = {}
     for name, col in extra.items():
         try:
             aux_all[name] = to_float(frame[col], file, col, devices)
         except DataError:  # text further down than the first rows
             ignored.append(col)
-    del frame
-    release_read_buffers()
     if ignored:
         _tell(report, report.ignored if report is not None else None,
               f"ignored non-numeric column{'s' if len(ignored) > 1 else ''} "
@@ -256,15 +256,15 @@ def _device_recording(dev: str, rows, values, aux_all, lay: _Layout, conv, drop_
     file, present, numeric = lay.file, lay.present, lay.numeric
     lo, hi = int(rows[0]), int(rows[-1]) + 1
     # a device's rows are usually one run of the file: a view, not a copy
-    own = values[:, lo:hi] if hi - lo == rows.shape[0] else values[:, rows]
-    si, code = check_cells(own.T, numeric, conv)
+    own = [v[lo:hi] if hi - lo == rows.shape[0] else v[rows] for v in values]
+    si, code = check_cells(own, numeric, conv)
     k_index = np.arange(rows.shape[0], dtype=np.float64)  # position within the device
     bad_rows = code.any(axis=1)
     if bad_rows.any():
         first = int(np.flatnonzero(bad_rows)[0])
         if not drop_invalid:
             j = int(np.flatnonzero(code[first])[0])
-            problem, hint = cell_problem(int(code[first, j]), float(values[j, rows[first]]),
+            problem, hint = cell_problem(int(code[first, j]), float(values[j][rows[first]]),
                                          numeric[j], conv)
             raise DataError(problem, file=file, device=dev,
                             column=label(numeric[j], present[numeric[j]]),

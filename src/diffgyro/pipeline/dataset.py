@@ -444,14 +444,14 @@ def _recording(dev: str, file: str, cols: FileColumns, values: dict[str, np.ndar
 
     numeric = cols.numeric
     k_index = np.arange(rows.shape[0], dtype=np.float64)
-    raw = np.stack([values[c] for c in numeric], axis=1)
+    raw = [values[c] for c in numeric]
     si, code = check_cells(raw, numeric, cfg.conv)
     bad_rows = code.any(axis=1)
     if bad_rows.any():
         first = int(np.flatnonzero(bad_rows)[0])
         if not cfg.drop_invalid:
             j = int(np.flatnonzero(code[first])[0])
-            problem, hint = cell_problem(int(code[first, j]), float(raw[first, j]), numeric[j],
+            problem, hint = cell_problem(int(code[first, j]), float(raw[j][first]), numeric[j],
                                          cfg.conv)
             raise DataError(problem, file=file, device=dev, column=cols.present[numeric[j]],
                             row=int(rows[first]), hint=hint.replace(" (drop_invalid=True)", ""))
