@@ -23,6 +23,7 @@ def bench():
     ("bias_poly3", dict(devices=6, samples=700, subset=3, full_fit=False)),
     ("kalman", dict(devices=2, samples=400, subset=150)),
     ("allan", dict(devices=1, samples=4096, subset=2)),
+    ("load", dict(devices=2, samples=500, subset=0)),
 ])
 def test_case_runs_and_agrees(bench, case, args):
     rows = bench.CASES[case](repeats=1, bw=1e10, **args)
