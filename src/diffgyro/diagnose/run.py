@@ -161,11 +161,11 @@ def _white_noise(batch: Batch) -> np.ndarray:
 
 def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
                    n_folds: int, log_min_lag, rw_m: int, search_m: int, dtemp_window, inp: dict,
-                   beta_b, theta_b, floor_axes, idx, inside) -> dict:
+                   beta_b, theta_b, floor_axes, idx, inside, dt0) -> dict:
     """Held-out scores of the base model, every deterministic candidate and the random walk
     (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
     ``search_m``: samples per segment of the random-walk check and the time-constant
-    search)."""
+    search; ``dt0``: the median sample interval, :func:`_median_steps`)."""
     sig = _signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
@@ -180,7 +180,6 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xe_w, idx, inside, seg, n_folds)
               for c in cands]
     base_full = jnp.sum(e * e, 0)
-    dt0 = jnp.maximum(jnp.nanmedian(jnp.diff(sig.t)), 1e-12)
     rw = random_walk_scores(xe_w, window(sig.t, idx, inside), inside, b.b_base,
                             b.base_sse, b.base_blk, base_full, floor_axes, dt0, rw_m)
     out = dict(cnt=b.cnt, base_sse=b.base_sse, base_full=base_full, blk_cnt=b.blk_cnt,
@@ -215,13 +214,22 @@ def _fields(module: eqx.Module) -> dict:
 
 @eqx.filter_jit
 def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
-            beta, theta, floors, idx, inside):
+            beta, theta, floors, idx, inside, dt0):
     def one(args):
-        inp, b, th, fl, ix, ins = args
+        inp, b, th, fl, ix, ins, dt = args
         return _device_scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m,
-                              dtemp_window, inp, b, th, fl, ix, ins)
+                              dtemp_window, inp, b, th, fl, ix, ins, dt)
 
-    return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside))
+    return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside, dt0))
+
+
+def _median_steps(t: np.ndarray) -> np.ndarray:
+    """Every device's median step of ``t`` (devices, length), padding included, at least
+    1e-12 s: on the host, whose median selects in linear time where the compiled
+    program sorted the whole record."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a device of one sample
+        return np.maximum(np.nanmedian(np.diff(t, axis=1), axis=1), 1e-12)
 
 
 def _windows(dtemp_window: float):
@@ -258,13 +266,14 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
     windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
     log_min_lag, window_s = _windows(opts.dtemp_window)
+    dt0 = _median_steps(np.asarray(batch.t))
     out = []
     for _, idx in _chunks(n_dev, size):
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
         o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
                     window_s, _inputs(batch, res, idx, aux), _put(beta[idx]), _put(theta[idx]),
-                    _put(floors[idx]), _put(ix), _put(ins))
+                    _put(floors[idx]), _put(ix), _put(ins), _put(dt0[idx]))
         out.append(jax.device_get(o))
     out = _gather(out, n_dev)
     if not cands:
