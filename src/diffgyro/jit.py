@@ -31,12 +31,18 @@ import jax
 
 
 def filter_jit(fun: Callable[..., Any] | None = None, *,
-               compiler_options: dict[str, Any] | None = None) -> Callable[..., Any]:
+               compiler_options: dict[str, Any] | None = None,
+               persistent: bool = False) -> Callable[..., Any]:
     """Compile ``fun``: array leaves of its arguments traced, other leaves static
     (hashable); results are not waited for. ``compiler_options`` go to XLA for this
-    program only (``filter_jit(compiler_options=...)`` decorates)."""
+    program only (``filter_jit(compiler_options=...)`` decorates). ``persistent``: the
+    traced program is kept on disk for later processes (:mod:`diffgyro.program_cache`;
+    results must be dicts, lists and tuples of arrays)."""
     if fun is None:
-        return functools.partial(filter_jit, compiler_options=compiler_options)
+        return functools.partial(filter_jit, compiler_options=compiler_options,
+                                 persistent=persistent)
+    if persistent and compiler_options:
+        raise ValueError("a persistent program is compiled with XLA's default options")
 
     @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=compiler_options)
     def compiled(treedef, static, dynamic):
@@ -46,7 +52,14 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        return compiled(*_split(args, kwargs))
+        treedef, static, dynamic = _split(args, kwargs)
+        if persistent:
+            from .program_cache import program
+
+            stored = program(fun, treedef, static, dynamic)
+            if stored is not None:
+                return stored(dynamic)
+        return compiled(treedef, static, dynamic)
 
     call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
 

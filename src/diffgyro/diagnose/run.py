@@ -20,7 +20,7 @@ import numpy as np
 from .. import aux as aux_cols
 from ..data import Batch, Recording, aux_key
 from ..effects import AbstractNoise, RandomWalk
-from ..jit import release_compiled_if_crowded
+from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
 from .candidates import CandidateSpec, candidate_specs, term_column
@@ -138,7 +138,7 @@ def _signals(inp: dict, dtemp_window: float):
                         dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
 
 
-@eqx.filter_jit
+@filter_jit(persistent=True)
 def _ranges(cands, inputs, dtemp_window):
     """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
     an array: traced, one program for every window)."""
@@ -212,7 +212,7 @@ def _fields(module: eqx.Module) -> dict:
     return {f.name: getattr(module, f.name) for f in dataclasses.fields(module)}
 
 
-@eqx.filter_jit
+@filter_jit(persistent=True)
 def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
             beta, theta, floors, idx, inside, dt0):
     def one(args):

@@ -1,0 +1,86 @@
+"""Programs kept on disk between processes: the same results, no second trace, and
+calls that can not be keyed or exported traced as usual."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgyro import program_cache
+from diffgyro.jit import filter_jit
+
+traces: list[str] = []
+
+
+def _scaled(x, y, *, power: int, name: str):
+    traces.append(name)
+    return {"sum": jnp.sum(x**power) + y, "parts": (x * 2.0, [y])}
+
+
+class Outside(eqx.Module):  # a class whose code the key can not cover
+    k: int = eqx.field(static=True)
+
+
+def _outside(x, cfg):
+    traces.append("outside")
+    return {"y": x * cfg.k}
+
+
+def _module_result(x):
+    traces.append("module")
+    return Outside(k=1), x  # not a plain result: not exportable
+
+
+for f in (_scaled, _outside, _module_result):
+    f.__module__ = "diffgyro.probe"  # as if diffgyro's own (only those are kept)
+scaled, outside, module_result = (filter_jit(persistent=True)(f)
+                                  for f in (_scaled, _outside, _module_result))
+
+
+@pytest.fixture
+def store(tmp_path, monkeypatch):
+    folder = tmp_path / "programs"
+    monkeypatch.setattr(program_cache, "_directory", lambda: folder)
+    program_cache.forget()
+    traces.clear()
+    yield folder
+    program_cache.forget()
+
+
+def test_stored_program_is_not_traced_again(store):
+    x, y = np.arange(5.0), np.float64(0.5)
+    first = scaled(x, y, power=3, name="a")
+    assert traces == ["a"] and len(list(store.glob("*.bin"))) == 1
+    program_cache.forget()  # a new process: the program comes from disk
+    again = scaled(x + 1.0, y, power=3, name="a")
+    assert traces == ["a"]
+    np.testing.assert_allclose(np.asarray(again["sum"]), np.sum((x + 1.0) ** 3) + 0.5, rtol=1e-15)
+    np.testing.assert_array_equal(np.asarray(again["parts"][0]), 2.0 * (x + 1.0))
+    assert float(first["sum"]) == float(np.sum(x**3) + 0.5)
+
+
+def test_each_static_argument_and_shape_has_its_program(store):
+    x, y = np.arange(5.0), np.float64(0.5)
+    scaled(x, y, power=2, name="b")
+    scaled(x, y, power=3, name="b")
+    scaled(np.arange(6.0), y, power=2, name="b")
+    assert len(list(store.glob("*.bin"))) == 3
+    program_cache.forget()
+    out = scaled(x, y, power=2, name="b")
+    assert float(out["sum"]) == float(np.sum(x**2) + 0.5) and traces == ["b"] * 3
+
+
+def test_unkeyable_and_unexportable_calls_are_traced_as_usual(store):
+    x = np.arange(4.0)
+    for _ in range(2):
+        program_cache.forget()
+        np.testing.assert_array_equal(np.asarray(outside(x, Outside(k=3))["y"]), 3 * x)
+        cfg, y = module_result(x)
+        assert cfg.k == 1 and np.array_equal(np.asarray(y), x)
+    assert not list(store.glob("*.bin"))
+    assert len(list(store.glob("*.fail"))) == 1  # the export is not tried again
+    # the failed export's trace and the usual one; after that the marker and JAX's own
+    # cache of this process: no export is tried again
+    assert traces.count("module") == 2 and traces.count("outside") == 1
