@@ -26,13 +26,13 @@ import functools
 import hashlib
 import io
 import logging
-import os
 import pickle
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
 import jax
+
+from .jsonio import atomic_write_bytes
 
 #: Top-level modules whose classes and functions may appear in a key (by reference).
 TRUSTED = frozenset({"diffgyro", "builtins", "numpy", "jax", "jaxlib", "equinox", "jaxtyping",
@@ -99,10 +99,7 @@ def _key(fun: Callable, treedef, static, dynamic) -> str | None:
 
 def _write(path: Path, data: bytes) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=".tmp-")
-    with os.fdopen(fd, "wb") as f:
-        f.write(data)
-    os.replace(tmp, path)
+    atomic_write_bytes(path, data)
 
 
 def program(fun: Callable, treedef, static, dynamic) -> Callable | None:
