@@ -4,6 +4,7 @@ fixtures built on one xdist worker only, and shared paths."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 # The suite builds hundreds of XLA programs and runs most of them once or twice: compile
@@ -33,6 +34,21 @@ diffgyro.enable_compilation_cache(os.environ.get("DIFFGYRO_CACHE_DIR"))
 TESTS = Path(__file__).parent
 DATA = TESTS / "data"
 ROOT = TESTS.parent
+
+
+@contextlib.contextmanager
+def registered(*classes):
+    """A test's own effect or noise classes in the registry while the block runs; taken out
+    afterwards, as other tests expect."""
+    from diffgyro.effects import base
+
+    for cls in classes:
+        base.register(cls)
+    try:
+        yield
+    finally:
+        for cls in classes:
+            base._REGISTRY.pop(cls.name, None)
 
 
 def pytest_runtest_teardown(item, nextitem):

@@ -10,9 +10,10 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import registered
 
 from diffgyro import ErrorModel, Params, calibration
-from diffgyro.effects import AbstractEffect, register, registry
+from diffgyro.effects import AbstractEffect, registry
 from diffgyro.fit import fit
 from diffgyro.simulate import simulate
 
@@ -37,12 +38,9 @@ SPEC = "bias_poly(2)+temp_rate_product"
 
 
 @pytest.fixture(scope="module", autouse=True)
-def registered():
-    from diffgyro.effects import base
-
-    register(TempRateProduct)
-    yield
-    base._REGISTRY.pop(TempRateProduct.name, None)
+def user_term():
+    with registered(TempRateProduct):
+        yield
 
 
 @pytest.fixture(scope="module")

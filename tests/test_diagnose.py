@@ -21,6 +21,7 @@ import hidden_effects as H
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import registered
 
 from diffgyro.data import Batch
 from diffgyro.diagnose import (
@@ -255,12 +256,8 @@ def test_custom_registered_effect_is_a_candidate_and_is_found():
         def columns(self, sig, theta):
             return per_axis(jnp.sign(jnp.sin(2 * jnp.pi * sig.t / 1200.0)))
 
-    from diffgyro.effects import base as effects_base
-
-    try:
+    with registered(SquareWave):
         _square_wave_found(SquareWave)
-    finally:  # leave the registry as other tests expect it
-        effects_base._REGISTRY.pop("test_square_wave", None)
 
 
 def _square_wave_found(cls):

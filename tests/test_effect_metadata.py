@@ -7,8 +7,9 @@ from __future__ import annotations
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import registered
 
-from diffgyro.effects import AbstractEffect, register
+from diffgyro.effects import AbstractEffect
 from diffgyro.kalman import fit_random_walk
 from diffgyro.simulate import simulate
 
@@ -36,13 +37,8 @@ class PlainOffset(Offset):
 
 @pytest.fixture(scope="module")
 def batch():
-    from diffgyro.effects import base
-
-    register(Offset)
-    register(PlainOffset)
-    yield simulate("thermal", 2, effects="bias_poly(0)+gradient", seed=4, duration=1800.0)[0]
-    for c in (Offset, PlainOffset):
-        base._REGISTRY.pop(c.name, None)
+    with registered(Offset, PlainOffset):
+        yield simulate("thermal", 2, effects="bias_poly(0)+gradient", seed=4, duration=1800.0)[0]
 
 
 def test_the_random_walk_starts_at_zero_beside_a_declared_constant(batch):
@@ -85,13 +81,8 @@ class SlowBiasUndeclared(SlowBias):
 
 @pytest.fixture()
 def user_terms():
-    from diffgyro.effects import base
-
-    register(SlowBias)
-    register(SlowBiasUndeclared)
-    yield
-    for c in (SlowBias, SlowBiasUndeclared):
-        base._REGISTRY.pop(c.name, None)
+    with registered(SlowBias, SlowBiasUndeclared):
+        yield
 
 
 def test_diagnose_reads_family_phrase_and_lag_floor_from_the_class(user_terms):

@@ -5,12 +5,13 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import registered
 
 from diffgyro import ErrorModel
 from diffgyro.core import noise_fit, register_noise_fit
 from diffgyro.data import Recording
 from diffgyro.diagnose.candidates import candidate_specs
-from diffgyro.effects import AbstractNoise, BiasPoly, Gradient, RandomWalk, register
+from diffgyro.effects import AbstractNoise, BiasPoly, Gradient, RandomWalk
 from diffgyro.errors import SpecError
 from diffgyro.fit import fit
 from diffgyro.kalman import fit_random_walk
@@ -67,13 +68,9 @@ class SlowWalk(RandomWalk):
 @pytest.fixture
 def user_noise():
     from diffgyro import core
-    from diffgyro.effects import base
 
-    register(Flicker)
-    register(SlowWalk)
-    yield
-    for cls in (Flicker, SlowWalk):
-        base._REGISTRY.pop(cls.name, None)
+    with registered(Flicker, SlowWalk):
+        yield
     core._NOISE_FITS.pop(Flicker, None)
 
 
