@@ -13,7 +13,8 @@ serialised) beside that cache, keyed by everything the trace depends on:
   user's registered term) can not be keyed by its code, so such calls are
   traced as usual;
 * every array's shape, dtype and weak type;
-* JAX's and jaxlib's versions, the backend, 64-bit mode and matmul precision.
+* the versions of JAX, jaxlib, equinox and numpy, the backend, 64-bit mode and
+  matmul precision.
 
 A later process with the same key deserialises the program (milliseconds) and
 calls it; its compiled form comes from the compilation cache. A program that
@@ -86,9 +87,12 @@ def _key(fun: Callable, treedef, static, dynamic) -> str | None:
         return None
     shapes = [None if d is None else (tuple(d.shape), str(d.dtype), bool(getattr(d, "weak_type", False)))
               for d in dynamic]
+    import equinox
     import jaxlib
+    import numpy
 
-    env = (jax.__version__, jaxlib.__version__, jax.default_backend(),
+    env = (jax.__version__, jaxlib.__version__, equinox.__version__, numpy.__version__,
+           jax.default_backend(),
            bool(jax.config.jax_enable_x64), str(jax.config.jax_default_matmul_precision))
     h = hashlib.sha256()
     for part in (f"{fun.__module__}.{fun.__qualname__}", _source_digest(), repr(env), repr(shapes)):
