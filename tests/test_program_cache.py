@@ -84,3 +84,9 @@ def test_unkeyable_and_unexportable_calls_are_traced_as_usual(store):
     # the failed export's trace and the usual one; after that the marker and JAX's own
     # cache of this process: no export is tried again
     assert traces.count("module") == 2 and traces.count("outside") == 1
+
+
+def test_nothing_is_kept_without_readable_sources(store, monkeypatch):
+    monkeypatch.setattr(program_cache, "_source_digest", lambda: None)
+    out = scaled(np.arange(3.0), np.float64(1.0), power=1, name="c")
+    assert float(out["sum"]) == 4.0 and not list(store.glob("*"))

@@ -60,11 +60,17 @@ class _KeyPickler(pickle.Pickler):
 
 
 @functools.cache
-def _source_digest() -> str:
-    """sha256 of diffgyro's source files (names and contents)."""
+def _source_digest() -> str | None:
+    """sha256 of diffgyro's version and source files (names and contents); None where the
+    sources can not be read (an install without them: nothing is kept)."""
+    from . import __version__
+
     root = Path(__file__).resolve().parent
-    h = hashlib.sha256()
-    for path in sorted(root.rglob("*.py")):
+    files = sorted(root.rglob("*.py"))
+    if Path(__file__).resolve() not in files:
+        return None
+    h = hashlib.sha256(__version__.encode())
+    for path in files:
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
     return h.hexdigest()
@@ -78,7 +84,7 @@ def _directory() -> Path | None:
 
 def _key(fun: Callable, treedef, static, dynamic) -> str | None:
     """The program's key, or None when the function or an argument can not be keyed."""
-    if fun.__module__.split(".")[0] != "diffgyro":
+    if fun.__module__.split(".")[0] != "diffgyro" or _source_digest() is None:
         return None
     buf = io.BytesIO()
     try:
