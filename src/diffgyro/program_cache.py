@@ -63,13 +63,17 @@ class _KeyPickler(pickle.Pickler):
 def _source_digest() -> str | None:
     """sha256 of diffgyro's version and source files (names and contents); None where the
     sources can not be read (an install without them: nothing is kept)."""
-    from . import __version__
+    from importlib.metadata import PackageNotFoundError, version
 
+    try:
+        release = version("diffgyro")
+    except PackageNotFoundError:
+        release = "unknown"
     root = Path(__file__).resolve().parent
     files = sorted(root.rglob("*.py"))
     if Path(__file__).resolve() not in files:
         return None
-    h = hashlib.sha256(__version__.encode())
+    h = hashlib.sha256(release.encode())
     for path in files:
         h.update(str(path.relative_to(root)).encode())
         h.update(path.read_bytes())
