@@ -128,6 +128,14 @@ def _pad_into(out: np.ndarray, arr: np.ndarray, mode: str) -> None:
         out[n:] = 0 if mode == "zero" else arr[-1]
 
 
+def as_slice(idx: np.ndarray) -> slice | np.ndarray:
+    """``idx`` as a slice where it is one run of consecutive indices (indexing with it then
+    gives a view, not a copy), else ``idx`` itself."""
+    if idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size)):
+        return slice(int(idx[0]), int(idx[0]) + idx.size)
+    return idx
+
+
 #: Alignment of batch arrays in bytes: XLA's CPU client reads aligned host memory in place.
 ALIGN = 64
 

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import aux as aux_cols
-from ..data import Batch, Recording, aux_key
+from ..data import Batch, Recording, as_slice, aux_key
 from ..effects import AbstractNoise, RandomWalk
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
@@ -78,8 +78,7 @@ def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
     from ..core import sampling_intervals
 
-    run = idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size))
-    take = slice(int(idx[0]), int(idx[0]) + idx.size) if run else idx  # a view, not a copy
+    take = as_slice(idx)  # devices in order: views of the batch, not copies
 
     def arr(x):
         return None if x is None else _put(np.asarray(x, np.float64)[take])

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording
+from ..data import OPTIONAL_SIGNALS, SIGNALS, STANDARD_COLUMNS, Batch, Recording, as_slice
 from ..errors import DataError
 from ..logs import log_format
 from .cells import cell_problem, check_cells
@@ -254,9 +254,8 @@ def _device_recording(dev: str, rows, values, aux_all, lay: _Layout, conv, drop_
     """One device's recording from its rows: cells checked (or invalid rows dropped), SI
     units, the time base checked."""
     file, present, numeric = lay.file, lay.present, lay.numeric
-    lo, hi = int(rows[0]), int(rows[-1]) + 1
-    # a device's rows are usually one run of the file: a view, not a copy
-    own = [v[lo:hi] if hi - lo == rows.shape[0] else v[rows] for v in values]
+    take = as_slice(rows)  # a device's rows are usually one run of the file: views
+    own = [v[take] for v in values]
     si, code = check_cells(own, numeric, conv)
     k_index = np.arange(rows.shape[0], dtype=np.float64)  # position within the device
     bad_rows = code.any(axis=1)
