@@ -46,9 +46,7 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
     @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=compiler_options)
     def compiled(treedef, static, dynamic):
-        leaves = [s if d is None else d for s, d in zip(static, dynamic)]
-        args, kwargs = jax.tree.unflatten(treedef, leaves)
-        return fun(*args, **kwargs)
+        return _unsplit(fun, treedef, static, dynamic)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
@@ -56,7 +54,8 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         if persistent:
             from .program_cache import program
 
-            stored = program(fun, treedef, static, dynamic)
+            stored = program(fun, treedef, static, dynamic,
+                             functools.partial(_unsplit, fun, treedef, static))
             if stored is not None:
                 return stored(dynamic)
         return compiled(treedef, static, dynamic)
@@ -187,6 +186,13 @@ def release_compiled_if_crowded(fraction: float = MAP_HEADROOM, limit: int | Non
         "released compiled programs: %d memory mappings of %d allowed, now %s",
         held, limit, mapped_regions())
     return True
+
+
+def _unsplit(fun, treedef, static, dynamic):
+    """``fun`` called on the arguments :func:`_split` took apart."""
+    leaves = [s if d is None else d for s, d in zip(static, dynamic, strict=True)]
+    args, kwargs = jax.tree.unflatten(treedef, leaves)
+    return fun(*args, **kwargs)
 
 
 def _split(args, kwargs):

@@ -116,9 +116,10 @@ def _write(path: Path, data: bytes) -> None:
     atomic_write_bytes(path, data)
 
 
-def program(fun: Callable, treedef, static, dynamic) -> Callable | None:
-    """The stored program for this call (``program(dynamic)`` runs it), exported and
-    stored now if it is new; None when the call is to be traced as usual."""
+def program(fun: Callable, treedef, static, dynamic, body: Callable) -> Callable | None:
+    """The stored program for this call of ``fun`` (``program(dynamic)`` runs it), exported
+    from ``body`` (``body(dynamic)`` calls ``fun``) and stored now if it is new; None when
+    the call is to be traced as usual."""
     folder = _directory()
     if folder is None:
         return None
@@ -133,7 +134,7 @@ def program(fun: Callable, treedef, static, dynamic) -> Callable | None:
         if path.exists():
             found = jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call)
         elif not failed.exists():
-            found = _export(fun, treedef, static, dynamic, path, failed)
+            found = _export(fun, body, dynamic, path, failed)
     except Exception:  # noqa: BLE001 - a damaged or foreign file: trace as usual
         logging.getLogger("diffgyro").debug("stored program %s not used", key, exc_info=True)
         found = None
@@ -141,17 +142,12 @@ def program(fun: Callable, treedef, static, dynamic) -> Callable | None:
     return found
 
 
-def _export(fun, treedef, static, dynamic, path: Path, failed: Path) -> Callable | None:
-    def flat(dyn):
-        leaves = [s if d is None else d for s, d in zip(static, dyn, strict=True)]
-        args, kwargs = jax.tree.unflatten(treedef, leaves)
-        return fun(*args, **kwargs)
-
+def _export(fun, body, dynamic, path: Path, failed: Path) -> Callable | None:
     specs = [None if d is None else jax.ShapeDtypeStruct(d.shape, d.dtype,
                                                          weak_type=getattr(d, "weak_type", False))
              for d in dynamic]
     try:
-        exported = jax.export.export(jax.jit(flat))(specs)
+        exported = jax.export.export(jax.jit(body))(specs)
         data = exported.serialize()
     except Exception:  # noqa: BLE001 - not exportable: remember, trace as usual
         logging.getLogger("diffgyro").debug("%s not exportable", fun.__qualname__, exc_info=True)
