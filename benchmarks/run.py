@@ -651,16 +651,11 @@ print(json.dumps({{"s": time.perf_counter() - t0, "rss_GB": usage.ru_maxrss / 1e
 
 
 def native_table(npz, path):
-    """The saved record as a Parquet file in the standard schema (one row per sample)."""
-    import pandas as pd
+    """The saved record as a Parquet file in the standard schema (``diffgyro.io.save``)."""
+    from diffgyro.io import save
 
     z = np.load(npz)
-    t = np.broadcast_to(z["t"], z["temp"].shape)
-    frames = [pd.DataFrame({"device": f"imu{i}", "t": t[i], "gx": z["gyro"][i, :, 0],
-                            "gy": z["gyro"][i, :, 1], "gz": z["gyro"][i, :, 2],
-                            "temp": z["temp"][i], "temp_ext": z["temp_ext"][i]})
-              for i in range(z["temp"].shape[0])]
-    pd.concat(frames, ignore_index=True).to_parquet(path)
+    save(make_batch(z["t"], z["gyro"], temp=z["temp"], temp_ext=z["temp_ext"]), path)
 
 
 def command_run(command: str, path, cache: str) -> dict:
