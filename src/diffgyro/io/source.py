@@ -166,10 +166,11 @@ class Source:
         import pyarrow.parquet as pq
 
         try:
-            self.raw_names = list(pq.read_schema(self.path).names)
+            self._schema = pq.read_schema(self.path)  # the stored types, read once
         except Exception as err:  # pyarrow raises several types for corrupt files
             raise DataError(f"cannot read as Parquet ({type(err).__name__}: {err})",
                             file=self.file) from None
+        self.raw_names = list(self._schema.names)
 
     # -- NPZ
     def _open_npz(self) -> None:
@@ -191,11 +192,9 @@ class Source:
         raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
         if self.format == "parquet":
             import pyarrow as pa
-            import pyarrow.parquet as pq
 
-            schema = pq.read_schema(self.path)
-            return {n for n in names if not (pa.types.is_integer(schema.field(raw[n]).type)
-                                             or pa.types.is_floating(schema.field(raw[n]).type))}
+            kinds = {n: self._schema.field(raw[n]).type for n in names}
+            return {n for n, k in kinds.items() if not (pa.types.is_integer(k) or pa.types.is_floating(k))}
         if self.format == "npz":
             return {n for n in names if self._arrays[raw[n]].dtype.kind not in "iuf"}
         if self.log is not None:
@@ -221,8 +220,7 @@ class Source:
             try:
                 # column by column (decoding buffers for one column at a time); text columns
                 # (device ids) as categories: a few distinct ids, not a string per row
-                schema = pq.read_schema(self.path)
-                text = [raw[n] for n in text_cols if _is_text(schema.field(raw[n]).type)]
+                text = [raw[n] for n in text_cols if _is_text(self._schema.field(raw[n]).type)]
                 pf = pq.ParquetFile(self.path, read_dictionary=text)
                 frame = pd.DataFrame({raw[n]: pf.read(columns=[raw[n]]).column(0).to_pandas()
                                       for n in wanted}, copy=False)
