@@ -631,12 +631,23 @@ def native_data(path, devices: int, samples: int, fs: float = 200.0, seed: int =
 
 def native_run(command: str, path, cache: str = "") -> dict:
     """Time and peak RSS of ``fit`` or ``diagnose`` on the saved data, in a child process."""
-    import subprocess
 
     code = NATIVE_CHILD.format(here=str(Path(__file__).resolve().parent), cache=cache,
                                path=str(path), command=command)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return json.loads(child(code).strip().splitlines()[-1])
+
+
+def child(code: str, timeout: float | None = None) -> str:
+    """Run ``python -c code`` and return its stdout; a failed child raises with the end of
+    its stderr, so the benchmark says why."""
+    import subprocess
+
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         timeout=timeout)
+    if out.returncode != 0:
+        raise RuntimeError(f"child process exited with {out.returncode}:\n"
+                           + "\n".join(out.stderr.strip().splitlines()[-15:]))
+    return out.stdout
 
 
 COMMAND_CHILD = """
@@ -662,14 +673,12 @@ def command_run(command: str, path, cache: str) -> dict:
     """Wall time and peak RSS of the command a user runs on the Parquet file: ``diffgyro fit
     -m bias_poly(2) FILE --out CAL`` or ``diffgyro diagnose -m bias_poly(2) FILE``, start to
     exit (Python start-up, imports, reading the file and printing included)."""
-    import subprocess
 
     argv = [sys.executable, "-m", "diffgyro", command, "-m", "bias_poly(2)", str(path)]
     if command == "fit":
         argv += ["--out", str(Path(path).with_suffix(".json"))]
     code = COMMAND_CHILD.format(argv=argv, cache=cache)
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
-    r = json.loads(out.stdout.strip().splitlines()[-1])
+    r = json.loads(child(code).strip().splitlines()[-1])
     if r["exit"] != 0:
         raise RuntimeError(f"{' '.join(argv[2:])} exited with {r['exit']}")
     return r
@@ -799,16 +808,13 @@ def case_compile(devices, samples, subset, repeats, bw, host_devices=1, specs=CO
     process (``diffgyro.enable_compilation_cache``, on in the command line), and cold in a
     process that has fitted another spec (what a new spec adds: the model-discovery loop);
     the median over ``processes`` fresh processes of each kind."""
-    import subprocess
     import tempfile
 
     def child(spec, cache, warmup=""):
         code = COMPILE_CHILD.format(here=str(Path(__file__).parent), cache=cache, spec=spec,
                                     warmup=warmup, devices=devices, samples=samples,
                                     host_devices=host_devices if host_devices else None)
-        out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                             timeout=600, check=True)
-        return json.loads(out.stdout.strip().splitlines()[-1])
+        return json.loads(child(code, timeout=600).strip().splitlines()[-1])
 
     def compile_s(r):
         return max(r["first"] - r["run"], 0.0)

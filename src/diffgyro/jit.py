@@ -44,9 +44,16 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     if persistent and compiler_options:
         raise ValueError("a persistent program is compiled with XLA's default options")
 
-    @functools.partial(jax.jit, static_argnums=(0, 1), compiler_options=compiler_options)
-    def compiled(treedef, static, dynamic):
+    def body(treedef, static, dynamic):
         return _unsplit(fun, treedef, static, dynamic)
+
+    # the options are XLA:CPU's (diffgyro.fit_sums.compile_options): another backend
+    # refuses an option it does not know, so there the program compiles with defaults
+    on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
+    elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu
+
+    def compiled_for_backend():
+        return on_cpu if jax.default_backend() == "cpu" else elsewhere
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
@@ -58,9 +65,9 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
                              functools.partial(_unsplit, fun, treedef, static))
             if stored is not None:
                 return stored(dynamic)
-        return compiled(treedef, static, dynamic)
+        return compiled_for_backend()(treedef, static, dynamic)
 
-    call.lower = lambda *a, **k: compiled.lower(*_split(a, k))  # type: ignore[attr-defined]
+    call.lower = lambda *a, **k: compiled_for_backend().lower(*_split(a, k))  # type: ignore[attr-defined]
 
     def compile_ahead(*a, **k) -> threading.Thread:
         """Lower the call for these arguments here and compile it on a thread of its own;
@@ -70,7 +77,7 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         An error is left for the call itself to raise."""
         log = logging.getLogger("diffgyro")
         try:
-            lowered = compiled.lower(*_split(a, k))
+            lowered = compiled_for_backend().lower(*_split(a, k))
         except Exception:  # noqa: BLE001 - the call lowers again and raises it
             log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
             lowered = None
@@ -88,7 +95,7 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
     call.compile_ahead = compile_ahead  # type: ignore[attr-defined]
     # shapes and dtypes of the results, from the same (cached) trace as a call
-    call.eval_shape = lambda *a, **k: compiled.eval_shape(*_split(a, k))  # type: ignore[attr-defined]
+    call.eval_shape = lambda *a, **k: compiled_for_backend().eval_shape(*_split(a, k))  # type: ignore[attr-defined]
     return call
 
 
