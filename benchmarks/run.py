@@ -37,6 +37,11 @@ from pathlib import Path
 
 import numpy as np
 
+# On a GPU, JAX takes most of the card's memory when it starts; the child processes of the
+# diagnose_native and compile cases then fail to create their solver handles. Each process
+# allocates what it uses instead (set before JAX is imported here or in a child).
+os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # --------------------------------------------------------------------------- sizes
@@ -634,10 +639,10 @@ def native_run(command: str, path, cache: str = "") -> dict:
 
     code = NATIVE_CHILD.format(here=str(Path(__file__).resolve().parent), cache=cache,
                                path=str(path), command=command)
-    return json.loads(child(code).strip().splitlines()[-1])
+    return json.loads(run_child(code).strip().splitlines()[-1])
 
 
-def child(code: str, timeout: float | None = None) -> str:
+def run_child(code: str, timeout: float | None = None) -> str:
     """Run ``python -c code`` and return its stdout; a failed child raises with the end of
     its stderr, so the benchmark says why."""
     import subprocess
@@ -678,7 +683,7 @@ def command_run(command: str, path, cache: str) -> dict:
     if command == "fit":
         argv += ["--out", str(Path(path).with_suffix(".json"))]
     code = COMMAND_CHILD.format(argv=argv, cache=cache)
-    r = json.loads(child(code).strip().splitlines()[-1])
+    r = json.loads(run_child(code).strip().splitlines()[-1])
     if r["exit"] != 0:
         raise RuntimeError(f"{' '.join(argv[2:])} exited with {r['exit']}")
     return r
@@ -814,7 +819,7 @@ def case_compile(devices, samples, subset, repeats, bw, host_devices=1, specs=CO
         code = COMPILE_CHILD.format(here=str(Path(__file__).parent), cache=cache, spec=spec,
                                     warmup=warmup, devices=devices, samples=samples,
                                     host_devices=host_devices if host_devices else None)
-        return json.loads(child(code, timeout=600).strip().splitlines()[-1])
+        return json.loads(run_child(code, timeout=600).strip().splitlines()[-1])
 
     def compile_s(r):
         return max(r["first"] - r["run"], 0.0)
