@@ -509,3 +509,187 @@ def test_truncated_log_with_no_whole_sample_is_one_line(tmp_path, capsys):
     ulog.write_bytes((PX4 / "sample_log_small.ulg").read_bytes()[:2000])
     _one_line_error(["fit", str(ulog), "-m", "bias_poly(0)"], capsys, str(ulog),
                     "no gyro data", "truncated")
+
+
+# --------------------------------------------------------------------------- DataFlash variants
+
+ARDUPILOT = Path(__file__).parent / "data" / "ardupilot"
+
+
+def _pymavlink_rows(path: Path) -> dict[str, list]:
+    """Every IMU/GYR/ACC message as pymavlink reads it: name -> [message, ...]."""
+    from pymavlink import DFReader
+
+    reader = DFReader.DFReader_text if path.suffix.lower() == ".log" else DFReader.DFReader_binary
+    log = reader(str(path), zero_time_base=False)
+    out: dict[str, list] = {}
+    while (m := log.recv_match(type=["IMU", "IMU2", "IMU3", "GYR", "ACC"])) is not None:
+        out.setdefault(m.get_type(), []).append(m)
+    return out
+
+
+def _xyz(msgs, names) -> np.ndarray:
+    return np.array([[float(getattr(m, n)) for n in names] for m in msgs])
+
+
+@pytest.mark.parametrize("name, time_field, scale", [("nan.log", "TimeMS", 1e-3),
+                                                     ("test.BIN", "TimeUS", 1e-6)])
+def test_real_dataflash_logs_equal_pymavlink(name, time_field, scale):
+    """nan.log: ArduCopter 3.1 text log, ``IMU``/``IMU2`` timed by ``TimeMS``; test.BIN: a
+    2019 binary log, ``IMU``/``IMU2`` with ``TimeUS`` and ``T`` (its last message cut off)."""
+    from diffgyro.logs import read_log
+
+    path = ARDUPILOT / name
+    ref = _pymavlink_rows(path)
+    log = read_log(path)
+    stem = path.stem
+    assert sorted(set(log.frame.device)) == [f"{stem}/imu0", f"{stem}/imu1"]
+    for k, kind in enumerate(("IMU", "IMU2")):
+        msgs = ref[kind]
+        assert time_field in msgs[0].get_fieldnames()
+        dev = log.frame[log.frame.device == f"{stem}/imu{k}"]
+        assert len(dev) == len(msgs) > 40
+        np.testing.assert_allclose(dev.t, _xyz(msgs, [time_field])[:, 0] * scale, rtol=0,
+                                   atol=1e-9)
+        np.testing.assert_allclose(dev[["gx", "gy", "gz"]], _xyz(msgs, ["GyrX", "GyrY", "GyrZ"]),
+                                   rtol=0, atol=1e-9)
+        np.testing.assert_allclose(dev[["ax", "ay", "az"]], _xyz(msgs, ["AccX", "AccY", "AccZ"]),
+                                   rtol=0, atol=1e-9)
+        if "T" in msgs[0].get_fieldnames():
+            np.testing.assert_allclose(dev.temp, _xyz(msgs, ["T"])[:, 0], rtol=0, atol=1e-9)
+        else:
+            assert "temp" not in log.frame
+
+
+def test_old_text_dataflash_fits_from_the_command_line(capsys):
+    """The TimeMS log that failed with ``AttributeError: TimeUS``: fit reads it, and the bias
+    is pymavlink's mean rate of each IMU."""
+    import json
+
+    path = ARDUPILOT / "nan.log"
+    assert main(["fit", str(path), "--model", "bias_poly(0)", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    ref = _pymavlink_rows(path)
+    for dev, kind in zip(doc["devices"], ("IMU", "IMU2"), strict=True):
+        mean = _xyz(ref[kind], ["GyrX", "GyrY", "GyrZ"]).mean(axis=0)
+        for k, axis in enumerate("xyz"):
+            assert dev["params"][axis]["bias_poly(0).c0"] == pytest.approx(mean[k], rel=1e-9,
+                                                                           abs=1e-12)
+
+
+def write_dataflash_pymavlink(path: Path, formats: dict[str, tuple[str, str]],
+                              messages: list[tuple[str, list]]) -> Path:
+    """A binary DataFlash log packed by pymavlink's own ``DFMessage.get_msgbuf``.
+
+    ``formats``: name -> (format letters, columns); ``messages``: (name, values) in order.
+    """
+    from pymavlink.DFReader import DFFormat, DFMessage
+
+    fmt_fmt = DFFormat(128, "FMT", 89, "BBnNZ", "Type,Length,Name,Format,Columns")
+    out = bytearray(DFMessage(fmt_fmt, [128, 89, "FMT", "BBnNZ",
+                                        "Type,Length,Name,Format,Columns"], False, None).get_msgbuf())
+    defs = {}
+    for i, (name, (letters, cols)) in enumerate(formats.items()):
+        probe = DFFormat(129 + i, name, 0, letters, cols)
+        defs[name] = DFFormat(129 + i, name, 3 + struct.calcsize(probe.msg_struct), letters, cols)
+        out += DFMessage(fmt_fmt, [129 + i, defs[name].len, name, letters, cols], False,
+                         None).get_msgbuf()
+    for name, values in messages:
+        buf = DFMessage(defs[name], list(values), False, None).get_msgbuf()
+        assert buf is not None, (name, values)
+        out += buf
+    path.write_bytes(bytes(out))
+    return path
+
+
+_NOW_IMU = ("QBffffffIIfBBHH", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T,GH,AH,GHz,AHz")
+_RAW_FMT = {"GYR": ("QBQfff", "TimeUS,I,SampleUS,GyrX,GyrY,GyrZ"),
+            "ACC": ("QBQfff", "TimeUS,I,SampleUS,AccX,AccY,AccZ")}
+
+
+def _f32s(x) -> list[float]:
+    return [float(np.float32(v)) for v in x]
+
+
+@pytest.fixture(scope="module")
+def current_dataflash(tmp_path_factory):
+    """Current ArduPilot: ``IMU`` with instance ``I`` and ``T``, and sensor-rate ``GYR``/``ACC``
+    (``SampleUS`` before ``TimeUS``, as the logger writes a sample after taking it), for two
+    IMUs; gyro at 1 kHz, accelerometer at 500 Hz, IMU at 50 Hz with a warming ``T``."""
+    rng = np.random.default_rng(7)
+    msgs = []
+    for us in range(1_000_000, 1_400_000, 1000):
+        for k in range(2):
+            gyro = B0[k] + 1e-3 * rng.standard_normal(3)
+            msgs.append((us + 300, "GYR", [us + 300, k, us + 7 * k, *_f32s(gyro)]))
+            if us % 2000 == 0:
+                acc = np.array([0.1, -0.2, -9.8]) + 0.01 * rng.standard_normal(3)
+                msgs.append((us + 310, "ACC", [us + 310, k, us + 11 * k, *_f32s(acc)]))
+            if us % 20000 == 0:
+                temp = 30.0 + k + 1e-5 * (us - 1_000_000)
+                msgs.append((us + 400, "IMU", [us + 400, k, *_f32s(B0[k]), 0.0, 0.0, -9.8, 0, 0,
+                                               float(np.float32(temp)), 1, 1, 1000, 500]))
+    msgs.sort(key=lambda m: m[0])
+    path = tmp_path_factory.mktemp("df") / "now.bin"
+    return write_dataflash_pymavlink(path, {"IMU": _NOW_IMU, **_RAW_FMT},
+                                     [(name, v) for _, name, v in msgs])
+
+
+def test_dataflash_instance_field_and_sensor_rate_messages(current_dataflash):
+    from diffgyro.logs import read_log
+
+    ref = _pymavlink_rows(current_dataflash)
+    log = read_log(current_dataflash)
+    assert log.warnings == []
+    assert sorted(set(log.frame.device)) == ["now/gyro0", "now/gyro1", "now/imu0", "now/imu1"]
+    for k in range(2):
+        imu = [m for m in ref["IMU"] if m.I == k]
+        dev = log.frame[log.frame.device == f"now/imu{k}"]
+        np.testing.assert_allclose(dev.t, _xyz(imu, ["TimeUS"])[:, 0] * 1e-6, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(dev.temp, _xyz(imu, ["T"])[:, 0], rtol=0, atol=1e-9)
+        gyr = [m for m in ref["GYR"] if m.I == k]
+        acc = [m for m in ref["ACC"] if m.I == k]
+        dev = log.frame[log.frame.device == f"now/gyro{k}"]
+        t = _xyz(gyr, ["SampleUS"])[:, 0] * 1e-6  # the sample's time, not the write's
+        assert len(dev) == 400 and np.all(np.diff(dev.t) > 0)
+        np.testing.assert_allclose(dev.t, t, rtol=0, atol=1e-9)
+        np.testing.assert_allclose(dev[["gx", "gy", "gz"]], _xyz(gyr, ["GyrX", "GyrY", "GyrZ"]),
+                                   rtol=0, atol=1e-9)
+        t_acc = _xyz(acc, ["SampleUS"])[:, 0] * 1e-6
+        for j, axis in enumerate(("AccX", "AccY", "AccZ")):
+            want = np.interp(t, t_acc, _xyz(acc, [axis])[:, 0])
+            np.testing.assert_allclose(dev[f"a{'xyz'[j]}"], want, rtol=0, atol=1e-9)
+        want = np.interp(t, _xyz(imu, ["TimeUS"])[:, 0] * 1e-6, _xyz(imu, ["T"])[:, 0])
+        np.testing.assert_allclose(dev.temp, want, rtol=0, atol=1e-9)
+        assert dev.temp.iloc[-1] > dev.temp.iloc[0]  # the warming IMU's T, joined
+
+
+def test_dataflash_temp_field_and_time_ms(tmp_path):
+    """Logs of 2014-2015 call the temperature ``Temp`` and time the IMU in ``TimeMS``:
+    ``bias_poly(1)`` finds the thermal slope written into them."""
+    rng = np.random.default_rng(3)
+    old = ("IffffffIIf", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp")
+    msgs = []
+    for i in range(600):
+        ms = 5000 + 20 * i
+        for k, name in enumerate(("IMU", "IMU2")):
+            temp = 25.0 + 15.0 * i / 600
+            gyro = B0[k] + B1[k] * (temp - 30.0) + SIGMA * rng.standard_normal(3)
+            msgs.append((name, [ms, *_f32s(gyro), 0.0, 0.0, -9.8, 0, 0, float(np.float32(temp))]))
+    path = write_dataflash_pymavlink(tmp_path / "old.bin", {"IMU": old, "IMU2": old}, msgs)
+    ref = _pymavlink_rows(path)
+    recs = load(path)
+    assert [r.device for r in recs] == ["old/imu0", "old/imu1"]
+    for k, (rec, kind) in enumerate(zip(recs, ("IMU", "IMU2"), strict=True)):
+        np.testing.assert_allclose(rec.t, _xyz(ref[kind], ["TimeMS"])[:, 0] * 1e-3, atol=1e-9)
+        np.testing.assert_allclose(rec.temp, _xyz(ref[kind], ["Temp"])[:, 0], rtol=0, atol=1e-9)
+        slope = np.polyfit(rec.temp - 30.0, rec.gyro, 1)[0]
+        np.testing.assert_allclose(slope, B1[k], atol=2e-5)
+
+
+def test_dataflash_without_time_field_is_one_line(tmp_path, capsys):
+    path = write_dataflash_pymavlink(tmp_path / "notime.bin",
+                                     {"IMU": ("ffffff", "GyrX,GyrY,GyrZ,AccX,AccY,AccZ")},
+                                     [("IMU", [0.0, 0.0, 0.0, 0.0, 0.0, -9.8])])
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path),
+                    "no time field", "TimeUS or TimeMS")

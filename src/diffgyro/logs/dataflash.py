@@ -3,8 +3,15 @@
 Each IMU instance is the device ``<stem>/imu<k>``: the ``I`` field of
 ``IMU`` messages gives k (older logs write ``IMU``, ``IMU2``, ``IMU3`` for
 k = 0, 1, 2). ``GyrX, GyrY, GyrZ`` (rad/s) → ``gx, gy, gz``, ``AccX, AccY,
-AccZ`` (m/s²) → ``ax, ay, az``, ``T`` (°C) → ``temp``, ``TimeUS`` (µs since
-boot) → ``t`` in s. Samples are kept as logged.
+AccZ`` (m/s²) → ``ax, ay, az``, ``T`` or ``Temp`` (°C) → ``temp``, ``TimeUS``
+(µs since boot; ``TimeMS``, ms, in logs before 2015) → ``t`` in s.
+
+Raw sensor-rate logging writes ``GYR`` and ``ACC`` messages (one per sample,
+instance ``I``; older logs ``GYR1..3``/``ACC1..3``): each gyro instance is the
+device ``<stem>/gyro<k>``, timed by ``SampleUS`` (when the sensor took the
+sample, µs since boot), with ``ACC`` instance k interpolated at its times and
+the temperature of ``IMU`` instance k interpolated likewise. Samples are kept
+as logged.
 """
 
 from __future__ import annotations
@@ -17,11 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import DataError
-from .table import LogTable, cut_at, require, table, truncated
+from .table import LogTable, cut_at, interp_join, require, table, truncated
 
-_TYPES = ["IMU", "IMU2", "IMU3"]
+_IMU = ("IMU", "IMU2", "IMU3")
+_RAW = {"GYR": ("GyrX", "GyrY", "GyrZ"), "ACC": ("AccX", "AccY", "AccZ")}
+_TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3"))]
 _HEAD = b"\xa3\x95"  # every binary message starts with these
-_FIELDS = ("TimeUS", "GyrX", "GyrY", "GyrZ", "AccX", "AccY", "AccZ")
+_GYRO, _ACCEL = ("GyrX", "GyrY", "GyrZ"), ("AccX", "AccY", "AccZ")
+_TEMP = ("T", "Temp")  # the IMU temperature field: ``T`` since 2015, ``Temp`` before
+# time fields: (name, seconds per count), the first one a message has is used
+_TIME = {"imu": (("TimeUS", 1e-6), ("TimeMS", 1e-3)),
+         "raw": (("SampleUS", 1e-6), ("TimeUS", 1e-6))}
 
 
 def _binary_cut(log) -> int | None:
@@ -71,11 +84,42 @@ def _quiet_fd(fd: int):
         os.close(null)
 
 
-def _messages(path: Path, file: str) -> tuple[dict[int, list[tuple]], int | None]:
+class _Layout:
+    """Where one message type keeps what is read: its time field, instance and columns."""
+
+    def __init__(self, kind: str, names: list[str], file: str):
+        self.kind = "imu" if kind in _IMU else kind.rstrip("123")
+        self.time = next(((f, s) for f, s in _TIME["imu" if self.kind == "imu" else "raw"]
+                          if f in names), None)
+        if self.time is None:
+            want = " or ".join(f for f, _ in _TIME["imu" if self.kind == "imu" else "raw"])
+            raise DataError(f"{kind} messages have no time field ({want}); their fields are "
+                            f"{', '.join(names)}", file=file)
+        self.values = _GYRO + _ACCEL if self.kind == "imu" else _RAW[self.kind]
+        missing = [f for f in self.values if f not in names]
+        if missing:
+            raise DataError(f"{kind} messages lack the field(s) {', '.join(missing)}; their "
+                            f"fields are {', '.join(names)}", file=file)
+        self.temp = next((f for f in _TEMP if f in names), None) if self.kind == "imu" else None
+        self.instance = "I" if "I" in names else None
+        suffix = kind[3:]  # IMU, IMU2, IMU3 -> 0, 1, 2; GYR1..3 -> 0..2; GYR (with I) -> I
+        self.fixed = int(suffix) - 1 if suffix else 0
+
+    def row(self, m) -> tuple[int, tuple[float, ...]]:
+        k = int(m.I) if self.instance else self.fixed
+        t = float(getattr(m, self.time[0])) * self.time[1]
+        vals = tuple(float(getattr(m, f)) for f in self.values)
+        return k, (t, *vals, float(getattr(m, self.temp)) if self.temp else np.nan)
+
+
+def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, bool]], int | None]:
+    """The rows of each (kind, instance): kind ``imu``, ``GYR`` or ``ACC``; and where the
+    log is cut off."""
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
     text = path.suffix.lower() == ".log"
-    rows: dict[int, list[tuple]] = {}
-    has_temp: dict[int, bool] = {}
+    rows: dict[tuple[str, int], list[tuple]] = {}
+    has_temp: dict[tuple[str, int], bool] = {}
+    layouts: dict[str, _Layout] = {}
     try:
         # pymavlink prints on bad data (Python's stdout and stderr, and its C indexer
         # straight to file descriptor 2): our one line says it
@@ -85,36 +129,55 @@ def _messages(path: Path, file: str) -> tuple[dict[int, list[tuple]], int | None
                 str(path), zero_time_base=False)
             while (m := log.recv_match(type=_TYPES)) is not None:
                 kind = m.get_type()
-                k = int(getattr(m, "I", _TYPES.index(kind) if kind in _TYPES else 0))
-                names = m.get_fieldnames()
-                has_temp[k] = has_temp.get(k, True) and "T" in names
-                rows.setdefault(k, []).append(
-                    tuple(float(getattr(m, f)) for f in _FIELDS)
-                    + (float(m.T) if "T" in names else np.nan,))
+                lay = layouts.get(kind)
+                if lay is None:
+                    lay = layouts[kind] = _Layout(kind, list(m.get_fieldnames()), file)
+                k, row = lay.row(m)
+                key = (lay.kind, k)
+                has_temp[key] = has_temp.get(key, True) and lay.temp is not None
+                rows.setdefault(key, []).append(row)
             cut = _text_cut(path) if text else _binary_cut(log)
     except DataError:
         raise
     except Exception as err:  # pymavlink raises struct, index, value and OS errors
         raise DataError(f"cannot read as ArduPilot DataFlash ({type(err).__name__}: {err})",
                         file=file) from None
-    return {k: (v, has_temp[k]) for k, v in rows.items()}, cut
+    return {key: (v, has_temp[key]) for key, v in rows.items()}, cut
+
+
+def _increasing(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``t`` sorted, for interpolation (raw messages of several instances interleave)."""
+    order = np.argsort(t, kind="stable")
+    return t[order], v[order]
 
 
 def read(path: Path, file: str, prefix: str) -> LogTable:
     """Read ``path`` (a DataFlash log) as a :class:`LogTable`; see the module docstring."""
     found, cut = _messages(path, file)
     size = path.stat().st_size
-    if not found:
+    if not any(kind in ("imu", "GYR") for kind, _ in found):
         end = (f"; the file is truncated: {cut_at(cut, size)}"
                if cut is not None else "")
-        raise DataError(f"no gyro data in the log (no IMU messages{end})", file=file)
+        raise DataError(f"no gyro data in the log (no IMU or GYR messages{end})", file=file)
+    arrays = {key: (np.asarray(rows, dtype=np.float64), temp)
+              for key, (rows, temp) in found.items()}
     devices = []
-    for k in sorted(found):
-        rows, has_temp = found[k]
-        v = np.asarray(rows, dtype=np.float64)
-        dev = {"device": f"{prefix}/imu{k}", "t": v[:, 0] * 1e-6, "gyro": v[:, 1:4],
-               "accel": v[:, 4:7]}
-        if has_temp:
-            dev["temp"] = v[:, 7]
+    for (kind, k), (v, has_temp) in sorted(arrays.items(), key=lambda kv: (kv[0][0] != "imu",
+                                                                           kv[0])):
+        if kind == "imu":
+            dev = {"device": f"{prefix}/imu{k}", "t": v[:, 0], "gyro": v[:, 1:4],
+                   "accel": v[:, 4:7]}
+            if has_temp:
+                dev["temp"] = v[:, 7]
+        elif kind == "GYR":
+            dev = {"device": f"{prefix}/gyro{k}", "t": v[:, 0], "gyro": v[:, 1:4]}
+            acc = arrays.get(("ACC", k))
+            if acc is not None:
+                dev["accel"] = interp_join(v[:, 0], *_increasing(acc[0][:, 0], acc[0][:, 1:4]))
+            imu = arrays.get(("imu", k))
+            if imu is not None and imu[1]:
+                dev["temp"] = interp_join(v[:, 0], *_increasing(imu[0][:, 0], imu[0][:, 7]))
+        else:
+            continue
         devices.append(dev)
     return table(devices, file, [truncated(file, cut, size, devices)] if cut is not None else [])
