@@ -370,7 +370,7 @@ def test_dataflash_without_imu_is_one_line(tmp_path, capsys):
     path = tmp_path / "noimu.bin"
     fmt = struct.pack("<BB4s16s64s", 128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
     path.write_bytes(b"\xa3\x95\x80" + fmt)
-    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path), "no IMU messages")
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path), "no IMU or GYR messages")
     other = tmp_path / "other.bin"
     other.write_bytes(b"\x00" * 100)
     _one_line_error(["fit", str(other), "-m", "bias_poly(0)"], capsys, str(other), "DataFlash")
@@ -504,7 +504,7 @@ def test_truncated_log_with_no_whole_sample_is_one_line(tmp_path, capsys):
     cut = tmp_path / "cut.bin"
     cut.write_bytes((tmp_path / "full.bin").read_bytes()[:2 * 89 + 20])
     _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut),
-                    "no IMU messages", "truncated", f"from byte {2 * 89}")
+                    "no IMU or GYR messages", "truncated", f"from byte {2 * 89}")
     ulog = tmp_path / "cut.ulg"
     ulog.write_bytes((PX4 / "sample_log_small.ulg").read_bytes()[:2000])
     _one_line_error(["fit", str(ulog), "-m", "bias_poly(0)"], capsys, str(ulog),
@@ -693,3 +693,91 @@ def test_dataflash_without_time_field_is_one_line(tmp_path, capsys):
                                      [("IMU", [0.0, 0.0, 0.0, 0.0, 0.0, -9.8])])
     _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path),
                     "no time field", "TimeUS or TimeMS")
+
+
+# --------------------------------------------------------------------------- ULog FIFO
+
+_FIFO_FIELDS = ("uint64_t timestamp;uint64_t timestamp_sample;uint32_t device_id;float dt;"
+                "float scale;uint8_t samples;int16_t[32] x;int16_t[32] y;int16_t[32] z;"
+                "uint8_t[3] _padding0;")
+
+
+def write_ulog_fifo(path: Path, seed: int = 0) -> Path:
+    """``sensor_gyro_fifo`` / ``sensor_accel_fifo`` (PX4's SensorGyroFifo.msg layout) for two
+    sensors, added to the real log in tests/data/px4 and written by pyulog's writer; the 1 Hz
+    ``sensor_gyro`` of that log (with its temperature) stays."""
+    import pyulog
+
+    ulog = pyulog.ULog(str(PX4 / "sample_log_small.ulg"), ["sensor_gyro"])
+    t0 = int(min(d.data["timestamp"][0] for d in ulog.data_list))
+    t1 = int(max(d.data["timestamp"][-1] for d in ulog.data_list))
+    rng = np.random.default_rng(seed)
+    msg_id = max(d.msg_id for d in ulog.data_list) + 1
+    for topic in ("sensor_gyro_fifo", "sensor_accel_fifo"):
+        header = None
+        ulog._message_formats[topic] = pyulog.ULog.MessageFormat(
+            f"{topic}:{_FIFO_FIELDS}".encode(), header)
+        for k in range(2):
+            add = pyulog.ULog._MessageAddLogged(struct.pack("<BH", k, msg_id) + topic.encode(),
+                                                header, ulog._message_formats)
+            dt = 125.0 if topic == "sensor_gyro_fifo" else 250.0  # 8 kHz gyro, 4 kHz accel
+            m = int((t1 - t0) / 4000)  # a message every 4 ms
+            rows = np.zeros(m, dtype=add.dtype)
+            n = rng.integers(1, 33, m) if k == 0 else np.full(m, int(4000 / dt))
+            last = t0 + 4000 * np.arange(1, m + 1) + 13 * k
+            rows["timestamp"] = last + 150
+            rows["timestamp_sample"] = last
+            rows["device_id"] = 2000 + k
+            rows["dt"] = dt
+            rows["scale"] = np.float32(1 / 16.4 * np.pi / 180) if "gyro" in topic else 0.0024
+            rows["samples"] = n
+            centre = (200, -150, 90) if "gyro" in topic else (40, -80, -4080)
+            for a, c in zip("xyz", centre, strict=True):
+                counts = c + rng.integers(-30, 31, (m, 32))
+                for i in range(32):
+                    rows[f"{a}[{i}]"] = counts[:, i]
+            add.buffer = bytearray(rows.tobytes())
+            ulog._data_list.append(pyulog.ULog.Data(add))
+            msg_id += 1
+    ulog.write_ulog(str(path))
+    return path
+
+
+def _pyulog_fifo(d) -> tuple[np.ndarray, np.ndarray]:
+    """Unpacked one message and one sample at a time, as SensorGyroFifo.msg defines it."""
+    t, v = [], []
+    for j in range(len(d.data["timestamp"])):
+        n, dt = int(d.data["samples"][j]), float(d.data["dt"][j])
+        for i in range(n):
+            t.append((float(d.data["timestamp_sample"][j]) - (n - 1 - i) * dt) * 1e-6)
+            v.append([float(d.data[f"{a}[{i}]"][j]) * float(d.data["scale"][j]) for a in "xyz"])
+    return np.array(t), np.array(v)
+
+
+def test_ulog_gyro_fifo_is_unpacked_as_px4_defines_it(tmp_path):
+    import pyulog
+
+    path = write_ulog_fifo(tmp_path / "fifo.ulg")
+    ref = pyulog.ULog(str(path), ["sensor_gyro_fifo", "sensor_accel_fifo", "sensor_gyro"])
+    from diffgyro.logs import read_log
+
+    log = read_log(path)
+    assert sorted(set(log.frame.device)) == ["fifo/gyro_fifo0", "fifo/gyro_fifo1"]
+    assert log.metadata["fifo/gyro_fifo1"] == {"device_id": 2001}
+    # the log's third sensor has no FIFO: only its 1 Hz sensor_gyro is left out
+    assert [w for w in log.warnings if "left out" in w or "sensor_combined" in w] == [
+        f"warning: file {path}: sensor_gyro instance(s) 2 logged at < 10 samples/s are left out"]
+    for k in range(2):
+        topic = {d.name: d for d in ref.data_list if d.multi_id == k}
+        t, gyro = _pyulog_fifo(topic["sensor_gyro_fifo"])
+        t_acc, acc = _pyulog_fifo(topic["sensor_accel_fifo"])
+        dev = log.frame[log.frame.device == f"fifo/gyro_fifo{k}"]
+        assert len(dev) == len(t) > 1000
+        np.testing.assert_allclose(dev.t, t, rtol=0, atol=1e-9)
+        assert np.all(np.diff(dev.t) > 0)
+        np.testing.assert_allclose(dev[["gx", "gy", "gz"]], gyro, rtol=0, atol=1e-9)
+        for j, a in enumerate("xyz"):
+            np.testing.assert_allclose(dev[f"a{a}"], np.interp(t, t_acc, acc[:, j]), atol=1e-9)
+        g = topic["sensor_gyro"]
+        want = np.interp(t, g.data["timestamp_sample"] * 1e-6, g.data["temperature"])
+        np.testing.assert_allclose(dev.temp, want, rtol=0, atol=1e-9)
