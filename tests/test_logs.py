@@ -370,7 +370,7 @@ def test_dataflash_without_imu_is_one_line(tmp_path, capsys):
     path = tmp_path / "noimu.bin"
     fmt = struct.pack("<BB4s16s64s", 128, 89, b"FMT", b"BBnNZ", b"Type,Length,Name,Format,Columns")
     path.write_bytes(b"\xa3\x95\x80" + fmt)
-    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path), "no IMU or GYR messages")
+    _one_line_error(["fit", str(path), "-m", "bias_poly(0)"], capsys, str(path), "no IMU, GYR or ISBD messages")
     other = tmp_path / "other.bin"
     other.write_bytes(b"\x00" * 100)
     _one_line_error(["fit", str(other), "-m", "bias_poly(0)"], capsys, str(other), "DataFlash")
@@ -504,7 +504,7 @@ def test_truncated_log_with_no_whole_sample_is_one_line(tmp_path, capsys):
     cut = tmp_path / "cut.bin"
     cut.write_bytes((tmp_path / "full.bin").read_bytes()[:2 * 89 + 20])
     _one_line_error(["fit", str(cut), "-m", "bias_poly(0)"], capsys, str(cut),
-                    "no IMU or GYR messages", "truncated", f"from byte {2 * 89}")
+                    "no IMU, GYR or ISBD messages", "truncated", f"from byte {2 * 89}")
     ulog = tmp_path / "cut.ulg"
     ulog.write_bytes((PX4 / "sample_log_small.ulg").read_bytes()[:2000])
     _one_line_error(["fit", str(ulog), "-m", "bias_poly(0)"], capsys, str(ulog),
@@ -532,23 +532,34 @@ def _xyz(msgs, names) -> np.ndarray:
     return np.array([[float(getattr(m, n)) for n in names] for m in msgs])
 
 
+def _by_instance(ref: dict[str, list]) -> dict[int, list]:
+    """pymavlink's IMU messages per instance: the ``I`` field, else IMU, IMU2, IMU3."""
+    out: dict[int, list] = {}
+    for k, kind in enumerate(("IMU", "IMU2", "IMU3")):
+        for m in ref.get(kind, []):
+            out.setdefault(int(m.I) if "I" in m.get_fieldnames() else k, []).append(m)
+    return out
+
+
 @pytest.mark.parametrize("name, time_field, scale", [("nan.log", "TimeMS", 1e-3),
-                                                     ("test.BIN", "TimeUS", 1e-6)])
+                                                     ("test.BIN", "TimeUS", 1e-6),
+                                                     ("backend_log_80k.bin", "TimeUS", 1e-6)])
 def test_real_dataflash_logs_equal_pymavlink(name, time_field, scale):
     """nan.log: ArduCopter 3.1 text log, ``IMU``/``IMU2`` timed by ``TimeMS``; test.BIN: a
-    2019 binary log, ``IMU``/``IMU2`` with ``TimeUS`` and ``T`` (its last message cut off)."""
+    2019 binary log, ``IMU``/``IMU2`` with ``TimeUS`` and ``T`` (its last message cut off);
+    backend_log_80k.bin: ArduCopter 4.6, ``IMU`` with instance ``I`` and ``T``."""
     from diffgyro.logs import read_log
 
     path = ARDUPILOT / name
-    ref = _pymavlink_rows(path)
+    ref = _by_instance(_pymavlink_rows(path))
     log = read_log(path)
     stem = path.stem
-    assert sorted(set(log.frame.device)) == [f"{stem}/imu0", f"{stem}/imu1"]
-    for k, kind in enumerate(("IMU", "IMU2")):
-        msgs = ref[kind]
+    assert sorted(ref) == [0, 1]
+    assert {f"{stem}/imu0", f"{stem}/imu1"} <= set(log.frame.device)
+    for k, msgs in ref.items():
         assert time_field in msgs[0].get_fieldnames()
         dev = log.frame[log.frame.device == f"{stem}/imu{k}"]
-        assert len(dev) == len(msgs) > 40
+        assert len(dev) == len(msgs) >= 10
         np.testing.assert_allclose(dev.t, _xyz(msgs, [time_field])[:, 0] * scale, rtol=0,
                                    atol=1e-9)
         np.testing.assert_allclose(dev[["gx", "gy", "gz"]], _xyz(msgs, ["GyrX", "GyrY", "GyrZ"]),
@@ -561,6 +572,38 @@ def test_real_dataflash_logs_equal_pymavlink(name, time_field, scale):
             assert "temp" not in log.frame
 
 
+def test_real_batch_sampler_log_equals_pymavlink():
+    """backend_log_80k.bin holds one gyro batch of ArduCopter 4.6's batch sampler (``ISBH``
+    then 18 ``ISBD`` messages of 32 samples, 2 kHz, cut short): unpacked as pymavlink's
+    mavfft_isb does (samples in seqno order, count / ``mul``), timed ``SampleUS + i/smp_rate``."""
+    from pymavlink import DFReader
+
+    from diffgyro.logs import read_log
+
+    path = ARDUPILOT / "backend_log_80k.bin"
+    reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    head, counts = None, []
+    while (m := reader.recv_match(type=["ISBH", "ISBD"])) is not None:
+        if m.get_type() == "ISBH":
+            head = m
+        else:
+            assert m.N == head.N and m.seqno == len(counts) // 32
+            counts.extend(zip(m.x, m.y, m.z, strict=True))
+    assert head.type == 1 and head.instance == 0 and len(counts) == 18 * 32
+    t = head.SampleUS * 1e-6 + np.arange(len(counts)) / head.smp_rate
+    log = read_log(path)
+    dev = log.frame[log.frame.device == "backend_log_80k/gyro_batch0"]
+    np.testing.assert_allclose(dev.t, t, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(dev[["gx", "gy", "gz"]], np.array(counts) / head.mul, rtol=0,
+                               atol=1e-9)
+    imu = _by_instance(_pymavlink_rows(path))[0]
+    t_imu = _xyz(imu, ["TimeUS"])[:, 0] * 1e-6
+    np.testing.assert_allclose(dev.temp, np.interp(t, t_imu, _xyz(imu, ["T"])[:, 0]), atol=1e-9)
+    np.testing.assert_allclose(dev.az, np.interp(t, t_imu, _xyz(imu, ["AccZ"])[:, 0]), atol=1e-9)
+    # the batch's mean rate is the IMU messages' of the same 0.4 s to the batch's resolution
+    assert np.abs(dev.gx.mean() - _xyz(imu, ["GyrX"]).mean()) < 2 / head.mul
+
+
 def test_old_text_dataflash_fits_from_the_command_line(capsys):
     """The TimeMS log that failed with ``AttributeError: TimeUS``: fit reads it, and the bias
     is pymavlink's mean rate of each IMU."""
@@ -569,9 +612,9 @@ def test_old_text_dataflash_fits_from_the_command_line(capsys):
     path = ARDUPILOT / "nan.log"
     assert main(["fit", str(path), "--model", "bias_poly(0)", "--json"]) == 0
     doc = json.loads(capsys.readouterr().out)
-    ref = _pymavlink_rows(path)
-    for dev, kind in zip(doc["devices"], ("IMU", "IMU2"), strict=True):
-        mean = _xyz(ref[kind], ["GyrX", "GyrY", "GyrZ"]).mean(axis=0)
+    ref = _by_instance(_pymavlink_rows(path))
+    for dev, k in zip(doc["devices"], (0, 1), strict=True):
+        mean = _xyz(ref[k], ["GyrX", "GyrY", "GyrZ"]).mean(axis=0)
         for k, axis in enumerate("xyz"):
             assert dev["params"][axis]["bias_poly(0).c0"] == pytest.approx(mean[k], rel=1e-9,
                                                                            abs=1e-12)

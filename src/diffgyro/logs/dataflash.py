@@ -10,8 +10,10 @@ Raw sensor-rate logging writes ``GYR`` and ``ACC`` messages (one per sample,
 instance ``I``; older logs ``GYR1..3``/``ACC1..3``): each gyro instance is the
 device ``<stem>/gyro<k>``, timed by ``SampleUS`` (when the sensor took the
 sample, µs since boot), with ``ACC`` instance k interpolated at its times and
-the temperature of ``IMU`` instance k interpolated likewise. Samples are kept
-as logged.
+the temperature of ``IMU`` instance k interpolated likewise. The batch
+sampler's gyro bursts (``ISBH``/``ISBD``) of instance k are the device
+``<stem>/gyro_batch<k>``, beside ``IMU`` instance k's accelerometer and
+temperature, interpolated. Samples are kept as logged.
 """
 
 from __future__ import annotations
@@ -28,7 +30,7 @@ from .table import LogTable, cut_at, interp_join, require, table, truncated
 
 _IMU = ("IMU", "IMU2", "IMU3")
 _RAW = {"GYR": ("GyrX", "GyrY", "GyrZ"), "ACC": ("AccX", "AccY", "AccZ")}
-_TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3"))]
+_TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3")), "ISBH", "ISBD"]
 _HEAD = b"\xa3\x95"  # every binary message starts with these
 _GYRO, _ACCEL = ("GyrX", "GyrY", "GyrZ"), ("AccX", "AccY", "AccZ")
 _TEMP = ("T", "Temp")  # the IMU temperature field: ``T`` since 2015, ``Temp`` before
@@ -112,14 +114,56 @@ class _Layout:
         return k, (t, *vals, float(getattr(m, self.temp)) if self.temp else np.nan)
 
 
+class _Batches:
+    """The batch sampler's gyro bursts (``INS_LOG_BAT_*``), per IMU instance.
+
+    ``ISBH`` opens batch ``N``: sensor ``type`` (0 accelerometer, 1 gyro), ``instance``,
+    ``smp_cnt`` samples taken ``smp_rate`` Hz apart from ``SampleUS`` (µs since boot), each
+    a count of 1/``mul`` rad/s. ``ISBD`` message ``seqno`` of batch ``N`` carries samples
+    ``32·seqno .. 32·seqno + 31`` of it in ``x, y, z``.
+    """
+
+    GYRO, PER_MESSAGE = 1, 32
+
+    def __init__(self):
+        self.open: dict[int, tuple[int, float, float, float, int]] = {}
+        self.parts: dict[int, list[tuple[np.ndarray, np.ndarray]]] = {}
+
+    def header(self, m) -> None:
+        n = int(m.N)
+        self.open.pop(n, None)
+        rate, mul = float(m.smp_rate), float(m.mul)
+        if int(m.type) == self.GYRO and rate > 0 and mul > 0:
+            self.open[n] = (int(m.instance), mul, float(m.SampleUS), rate, int(m.smp_cnt))
+
+    def data(self, m) -> None:
+        head = self.open.get(int(m.N))
+        if head is None:  # an accelerometer batch, or one whose header was not logged
+            return
+        k, mul, start, rate, count = head
+        idx = int(m.seqno) * self.PER_MESSAGE + np.arange(self.PER_MESSAGE)
+        keep = idx < count
+        counts = np.stack([np.asarray(getattr(m, a), dtype=np.float64) for a in "xyz"], axis=1)
+        t = start * 1e-6 + idx[keep] / rate
+        self.parts.setdefault(k, []).append((t, counts[keep] / mul))
+
+    def devices(self) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        out = {}
+        for k, parts in self.parts.items():
+            t = np.concatenate([p[0] for p in parts])
+            out[k] = _increasing(t, np.concatenate([p[1] for p in parts]))
+        return out
+
+
 def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, bool]], int | None]:
-    """The rows of each (kind, instance): kind ``imu``, ``GYR`` or ``ACC``; and where the
-    log is cut off."""
+    """The rows of each (kind, instance): kind ``imu``, ``GYR`` or ``ACC`` (and ``ISB``:
+    the gyro batches, as (t, rad/s) arrays); and where the log is cut off."""
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
     text = path.suffix.lower() == ".log"
     rows: dict[tuple[str, int], list[tuple]] = {}
     has_temp: dict[tuple[str, int], bool] = {}
     layouts: dict[str, _Layout] = {}
+    batches = _Batches()
     try:
         # pymavlink prints on bad data (Python's stdout and stderr, and its C indexer
         # straight to file descriptor 2): our one line says it
@@ -129,6 +173,9 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
                 str(path), zero_time_base=False)
             while (m := log.recv_match(type=_TYPES)) is not None:
                 kind = m.get_type()
+                if kind in ("ISBH", "ISBD"):
+                    (batches.header if kind == "ISBH" else batches.data)(m)
+                    continue
                 lay = layouts.get(kind)
                 if lay is None:
                     lay = layouts[kind] = _Layout(kind, list(m.get_fieldnames()), file)
@@ -142,7 +189,9 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
     except Exception as err:  # pymavlink raises struct, index, value and OS errors
         raise DataError(f"cannot read as ArduPilot DataFlash ({type(err).__name__}: {err})",
                         file=file) from None
-    return {key: (v, has_temp[key]) for key, v in rows.items()}, cut
+    found = {key: (v, has_temp[key]) for key, v in rows.items()}
+    found.update({("ISB", k): (tv, False) for k, tv in batches.devices().items()})
+    return found, cut
 
 
 def _increasing(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -151,33 +200,46 @@ def _increasing(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return t[order], v[order]
 
 
+def _from_imu(t: np.ndarray, imu, cols: slice) -> np.ndarray:
+    """IMU message values (``imu``: its rows) interpolated at ``t``."""
+    return interp_join(t, *_increasing(imu[:, 0], imu[:, cols]))
+
+
 def read(path: Path, file: str, prefix: str) -> LogTable:
     """Read ``path`` (a DataFlash log) as a :class:`LogTable`; see the module docstring."""
     found, cut = _messages(path, file)
     size = path.stat().st_size
-    if not any(kind in ("imu", "GYR") for kind, _ in found):
+    if not any(kind in ("imu", "GYR", "ISB") for kind, _ in found):
         end = (f"; the file is truncated: {cut_at(cut, size)}"
                if cut is not None else "")
-        raise DataError(f"no gyro data in the log (no IMU or GYR messages{end})", file=file)
-    arrays = {key: (np.asarray(rows, dtype=np.float64), temp)
+        raise DataError(f"no gyro data in the log (no IMU, GYR or ISBD messages{end})", file=file)
+    arrays = {key: (rows if key[0] == "ISB" else np.asarray(rows, dtype=np.float64), temp)
               for key, (rows, temp) in found.items()}
+    order = {"imu": 0, "GYR": 1, "ISB": 2}
     devices = []
-    for (kind, k), (v, has_temp) in sorted(arrays.items(), key=lambda kv: (kv[0][0] != "imu",
-                                                                           kv[0])):
+    for (kind, k), (v, has_temp) in sorted(
+            ((key, val) for key, val in arrays.items() if key[0] in order),
+            key=lambda kv: (order[kv[0][0]], kv[0][1])):
+        imu, imu_temp = arrays.get(("imu", k), (None, False))
         if kind == "imu":
             dev = {"device": f"{prefix}/imu{k}", "t": v[:, 0], "gyro": v[:, 1:4],
                    "accel": v[:, 4:7]}
             if has_temp:
                 dev["temp"] = v[:, 7]
-        elif kind == "GYR":
-            dev = {"device": f"{prefix}/gyro{k}", "t": v[:, 0], "gyro": v[:, 1:4]}
+            devices.append(dev)
+            continue
+        if kind == "GYR":
+            t = v[:, 0]
+            dev = {"device": f"{prefix}/gyro{k}", "t": t, "gyro": v[:, 1:4]}
             acc = arrays.get(("ACC", k))
             if acc is not None:
-                dev["accel"] = interp_join(v[:, 0], *_increasing(acc[0][:, 0], acc[0][:, 1:4]))
-            imu = arrays.get(("imu", k))
-            if imu is not None and imu[1]:
-                dev["temp"] = interp_join(v[:, 0], *_increasing(imu[0][:, 0], imu[0][:, 7]))
-        else:
-            continue
+                dev["accel"] = interp_join(t, *_increasing(acc[0][:, 0], acc[0][:, 1:4]))
+        else:  # the batch sampler's accelerometer bursts are taken at other times
+            t, gyro = v
+            dev = {"device": f"{prefix}/gyro_batch{k}", "t": t, "gyro": gyro}
+            if imu is not None:
+                dev["accel"] = _from_imu(t, imu, slice(4, 7))
+        if imu is not None and imu_temp:
+            dev["temp"] = _from_imu(t, imu, slice(7, 8))[:, 0]
         devices.append(dev)
     return table(devices, file, [truncated(file, cut, size, devices)] if cut is not None else [])
