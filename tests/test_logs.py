@@ -824,3 +824,37 @@ def test_ulog_gyro_fifo_is_unpacked_as_px4_defines_it(tmp_path):
         g = topic["sensor_gyro"]
         want = np.interp(t, g.data["timestamp_sample"] * 1e-6, g.data["temperature"])
         np.testing.assert_allclose(dev.temp, want, rtol=0, atol=1e-9)
+
+
+def test_ulog_sensor_gyro_instances_equal_pyulog(tmp_path):
+    """Three ``sensor_gyro`` instances at 250 Hz (pyulog's writer), each its own device;
+    ``sensor_accel`` of the same instance joined by linear interpolation at the gyro's
+    ``timestamp_sample`` (each accelerometer sample here is taken 137 µs after the gyro's)."""
+    import pyulog
+
+    from diffgyro.logs import read_log
+
+    path = tmp_path / "three.ulg"
+    write_ulog(path, [_truth(k) for k in range(3)])
+    ulog = pyulog.ULog(str(path))  # move each sensor_accel instance to its own sample times
+    for d in ulog.data_list:
+        if d.name == "sensor_accel":
+            d.data["timestamp_sample"] = d.data["timestamp_sample"] + np.uint64(137)
+    ulog.write_ulog(str(path))
+    ref = pyulog.ULog(str(path), ["sensor_gyro", "sensor_accel"])
+    log = read_log(path)
+    assert sorted(set(log.frame.device)) == [f"three/gyro{k}" for k in range(3)]
+    for k in range(3):
+        g = next(d for d in ref.data_list if d.name == "sensor_gyro" and d.multi_id == k)
+        a = next(d for d in ref.data_list if d.name == "sensor_accel" and d.multi_id == k)
+        dev = log.frame[log.frame.device == f"three/gyro{k}"]
+        t = g.data["timestamp_sample"] * 1e-6
+        np.testing.assert_allclose(dev.t, t, rtol=0, atol=1e-9)
+        for axis in "xyz":
+            np.testing.assert_allclose(dev[f"g{axis}"], g.data[axis], rtol=0, atol=1e-9)
+            want = np.interp(t, a.data["timestamp_sample"] * 1e-6, a.data[axis])
+            np.testing.assert_allclose(dev[f"a{axis}"], want, rtol=0, atol=1e-9)
+            # interpolated, not the nearest sample: between two accelerometer samples
+            assert np.abs(dev[f"a{axis}"].to_numpy()[1:-1]
+                          - a.data[axis][1:-1].astype(np.float64)).max() > 0
+        np.testing.assert_allclose(dev.temp, g.data["temperature"], rtol=0, atol=1e-9)
