@@ -858,3 +858,31 @@ def test_ulog_sensor_gyro_instances_equal_pyulog(tmp_path):
             assert np.abs(dev[f"a{axis}"].to_numpy()[1:-1]
                           - a.data[axis][1:-1].astype(np.float64)).max() > 0
         np.testing.assert_allclose(dev.temp, g.data["temperature"], rtol=0, atol=1e-9)
+
+
+def test_dataflash_numbered_raw_messages(tmp_path):
+    """Raw IMU logs before the instance field: ``GYR1``/``GYR2`` and ``ACC1``/``ACC2``."""
+    formats = {f"{kind}{k}": ("QQfff", f"TimeUS,SampleUS,{axes}")
+               for kind, axes in (("GYR", "GyrX,GyrY,GyrZ"), ("ACC", "AccX,AccY,AccZ"))
+               for k in (1, 2)}
+    msgs = []
+    for i in range(200):
+        us = 2_000_000 + 1000 * i
+        for k in (1, 2):
+            msgs.append((f"GYR{k}", [us + 50, us + k, 0.01 * k, -0.02, 0.003 * i]))
+            msgs.append((f"ACC{k}", [us + 60, us + 2 * k, 0.1, 0.2, -9.8]))
+    path = write_dataflash_pymavlink(tmp_path / "raw.bin", formats, msgs)
+    ref = _pymavlink_rows(path)  # GYR1 etc. are not in its list: read them here
+    from pymavlink import DFReader
+
+    reader = DFReader.DFReader_binary(str(path), zero_time_base=False)
+    gyr = {1: [], 2: []}
+    while (m := reader.recv_match(type=["GYR1", "GYR2"])) is not None:
+        gyr[int(m.get_type()[-1])].append(m)
+    assert ref == {}
+    recs = load(path)
+    assert [r.device for r in recs] == ["raw/gyro0", "raw/gyro1"]
+    for rec, k in zip(recs, (1, 2), strict=True):
+        np.testing.assert_allclose(rec.t, _xyz(gyr[k], ["SampleUS"])[:, 0] * 1e-6, atol=1e-9)
+        np.testing.assert_allclose(rec.gyro, _xyz(gyr[k], ["GyrX", "GyrY", "GyrZ"]), atol=1e-9)
+        np.testing.assert_allclose(rec.accel[:, 2], -9.8, atol=1e-6)
