@@ -886,3 +886,17 @@ def test_dataflash_numbered_raw_messages(tmp_path):
         np.testing.assert_allclose(rec.t, _xyz(gyr[k], ["SampleUS"])[:, 0] * 1e-6, atol=1e-9)
         np.testing.assert_allclose(rec.gyro, _xyz(gyr[k], ["GyrX", "GyrY", "GyrZ"]), atol=1e-9)
         np.testing.assert_allclose(rec.accel[:, 2], -9.8, atol=1e-6)
+
+
+def test_dataflash_unreadable_message_type_is_left_out_with_a_warning(tmp_path):
+    """An ``ACC`` type without ``AccZ`` does not sink the log's gyro: one warning names it."""
+    msgs = [("GYR", [1000 * i + 5, 0, 1000 * i, 0.01, 0.02, 0.03]) for i in range(50)]
+    msgs += [("ACC", [1000 * i + 6, 0, 1000 * i, 0.1, 0.2]) for i in range(50)]
+    path = write_dataflash_pymavlink(tmp_path / "odd.bin", {
+        "GYR": _RAW_FMT["GYR"], "ACC": ("QBQff", "TimeUS,I,SampleUS,AccX,AccY")}, msgs)
+    report = LoadReport()
+    (rec,) = load(path, report=report)
+    assert rec.device == "odd/gyro0" and rec.n == 50 and rec.accel is None
+    assert report.warnings == [f"warning: file {path}: ACC messages lack the field(s) AccZ; "
+                               f"their fields are TimeUS, I, SampleUS, AccX, AccY; they are "
+                               f"left out"]

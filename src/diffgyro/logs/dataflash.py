@@ -86,22 +86,26 @@ def _quiet_fd(fd: int):
         os.close(null)
 
 
+class _Unreadable(ValueError):
+    """A message type that lacks a field the reader needs (its messages are left out)."""
+
+
 class _Layout:
     """Where one message type keeps what is read: its time field, instance and columns."""
 
-    def __init__(self, kind: str, names: list[str], file: str):
+    def __init__(self, kind: str, names: list[str]):
         self.kind = "imu" if kind in _IMU else kind.rstrip("123")
         self.time = next(((f, s) for f, s in _TIME["imu" if self.kind == "imu" else "raw"]
                           if f in names), None)
         if self.time is None:
             want = " or ".join(f for f, _ in _TIME["imu" if self.kind == "imu" else "raw"])
-            raise DataError(f"{kind} messages have no time field ({want}); their fields are "
-                            f"{', '.join(names)}", file=file)
+            raise _Unreadable(f"{kind} messages have no time field ({want}); their fields "
+                              f"are {', '.join(names)}")
         self.values = _GYRO + _ACCEL if self.kind == "imu" else _RAW[self.kind]
         missing = [f for f in self.values if f not in names]
         if missing:
-            raise DataError(f"{kind} messages lack the field(s) {', '.join(missing)}; their "
-                            f"fields are {', '.join(names)}", file=file)
+            raise _Unreadable(f"{kind} messages lack the field(s) {', '.join(missing)}; "
+                              f"their fields are {', '.join(names)}")
         self.temp = next((f for f in _TEMP if f in names), None) if self.kind == "imu" else None
         self.instance = "I" if "I" in names else None
         suffix = kind[3:]  # IMU, IMU2, IMU3 -> 0, 1, 2; GYR1..3 -> 0..2; GYR (with I) -> I
@@ -155,14 +159,17 @@ class _Batches:
         return out
 
 
-def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, bool]], int | None]:
+def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, bool]],
+                                              int | None, list[str]]:
     """The rows of each (kind, instance): kind ``imu``, ``GYR`` or ``ACC`` (and ``ISB``:
-    the gyro batches, as (t, rad/s) arrays); and where the log is cut off."""
+    the gyro batches, as (t, rad/s) arrays); where the log is cut off; and the message
+    types that could not be read, with why."""
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
     text = path.suffix.lower() == ".log"
     rows: dict[tuple[str, int], list[tuple]] = {}
     has_temp: dict[tuple[str, int], bool] = {}
-    layouts: dict[str, _Layout] = {}
+    layouts: dict[str, _Layout | None] = {}
+    problems: list[str] = []
     batches = _Batches()
     try:
         # pymavlink prints on bad data (Python's stdout and stderr, and its C indexer
@@ -176,9 +183,15 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
                 if kind in ("ISBH", "ISBD"):
                     (batches.header if kind == "ISBH" else batches.data)(m)
                     continue
-                lay = layouts.get(kind)
+                if kind not in layouts:
+                    try:
+                        layouts[kind] = _Layout(kind, list(m.get_fieldnames()))
+                    except _Unreadable as err:
+                        layouts[kind] = None
+                        problems.append(str(err))
+                lay = layouts[kind]
                 if lay is None:
-                    lay = layouts[kind] = _Layout(kind, list(m.get_fieldnames()), file)
+                    continue
                 k, row = lay.row(m)
                 key = (lay.kind, k)
                 has_temp[key] = has_temp.get(key, True) and lay.temp is not None
@@ -191,7 +204,7 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
                         file=file) from None
     found = {key: (v, has_temp[key]) for key, v in rows.items()}
     found.update({("ISB", k): (tv, False) for k, tv in batches.devices().items()})
-    return found, cut
+    return found, cut, problems
 
 
 def _increasing(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -207,11 +220,11 @@ def _from_imu(t: np.ndarray, imu, cols: slice) -> np.ndarray:
 
 def read(path: Path, file: str, prefix: str) -> LogTable:
     """Read ``path`` (a DataFlash log) as a :class:`LogTable`; see the module docstring."""
-    found, cut = _messages(path, file)
+    found, cut, problems = _messages(path, file)
     size = path.stat().st_size
     if not any(kind in ("imu", "GYR", "ISB") for kind, _ in found):
-        end = (f"; the file is truncated: {cut_at(cut, size)}"
-               if cut is not None else "")
+        end = "".join(f"; {p}" for p in problems)
+        end += f"; the file is truncated: {cut_at(cut, size)}" if cut is not None else ""
         raise DataError(f"no gyro data in the log (no IMU, GYR or ISBD messages{end})", file=file)
     arrays = {key: (rows if key[0] == "ISB" else np.asarray(rows, dtype=np.float64), temp)
               for key, (rows, temp) in found.items()}
@@ -242,4 +255,7 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
         if imu is not None and imu_temp:
             dev["temp"] = _from_imu(t, imu, slice(7, 8))[:, 0]
         devices.append(dev)
-    return table(devices, file, [truncated(file, cut, size, devices)] if cut is not None else [])
+    warnings = [f"warning: file {file}: {p}; they are left out" for p in problems]
+    if cut is not None:
+        warnings.append(truncated(file, cut, size, devices))
+    return table(devices, file, warnings)
