@@ -9,8 +9,9 @@ AccZ`` (m/s²) → ``ax, ay, az``, ``T`` or ``Temp`` (°C) → ``temp``, ``TimeU
 Raw sensor-rate logging writes ``GYR`` and ``ACC`` messages (one per sample,
 instance ``I``; older logs ``GYR1..3``/``ACC1..3``): each gyro instance is the
 device ``<stem>/gyro<k>``, timed by ``SampleUS`` (when the sensor took the
-sample, µs since boot), with ``ACC`` instance k interpolated at its times and
-the temperature of ``IMU`` instance k interpolated likewise. The batch
+sample, µs since boot), with ``ACC`` instance k interpolated at its times (or,
+without ``ACC``, ``IMU`` instance k's accelerometer) and the temperature of
+``IMU`` instance k interpolated likewise. The batch
 sampler's gyro bursts (``ISBH``/``ISBD``) of instance k are the device
 ``<stem>/gyro_batch<k>``, beside ``IMU`` instance k's accelerometer and
 temperature, interpolated. Samples are kept as logged.
@@ -208,7 +209,8 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
 
 
 def _increasing(t: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``t`` sorted, for interpolation (raw messages of several instances interleave)."""
+    """Samples in time order, for interpolating them (``np.interp`` needs increasing times;
+    a log's are as they were written)."""
     order = np.argsort(t, kind="stable")
     return t[order], v[order]
 
@@ -250,8 +252,8 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
         else:  # the batch sampler's accelerometer bursts are taken at other times
             t, gyro = v
             dev = {"device": f"{prefix}/gyro_batch{k}", "t": t, "gyro": gyro}
-            if imu is not None:
-                dev["accel"] = _from_imu(t, imu, slice(4, 7))
+        if "accel" not in dev and imu is not None:
+            dev["accel"] = _from_imu(t, imu, slice(4, 7))
         if imu is not None and imu_temp:
             dev["temp"] = _from_imu(t, imu, slice(7, 8))[:, 0]
         devices.append(dev)
