@@ -900,3 +900,21 @@ def test_dataflash_unreadable_message_type_is_left_out_with_a_warning(tmp_path):
     assert report.warnings == [f"warning: file {path}: ACC messages lack the field(s) AccZ; "
                                f"their fields are TimeUS, I, SampleUS, AccX, AccY; they are "
                                f"left out"]
+
+
+def test_dataflash_gyr_without_acc_takes_the_imu_accelerometer(tmp_path):
+    msgs = []
+    for i in range(100):
+        us = 1_000_000 + 1000 * i
+        msgs.append(("GYR", [us + 5, 0, us, 0.01, 0.02, 0.03]))
+        if i % 10 == 0:
+            msgs.append(("IMU", [us + 9, 0, 0.01, 0.02, 0.03, 0.1, 0.2 + 1e-3 * i, -9.8, 0, 0,
+                                 35.0, 1, 1, 1000, 1000]))
+    path = write_dataflash_pymavlink(tmp_path / "noacc.bin",
+                                     {"IMU": _NOW_IMU, "GYR": _RAW_FMT["GYR"]}, msgs)
+    report = LoadReport()
+    imu, gyr = load(path, report=report)
+    assert (imu.device, gyr.device) == ("noacc/imu0", "noacc/gyro0") and report.warnings == []
+    np.testing.assert_allclose(gyr.accel[:, 1], np.interp(gyr.t, imu.t, imu.accel[:, 1]),
+                               atol=1e-12)
+    np.testing.assert_allclose(gyr.temp, 35.0)
