@@ -745,7 +745,7 @@ _FIFO_FIELDS = ("uint64_t timestamp;uint64_t timestamp_sample;uint32_t device_id
                 "uint8_t[3] _padding0;")
 
 
-def write_ulog_fifo(path: Path, seed: int = 0) -> Path:
+def write_ulog_fifo(path: Path, seed: int = 0, accel_fields: str = _FIFO_FIELDS) -> Path:
     """``sensor_gyro_fifo`` / ``sensor_accel_fifo`` (PX4's SensorGyroFifo.msg layout) for two
     sensors, added to the real log in tests/data/px4 and written by pyulog's writer; the 1 Hz
     ``sensor_gyro`` of that log (with its temperature) stays."""
@@ -758,8 +758,9 @@ def write_ulog_fifo(path: Path, seed: int = 0) -> Path:
     msg_id = max(d.msg_id for d in ulog.data_list) + 1
     for topic in ("sensor_gyro_fifo", "sensor_accel_fifo"):
         header = None
-        ulog._message_formats[topic] = pyulog.ULog.MessageFormat(
-            f"{topic}:{_FIFO_FIELDS}".encode(), header)
+        fields = _FIFO_FIELDS if topic == "sensor_gyro_fifo" else accel_fields
+        ulog._message_formats[topic] = pyulog.ULog.MessageFormat(f"{topic}:{fields}".encode(),
+                                                                 header)
         for k in range(2):
             add = pyulog.ULog._MessageAddLogged(struct.pack("<BH", k, msg_id) + topic.encode(),
                                                 header, ulog._message_formats)
@@ -771,7 +772,8 @@ def write_ulog_fifo(path: Path, seed: int = 0) -> Path:
             rows["timestamp"] = last + 150
             rows["timestamp_sample"] = last
             rows["device_id"] = 2000 + k
-            rows["dt"] = dt
+            if "dt" in rows.dtype.names:
+                rows["dt"] = dt
             rows["scale"] = np.float32(1 / 16.4 * np.pi / 180) if "gyro" in topic else 0.0024
             rows["samples"] = n
             centre = (200, -150, 90) if "gyro" in topic else (40, -80, -4080)
@@ -918,3 +920,15 @@ def test_dataflash_gyr_without_acc_takes_the_imu_accelerometer(tmp_path):
     np.testing.assert_allclose(gyr.accel[:, 1], np.interp(gyr.t, imu.t, imu.accel[:, 1]),
                                atol=1e-12)
     np.testing.assert_allclose(gyr.temp, 35.0)
+
+
+def test_ulog_fifo_topic_without_dt_is_left_out_with_a_warning(tmp_path):
+    path = write_ulog_fifo(tmp_path / "nodt.ulg",
+                           accel_fields=_FIFO_FIELDS.replace("float dt;", "float _dt_unused;"))
+    report = LoadReport()
+    recs = load(path, report=report)
+    assert [r.device for r in recs] == ["nodt/gyro_fifo0", "nodt/gyro_fifo1"]
+    assert all(r.accel is None for r in recs)
+    left = [w for w in report.warnings if "sensor_accel_fifo" in w]
+    assert left == [f"warning: file {path}: sensor_accel_fifo instance {k} has no dt; it is "
+                    f"left out" for k in (0, 1)]

@@ -138,25 +138,39 @@ def _unpack_fifo(d) -> tuple[np.ndarray, np.ndarray]:
     Message j holds N_j = ``samples`` readings in the first N_j slots of ``x, y, z``;
     reading n is ``scale`` × count, at ``timestamp_sample - (N_j - 1 - n)·dt`` µs.
     """
-    n = np.asarray(d.data["samples"], dtype=np.int64)
     width = sum(1 for key in d.data if key.startswith("x["))
-    n = np.clip(n, 0, width)
-    counts = np.stack([np.stack([np.asarray(d.data[f"{a}[{i}]"], dtype=np.float64)
-                                 for i in range(width)], axis=1) for a in "xyz"], axis=2)
-    slot = np.arange(width)
-    keep = slot[None, :] < n[:, None]  # (messages, width)
-    scale = np.asarray(d.data["scale"], dtype=np.float32).astype(np.float64)
-    dt = np.asarray(d.data["dt"], dtype=np.float32).astype(np.float64)
-    last = np.asarray(d.data["timestamp_sample"], dtype=np.float64)
-    us = last[:, None] - (n[:, None] - 1 - slot[None, :]) * dt[:, None]
-    values = counts * scale[:, None, None]
-    return us[keep] * 1e-6, values[keep]
+    n = np.clip(np.asarray(d.data["samples"], dtype=np.int64), 0, width)
+    msg, slot = np.nonzero(np.arange(width)[None, :] < n[:, None])  # one entry per reading
+    scale = np.asarray(d.data["scale"], dtype=np.float32).astype(np.float64)[msg]
+    dt = np.asarray(d.data["dt"], dtype=np.float32).astype(np.float64)[msg]
+    last = np.asarray(d.data["timestamp_sample"], dtype=np.float64)[msg]
+    us = last - (n[msg] - 1 - slot) * dt
+    values = np.empty((msg.size, 3))
+    for j, axis in enumerate("xyz"):  # the counts stay int16 until picked
+        counts = np.stack([np.asarray(d.data[f"{axis}[{i}]"]) for i in range(width)], axis=1)
+        values[:, j] = counts[msg, slot] * scale
+    return us * 1e-6, values
 
 
-def _fifo_devices(ulog, prefix: str) -> tuple[list[dict], dict]:
-    fifos = sorted((d for d in ulog.data_list if d.name == "sensor_gyro_fifo"),
+_FIFO_FIELDS = ("timestamp_sample", "dt", "scale", "samples", "x[0]", "y[0]", "z[0]")
+
+
+def _fifo_devices(ulog, prefix: str, file: str) -> tuple[list[dict], dict, list[str]]:
+    """The ``sensor_gyro_fifo`` devices, their ``device_id``, and a warning for each FIFO
+    topic that lacks a field its definition has (left out)."""
+    warnings = []
+
+    def readable(d) -> bool:
+        missing = [f for f in _FIFO_FIELDS if f not in d.data]
+        if missing:
+            warnings.append(f"warning: file {file}: {d.name} instance {d.multi_id} has no "
+                            f"{', '.join(missing)}; it is left out")
+        return not missing
+
+    fifos = sorted((d for d in ulog.data_list if d.name == "sensor_gyro_fifo" and readable(d)),
                    key=lambda d: d.multi_id)
-    accels = {d.multi_id: d for d in ulog.data_list if d.name == "sensor_accel_fifo"}
+    accels = {d.multi_id: d for d in ulog.data_list
+              if d.name == "sensor_accel_fifo" and readable(d)}
     gyros = {d.multi_id: d for d in ulog.data_list if d.name == "sensor_gyro"}
     devices, meta = [], {}
     for d in fifos:
@@ -177,7 +191,7 @@ def _fifo_devices(ulog, prefix: str) -> tuple[list[dict], dict]:
         if "device_id" in d.data and len(d.data["device_id"]):
             meta[name] = {"device_id": int(d.data["device_id"][-1])}
         devices.append(dev)
-    return devices, meta
+    return devices, meta, warnings
 
 
 def _combined(ulog, prefix: str) -> dict | None:
@@ -201,12 +215,11 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
     ulog, cut = _open(path, file)
     size = path.stat().st_size
     devices, meta, slow = _gyro_devices(ulog, prefix)
-    fifo, fifo_meta = _fifo_devices(ulog, prefix)
+    fifo, fifo_meta, warnings = _fifo_devices(ulog, prefix, file)
     devices, meta = devices + fifo, {**meta, **fifo_meta}
     if fifo:  # the FIFO gives every sample of the sensors logged below rate
         unpacked = {int(dev["device"].rsplit("gyro_fifo", 1)[1]) for dev in fifo}
         slow = [(k, r) for k, r in slow if k not in unpacked]
-    warnings = []
     if not devices:
         combined = _combined(ulog, prefix)
         if combined is None:
