@@ -34,7 +34,7 @@ _RAW = {"GYR": ("GyrX", "GyrY", "GyrZ"), "ACC": ("AccX", "AccY", "AccZ")}
 _TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3")), "ISBH", "ISBD"]
 _HEAD = b"\xa3\x95"  # every binary message starts with these
 _GYRO, _ACCEL = ("GyrX", "GyrY", "GyrZ"), ("AccX", "AccY", "AccZ")
-_TEMP = ("T", "Temp")  # the IMU temperature field: ``T`` since 2015, ``Temp`` before
+_TEMP = ("T", "Temp")  # the IMU temperature field: ``T`` now, ``Temp`` in firmware of 2014-2016
 # time fields: (name, seconds per count), the first one a message has is used
 _TIME = {"imu": (("TimeUS", 1e-6), ("TimeMS", 1e-3)),
          "raw": (("SampleUS", 1e-6), ("TimeUS", 1e-6))}
