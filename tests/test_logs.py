@@ -707,24 +707,31 @@ def test_dataflash_instance_field_and_sensor_rate_messages(current_dataflash):
         assert dev.temp.iloc[-1] > dev.temp.iloc[0]  # the warming IMU's T, joined
 
 
-def test_dataflash_temp_field_and_time_ms(tmp_path):
-    """Logs of 2014-2015 call the temperature ``Temp`` and time the IMU in ``TimeMS``:
-    ``bias_poly(1)`` finds the thermal slope written into them."""
+@pytest.mark.parametrize("old, scale", [
+    (("IffffffIIf", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp"), 1e-3),  # Copter 3.2
+    (("QffffffIIfBB", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp,GyHlt,AcHlt"), 1e-6)])
+def test_dataflash_temp_field(old, scale, tmp_path):
+    """Firmware of 2014-2016 calls the temperature ``Temp``, timed in ``TimeMS`` or
+    ``TimeUS``: ``bias_poly(1)`` finds the thermal slope written into the log."""
     rng = np.random.default_rng(3)
-    old = ("IffffffIIf", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp")
     msgs = []
     for i in range(600):
-        ms = 5000 + 20 * i
+        stamp = (5000 + 20 * i) * round(1e-3 / scale)
         for k, name in enumerate(("IMU", "IMU2")):
             temp = 25.0 + 15.0 * i / 600
             gyro = B0[k] + B1[k] * (temp - 30.0) + SIGMA * rng.standard_normal(3)
-            msgs.append((name, [ms, *_f32s(gyro), 0.0, 0.0, -9.8, 0, 0, float(np.float32(temp))]))
+            health = [1, 1] if old[0].endswith("BB") else []
+            msgs.append((name, [stamp, *_f32s(gyro), 0.0, 0.0, -9.8, 0, 0,
+                                float(np.float32(temp)), *health]))
     path = write_dataflash_pymavlink(tmp_path / "old.bin", {"IMU": old, "IMU2": old}, msgs)
     ref = _pymavlink_rows(path)
     recs = load(path)
     assert [r.device for r in recs] == ["old/imu0", "old/imu1"]
+    time_field = old[1].split(",")[0]
     for k, (rec, kind) in enumerate(zip(recs, ("IMU", "IMU2"), strict=True)):
-        np.testing.assert_allclose(rec.t, _xyz(ref[kind], ["TimeMS"])[:, 0] * 1e-3, atol=1e-9)
+        np.testing.assert_allclose(rec.t, _xyz(ref[kind], [time_field])[:, 0] * scale,
+                                   atol=1e-9)
+        assert rec.t[1] - rec.t[0] == pytest.approx(0.02)
         np.testing.assert_allclose(rec.temp, _xyz(ref[kind], ["Temp"])[:, 0], rtol=0, atol=1e-9)
         slope = np.polyfit(rec.temp - 30.0, rec.gyro, 1)[0]
         np.testing.assert_allclose(slope, B1[k], atol=2e-5)
