@@ -8,7 +8,8 @@ The ``sensor_accel`` instance with the same ``multi_id`` gives ``ax, ay, az``
 logged: a dropped sample stays a gap in ``t``, nothing is resampled.
 
 When no ``sensor_gyro`` instance is logged at 10 samples/s or more (PX4 logs
-it at 1 Hz by default; ``SDLOG_PROFILE`` raises it), the gyro comes from
+it at 1 Hz by default; ``SDLOG_PROFILE`` raises it) and no ``sensor_gyro_fifo``
+is logged, the gyro comes from
 ``sensor_combined`` instead: one device ``<stem>/sensor_combined``,
 ``gyro_rad`` at ``timestamp`` and no temperature, with one warning line.
 The sensor's ``device_id`` is kept in :attr:`LogTable.metadata`
