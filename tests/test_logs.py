@@ -939,3 +939,14 @@ def test_ulog_fifo_topic_without_dt_is_left_out_with_a_warning(tmp_path):
     left = [w for w in report.warnings if "sensor_accel_fifo" in w]
     assert left == [f"warning: file {path}: sensor_accel_fifo instance {k} has no dt; it is "
                     f"left out" for k in (0, 1)]
+
+
+def test_dataflash_kind_is_told_by_content_not_name(tmp_path):
+    """A binary log saved as ``.log`` and a text log saved as ``.bin`` read as they are."""
+    for name, renamed in (("test.BIN", "binary.log"), ("nan.log", "text.bin")):
+        (tmp_path / renamed).write_bytes((ARDUPILOT / name).read_bytes())
+        got, want = load(tmp_path / renamed, report=LoadReport()), load(ARDUPILOT / name,
+                                                                         report=LoadReport())
+        assert [r.n for r in got] == [r.n for r in want]
+        for a, b in zip(got, want, strict=True):
+            np.testing.assert_array_equal(a.gyro, b.gyro)

@@ -166,7 +166,8 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
     the gyro batches, as (t, rad/s) arrays); where the log is cut off; and the message
     types that could not be read, with why."""
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
-    text = path.suffix.lower() == ".log"
+    with open(path, "rb") as fh:  # by content: a binary log may be named .log and back
+        text = not fh.read(2).startswith(_HEAD)
     rows: dict[tuple[str, int], list[tuple]] = {}
     has_temp: dict[tuple[str, int], bool] = {}
     layouts: dict[str, _Layout | None] = {}
