@@ -183,8 +183,9 @@ def _fifo_devices(ulog, prefix: str, file: str) -> tuple[list[dict], dict, list[
         acc = accels.get(d.multi_id)
         if acc is not None:
             t_acc, v_acc = _unpack_fifo(acc)
-            if t_acc.size:
-                dev["accel"] = interp_join(t, t_acc, v_acc)
+            if t_acc.size:  # np.interp needs increasing times; the FIFO's are as logged
+                order = np.argsort(t_acc, kind="stable")
+                dev["accel"] = interp_join(t, t_acc[order], v_acc[order])
         g = gyros.get(d.multi_id)
         if g is not None and "temperature" in g.data and len(g.data["temperature"]):
             dev["temp"] = interp_join(t, _seconds(g), np.asarray(g.data["temperature"],
