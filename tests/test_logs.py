@@ -774,7 +774,8 @@ def write_ulog_fifo(path: Path, seed: int = 0, accel_fields: str = _FIFO_FIELDS)
             dt = 125.0 if topic == "sensor_gyro_fifo" else 250.0  # 8 kHz gyro, 4 kHz accel
             m = int((t1 - t0) / 4000)  # a message every 4 ms
             rows = np.zeros(m, dtype=add.dtype)
-            n = rng.integers(1, 33, m) if k == 0 else np.full(m, int(4000 / dt))
+            full = int(4000 / dt)  # a full FIFO read every 4 ms; instance 0 drops some
+            n = rng.integers(1, full + 1, m) if k == 0 else np.full(m, full)
             last = t0 + 4000 * np.arange(1, m + 1) + 13 * k
             rows["timestamp"] = last + 150
             rows["timestamp_sample"] = last
@@ -823,6 +824,7 @@ def test_ulog_gyro_fifo_is_unpacked_as_px4_defines_it(tmp_path):
         topic = {d.name: d for d in ref.data_list if d.multi_id == k}
         t, gyro = _pyulog_fifo(topic["sensor_gyro_fifo"])
         t_acc, acc = _pyulog_fifo(topic["sensor_accel_fifo"])
+        assert np.all(np.diff(t_acc) > 0)
         dev = log.frame[log.frame.device == f"fifo/gyro_fifo{k}"]
         assert len(dev) == len(t) > 1000
         np.testing.assert_allclose(dev.t, t, rtol=0, atol=1e-9)
