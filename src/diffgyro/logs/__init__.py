@@ -46,12 +46,17 @@ def _check_magic(path: Path, fmt: str, file: str) -> None:
         return
     try:
         with open(path, "rb") as fh:
-            head = fh.read(16)
+            head = fh.read(4096)
     except OSError as err:
         raise DataError(f"cannot read file ({err})", file=file) from None
     if not head:
         raise DataError(f"empty file, not a {_NAMES[fmt]} log", file=file)
     text = head.lstrip() if fmt == "dataflash" else head
+    if fmt == "dataflash" and not text.startswith(_MAGIC[fmt][0]):
+        # a text log may open with lines the board printed at boot (firmware, free RAM)
+        # before its first FMT line
+        text = b"".join(line.lstrip() for line in text.splitlines(keepends=True)
+                        if line.lstrip().startswith(_MAGIC[fmt][1:]))
     if not any(text.startswith(m) for m in _MAGIC[fmt]):
         raise DataError(f"not a {_NAMES[fmt]} log (the file does not start with its "
                         f"marker {_MAGIC[fmt][0]!r})", file=file)

@@ -8,11 +8,22 @@ The ``sensor_accel`` instance with the same ``multi_id`` gives ``ax, ay, az``
 logged: a dropped sample stays a gap in ``t``, nothing is resampled.
 
 When no ``sensor_gyro`` instance is logged at 10 samples/s or more (PX4 logs
-it at 1 Hz by default; ``SDLOG_PROFILE`` raises it), the gyro comes from
+it at 1 Hz by default; ``SDLOG_PROFILE`` raises it) and no ``sensor_gyro_fifo``
+is logged, the gyro comes from
 ``sensor_combined`` instead: one device ``<stem>/sensor_combined``,
 ``gyro_rad`` at ``timestamp`` and no temperature, with one warning line.
 The sensor's ``device_id`` is kept in :attr:`LogTable.metadata`
 (``{"device_id": ...}``); PX4 matches temperature-compensation slots by it.
+
+``sensor_gyro_fifo`` instance k (every sample the sensor's FIFO gave, logged
+by PX4's raw-FIFO profile) is the device ``<stem>/gyro_fifo<k>``: each message
+holds ``samples`` = N readings ``x[n], y[n], z[n]`` (int16 counts) that are
+``scale`` rad/s each, ``dt`` µs apart, the last of them taken at
+``timestamp_sample`` (PX4's filters publish the last FIFO sample at that time),
+so reading n is at ``timestamp_sample - (N - 1 - n)·dt``. ``sensor_accel_fifo``
+k is unpacked the same way (m/s²) and interpolated at the gyro's times; the
+temperature is ``sensor_gyro`` k's, interpolated (it is logged at 1 Hz or
+more, and changes far slower).
 """
 
 from __future__ import annotations
@@ -27,7 +38,8 @@ from ..errors import DataError
 from .table import LogTable, cut_at, interp_join, require, table, truncated
 
 MIN_RATE = 10.0  # samples per second below which sensor_gyro is "not logged at rate"
-_TOPICS = ["sensor_gyro", "sensor_accel", "sensor_combined"]
+_TOPICS = ["sensor_gyro", "sensor_accel", "sensor_combined", "sensor_gyro_fifo",
+           "sensor_accel_fifo"]
 _INVALID_RELATIVE = 2147483647  # PX4's RELATIVE_TIMESTAMP_INVALID
 
 
@@ -121,6 +133,69 @@ def _gyro_devices(ulog, prefix: str) -> tuple[list[dict], dict, list]:
     return devices, meta, slow
 
 
+def _unpack_fifo(d) -> tuple[np.ndarray, np.ndarray]:
+    """The samples packed in a ``sensor_*_fifo`` topic: times (s) and values (SI), in order.
+
+    Message j holds N_j = ``samples`` readings in the first N_j slots of ``x, y, z``;
+    reading n is ``scale`` × count, at ``timestamp_sample - (N_j - 1 - n)·dt`` µs.
+    """
+    width = sum(1 for key in d.data if key.startswith("x["))
+    n = np.clip(np.asarray(d.data["samples"], dtype=np.int64), 0, width)
+    msg, slot = np.nonzero(np.arange(width)[None, :] < n[:, None])  # one entry per reading
+    scale = np.asarray(d.data["scale"], dtype=np.float32).astype(np.float64)[msg]
+    dt = np.asarray(d.data["dt"], dtype=np.float32).astype(np.float64)[msg]
+    last = np.asarray(d.data["timestamp_sample"], dtype=np.float64)[msg]
+    us = last - (n[msg] - 1 - slot) * dt
+    values = np.empty((msg.size, 3))
+    for j, axis in enumerate("xyz"):  # the counts stay int16 until picked
+        counts = np.stack([np.asarray(d.data[f"{axis}[{i}]"]) for i in range(width)], axis=1)
+        values[:, j] = counts[msg, slot] * scale
+    return us * 1e-6, values
+
+
+_FIFO_FIELDS = ("timestamp_sample", "dt", "scale", "samples", "x[0]", "y[0]", "z[0]")
+
+
+def _fifo_devices(ulog, prefix: str, file: str) -> tuple[list[dict], dict, list[str]]:
+    """The ``sensor_gyro_fifo`` devices, their ``device_id``, and a warning for each FIFO
+    topic that lacks a field its definition has (left out)."""
+    warnings = []
+
+    def readable(d) -> bool:
+        missing = [f for f in _FIFO_FIELDS if f not in d.data]
+        if missing:
+            warnings.append(f"warning: file {file}: {d.name} instance {d.multi_id} has no "
+                            f"{', '.join(missing)}; it is left out")
+        return not missing
+
+    fifos = sorted((d for d in ulog.data_list if d.name == "sensor_gyro_fifo" and readable(d)),
+                   key=lambda d: d.multi_id)
+    accels = {d.multi_id: d for d in ulog.data_list
+              if d.name == "sensor_accel_fifo" and readable(d)}
+    gyros = {d.multi_id: d for d in ulog.data_list if d.name == "sensor_gyro"}
+    devices, meta = [], {}
+    for d in fifos:
+        t, gyro = _unpack_fifo(d)
+        if t.size == 0:
+            continue
+        name = f"{prefix}/gyro_fifo{d.multi_id}"
+        dev = {"device": name, "t": t, "gyro": gyro}
+        acc = accels.get(d.multi_id)
+        if acc is not None:
+            t_acc, v_acc = _unpack_fifo(acc)
+            if t_acc.size:  # np.interp needs increasing times; the FIFO's are as logged
+                order = np.argsort(t_acc, kind="stable")
+                dev["accel"] = interp_join(t, t_acc[order], v_acc[order])
+        g = gyros.get(d.multi_id)
+        if g is not None and "temperature" in g.data and len(g.data["temperature"]):
+            dev["temp"] = interp_join(t, _seconds(g), np.asarray(g.data["temperature"],
+                                                                 dtype=np.float64))
+        if "device_id" in d.data and len(d.data["device_id"]):
+            meta[name] = {"device_id": int(d.data["device_id"][-1])}
+        devices.append(dev)
+    return devices, meta, warnings
+
+
 def _combined(ulog, prefix: str) -> dict | None:
     d = next((d for d in ulog.data_list if d.name == "sensor_combined"), None)
     if d is None or len(d.data["timestamp"]) == 0:
@@ -142,7 +217,11 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
     ulog, cut = _open(path, file)
     size = path.stat().st_size
     devices, meta, slow = _gyro_devices(ulog, prefix)
-    warnings = []
+    fifo, fifo_meta, warnings = _fifo_devices(ulog, prefix, file)
+    devices, meta = devices + fifo, {**meta, **fifo_meta}
+    if fifo:  # the FIFO gives every sample of the sensors logged below rate
+        unpacked = {int(dev["device"].rsplit("gyro_fifo", 1)[1]) for dev in fifo}
+        slow = [(k, r) for k, r in slow if k not in unpacked]
     if not devices:
         combined = _combined(ulog, prefix)
         if combined is None:
