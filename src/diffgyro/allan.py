@@ -562,7 +562,7 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
 
 
 def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
-    """The DESIGN.md §4 ``allan --json`` object (NaN becomes null, and the axis' ``missing``
+    """The ``allan --json`` object (NaN becomes null, and the axis' ``missing``
     says why; τ only where defined)."""
     tau = np.asarray(result.tau)
     adev = np.asarray(result.adev)
