@@ -40,3 +40,69 @@ def test_the_pattern_catches_what_it_should():
         assert OUTSIDE.search(bad), bad
     for good in ("s1_offset_filter", "fog-one-run", "rate_table_s2", "S20", "docs/formats.md"):
         assert not OUTSIDE.search(good), good
+
+
+# --------------------------------------------------------------------------- the built site
+
+
+def _hooks():
+    """docs/hooks.py, the generator of the site's API, effect, recipe and CLI pages."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("diffgyro_docs_hooks", ROOT / "docs" / "hooks.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cli_reference_lists_every_command_and_option():
+    """The reference is read from the command objects; check it against the CLI as ``--help``
+    shows it: every command heading, every option and argument name, every default."""
+    import typer
+
+    from diffgyro import cli
+
+    hooks = _hooks()
+    page = hooks.cli_reference()
+    cli.load_commands()
+    root = typer.main.get_command(cli.app)
+    ctx = root.context_class(root, info_name="diffgyro")
+    names = root.list_commands(ctx)
+    assert {"fit", "diagnose", "allan", "export", "recipe", "simulate"} <= set(names)
+    for name in names:
+        cmd = root.get_command(ctx, name)
+        assert f"## `diffgyro {name}`" in page, name
+        section = page.split(f"## `diffgyro {name}`")[1].split("\n## ")[0]
+        sub = cmd.context_class(cmd, info_name=name, parent=ctx)
+        rows = {line.split("`")[1]: line for line in section.splitlines() if line.startswith("| `")}
+        for p in cmd.get_params(sub):
+            row = next((r for k, r in rows.items()
+                        if p.opts[0] in re.split(r"[ ,/]+", k.replace("...", ""))), None)
+            assert row is not None, (name, p.opts)
+            for opt in p.opts + p.secondary_opts:
+                assert opt in row, (name, opt)
+            default = p.get_default(sub, call=False)
+            if p.param_type_name == "option" and getattr(p, "show_default", None) is not False \
+                    and default not in (None, False, ()) and not callable(default):
+                shown = str(default).lower() if not isinstance(default, bool) else p.name
+                assert "default: " in row and (shown in row.lower() or str(default) in row), \
+                    (name, p.opts, default, row)
+
+
+def test_roles_become_links():
+    """A docstring's Sphinx roles resolve from where they stand (absolute, relative, bare)."""
+    import griffe
+
+    hooks = _hooks()
+    pkg = griffe.load("diffgyro", search_paths=[str(ROOT / "src")])
+    hooks.SphinxRoles().on_package(pkg=pkg)
+    text = "\n".join(o.docstring.value for o in hooks._walk(pkg) if o.docstring is not None)
+    assert not hooks.ROLE.search(text)
+    # absolute, ``~`` short title, and a bare name inside its own module
+    assert '<autoref identifier="diffgyro.status.explain" optional><code>diffgyro.status.explain()' \
+        in text
+    assert '<autoref identifier="diffgyro.errors.DataError" optional><code>DataError</code>' in text
+    detect = pkg["detect"].docstring.value
+    assert '<autoref identifier="diffgyro.detect.variance_detector"' in detect
+    # the front door of a module comes first on its page
+    assert pkg["fit"].exports[:2] == ["fit", "FitResult"]
