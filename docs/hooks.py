@@ -9,6 +9,10 @@
 * ``<!-- cli-reference -->``: every command of the ``diffgyro`` command line with its
   usage, help, arguments and options (defaults and units as its ``--help`` gives them),
   read from the command objects themselves.
+* ``notebooks/*.md``: every notebook of notebooks/ as a page, with the printed output
+  and figures of its last run by the test suite (tests/notebook_runner.py keeps them in
+  .notebook-outputs/, or ``DIFFGYRO_NOTEBOOK_OUTPUTS``) when that run is of the current
+  source; the code and text alone otherwise.
 * :class:`SphinxRoles`, a griffe extension (``extensions:`` in mkdocs.yml): docstrings'
   Sphinx roles (``:func:`x` ``) become links, and each module's members are ordered
   public-first for its API page.
@@ -66,6 +70,10 @@ def on_config(config):
     nav = config.get("nav")
     if nav is not None:
         api = [{f"diffgyro.{top}": f"api/{top}.md"} for top in api_modules()]
+        nbs = [{title: f"notebooks/{path.stem}.md"} for path, title in notebooks()]
+        api_at = next((i for i, e in enumerate(nav) if isinstance(e, dict) and "Speed benchmarks" in e),
+                      len(nav))
+        nav.insert(api_at, {"Notebooks": nbs})
         nav.append({"API reference": [{"diffgyro": "api/diffgyro.md"}, *api]})
     return config
 
@@ -75,7 +83,83 @@ def on_files(files, config):
     files.append(File.generated(config, "api/diffgyro.md", content=_api_page("", ["diffgyro"])))
     for top, mods in api_modules().items():
         files.append(File.generated(config, f"api/{top}.md", content=_api_page(top, mods)))
+    for path, _ in notebooks():
+        page, images = notebook_page(path)
+        files.append(File.generated(config, f"notebooks/{path.stem}.md", content=page))
+        for name, data in images.items():
+            files.append(File.generated(config, f"notebooks/{path.stem}/{name}", content=data))
     return files
+
+
+# --------------------------------------------------------------------------- notebooks
+
+
+def notebooks() -> list[tuple[Path, str]]:
+    """``(path, title)`` of every notebook (Jupytext percent format), title from its heading."""
+    out = []
+    for path in sorted((ROOT / "notebooks").glob("*.py")):
+        text = path.read_text(encoding="utf-8")
+        title = re.search(r"^# # (.+)$", text, flags=re.M)
+        out.append((path, title.group(1).strip() if title else path.stem))
+    return out
+
+
+def _kept(path: Path):
+    """The notebook as last executed by the tests, if that run was of this source."""
+    import hashlib
+    import os
+
+    import nbformat
+
+    kept = Path(os.environ.get("DIFFGYRO_NOTEBOOK_OUTPUTS") or ROOT / ".notebook-outputs")
+    kept = kept / f"{path.stem}.ipynb"
+    if not kept.exists():
+        return None
+    nb = nbformat.read(kept, as_version=4)
+    meta = nb.metadata.get("diffgyro", {})
+    return nb if meta.get("source_sha256") == hashlib.sha256(path.read_bytes()).hexdigest() else None
+
+
+def notebook_page(path: Path) -> tuple[str, dict[str, bytes]]:
+    """Markdown of a notebook (text, code, printed output, figures) and its figure files."""
+    import base64
+
+    import jupytext
+
+    nb = _kept(path)
+    executed = nb is not None
+    nb = nb if executed else jupytext.read(path)
+    quick = executed and nb.metadata.get("diffgyro", {}).get("quick")
+    note = (f"*Source: `notebooks/{path.name}` (Jupytext; `jupytext --to ipynb` makes a "
+            "Jupyter notebook of it).* " + (
+                "The output below is from its run by the test suite"
+                + (" in quick mode (`DIFFGYRO_NOTEBOOK_QUICK=1`: smaller batches, the same "
+                   "steps)" if quick else "") + "." if executed else
+                "Its output appears here once the test suite has run it "
+                "(`pytest tests/test_notebooks.py`)."))
+    parts, images = [], {}
+    for i, cell in enumerate(nb.cells):
+        if cell.cell_type == "markdown":
+            parts.append(cell.source)
+            if i == 0:
+                parts.append(note)
+            continue
+        if cell.cell_type != "code" or not cell.source.strip():
+            continue
+        parts.append(f"```python\n{cell.source}\n```")
+        for k, out in enumerate(cell.get("outputs", [])):
+            data = out.get("data", {})
+            if "image/png" in data:
+                name = f"cell{i}_{k}.png"
+                images[name] = base64.b64decode(data["image/png"])
+                parts.append(f"![figure of cell {i}]({path.stem}/{name})")
+            elif out.get("output_type") == "stream" or "text/plain" in data:
+                text = out.get("text") or data.get("text/plain", "")
+                parts.append(f"```text\n{text.rstrip()}\n```")
+            elif out.get("output_type") == "error":
+                tb = re.sub(r"\x1b\[[0-9;]*m", "", "\n".join(out.get("traceback", [])))
+                parts.append(f"```text\n{tb}\n```")
+    return "\n\n".join(parts) + "\n", images
 
 
 def _cell(text: str) -> str:

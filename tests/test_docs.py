@@ -4,8 +4,13 @@ recipe names and point at nothing outside the repository."""
 from __future__ import annotations
 
 import ast
+import os
 import re
+import subprocess
+import sys
 from pathlib import Path
+
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -106,3 +111,47 @@ def test_roles_become_links():
     assert '<autoref identifier="diffgyro.detect.variance_detector"' in detect
     # the front door of a module comes first on its page
     assert pkg["fit"].exports[:2] == ["fit", "FitResult"]
+
+
+@pytest.fixture(scope="module")
+def site(tmp_path_factory):
+    """The documentation site, built as CI builds it (``mkdocs build --strict``)."""
+    out = tmp_path_factory.mktemp("site")
+    env = {**os.environ, "NO_MKDOCS_2_WARNING": "1",
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "src"), os.environ.get("PYTHONPATH", "")])}
+    run = subprocess.run([sys.executable, "-m", "mkdocs", "build", "--strict", "--site-dir", str(out)],
+                         cwd=ROOT, env=env, capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr[-3000:]
+    return out
+
+
+def _page_text(html: str) -> str:
+    """What a reader sees of a page: no icons, scripts or tags."""
+    html = re.sub(r"<(svg|script|style)\b.*?</\1>", " ", html, flags=re.S)
+    return re.sub(r"<[^>]+>", " ", html)
+
+
+def test_built_site_has_no_raw_role_and_no_outside_pointer(site):
+    pages = sorted(site.rglob("*.html"))
+    assert len(pages) > 40
+    raw, outside = [], []
+    for page in pages:
+        text = _page_text(page.read_text(encoding="utf-8"))
+        raw += [f"{page.relative_to(site)}: {m.group(0)}" for m in
+                re.finditer(r":(?:py:)?(?:func|class|mod|meth|attr|data|obj|exc|const):\s*`?\w", text)]
+        outside += [f"{page.relative_to(site)}: {m.group(0)}" for m in OUTSIDE.finditer(text)]
+    assert not raw, raw[:20]
+    assert not outside, outside[:20]
+    # roles became links: the status module's explanation is one click from diffgyro.fit
+    fit_page = (site / "api" / "fit" / "index.html").read_text(encoding="utf-8")
+    assert 'href="../status/#diffgyro.status.explain"' in fit_page
+
+
+def test_built_site_has_the_tutorial_the_cli_reference_and_the_notebooks(site):
+    cli_page = (site / "cli" / "index.html").read_text(encoding="utf-8")
+    for command in ("fit", "diagnose", "compensate", "allan", "export", "recipe", "simulate"):
+        assert f'id="diffgyro-{command}"' in cli_page, command
+    for step in ("first-calibration", "discovery", "batch", "autopilot", "noise"):
+        assert (site / "tutorial" / step / "index.html").exists(), step
+    for nb in (ROOT / "notebooks").glob("*.py"):
+        assert (site / "notebooks" / nb.stem / "index.html").exists(), nb.name

@@ -601,7 +601,10 @@ def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax
     import matplotlib
 
     if ax is None:
-        matplotlib.use("Agg", force=False)
+        import sys
+
+        if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
+            matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(7.5, 5.0))
