@@ -240,7 +240,7 @@ def cli_reference() -> str:
             for name in cmd.list_commands(ctx):
                 sub = cmd.get_command(ctx, name)
                 anchor = f"{path} {name}".replace(" ", "-")
-                rows.append(f"| [`{name}`](#{anchor}) | {_cell(sub.get_short_help_str(300))} |")
+                rows.append(f"| [`{name}`](#{anchor}) | {_html(_cell(sub.get_short_help_str(300)))} |")
             rows.append("")
         params = [p for p in cmd.get_params(ctx) if not getattr(p, "hidden", False)]
         if params:
@@ -250,7 +250,7 @@ def cli_reference() -> str:
                 names, text = record
                 if p.param_type_name == "argument":
                     names = names or p.name
-                rows.append(f"| `{_cell(names)}` | {_cell(text) or '—'} |")
+                rows.append(f"| `{_cell(names)}` | {_html(_cell(text)) or '—'} |")
             rows.append("")
     return "\n".join(rows)
 
@@ -262,8 +262,13 @@ def _help_markdown(text: str) -> str:
         if para.startswith("\b\n"):
             paras.append("```text\n" + para[2:] + "\n```")
         else:
-            paras.append(" ".join(para.split()))
+            paras.append(_html(" ".join(para.split())))
     return "\n\n".join(paras)
+
+
+def _html(text: str) -> str:
+    """Help text as Markdown shows it literally (``<N>`` is not a tag)."""
+    return text.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;")
 
 
 def on_page_markdown(markdown, page, config, files):
