@@ -115,7 +115,10 @@ def _kept(path: Path):
     kept = kept / f"{path.stem}.ipynb"
     if not kept.exists():
         return None
-    nb = nbformat.read(kept, as_version=4)
+    try:
+        nb = nbformat.read(kept, as_version=4)
+    except Exception:  # a damaged or half-written file: show the source alone
+        return None
     meta = nb.metadata.get("diffgyro", {})
     return nb if meta.get("source_sha256") == hashlib.sha256(path.read_bytes()).hexdigest() else None
 
