@@ -70,10 +70,12 @@ def on_config(config):
     nav = config.get("nav")
     if nav is not None:
         api = [{f"diffgyro.{top}": f"api/{top}.md"} for top in api_modules()]
-        nbs = [{title: f"notebooks/{path.stem}.md"} for path, title in notebooks()]
-        api_at = next((i for i, e in enumerate(nav) if isinstance(e, dict) and "Speed benchmarks" in e),
-                      len(nav))
-        nav.insert(api_at, {"Notebooks": nbs})
+        nbs = [{re.split(r":| — ", title)[0]: f"notebooks/{path.stem}.md"}  # short nav titles
+               for path, title in notebooks()]
+        # the notebooks follow the tutorial (or close the guides when there is none)
+        at = next((i + 1 for i, e in enumerate(nav) if isinstance(e, dict) and "Tutorial" in e),
+                  len(nav))
+        nav.insert(at, {"Notebooks": nbs})
         nav.append({"API reference": [{"diffgyro": "api/diffgyro.md"}, *api]})
     return config
 
