@@ -326,7 +326,7 @@ def _walk(obj):
 
 
 def _usage_text() -> str:
-    parts = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")),
+    parts = [ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md")),
              *sorted((ROOT / "notebooks").glob("*.py"))]
     return "\n".join(p.read_text(encoding="utf-8") for p in parts if p.exists())
 

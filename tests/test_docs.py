@@ -29,7 +29,7 @@ def _texts():
                     yield f"{path.relative_to(ROOT)}:{getattr(node, 'lineno', 1)}", doc
         # comments and strings too: an output line or a comment is read as well
         yield str(path.relative_to(ROOT)), path.read_text(encoding="utf-8")
-    for pattern in ("docs/*.md", "notebooks/*.py", "README.md", "mkdocs.yml"):
+    for pattern in ("docs/**/*.md", "notebooks/*.py", "README.md", "mkdocs.yml"):
         for path in sorted(ROOT.glob(pattern)):
             yield str(path.relative_to(ROOT)), path.read_text(encoding="utf-8")
 
