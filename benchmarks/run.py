@@ -335,7 +335,7 @@ def s2_design(temp, temp_ext, rate, t, window=60.0):
 
 
 def case_s2(devices, samples, subset, repeats, bw):
-    """S2's regression (bias_poly(2)+scale_poly(2)+gradient+temp_diff) against batched numpy
+    """fog-one-run's regression (bias_poly(2)+scale_poly(2)+gradient+temp_diff) against batched numpy
     normal equations."""
     from diffgyro.fit import fit
 

@@ -14,7 +14,8 @@
 # %% [markdown]
 # # The published methods, run as published — and what a richer model adds
 #
-# diffgyro starts from five published gyro-compensation methods (`SEEDS.md`)
+# diffgyro starts from five published gyro-compensation methods (patents; the
+# docs' *Published methods* page describes them)
 # and two classic calibrations. Each is a *recipe*: the procedure step by
 # step, with the published choices (bin width, thresholds, Kalman `Q`, the
 # six regression columns, the up/down face sets, the Ferraris algebra). On
@@ -58,7 +59,7 @@ started, cpu_started = time.perf_counter(), time.process_time()
 summary = []   # (recipe, what it leaves out, error measure, recipe error, toolkit model, toolkit error)
 
 # %% [markdown]
-# ## S0 — binned-thermal: bias vs temperature by binning and a straight line
+# ## binned-thermal: bias vs temperature by binning and a straight line
 #
 # A static gyro warms from cold (self-heating, then a lamp). The recipe sorts
 # by temperature, cuts 0.1 °C bins, sub-samples every bin to the same count,
@@ -83,10 +84,10 @@ e_recipe = np.sqrt(np.mean((s0.bias(temp) - bias_true) ** 2))
 fit0, _, err0 = toolkit_compensate("bias_poly(2)+gradient", Recording(t=t, gyro=gyro, temp=temp))
 e_toolkit = np.sqrt(np.mean((err0 - bias_true) ** 2))
 print(f"bias error: recipe {e_recipe:.2e} rad/s, bias_poly(2)+gradient {e_toolkit:.2e} rad/s")
-summary.append(("binned-thermal (S0)", "curvature, dT/dt", "bias RMS, rad/s", e_recipe, "bias_poly(2)+gradient", e_toolkit))
+summary.append(("binned-thermal", "curvature, dT/dt", "bias RMS, rad/s", e_recipe, "bias_poly(2)+gradient", e_toolkit))
 
 # %% [markdown]
-# ## S1 — static-kalman: tracking the offset in static windows
+# ## static-kalman: tracking the offset in static windows
 #
 # A level vehicle rests and turns. Thresholds `M·(max − min)` come from the
 # first 1000 samples; each static window updates a scalar Kalman filter of
@@ -120,18 +121,18 @@ _, _, bias1 = toolkit_compensate("bias_poly(1)", Recording(t=t[static], gyro=gyr
                                  Recording(t=t, gyro=gyro, temp=temp))
 yaw_toolkit = np.concatenate([[0], np.cumsum((gyro - bias1)[:-1, 2] / fs)])
 for name, yaw in (("raw", s1.yaw_raw), ("factory offset", s1.yaw_fixed),
-                  ("S1 tracked offset", s1.yaw_tracked), ("toolkit bias(T)", yaw_toolkit)):
+                  ("static-kalman tracked offset", s1.yaw_tracked), ("toolkit bias(T)", yaw_toolkit)):
     print(f"worst heading error, {name:18s}: {np.abs(yaw - yaw_true).max() / DEG:8.2f}°")
-summary.append(("static-kalman (S1)", "drift during motion", "worst heading, rad", np.abs(s1.yaw_tracked - yaw_true).max(),
+summary.append(("static-kalman", "drift during motion", "worst heading, rad", np.abs(s1.yaw_tracked - yaw_true).max(),
                 "bias_poly(1) on the static windows", np.abs(yaw_toolkit - yaw_true).max()))
 
 # %% [markdown]
-# ## S2 — fog-one-run: one chamber run, scale factor and bias together
+# ## fog-one-run: one chamber run, scale factor and bias together
 #
-# The simulator's S2 profile (−40 … 70 °C in 10 °C steps, ±10 °/s at every
+# The simulator's fog-one-run profile (−40 … 70 °C in 10 °C steps, ±10 °/s at every
 # soak). The recipe regresses `K0·Ω` on `[D, T·D, T²·D, T, T − T_out, dT]`
 # after dropping ±m samples around every change of the table's direction.
-# The device has a constant bias and a curved one — S2 has no constant
+# The device has a constant bias and a curved one — fog-one-run has no constant
 # column and a bias linear in T.
 
 # %%
@@ -154,13 +155,13 @@ def systematic(e, keep):
     return np.sqrt(np.mean(e**2))
 
 
-print(f"systematic rate error: S2 {systematic(e2_recipe, s2.kept):.2e}, "
+print(f"systematic rate error: fog-one-run {systematic(e2_recipe, s2.kept):.2e}, "
       f"toolkit {systematic(e2_toolkit, s2.kept):.2e} rad/s")
-summary.append(("fog-one-run (S2)", "constant and curved bias", "systematic rate, rad/s", systematic(e2_recipe, s2.kept),
+summary.append(("fog-one-run", "constant and curved bias", "systematic rate, rad/s", systematic(e2_recipe, s2.kept),
                 spec2, systematic(e2_toolkit, s2.kept)))
 
 # %% [markdown]
-# ## S3 — attitude-reference: scale and bias against accelerometer + magnetometer
+# ## attitude-reference: scale and bias against accelerometer + magnetometer
 #
 # Pitch and roll from the accelerometer, heading from the tilt-compensated
 # magnetometer (NWU frame, ZYX angles), a quaternion per sample, an |a| gate,
@@ -186,11 +187,11 @@ _, comp3, _ = toolkit_compensate(spec3, Recording(t=rec.t[pairs], gyro=s3.measur
 moving = np.linalg.norm(rec.rate, axis=1) > 0.2
 e3_recipe = np.sqrt(np.mean((s3.compensate(rec.gyro, joint=True) - rec.rate)[moving] ** 2))
 e3_toolkit = np.sqrt(np.mean((comp3 - rec.rate)[moving] ** 2))
-print(f"rate error while moving: S3 {e3_recipe:.2e}, toolkit {e3_toolkit:.2e} rad/s")
-summary.append(("attitude-reference (S3)", "cross-axis coupling", "rate RMS moving, rad/s", e3_recipe, spec3, e3_toolkit))
+print(f"rate error while moving: attitude-reference {e3_recipe:.2e}, toolkit {e3_toolkit:.2e} rad/s")
+summary.append(("attitude-reference", "cross-axis coupling", "rate RMS moving, rad/s", e3_recipe, spec3, e3_toolkit))
 
 # %% [markdown]
-# ## S4 — cube-bias: biases without a level table
+# ## cube-bias: biases without a level table
 #
 # Z up and down, Y up and down, four headings 90° apart each, on a table
 # tilted by 2° at 45° latitude. Averaging the headings cancels the tilt and

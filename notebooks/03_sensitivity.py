@@ -14,7 +14,7 @@
 # %% [markdown]
 # # How good is a calibration, and what in the test plan limits it?
 #
-# One study end to end, on the S2 thermal-chamber + rate-table procedure
+# One study end to end, on the fog-one-run thermal-chamber + rate-table procedure
 # (−40…70 °C in 10 °C steps, 30 min soaks, ±10 °/s for a minute each way in
 # every soak) and the model `bias_poly(3)+scale_poly(2)+gradient`:
 #
@@ -27,7 +27,7 @@
 #    input sample on the compensation at −40 °C, or of each plan number on
 #    the predicted worst-case error, is a gradient.
 # 3. **Design** — optimise the plan by gradient for the same total time, or
-#    find the shortest plan that matches S2, and check the prediction by
+#    find the shortest plan that matches fog-one-run, and check the prediction by
 #    Monte Carlo.
 #
 # The plan grid is coarse here (2048 samples, about 14 s) so the notebook
@@ -87,7 +87,7 @@ op = OperatingRange(temps=(-40.0, 70.0), rate=10 * DEG)   # where the calibratio
 config = PlanConfig(n_samples=2048)                      # tilted mount: every axis sees the table
 arw = 1e-5                                               # rad/s/√Hz (0.034 °/√h)
 s2 = s2_plan()
-print(f"S2 takes {float(plan_duration(s2, config)) / 3600:.2f} h")
+print(f"fog-one-run takes {float(plan_duration(s2, config)) / 3600:.2f} h")
 
 # %%
 env = plan_environment(s2, config)
@@ -100,13 +100,13 @@ ax.set_xlabel("time (h)")
 ax.set_ylabel("°C")
 ax2.set_ylabel("°/s")
 ax.legend(loc="upper left")
-ax.set_title("the S2 plan")
+ax.set_title("the fog-one-run plan")
 plt.show()
 
 # %% [markdown]
 # ## 1. Uncertainty that survives correlated noise
 #
-# 120 devices (40 in quick mode) through S2, with white noise plus a Gauss–Markov bias
+# 120 devices (40 in quick mode) through fog-one-run, with white noise plus a Gauss–Markov bias
 # (σ = 0.5 °/h, τ = 2 min), each calibrated with `fit`. The truth is known,
 # so we can count how often the nominal 95 % intervals hold it.
 
@@ -171,7 +171,7 @@ print("sum of the influences:", np.round(np.asarray(infl[:, 0, :, 0].sum(1)), 4)
 # %%
 sens = plan_sensitivity(s2, config, model, arw, op)
 el = sens["elasticity"]
-print(f"S2 predicted worst-case 1σ error {float(sens['worst']) * DPH:.4f} °/h")
+print(f"fog-one-run predicted worst-case 1σ error {float(sens['worst']) * DPH:.4f} °/h")
 print("elasticity to soak durations  ", np.round(np.asarray(el.soaks), 3))
 print("elasticity to soak temperatures", np.round(np.asarray(el.temps), 3))
 print(f"to ramp rate {float(el.ramp):+.3f}, table rate {float(el.rates[0]):+.3f}, "
@@ -185,7 +185,7 @@ print("Earth rate not in the reference — worst case by number of headings (°/
 # ## 4. A better plan for the same time, and the same accuracy in less time
 #
 # Two designs, both by Adam on the plan's unconstrained coordinates (the
-# total time is held exactly): *thermal only* keeps S2's use of the rate
+# total time is held exactly): *thermal only* keeps fog-one-run's use of the rate
 # table (10 °/s, the same share of every soak) and moves the soak
 # temperatures, durations and ramp rate; *full* may also spin longer.
 
@@ -205,7 +205,7 @@ for name, res in designs.items():
                                   iterations=BUDGET_ITERATIONS, free=free, steps=BUDGET_STEPS)
     rows.append((name, float(res.prediction.worst), t_eq))
     print(f"{name:13s} equal time: worst {float(res.prediction.worst) * DPH:.4f} °/h "
-          f"({100 * (1 - float(res.prediction.worst) / target):.0f} % better than S2); "
+          f"({100 * (1 - float(res.prediction.worst) / target):.0f} % better than fog-one-run); "
           f"equal accuracy in {t_eq / 3600:.2f} h ({100 * (1 - t_eq / T_s2):.0f} % less time)")
 best = designs["full"].plan
 print("full design: soak temperatures", np.round(np.asarray(best.temps), 1))
@@ -214,7 +214,7 @@ print(f"             ramp {float(best.ramp) * 60:.2f} °C/min, spin share {float
 
 # %%
 fig, ax = plt.subplots(figsize=(10, 3))
-for name, plan in [("S2", s2), ("thermal only", designs["thermal only"].plan), ("full", best)]:
+for name, plan in [("fog-one-run", s2), ("thermal only", designs["thermal only"].plan), ("full", best)]:
     e = plan_environment(plan, config)
     ax.plot(e.t / 3600, e.temp, label=name)
 ax.set_xlabel("time (h)")
@@ -231,7 +231,7 @@ plt.show()
 # compared with the prediction.
 
 # %%
-for name, plan, pred in [("S2", s2, pred_s2), ("full", best, designs["full"].prediction)]:
+for name, plan, pred in [("fog-one-run", s2, pred_s2), ("full", best, designs["full"].prediction)]:
     mc = monte_carlo(plan, config, model, arw, op, n_devices=N_MC, seed=7)
     print(f"{name:5s} predicted {float(pred.worst) * DPH:.4f} °/h, Monte Carlo "
           f"{float(mc.worst) * DPH:.4f} °/h ({100 * (float(mc.worst) / float(pred.worst) - 1):+.1f} %), "

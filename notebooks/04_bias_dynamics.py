@@ -11,9 +11,9 @@
 # ---
 
 # %% [markdown]
-# # Bias dynamics: Allan deviation, a learned random walk, and S1 compared
+# # Bias dynamics: Allan deviation, a learned random walk, and static-kalman compared
 #
-# Gyro bias wanders. The S1 patent tracks the z-axis offset with a scalar
+# Gyro bias wanders. The static-kalman patent tracks the z-axis offset with a scalar
 # Kalman filter whose process noise `Q = 1e-4` is set by hand. diffgyro
 # models the bias as a deterministic error model plus a random walk whose
 # variance `q` and white-noise variance `r` are *learned* by maximum
@@ -22,7 +22,7 @@
 # 1. A static run: the Allan deviation's read-outs (ARW, RRW) and the learned
 #    `q`, `r` measure the same noise.
 # 2. Hour-long runs with motion and short pauses: heading drift with no
-#    compensation, with S1, with the learned filter and with the smoother.
+#    compensation, with static-kalman, with the learned filter and with the smoother.
 #
 # With the environment variable `DIFFGYRO_NOTEBOOK_QUICK` set (the test suite
 # sets it) the static run is half an hour and there are four hour-long runs
@@ -80,8 +80,8 @@ plt.show()
 #
 # Each run: 60 s at rest, then 100 s of yaw motion and a 20 s pause,
 # repeated for just over an hour at 2 Hz. Every axis has a constant bias
-# plus a random walk. Both S1 and the learned model see the same (true)
-# static samples; S1 reads them in 2-s windows. The noise levels `q`, `r`
+# plus a random walk. Both static-kalman and the learned model see the same (true)
+# static samples; static-kalman reads them in 2-s windows. The noise levels `q`, `r`
 # are learned from each run's static samples alone.
 
 # %%
@@ -124,11 +124,11 @@ for i, (t2, g2, rate2, _, st2) in enumerate(runs):
     for k in methods:
         drift[k].append(float(h[k][at]))
 rms = {k: math.degrees(math.sqrt(np.mean(np.square(v)))) for k, v in drift.items()}
-labels = {"none": "no compensation", "fixed": "factory offset E(0) only", "s1": "S1 (Q = 1e-4)",
+labels = {"none": "no compensation", "fixed": "factory offset E(0) only", "s1": "static-kalman (Q = 1e-4)",
           "learned": "learned q, r (causal filter)", "smoothed": "learned q, r (smoother, offline)"}
 for k in methods:
     print(f"{labels[k]:36s} heading error after 1 h, RMS over {n_dev} runs: {rms[k]:8.1f} deg")
-print(f"learned / S1 = {rms['learned'] / rms['s1']:.2f}")
+print(f"learned / static-kalman = {rms['learned'] / rms['s1']:.2f}")
 
 # %%
 fig, ax = plt.subplots(figsize=(8, 4))
@@ -143,9 +143,9 @@ ax.set_title("run 0: heading error with each bias treatment")
 plt.show()
 
 # %% [markdown]
-# ## What S1's Q would have to be
+# ## What static-kalman's Q would have to be
 #
-# S1's result depends on its hand-set `Q`. Sweeping it shows the learned
+# static-kalman's result depends on its hand-set `Q`. Sweeping it shows the learned
 # model lands where the best hand-tuned `Q` would — without the sweep,
 # and without knowing the truth.
 
@@ -158,10 +158,10 @@ for q_s1 in sweep:
          for i, r in enumerate(runs)]
     s1_rms.append(math.degrees(math.sqrt(np.mean(np.square(v)))))
 fig, ax = plt.subplots(figsize=(6, 3.5))
-ax.semilogx(sweep, s1_rms, "o-", label="S1 with fixed Q")
+ax.semilogx(sweep, s1_rms, "o-", label="static-kalman with fixed Q")
 ax.axhline(rms["learned"], color="tab:green", label="learned q, r (causal)")
 ax.axhline(rms["smoothed"], color="tab:red", ls="--", label="learned q, r (smoother)")
-ax.set_xlabel("S1's Q ((rad/s)² per window)")
+ax.set_xlabel("static-kalman's Q ((rad/s)² per window)")
 ax.set_ylabel("RMS heading error at 1 h (deg)")
 ax.legend(fontsize=8)
 plt.show()

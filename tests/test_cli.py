@@ -1,5 +1,5 @@
 """The command line: bad input gives one line naming file/device/column/row and exit 2;
-fit --json / --out and compensate follow DESIGN.md §4."""
+fit --json / --out and compensate follow the command-line contract."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""``diffgyro diagnose``: the DESIGN.md §4 JSON exactly, the report, --auto, bad input.
+"""``diffgyro diagnose``: the --json object exactly, the report, --auto, bad input.
 
 Data: independent recordings (hidden_effects.py) written in the standard
 schema: one device with a hidden ``gradient`` (CSV), one clean (Parquet), both

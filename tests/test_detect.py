@@ -1,4 +1,4 @@
-"""Static detection: S1's range thresholds and the variance detector on the real BROAD trial
+"""Static detection: static-kalman's range thresholds and the variance detector on the real BROAD trial
 (against its `movement` labels), vmapped over devices, and the building blocks."""
 
 from __future__ import annotations
@@ -34,13 +34,13 @@ def broad():
 
 
 def test_s1_range_detector_on_broad(broad):
-    """S1 with M = 2, 0.5-s windows, thresholds from the first 1000 samples (3.5 s of rest),
+    """static-kalman with M = 2, 0.5-s windows, thresholds from the first 1000 samples (3.5 s of rest),
     signals Ax, Ay, Az, Rz. Measured: precision 0.999, recall 0.979."""
     acc, gyr, rest, fs = broad
     det = s1_range_detector(jnp.asarray(acc), jnp.asarray(gyr), window=143, init=1000, margin=2.0,
                             gyro_axes=(2,), start=0)
     p, r = precision_recall(np.asarray(det.static), rest)
-    print(f"S1 range detector on BROAD: precision {p:.3f}, recall {r:.3f}")
+    print(f"static-kalman range detector on BROAD: precision {p:.3f}, recall {r:.3f}")
     assert p >= 0.98
     assert r >= 0.95
     # a tighter margin trades recall for nothing: precision is already ~1

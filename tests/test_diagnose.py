@@ -135,7 +135,7 @@ def test_clean_devices_are_adequate(catalogue):
     bad = [(r["diag"].device, [c.effect for c in r["diag"].candidates if c.significant])
            for r, k in zip(rows, ok) if not k]
     assert np.mean(ok) >= 0.95, bad
-    for r in rows:  # adequate means no candidate is significant (DESIGN.md §4)
+    for r in rows:  # adequate means no candidate is significant
         d = r["diag"]
         assert (d.verdict == "adequate") == (not any(c.significant for c in d.candidates))
 

@@ -1,5 +1,5 @@
 """Bias random walk: filter/smoother against the dense Gaussian process, likelihood gradients,
-learned noise on simulated batches, S1's offset filter, and S1 compared on heading drift."""
+learned noise on simulated batches, static-kalman's offset filter, and static-kalman compared on heading drift."""
 
 from __future__ import annotations
 
@@ -205,7 +205,7 @@ def test_fit_dispatches_random_walk_models():
 
 
 def _s1_reference(rz, static, window, init, q):
-    """S1 written out literally, one window at a time."""
+    """static-kalman written out literally, one window at a time."""
     x, p = rz[:init].mean(), rz[:init].var()
     xs = []
     for j, ok in enumerate(static):
@@ -251,14 +251,14 @@ def simulate_pause_run(seed, hours=1.05, fs=5.0, arw=1.5e-3, rrw=3e-5, first=60.
 
 def test_learned_model_beats_s1_on_heading_drift():
     """24 simulated one-hour runs (2 Hz) with pauses; the same true static windows for every
-    method; S1 reads 2-s windows.
+    method; static-kalman reads 2-s windows.
 
-    S1 (Q = 1e-4 (rad/s)², R = the window's sample variance) follows each
+    static-kalman (Q = 1e-4 (rad/s)², R = the window's sample variance) follows each
     window's noisy mean; the learned filter weighs every static sample by the
-    learned q and r, so its offset error is about √(2 s / 20 s) of S1's per
-    pause but persists from pause to pause: expect roughly 0.6-0.8 of S1's
+    learned q and r, so its offset error is about √(2 s / 20 s) of static-kalman's per
+    pause but persists from pause to pause: expect roughly 0.6-0.8 of static-kalman's
     drift (measured 0.65-0.77 over three batches of seeds). The smoother,
-    which also sees the pauses after each motion, halves S1's drift.
+    which also sees the pauses after each motion, halves static-kalman's drift.
     Heading error at 1 h, RMS over the devices.
     """
     fs, d = 2.0, 24
@@ -278,14 +278,14 @@ def test_learned_model_beats_s1_on_heading_drift():
                            window=4, init=100)
         for k in methods:
             drift[k].append(float(h[k][at]))
-        # S1 publishes Q = 1e-4 without a unit: read it also as (°/s)², as the recipe does
+        # static-kalman publishes Q = 1e-4 without a unit: read it also as (°/s)², as the recipe does
         h = heading_errors(t, g[:, 2], rate[:, 2], s, float(res.q[i, 2]), float(res.r[i, 2]),
                            window=4, init=100, q_s1=1e-4 * (math.pi / 180) ** 2)
         drift["s1_deg"].append(float(h["s1"][at]))
     rms = {k: math.degrees(math.sqrt(np.mean(np.square(v)))) for k, v in drift.items()}
     print("heading error after 1 h, RMS over devices (deg): "
           + ", ".join(f"{k} {v:.1f}" for k, v in rms.items())
-          + f"; learned/S1 = {rms['learned'] / rms['s1']:.2f} (Q in (rad/s)²), "
+          + f"; learned/static-kalman = {rms['learned'] / rms['s1']:.2f} (Q in (rad/s)²), "
           + f"{rms['learned'] / rms['s1_deg']:.2f} (Q in (°/s)²)")
     assert rms["learned"] < 0.85 * rms["s1"]
     assert rms["learned"] < 0.85 * rms["s1_deg"]

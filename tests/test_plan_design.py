@@ -1,5 +1,5 @@
 """Test-plan design: the differentiable plan's physics, the Fisher prediction against closed
-forms, plan gradients against finite differences, and an optimised plan against S2 — predicted
+forms, plan gradients against finite differences, and an optimised plan against fog-one-run — predicted
 and by Monte Carlo."""
 
 from __future__ import annotations
@@ -169,7 +169,7 @@ def test_optimised_plan_beats_s2_and_monte_carlo_agrees(designed):
     mc_s2 = monte_carlo(s2, cfg, MODEL, ARW, OP, n_devices=300, seed=4)
     p_opt, p_s2 = float(res.prediction.worst), float(pred_s2.worst)
     m_opt, m_s2 = float(mc_opt.worst), float(mc_s2.worst)
-    print(f"worst-case 1σ compensation error over −40…70 °C, ±10 °/s (rad/s): S2 predicted "
+    print(f"worst-case 1σ compensation error over −40…70 °C, ±10 °/s (rad/s): fog-one-run predicted "
           f"{p_s2:.3e}, Monte Carlo {m_s2:.3e}; optimised predicted {p_opt:.3e}, "
           f"Monte Carlo {m_opt:.3e} ({100 * (m_opt / p_opt - 1):+.1f} %); "
           f"accuracy gained at equal time {100 * (1 - p_opt / p_s2):.0f} %")
@@ -192,7 +192,7 @@ def test_plan_sensitivity_and_equal_accuracy_time(designed):
     t_s2 = float(plan_duration(s2, cfg))
     t_eq, res = budget_for_accuracy(target, s2, cfg, MODEL, ARW, OP, lo=1800.0, hi=t_s2,
                                     iterations=5, steps=120)
-    print(f"S2 accuracy in {t_eq / 3600:.2f} h instead of {t_s2 / 3600:.2f} h")
+    print(f"fog-one-run accuracy in {t_eq / 3600:.2f} h instead of {t_s2 / 3600:.2f} h")
     assert float(res.prediction.worst) <= target
     assert abs(float(res.prediction.duration) - t_eq) < 1e-6 * t_eq
     assert t_eq < 0.6 * t_s2

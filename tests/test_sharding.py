@@ -285,7 +285,7 @@ def test_cpu_devices_are_not_sharded_by_default(forced):
 
 
 def test_s2_regression_with_two_cpu_devices_finishes(forced):
-    """The case that deadlocked when groups ran side by side on two CPU devices (S2's
+    """The case that deadlocked when groups ran side by side on two CPU devices (fog-one-run's
     regression, 256 devices × 2000 samples, groups of 64): it must finish."""
     out = section(forced, "s2")
     assert out["ok"] == out["d"]

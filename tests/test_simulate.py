@@ -106,7 +106,7 @@ def test_quantisation_steps():
     assert np.any(tsteps == 1.0)
 
 
-# --------------------------------------------------------------------------- six faces (S4)
+# --------------------------------------------------------------------------- six faces (cube-bias)
 
 
 @pytest.fixture(scope="module")
@@ -139,7 +139,7 @@ def test_six_face_earth_rate_matches_latitude(six_face):
         # the up axis sees the component of Earth rate along the table normal: Ω·sin(lat) level
         np.testing.assert_allclose(sign * r[:, k], omega_nav @ normal, rtol=1e-9)
         assert abs(omega_nav @ normal - EARTH_RATE * math.sin(lat)) < EARTH_RATE * 0.5 * 0.5 * DEG * 2
-        # averaging the four headings cancels the horizontal part and the tilt (S4)
+        # averaging the four headings cancels the horizontal part and the tilt (cube-bias)
         others = [j for j in range(3) if j != k]
         np.testing.assert_allclose(r.mean(axis=0)[others], 0.0, atol=1e-12 * EARTH_RATE + 1e-18)
         np.testing.assert_allclose(f.mean(axis=0)[others], 0.0, atol=1e-9)

@@ -562,7 +562,7 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
 
 
 def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
-    """The DESIGN.md §4 ``allan --json`` object (NaN becomes null, and the axis' ``missing``
+    """The ``allan --json`` object (NaN becomes null, and the axis' ``missing``
     says why; τ only where defined)."""
     tau = np.asarray(result.tau)
     adev = np.asarray(result.adev)
@@ -601,7 +601,10 @@ def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax
     import matplotlib
 
     if ax is None:
-        matplotlib.use("Agg", force=False)
+        import sys
+
+        if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
+            matplotlib.use("Agg")
         import matplotlib.pyplot as plt
 
         fig, ax = plt.subplots(figsize=(7.5, 5.0))

@@ -1,7 +1,7 @@
 """Recordings of one device and batches of many, as pytrees.
 
-A :class:`Recording` holds one device's samples in the standard schema of
-DESIGN.md §3 (SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
+A :class:`Recording` holds one device's samples in the standard schema
+(docs/formats.md; SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
 recordings along a leading device axis, padded to a bucket length with a
 sample mask, so that batches of slightly different lengths reuse one compiled
 function. Arrays are host numpy arrays here; fits move them to JAX.
@@ -24,7 +24,7 @@ from jaxtyping import Bool, Float, Int
 
 from .errors import DataError
 
-# Signal name -> standard column names (DESIGN.md §3, contract).
+# Signal name -> standard column names (the standard schema, contract).
 SIGNALS: dict[str, tuple[str, ...]] = {
     "gyro": ("gx", "gy", "gz"),
     "temp": ("temp",),

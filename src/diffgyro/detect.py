@@ -1,16 +1,16 @@
-"""Static-period detection: S1's range thresholds and an IMU-TK-style variance detector.
+"""Static-period detection: static-kalman's range thresholds and an IMU-TK-style variance detector.
 
 Both are pure JAX functions of one device's samples with static window sizes,
 so they vmap over a batch (:func:`detect_batch`); each is compiled once per
 shape and options (``eqx.filter_jit``: arrays traced, the rest static). They return a per-sample
 boolean ``static`` (padding excluded through ``mask``).
 
-* :func:`s1_range_detector` — the S1 seed, faithfully: thresholds
+* :func:`s1_range_detector` — static-kalman's detector, faithfully: thresholds
   ``T = M·(max − min)`` of every signal over an initial static window
   (``init`` samples), then consecutive windows of ``window`` samples are
   static when the peak-to-peak range of *every* signal is below its
   threshold. The signals are Ax, Ay, Az and the gyro axes ``gyro_axes``
-  (S1 uses the z rate only: ``gyro_axes=(2,)``).
+  (static-kalman uses the z rate only: ``gyro_axes=(2,)``).
 * :func:`variance_detector` — after Tedaldi et al. (IMU-TK, ICRA 2014): the
   magnitude ``ς = ‖(var ax, var ay, var az)‖`` of the accelerometer variance
   over a centred window of ``2·half_window + 1`` samples; static where
@@ -34,7 +34,7 @@ from jaxtyping import Array, Bool, Float
 
 
 class RangeDetection(eqx.Module):
-    """S1 detector output: per-sample ``static``, per-window ``window_static`` (windows start at
+    """Range detector output: per-sample ``static``, per-window ``window_static`` (windows start at
     ``start``), the ``thresholds`` (Ax, Ay, Az, then the gyro axes used)."""
 
     static: Bool[Array, " n"]
@@ -64,12 +64,12 @@ def s1_range_detector(
     mask: Bool[Array, " n"] | None = None,
     start: int | None = None,
 ) -> RangeDetection:
-    """S1's window-by-window static test (see the module docstring).
+    """static-kalman's window-by-window static test (see the module docstring).
 
     ``init`` samples at the start are the factory static window that sets the
     thresholds (and count as static); windows of ``window`` samples follow
     from ``start`` (default ``init``, so ``window_static`` lines up with
-    :func:`diffgyro.kalman.s1_offset_filter`). ``margin`` is S1's ``M``.
+    :func:`diffgyro.kalman.s1_offset_filter`). ``margin`` is the patent's ``M``.
     A window needs at least one valid sample; its range is over valid ones.
     """
     accel = jnp.asarray(accel)

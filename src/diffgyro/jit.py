@@ -122,7 +122,7 @@ def collector_paused():
 def parallel_devices() -> list:
     """The local JAX devices that compiled calls may run on side by side: every
     accelerator, but one CPU device. Programs running side by side on two XLA CPU
-    devices deadlocked (jaxlib 0.10.2: S2's regression, 256 devices × 2000 samples,
+    devices deadlocked (jaxlib 0.10.2: fog-one-run's regression, 256 devices × 2000 samples,
     every run, both as fit()'s groups taking turns and as one program sharded over a
     mesh; all worker threads idle, the caller waiting on a result; also with
     transfers finished before dispatch, without the thunk runtime and with

@@ -25,7 +25,7 @@ With a constant bias among the deterministic terms (``bias_poly``), the walk
 starts at 0 (``p0 = 0``) so the constant and the walk are not confounded;
 without one the walk gets a wide prior instead.
 
-Also here: the S1 seed's scalar offset filter (:func:`s1_offset_filter`) and
+Also here: static-kalman's scalar offset filter (:func:`s1_offset_filter`) and
 a causal filter run (:func:`causal_bias`) for real-time compensation.
 """
 
@@ -597,11 +597,11 @@ def fit_random_walk(
         temp_range=temp_range, options=opts, p0=jnp.asarray(p0, sig.gyro.dtype), reml=reml)
 
 
-# --------------------------------------------------------------------------- S1's filter
+# --------------------------------------------------------------------------- static-kalman's filter
 
 
 class S1Offset(eqx.Module):
-    """S1's offset track: per window ``x`` (offset after the update) and ``p``; per sample
+    """static-kalman's offset track: per window ``x`` (offset after the update) and ``p``; per sample
     ``offset`` (the offset in force while that sample is read: the last update before it)."""
 
     x: Float[Array, " k"]
@@ -616,14 +616,14 @@ def s1_offset_filter(
     init: int = 1000,
     q: float = 1e-4,
 ) -> S1Offset:
-    """The S1 seed's scalar Kalman filter of the z-rate offset (faithful to the patent).
+    """static-kalman's scalar Kalman filter of the z-rate offset (faithful to the patent).
 
     Initial window (the first ``init`` samples, 5 s static at the factory):
     ``X(0|0) = E(0) = mean``, ``P(0|0) = COV(0) = var``. After it, windows of
     ``window`` samples; window j (``static[j]``, e.g. from
     :func:`diffgyro.detect.s1_range_detector`) updates with ``E = mean``,
     ``R = COV = var`` of its samples, ``P ← P + Q``, ``Kg = P/(P+R)``;
-    a non-static window leaves the filter unchanged. ``q`` is S1's fixed
+    a non-static window leaves the filter unchanged. ``q`` is the patent's fixed
     ``Q = 1e-4`` in the units of ``rz``. The per-sample offset is causal:
     the samples of window j are corrected with the offset after window j−1.
     """
@@ -654,7 +654,7 @@ def s1_offset_filter(
     return S1Offset(x=xs, p=ps, offset=offset)
 
 
-# --------------------------------------------------------------------------- S1 compared
+# --------------------------------------------------------------------------- static-kalman compared
 
 
 def heading_errors(
@@ -672,7 +672,7 @@ def heading_errors(
     """Heading (yaw) error over time of one z gyro under five bias treatments.
 
     ``none``: raw rate integrated; ``fixed``: the factory offset E(0) of the
-    first ``init`` samples held for ever; ``s1``: S1's tracked offset with its
+    first ``init`` samples held for ever; ``s1``: static-kalman's tracked offset with its
     fixed ``Q`` (windows of ``window`` samples, static where every sample of
     the window is); ``learned``: the causal Kalman filter with the learned
     ``q``, ``r`` (what a device could run live); ``smoothed``: the RTS

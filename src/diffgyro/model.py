@@ -5,7 +5,7 @@ The measured rate is the true rate plus every term's contribution::
     gyro = rate + Σ_terms columns_term(signals, θ_term) @ β_term
 
 so scale factor and misalignment (contributions ∝ rate) build the matrix
-``I + S + M`` of DESIGN.md §1 and the bias terms build ``b``. ``compensate``
+``I + S + M`` (identity, scale, misalignment) and the bias terms build ``b``. ``compensate``
 inverts this for the true rate with Newton steps (exact in one step for
 models linear in the rate; asymmetry and nonlinearity take a few).
 

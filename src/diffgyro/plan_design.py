@@ -1,7 +1,7 @@
 """Differentiable chamber / rate-table test plans, their predicted accuracy, and plan design.
 
 A :class:`ChamberPlan` is a thermal-chamber profile with a rate table inside
-(the S2 procedure generalised): from the start temperature the chamber ramps
+(the fog-one-run procedure generalised): from the start temperature the chamber ramps
 at ``ramp`` (°C/s) to each soak temperature ``temps[k]`` in turn and holds it
 for ``soaks[k]`` seconds. The last ``spin_fraction`` of every soak turns the
 table at each rate level ``rates[r]``, clockwise then counter-clockwise for
@@ -72,7 +72,7 @@ class ChamberPlan(eqx.Module):
 class PlanConfig(eqx.Module):
     """Everything about a plan that is not optimised (static, hashable)."""
 
-    #: time grid; keep its interval well below the shortest spin (S2: 1 min → ≥ 2048 samples)
+    #: time grid; keep its interval well below the shortest spin (fog-one-run: 1 min → ≥ 2048 samples)
     n_samples: int = eqx.field(static=True, default=8192)
     edge: float = eqx.field(static=True, default=5.0)  # s, width of table edges (≥ one sample)
     corner: float = eqx.field(static=True, default=30.0)  # s, rounding of chamber corners
@@ -93,9 +93,9 @@ class PlanConfig(eqx.Module):
 def s2_plan(step: float = 10.0, soak: float = 1800.0, ramp_per_min: float = 1.5,
             table_rate_deg: float = 10.0, spin: float = 60.0,
             limits: tuple[float, float] = (-40.0, 70.0)) -> ChamberPlan:
-    """The published S2 profile: −40…70 °C in 10 °C steps, 30 min soaks, ±10 °/s for 1 min each way.
+    """The published fog-one-run profile: −40…70 °C in 10 °C steps, 30 min soaks, ±10 °/s for 1 min each way.
 
-    S2 cools at 1–2 °C/min; 1.5 °C/min is taken. Its total time is
+    The patent cools at 1–2 °C/min; 1.5 °C/min is taken. Its total time is
     :func:`plan_duration` (about 8 h from a 25 °C start).
     """
     temps = np.arange(limits[0], limits[1] + 1e-9, step)

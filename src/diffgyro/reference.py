@@ -81,7 +81,7 @@ def rotate(q: Float[Array, "... 4"], v: Float[Array, "... 3"]) -> Float[Array, "
 
 
 def quat_from_euler(roll, pitch, yaw) -> Float[Array, "... 4"]:
-    """ZYX Euler angles to a quaternion (the formula of S3's patent, same order)."""
+    """ZYX Euler angles to a quaternion (the formula of the attitude-reference patent, same order)."""
     cr, sr = jnp.cos(roll / 2), jnp.sin(roll / 2)
     cp, sp = jnp.cos(pitch / 2), jnp.sin(pitch / 2)
     cy, sy = jnp.cos(yaw / 2), jnp.sin(yaw / 2)

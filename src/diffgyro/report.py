@@ -40,9 +40,12 @@ MAX_POINTS = 3000
 
 
 def _plt():
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg", force=False)
+    if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     return plt

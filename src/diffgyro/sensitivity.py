@@ -493,9 +493,12 @@ def plot_uncertainty_band(bands: Band | list[Band], unit: str = "deg/h", fig=Non
     Several bands (e.g. plain and autocorrelation-consistent covariance)
     overlay; returns the matplotlib Figure.
     """
+    import sys
+
     import matplotlib
 
-    matplotlib.use("Agg", force=False)
+    if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
+        matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     bands = [bands] if isinstance(bands, Band) else list(bands)

@@ -117,7 +117,7 @@ def local_slope(
 
 
 def moving_average_difference(y: Float[Array, " n"], n_avg: int) -> Float[Array, " n"]:
-    """S2's dT: mean of the last ``n_avg`` samples minus the mean of the ``n_avg`` before.
+    """fog-one-run's dT: mean of the last ``n_avg`` samples minus the mean of the ``n_avg`` before.
 
     Defined from sample ``2·n_avg - 1`` on (earlier samples get 0), in units of
     ``y`` per ``n_avg`` samples, exactly as the published method uses it.

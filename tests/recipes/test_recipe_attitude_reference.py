@@ -1,4 +1,4 @@
-"""attitude-reference (S3): scale and bias against accelerometer + magnetometer attitude."""
+"""attitude-reference: scale and bias against accelerometer + magnetometer attitude."""
 
 from __future__ import annotations
 
@@ -69,7 +69,7 @@ def test_gate_and_options():
 
 
 def test_misalignment_is_beyond_the_per_axis_model_and_the_toolkit_fits_it():
-    """Cross-axis coupling (up to 2 %): S3's per-axis ω_ref = s·(ω − b) cannot hold it;
+    """Cross-axis coupling (up to 2 %): attitude-reference's per-axis ω_ref = s·(ω − b) cannot hold it;
     bias_poly(0)+scale_poly(0)+misalignment fitted to the same reference rates can.
     The reference rates span 1 s (interval=50): the toolkit's forward model takes
     them as the true rate, and noisier short-span rates would bias its scale
@@ -87,6 +87,6 @@ def test_misalignment_is_beyond_the_per_axis_model_and_the_toolkit_fits_it():
     moving = np.linalg.norm(rec.rate, axis=1) > 0.2
     r_recipe = np.sqrt(np.mean(e_recipe[moving] ** 2))
     r_toolkit = np.sqrt(np.mean(e_toolkit[moving] ** 2))
-    # measured: S3 1.8e-2 rad/s RMS rate error while moving, toolkit 1.5e-3 rad/s (12× better)
+    # measured: attitude-reference 1.8e-2 rad/s RMS rate error while moving, toolkit 1.5e-3 rad/s (12× better)
     assert r_recipe > 1e-2
     assert r_toolkit < 0.15 * r_recipe

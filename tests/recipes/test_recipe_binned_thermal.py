@@ -1,4 +1,4 @@
-"""binned-thermal (S0): the published binning and line on known truth; where it falls short."""
+"""binned-thermal: the published binning and line on known truth; where it falls short."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ SLOPE = np.array([2.1e-3, -1.4e-3, 0.9e-3])       # rad/s per °C
 
 
 def warming(fs=10.0, hours=2.0):
-    """Cold start, self-heating (log-like), then a lamp: S0's temperature history."""
+    """Cold start, self-heating (log-like), then a lamp: binned-thermal's temperature history."""
     t = np.arange(0.0, hours * 3600.0, 1.0 / fs)
     temp = 15.0 + 14.0 * (1 - np.exp(-t / 900.0))
     lamp = t > 0.55 * t[-1]

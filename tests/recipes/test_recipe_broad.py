@@ -1,5 +1,5 @@
 """BROAD trial 05 (real IMU + optical motion capture): gyro bias from the initial rest,
-scale and bias against the motion-capture reference (S3's affine model solved jointly),
+scale and bias against the motion-capture reference (attitude-reference's affine model solved jointly),
 heading drift over the trial with and without compensation."""
 
 from __future__ import annotations
@@ -57,7 +57,7 @@ def mocap_pairs(d, interval=29):
 
 @pytest.fixture(scope="module")
 def s1(trial):
-    """S1 (static-kalman) on the trial from the first sample with a reference attitude."""
+    """static-kalman on the trial from the first sample with a reference attitude."""
     d = trial
     i0 = int(np.flatnonzero(d["ok"])[0])
     return i0, static_kalman(d["gyro"][i0:], d["accel"][i0:], d["t"][i0:], quat=d["quat"][i0:])
@@ -69,15 +69,15 @@ def _runs(flag):
 
 
 def test_bias_from_the_initial_rest(trial, s1):
-    """diffgyro's rest bias: S1's E(0) from the initial rest and its tracked offset at every
-    later rest S1 finds, each against the raw rates of the same samples."""
+    """diffgyro's rest bias: static-kalman's E(0) from the initial rest and its tracked offset at every
+    later rest static-kalman finds, each against the raw rates of the same samples."""
     i0, r = s1
     e0 = r.initial_offset
     # measured: E(0) over the first 1000 samples (3.5 s) 0.1926, 0.1137, −0.2311 °/s; within
     # the noise (0.1 °/s per sample, 0.003 °/s for 1000) of the mean over the 30 s rest
     np.testing.assert_allclose(e0 / DEG, [0.1926, 0.1137, -0.2311], atol=5e-4)
     np.testing.assert_allclose(e0, rest_bias(trial), atol=0.006 * DEG)
-    # S1's static windows: the rest of the initial 30 s, the three 10 s breaks, the final rest
+    # static-kalman's static windows: the rest of the initial 30 s, the three 10 s breaks, the final rest
     gyro = trial["gyro"][i0:]
     starts, w = r.window_start, r.window
     rests = [(a, b) for a, b in _runs(r.static) if (b - a) * w > 5 * trial["fs"]]
@@ -92,7 +92,7 @@ def test_bias_from_the_initial_rest(trial, s1):
 
 
 def test_s1_windows_and_filter_follow_the_patent(trial, s1):
-    """S1's thresholds, static windows and offset track on the real trial against the patent's
+    """static-kalman's thresholds, static windows and offset track on the real trial against the patent's
     steps written out here as a plain loop (step numbers of the static_kalman docstring)."""
     i0, r = s1
     gyro, accel = trial["gyro"][i0:], trial["accel"][i0:]
@@ -116,7 +116,7 @@ def test_s1_windows_and_filter_follow_the_patent(trial, s1):
 
 def test_scale_and_bias_against_motion_capture(trial):
     meas, ref = mocap_pairs(trial)
-    s, b = joint_affine(meas, ref)          # S3's ω_ref = s·(ω − b), solved jointly
+    s, b = joint_affine(meas, ref)          # attitude-reference's ω_ref = s·(ω − b), solved jointly
     # measured: s = 1.0007, 1.0004, 1.0010; b = 0.223, 0.133, −0.238 °/s
     np.testing.assert_allclose(s, 1.0, atol=3e-3)
     np.testing.assert_allclose(b, rest_bias(trial), atol=0.04 * DEG)
@@ -143,13 +143,13 @@ def test_heading_drift_with_and_without_compensation(trial):
 def test_recipes_on_the_trial(trial, s1):
     d = trial
     i0, r1 = s1
-    # S1: offsets from the rest windows, heading against the motion capture
+    # static-kalman: offsets from the rest windows, heading against the motion capture
     ok = d["ok"][i0:]
     assert 0.3 < r1.static.mean() < 0.7           # the rests are found, the motions are not
     assert np.nanmax(np.abs(r1.heading_error_raw[ok])) > 30 * DEG
     assert np.nanmax(np.abs(r1.heading_error_tracked[ok])) < 3.0 * DEG
     assert np.nanmax(np.abs(r1.heading_error_fixed[ok])) < 3.0 * DEG
-    # S3 from the IMU's own accelerometer and (uncalibrated) magnetometer: its scale is a few
+    # attitude-reference from the IMU's own accelerometer and (uncalibrated) magnetometer: its scale is a few
     # per cent off the motion capture's (the magnetometer heading is distorted), so its
     # compensation drifts more in heading than the bias from the rest alone
     # (measured: scales 0.968, 1.026, 1.020; 15.5° worst heading error against 2.4°).

@@ -1,4 +1,4 @@
-"""cube-bias (S4): up/down sets over four headings cancel table tilt and Earth rate."""
+"""cube-bias: up/down sets over four headings cancel table tilt and Earth rate."""
 
 from __future__ import annotations
 
@@ -71,7 +71,7 @@ def test_set_errors(tmp_path):
 def test_warm_up_transient_biases_the_recipe_and_the_toolkit_models_it():
     """Started before the sensor settled: a 4e-3 rad/s power-on transient with τ = 300 s
     leaks into the up/down means. The toolkit's bias_poly(0)+g_sens+warmup, fitted to
-    the same static sets (Earth rate unknown, as in S4), recovers the settled bias."""
+    the same static sets (Earth rate unknown, as in cube-bias), recovers the settled bias."""
     spec = "bias_poly(0)+g_sens+warmup"
     beta = np.zeros((3, 5))
     beta[:, 0] = [3e-3, -2e-3, 1.5e-3]

@@ -1,4 +1,4 @@
-"""fog-one-run (S2): the six-column regression on known truth; where it falls short."""
+"""fog-one-run: the six-column regression on known truth; where it falls short."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ from diffgyro.recipes.fog_one_run import fog_one_run, s2_design, sign_change_mas
 from diffgyro.signals import TempNorm
 from diffgyro.simulate import simulate
 
-#: S2's published coefficients (K0 = 1, data in rad/s): a0, a1, a2, b1, b2, b3
+#: fog-one-run's published coefficients (K0 = 1, data in rad/s): a0, a1, a2, b1, b2, b3
 A_TRUE = np.array([1.0002, -3e-5, 2e-7, 4e-7, -4e-6, 3e-5])
 
 
 @pytest.fixture(scope="module")
 def chamber_run():
-    """The S2 chamber profile from the simulator (−40 … 70 °C, ±10 °/s at every soak)."""
+    """The fog-one-run chamber profile from the simulator (−40 … 70 °C, ±10 °/s at every soak)."""
     batch, truth = simulate("s2", 1, seed=0, noise="none", effects="bias_poly(0)")
     return batch.recording(0)
 
@@ -62,7 +62,7 @@ def test_sign_change_mask_and_literal_gyro_signs():
 
 
 def test_constant_and_curved_bias_defeat_s2_and_the_toolkit_fits_them():
-    """S2 has no constant term and a bias linear in T; a FOG with a constant bias,
+    """fog-one-run has no constant term and a bias linear in T; a FOG with a constant bias,
     a curved bias, a scale drift, an inside-outside term and a gradient (forward
     model, the simulator's) is compensated much better by the toolkit's
     bias_poly(2)+scale_poly(2)+temp_diff+gradient fitted to the same run."""
@@ -85,6 +85,6 @@ def test_constant_and_curved_bias_defeat_s2_and_the_toolkit_fits_them():
         return np.sqrt(np.mean(blocks**2))
 
     s_recipe, s_toolkit = systematic(e_recipe), systematic(e_toolkit)
-    # measured: S2 7.6e-6 rad/s (1.6 °/h) systematic error, toolkit 2.2e-7 rad/s (34× better)
+    # measured: fog-one-run 7.6e-6 rad/s (1.6 °/h) systematic error, toolkit 2.2e-7 rad/s (34× better)
     assert s_recipe > 5e-6
     assert s_toolkit < 0.1 * s_recipe

@@ -1,4 +1,4 @@
-"""static-kalman (S1): thresholds, static windows, the scalar Kalman offset; where it falls short."""
+"""static-kalman: thresholds, static windows, the scalar Kalman offset; where it falls short."""
 
 from __future__ import annotations
 
@@ -111,7 +111,7 @@ def test_needs_the_initial_rest():
 
 
 def test_temperature_drift_during_motion_and_the_toolkit_bias_model():
-    """Bias following a warming sensor: S1 holds its offset through each turn and
+    """Bias following a warming sensor: static-kalman holds its offset through each turn and
     the heading error grows; bias_poly(1) fitted on the static windows predicts the
     bias through the turns."""
     def temp_fn(t):
@@ -134,7 +134,7 @@ def test_temperature_drift_during_motion_and_the_toolkit_bias_model():
     yaw_toolkit = np.concatenate([[0.0], np.cumsum((gyro - bias_toolkit)[:-1, 2] / FS)])
     e_recipe = np.abs(res.yaw_tracked - yaw_true).max()
     e_toolkit = np.abs(yaw_toolkit - yaw_true).max()
-    # measured: S1 15° worst heading error over 8 min (the factory offset alone: 147°),
+    # measured: static-kalman 15° worst heading error over 8 min (the factory offset alone: 147°),
     # the toolkit's bias(T) 0.14°
     assert e_recipe > 5.0 * DEG
     assert e_toolkit < 0.05 * e_recipe

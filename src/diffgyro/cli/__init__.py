@@ -1,4 +1,4 @@
-"""The ``diffgyro`` command line (DESIGN.md §4 is its contract).
+"""The ``diffgyro`` command line (its options and ``--json`` objects are a contract).
 
 Each command lives in its own module of this package and registers itself on
 ``app`` when imported; every module here is imported by :func:`main`.

@@ -2,8 +2,8 @@
 
 Every recipe reads the standard columns (mapped with ``--columns`` and the
 unit options) and works in SI units; results are printed in SI (rates in
-rad/s) except ``six-position``, whose ``--json`` object is in the input units
-(DESIGN.md §4). Options that a recipe does not take are an error.
+rad/s) except ``six-position``, whose ``--json`` object is in the input units.
+Options that a recipe does not take are an error.
 """
 
 from __future__ import annotations

@@ -138,7 +138,7 @@ class Diagnosis:
         raise KeyError(key)
 
     def to_json(self) -> dict:
-        """The DESIGN.md §4 ``diagnose --json`` object (extra keys per device)."""
+        """The ``diagnose --json`` object (extra keys per device)."""
         return to_json_safe({"model": self.spec, "devices": [d.record() for d in self.devices],
                        "thresholds": asdict(self.thresholds),
                        "dtemp_window": self.options.get("dtemp_window")})

@@ -14,7 +14,7 @@ GROUP_SAMPLES = 1 << 17
 #: polynomials, gradient, temp_diff) sum in one fused pass with no group-sized
 #: temporaries: their groups are this many times larger (fewer calls). Others
 #: materialise per-axis columns and run fastest with the group in cache: on a
-#: 2-core CPU with 32 MB L3, S2's regression at 10 000 samples runs about twice as fast
+#: 2-core CPU with 32 MB L3, fog-one-run's regression at 10 000 samples runs about twice as fast
 #: in groups of 8 devices as of 16, and bias_poly(3) fastest in groups of 64.
 FUSED_GROUP_FACTOR = 8
 #: Models with time constants run batched Newton loops in lockstep: a group takes as

@@ -1,6 +1,6 @@
 """Reading and writing recordings: CSV, Parquet and NPZ in the standard schema; logs.
 
-The standard schema is DESIGN.md §3: ``device, t, gx, gy, gz`` plus the
+The standard schema: ``device, t, gx, gy, gz`` plus the
 optional groups ``temp``, ``temp_ext``, ``ax..az``, ``mx..mz``, ``rx..rz`` and
 ``qw..qz``, in SI units (s, rad/s, m/s², °C). One file may hold many devices
 in long format (a ``device`` column); without it the device id is the file

@@ -1,4 +1,4 @@
-"""The published calibration methods as faithful recipes (SEEDS.md), plus the
+"""The published calibration methods as faithful recipes, plus the
 classic six-position and multi-position calibrations.
 
 Each recipe reproduces its procedure step by step and returns a
@@ -100,20 +100,20 @@ def _multi_position(rec, *, gravity=9.81, init_seconds=50.0, window=101, n_sampl
 RECIPES: dict[str, Recipe] = {
     r.name: r
     for r in (
-        Recipe("binned-thermal", "S0, CN102230806 (Institute of Software, CAS, 2011)",
+        Recipe("binned-thermal", "CN102230806 (Institute of Software, CAS, 2011)",
                "static warm-up: 0.1 °C bins, even sub-sampling, a straight bias line per axis "
                "accepted when |r| > 0.999", ("gyro", "temp"), _binned_thermal),
-        Recipe("static-kalman", "S1 (Wuxi Lingsi, 2018)",
+        Recipe("static-kalman", "Wuxi Lingsi Technology patent, 2018",
                "thresholds from a 1000-sample rest, static windows, scalar Kalman offset "
                "(Q = 1e-4), heading with and without it", ("gyro", "accel"), _static_kalman),
-        Recipe("fog-one-run", "S2 (fibre-optic gyro, one chamber run)",
+        Recipe("fog-one-run", "fibre-optic gyro patent: one chamber run for scale factor and bias",
                "[D, T·D, T²·D, T, T − T_out, dT] regressed on K0·Ω after removing ±m samples "
                "around rate sign changes", ("gyro", "temp", "temp_ext", "rate"), _fog_one_run),
-        Recipe("attitude-reference", "S3 (Goertek, 2018)",
+        Recipe("attitude-reference", "Goertek patent, 2018",
                "accelerometer + magnetometer attitude, |a| gate, alternating scale/bias, "
                "complementary fusion; joint least squares beside it",
                ("gyro", "accel", "mag"), _attitude_reference),
-        Recipe("cube-bias", "S4 (Shaanxi Zhongtian Rocket, 2020)",
+        Recipe("cube-bias", "Shaanxi Zhongtian Rocket Technology patent, 2020",
                "cube fixture, up/down faces × four headings: accelerometer and gyro biases "
                "without a level table", ("gyro", "accel"), _cube_bias),
         Recipe("six-position", "Ferraris et al. 1995, as implemented by imucal",

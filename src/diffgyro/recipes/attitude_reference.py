@@ -1,4 +1,4 @@
-"""attitude-reference (S3, Goertek 2018): gyro scale and bias against an
+"""attitude-reference (Goertek patent, 2018): gyro scale and bias against an
 accelerometer + magnetometer attitude.
 
 The published procedure, per sample k:
@@ -181,7 +181,7 @@ def attitude_reference(
     interval: int = 1,
     forget: float = 1.0,
 ) -> AttitudeReferenceResult:
-    """Run S3 on one recording (gyro rad/s, accel m/s², mag any unit, t s).
+    """Run attitude-reference on one recording (gyro rad/s, accel m/s², mag any unit, t s).
 
     ``accel_band``: the gate ``| |a| − g | ≤ accel_band·g``; ``ratio``: weight of
     ``q_am`` in the complementary fusion.

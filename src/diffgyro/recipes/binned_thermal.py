@@ -1,4 +1,4 @@
-"""binned-thermal (S0, CN102230806): zero-rate bias vs temperature by binning and a line.
+"""binned-thermal (CN102230806): zero-rate bias vs temperature by binning and a line.
 
 The published procedure, step by step:
 

@@ -1,4 +1,4 @@
-"""cube-bias (S4, Shaanxi Zhongtian Rocket 2020): zero-rate and accelerometer biases
+"""cube-bias (Shaanxi Zhongtian Rocket patent, 2020): zero-rate and accelerometer biases
 without a level table, from a cube fixture.
 
 The published procedure: the IMU sits in a cube fixture (axes along the

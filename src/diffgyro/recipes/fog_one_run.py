@@ -1,4 +1,4 @@
-"""fog-one-run (S2): one thermal-chamber run calibrates scale factor and bias together.
+"""fog-one-run (fibre-optic gyro patent): one thermal-chamber run calibrates scale factor and bias together.
 
 The published procedure (fibre-optic gyro on a rate table in a chamber):
 
@@ -68,7 +68,7 @@ class FogOneRunResult(RecipeResult):
 
 
 def s2_design(d: np.ndarray, temp: np.ndarray, temp_ext: np.ndarray, n_avg: int) -> np.ndarray:
-    """``[D, T·D, T²·D, T, T − T_out, dT]`` with S2's moving-average-difference dT."""
+    """``[D, T·D, T²·D, T, T − T_out, dT]`` with the patent's moving-average-difference dT."""
     d = np.asarray(d, float)
     temp = np.asarray(temp, float)
     dtemp = np.asarray(moving_average_difference(jnp.asarray(temp), int(n_avg)))
@@ -105,7 +105,7 @@ def fog_one_run(
     signs_from: str = "rate",
     rate_deadband: float = 1e-3,
 ) -> FogOneRunResult:
-    """Fit S2's six coefficients for one gyro axis.
+    """Fit fog-one-run's six coefficients for one gyro axis.
 
     ``gyro``/``rate``: ``(N, 3)`` (or ``(N,)`` for the axis alone); ``k0`` is
     the room-temperature scale factor (output units per rad/s; 1 for data
@@ -135,7 +135,7 @@ def fog_one_run(
     scale[scale == 0] = 1.0
     a, _, rank, _ = np.linalg.lstsq(x[kept] / scale, y[kept], rcond=None)
     if rank < 6:
-        raise DataError("S2's six columns are not independent on these data",
+        raise DataError("fog-one-run's six columns are not independent on these data",
                         hint="the run needs rotations at several temperatures and temperature "
                         "changes (dT) and an inside-outside difference")
     a = a / scale

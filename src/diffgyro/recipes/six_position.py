@@ -114,7 +114,7 @@ class SixPositionResult(RecipeResult):
         return raw @ self.gyro_matrix.T
 
     def contract(self) -> dict:
-        """The ``recipe six-position --json`` object (DESIGN.md §4)."""
+        """The ``recipe six-position --json`` object."""
         return {
             "gyro_bias": self.gyro_bias.tolist(),
             "gyro_matrix": self.gyro_matrix.tolist(),

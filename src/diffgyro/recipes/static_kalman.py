@@ -1,4 +1,4 @@
-"""static-kalman (S1, Wuxi Lingsi 2018): track the zero-rate offset in static windows.
+"""static-kalman (Wuxi Lingsi patent, 2018): track the zero-rate offset in static windows.
 
 The published procedure, on all three axes (the patent writes it for z):
 
@@ -119,7 +119,7 @@ def static_kalman(
     q: float = 1e-4,
     q_unit: str = "deg/s",
 ) -> StaticKalmanResult:
-    """Run S1 on one recording (rates in rad/s); ``quat`` is an optional reference attitude."""
+    """Run static-kalman on one recording (rates in rad/s); ``quat`` is an optional reference attitude."""
     gyro = np.asarray(gyro, float)
     accel = np.asarray(accel, float)
     t = np.asarray(t, float)

@@ -13,7 +13,7 @@ noise. Options are validated by name; every plan takes
 The rate column carries the true inertial rate the gyro sees wherever it is
 known: zero (plus Earth rate if a latitude is given) for static plans, the
 table rate for rate tables, the Earth-rate projection (plus the turns) for
-``six_face`` unless ``include_rate=False`` (a user of S4 would not know it).
+``six_face`` unless ``include_rate=False`` (a user of the cube-bias method would not know it).
 """
 
 from __future__ import annotations
@@ -222,8 +222,8 @@ class RateTable(Plan):
         return self._from_timeline(tl, settled=False, outputs=self.outputs())
 
 
-class S2(Plan):
-    """The S2 thermal-chamber profile (fibre-optic gyro, single axis z).
+class FogChamber(Plan):
+    """The fog-one-run thermal-chamber profile (fibre-optic gyro, single axis z).
 
     Power on at room temperature (``start_temp``), cool at ``ramp`` °C/min
     to ``t_min``, soak ``settle`` minutes, turn the table +``turn_rate`` °/s
@@ -233,7 +233,7 @@ class S2(Plan):
     """
 
     name = "s2"
-    description = "S2: −40…70 °C in 10 °C steps, ±10 °/s turns of 1 min at each soak (z axis)"
+    description = "fog-one-run chamber: −40…70 °C in 10 °C steps, ±10 °/s turns of 1 min at each soak (z axis)"
     default_effects = "bias_poly(1)+scale_poly(2)+temp_diff+gradient"
     default_preset = "fog"
     defaults = {"sample_rate": 1.0, "start_temp": 20.0, "t_min": -40.0, "t_max": 70.0, "step": 10.0,
@@ -255,11 +255,11 @@ class S2(Plan):
         return self._from_timeline(tl, settled=False, outputs=self.outputs(), info=info)
 
 
-# ----------------------------------------------------------------------------- six faces (S4)
+# ----------------------------------------------------------------------------- six faces (cube-bias)
 
 
 class SixFace(Plan):
-    """S4 cube fixture: faces × headings on a tilted table at a latitude (static).
+    """The cube-bias fixture: faces × headings on a tilted table at a latitude (static).
 
     Each face in ``faces`` points up in turn; at each face the cube rests at
     ``headings`` headings, turned 90° clockwise (about the table normal)
@@ -273,7 +273,7 @@ class SixFace(Plan):
     """
 
     name = "six_face"
-    description = "S4 cube: six faces × four headings on a tilted table, Earth rate included"
+    description = "cube-bias fixture: six faces × four headings on a tilted table, Earth rate included"
     default_effects = "bias_poly(0)+g_sens+scale_poly(0)+misalignment"
     default_accel_errors = True
     defaults = {"sample_rate": 10.0, "latitude": 45.0, "tilt": 0.5, "tilt_azimuth": 30.0,
@@ -369,11 +369,11 @@ class WarmupPlan(Static):
     settled = False
 
 
-# ----------------------------------------------------------------------------- attitude (S3)
+# ----------------------------------------------------------------------------- attitude-reference
 
 
 class Attitude(Plan):
-    """Free motion for attitude references (S3): smooth random rotations with pauses.
+    """Free motion for attitude references (attitude-reference): smooth random rotations with pauses.
 
     Each device moves on its own: pauses of ``pause`` s (range) alternate with
     rotations of ``move`` s about random axes with a sin² rate profile peaking
@@ -386,7 +386,7 @@ class Attitude(Plan):
     """
 
     name = "attitude"
-    description = "free motion with accelerometer and magnetometer (S3)"
+    description = "free motion with accelerometer and magnetometer (attitude-reference)"
     default_effects = "bias_poly(0)+scale_poly(0)"
     defaults = {"sample_rate": 50.0, "duration": 300.0, "max_rate": 180.0, "pause": (1.0, 4.0),
                 "move": (2.0, 6.0), "lin_accel": 2.0, "accel_share": 0.3, "field": 50.0,
@@ -462,8 +462,8 @@ def _face(face: str) -> np.ndarray:
 PLANS: dict[str, type[Plan]] = {
     "thermal": Thermal,
     "rate_table": RateTable,
-    "s2": S2,
-    "rate_table_s2": S2,
+    "s2": FogChamber,
+    "rate_table_s2": FogChamber,
     "six_face": SixFace,
     "static": Static,
     "attitude": Attitude,

@@ -1,6 +1,6 @@
 """Device populations: true coefficients for every effect term, drawn from realistic spreads.
 
-Coefficients are drawn in the error model's own basis (DESIGN.md §2), so a
+Coefficients are drawn in the error model's own basis (normalised temperature, :class:`~diffgyro.signals.TempNorm`), so a
 fit given the same :class:`~diffgyro.signals.TempNorm` recovers them
 directly. Temperature polynomials are specified physically: ``*_edges[j]`` is
 the 1-σ contribution of order ``j`` at ``REF_HALF_RANGE`` °C from the centre,
