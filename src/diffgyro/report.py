@@ -393,6 +393,7 @@ _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto
 h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em}table{border-collapse:collapse;font-size:.85em}
 td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}
 td.l,th.l{text-align:left}.adequate{color:#1a7f37}.missing_effect{color:#b42318}
+.not_judged{color:#9a6700}
 .expl{background:#f7f7f7;border-left:4px solid #888;padding:.6em 1em}img{max-width:100%}"""
 
 
@@ -414,7 +415,8 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str
     skipped = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in d.skipped.items())
     body = [
         f"<h1>{html.escape(d.device)} — <span class={d.verdict}>{d.verdict}</span></h1>",
-        f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status {html.escape(d.status)}. "
+        f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status "
+        f"{html.escape(d.status_detail or d.status)}. "
         f"RMS {_fmt(d.rms)}, held-out RMS {_fmt(d.heldout_rms)}, noise floor {_fmt(d.noise_floor)} "
         f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
         f"<p class=expl>{html.escape(d.explanation)}</p>",
@@ -465,13 +467,14 @@ def summary_page(diagnosis, ladder=None) -> str:
     counts = diagnosis.verdicts()
     body = [f"<h1>diffgyro diagnosis of {len(devs)} device(s)</h1>",
             f"<p>Model <code>{html.escape(diagnosis.spec)}</code>: {counts['adequate']} adequate, "
-            f"{counts['missing_effect']} missing an effect.</p>"]
+            f"{counts['missing_effect']} missing an effect, {counts['not_judged']} not judged "
+            f"(base fit not ok).</p>"]
     best: dict[str, int] = {}
     for d in devs:
         if d.best is not None:
             best[d.best.effect] = best.get(d.best.effect, 0) + 1
     fig, axs = plt.subplots(1, 2, figsize=(10, 3))
-    axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red"])
+    axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red", "tab:olive"])
     axs[0].set_title("verdicts", fontsize=9)
     if best:
         axs[1].bar(list(best), list(best.values()), color="tab:red")
@@ -481,10 +484,12 @@ def summary_page(diagnosis, ladder=None) -> str:
 
     rows = "".join(
         f"<tr><td class=l><a href='{_slug(d.device)}.html'>{html.escape(d.device)}</a></td>"
-        f"<td class='l {d.verdict}'>{d.verdict}</td><td>{_fmt(d.heldout_rms)}</td>"
+        f"<td class='l {d.verdict}'>{d.verdict}</td>"
+        f"<td class=l>{html.escape(d.status_detail or d.status)}</td><td>{_fmt(d.heldout_rms)}</td>"
         f"<td>{_fmt(d.noise_floor)}</td><td class=l>{html.escape(d.best.effect if d.best else '')}</td>"
         f"<td class=l>{html.escape(', '.join(c.effect for c in d.alternatives))}</td></tr>" for d in devs)
     body.append("<h2>Devices</h2><table><tr><th class=l>device</th><th class=l>verdict</th>"
+                "<th class=l>fit status</th>"
                 "<th>held-out RMS</th><th>noise floor</th><th class=l>add</th>"
                 f"<th class=l>close alternatives</th></tr>{rows}</table>")
 

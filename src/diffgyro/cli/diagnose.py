@@ -50,7 +50,7 @@ def print_diagnosis(diag, console) -> None:
         left = col in ("device", "verdict", "add", "close alternatives")
         table.add_column(col, justify="left" if left else "right", no_wrap=col != "close alternatives")
     for d in diag.devices:
-        colour = "green" if d.verdict == "adequate" else "red"
+        colour = {"adequate": "green", "not_judged": "yellow"}.get(d.verdict, "red")
         table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
                       _fmt(d.noise_floor), _add(d),
                       _fmt(d.best.heldout_rms) if d.best else "",
@@ -58,6 +58,19 @@ def print_diagnosis(diag, console) -> None:
     console.print(table)
     for d in diag.devices:
         console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
+    for line in skipped_lines(diag):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
+def skipped_lines(diag) -> list[str]:
+    """Each candidate not tried, once, with its reason and the devices that skipped it."""
+    seen: dict[tuple[str, str], list[str]] = {}
+    for d in diag.devices:
+        for term, why in d.skipped.items():
+            seen.setdefault((term, why), []).append(d.device)
+    n = len(diag.devices)
+    return [f"not tried: {term} ({why}; {'every device' if len(devs) == n else ', '.join(devs)})"
+            for (term, why), devs in seen.items()]
 
 
 def print_ladder(ladder, console) -> None:
@@ -183,7 +196,9 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
         for n in names:
             if n not in registry():
                 parse_term(n)  # SpecError naming the valid effects
-    missing = spec.requires() - set(batch.signals) - {"t"}
+    from diffgyro.data import aux_key
+
+    missing = spec.requires() - set(batch.signals) - {aux_key(k) for k in batch.aux} - {"t"}
     if missing:
         from diffgyro.errors import DataError
 
