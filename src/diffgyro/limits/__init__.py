@@ -12,9 +12,9 @@ list of rejected units (:mod:`.check`).
 
 from __future__ import annotations
 
-from .check import broken_text, check, lookup, summary, unmatched
+from .check import broken_text, check, check_model, lookup, summary, unmatched
 from .figures import add_figures, bias_figures, residual_allan
-from .spec import Limit, Limits, check_model, from_dict, load, split_path
+from .spec import Limit, Limits, from_dict, load, split_path
 
 __all__ = ["Limit", "Limits", "add_figures", "bias_figures", "broken_text", "check",
            "check_model", "from_dict", "load", "lookup", "residual_allan", "split_path",

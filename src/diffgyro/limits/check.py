@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import math
 
-from .spec import Limit, Limits, split_path
+from .spec import Limit, Limits, fail, split_path
 
 
 def lookup(record: dict, path: str) -> list[tuple[str, object]]:
@@ -118,3 +118,20 @@ def summary(limits: Limits, records: list[dict]) -> dict:
 def broken_text(entry: dict) -> str:
     """One broken limit in words (the text output and the report)."""
     return entry.get("detail") or entry["limit"]
+
+
+def check_model(limits: Limits, model) -> None:
+    """A DataError naming the file and key for a ``params`` limit that names no coefficient
+    of ``model`` (a typo would otherwise fail, or pass, every device)."""
+    labels = model.param_labels()
+    params = {ax: dict.fromkeys(labels[k], 0.0) for k, ax in enumerate("xyz")}
+    shared = [f"{t.spec}.{n}" for t in model.terms for n in t.nonlinear_names()]
+    if shared:
+        params["shared"] = dict.fromkeys(shared, 0.0)
+    for lim in limits.limits:
+        if lim.parts[0] != "params":
+            continue
+        if not lookup({"params": params}, lim.path):
+            names = ", ".join(sorted({lab for ax in params.values() for lab in ax}))
+            raise fail(limits.file, lim.path, f"names no coefficient of model {model.spec!r}",
+                        f"write params.AXIS.LABEL (AXIS x, y, z, shared or *); labels: {names}")

@@ -118,7 +118,7 @@ def load(path: str | os.PathLike) -> Limits:
     return from_dict(doc, name)
 
 
-def _fail(file: str, key: str, problem: str, hint: str | None = None) -> DataError:
+def fail(file: str, key: str, problem: str, hint: str | None = None) -> DataError:
     return DataError(f"limits file: key {key!r}: {problem}", file=file, hint=hint)
 
 
@@ -126,13 +126,13 @@ def from_dict(doc: dict, file: str = "<limits>") -> Limits:
     """The :class:`Limits` of a parsed TOML document (see the module notes)."""
     for key in doc:
         if key not in ("about", "limits"):
-            raise _fail(file, key, "unknown section", "a limits file holds [about] and [limits]")
+            raise fail(file, key, "unknown section", "a limits file holds [about] and [limits]")
     about = doc.get("about", {})
     if not isinstance(about, dict) or not all(isinstance(v, str) for v in about.values()):
-        raise _fail(file, "about", "must be a table of texts")
+        raise fail(file, "about", "must be a table of texts")
     table = doc.get("limits")
     if not isinstance(table, dict) or not table:
-        raise _fail(file, "limits", "missing or empty" if table is None or table == {} else
+        raise fail(file, "limits", "missing or empty" if table is None or table == {} else
                     "must be a table", 'e.g. [limits] then heldout_rms = { max = 0.002 }')
     out: list[Limit] = []
     _walk(table, "", file, out)
@@ -143,8 +143,9 @@ def _walk(table: dict, prefix: str, file: str, out: list[Limit]) -> None:
     for key, val in table.items():
         path = f"{prefix}.{key}" if prefix else str(key)
         if not prefix and split_path(path)[0] not in ROOTS:
-            raise _fail(file, path, "unknown field", "fields: " + ", ".join(sorted(ROOTS)))
-        if isinstance(val, dict) and val and not (set(val) & BOUND_KEYS):
+            raise fail(file, path, "unknown field", "fields: " + ", ".join(sorted(ROOTS)))
+        if (isinstance(val, dict) and val and not (set(val) & BOUND_KEYS)
+                and any(isinstance(v, dict) for v in val.values())):
             _walk(val, path, file, out)  # a table of deeper keys ([limits.allan])
             continue
         out.append(_limit(path, val, file))
@@ -152,66 +153,47 @@ def _walk(table: dict, prefix: str, file: str, out: list[Limit]) -> None:
 
 def _limit(path: str, val, file: str) -> Limit:
     if any(not s for s in split_path(path)):
-        raise _fail(file, path, "empty segment in the path")
+        raise fail(file, path, "empty segment in the path")
     if isinstance(val, str):
         return Limit(path=path, one_of=(val,), given={"one_of": [val]})
     if isinstance(val, list):
         if not val or not all(isinstance(v, str) for v in val):
-            raise _fail(file, path, "a list must hold the text values the field may take")
+            raise fail(file, path, "a list must hold the text values the field may take")
         return Limit(path=path, one_of=tuple(val), given={"one_of": list(val)})
     if not isinstance(val, dict):
-        raise _fail(file, path, f"must be a bound like {{ max = 0.002 }} or a text value, "
+        raise fail(file, path, f"must be a bound like {{ max = 0.002 }} or a text value, "
                                 f"not {type(val).__name__} {val!r}"[:200])
     unknown = sorted(set(val) - BOUND_KEYS)
     if unknown:
-        raise _fail(file, f"{path}.{unknown[0]}", "unknown bound field",
+        raise fail(file, f"{path}.{unknown[0]}", "unknown bound field",
                     "a bound holds min, max, abs, optional, unit")
     for flag in ("abs", "optional"):
         if flag in val and not isinstance(val[flag], bool):
-            raise _fail(file, f"{path}.{flag}", "must be true or false")
+            raise fail(file, f"{path}.{flag}", "must be true or false")
     bounds = {}
     for side in ("min", "max"):
         if side in val:
             v = val[side]
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-                raise _fail(file, f"{path}.{side}", f"must be a finite number, not {v!r}"[:120])
+                raise fail(file, f"{path}.{side}", f"must be a finite number, not {v!r}"[:120])
             bounds[side] = float(v)
     if not bounds:
-        raise _fail(file, path, "a bound needs min and/or max")
+        raise fail(file, path, "a bound needs min and/or max")
     if "min" in bounds and "max" in bounds and bounds["min"] > bounds["max"]:
-        raise _fail(file, path, f"min {bounds['min']:g} is above max {bounds['max']:g}")
+        raise fail(file, path, f"min {bounds['min']:g} is above max {bounds['max']:g}")
     unit = val.get("unit")
     scale = 1.0
     if unit is not None:
         from .units import unit_scale
 
         if not isinstance(unit, str):
-            raise _fail(file, f"{path}.unit", "must be text")
+            raise fail(file, f"{path}.unit", "must be text")
         scale = unit_scale(unit)
         if scale is None:
             from .units import UNIT_HELP
 
-            raise _fail(file, f"{path}.unit", f"unknown unit {unit!r}"[:120], UNIT_HELP)
+            raise fail(file, f"{path}.unit", f"unknown unit {unit!r}"[:120], UNIT_HELP)
     return Limit(path=path, min=None if "min" not in bounds else bounds["min"] * scale,
                  max=None if "max" not in bounds else bounds["max"] * scale,
                  abs=bool(val.get("abs", False)), optional=bool(val.get("optional", False)),
                  unit=unit, given=dict(val))
-
-
-def check_model(limits: Limits, model) -> None:
-    """A DataError naming the file and key for a ``params`` limit that names no coefficient
-    of ``model`` (a typo would otherwise fail, or pass, every device)."""
-    from .check import lookup
-
-    labels = model.param_labels()
-    params = {ax: dict.fromkeys(labels[k], 0.0) for k, ax in enumerate("xyz")}
-    shared = [f"{t.spec}.{n}" for t in model.terms for n in t.nonlinear_names()]
-    if shared:
-        params["shared"] = dict.fromkeys(shared, 0.0)
-    for lim in limits.limits:
-        if lim.parts[0] != "params":
-            continue
-        if not lookup({"params": params}, lim.path):
-            names = ", ".join(sorted({lab for ax in params.values() for lab in ax}))
-            raise _fail(limits.file, lim.path, f"names no coefficient of model {model.spec!r}",
-                        f"write params.AXIS.LABEL (AXIS x, y, z, shared or *); labels: {names}")

@@ -26,7 +26,7 @@ def _rate(text: str) -> float | None:
     from ..io.units import resolve_units
 
     try:
-        scale, offset = resolve_units({"gyro": text})["gyro"]
+        scale, offset = resolve_units({"gyro": text}).get("gyro", (1.0, 0.0))  # SI: none
     except DataError:
         return None
     return scale if offset == 0.0 else None
