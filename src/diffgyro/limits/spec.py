@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -110,12 +111,32 @@ def load(path: str | os.PathLike) -> Limits:
     except OSError as err:
         raise DataError(f"cannot read limits file ({err.strerror or err})", file=name) from None
     try:
-        doc = tomllib.loads(raw.decode("utf-8"))
+        text = raw.decode("utf-8")
+        doc = tomllib.loads(text)
     except UnicodeDecodeError:
         raise DataError("limits file is not UTF-8 text", file=name) from None
     except tomllib.TOMLDecodeError as err:
-        raise DataError(f"limits file is not valid TOML: {err}", file=name) from None
+        key = _key_at(text, str(err))
+        at = f" at key {key!r}" if key else ""
+        raise DataError(f"limits file is not valid TOML{at}: {err}", file=name) from None
     return from_dict(doc, name)
+
+
+def _key_at(text: str, message: str) -> str | None:
+    """The key (or [table]) written on the line a TOML error points at, if any."""
+    m = re.search(r"\(at line (\d+), column \d+\)", message)
+    if m is None:
+        return None
+    lines = text.splitlines()
+    k = int(m.group(1)) - 1
+    if not 0 <= k < len(lines):
+        return None
+    line = lines[k].strip()
+    if line.startswith("["):
+        return line.strip("[] ") or None
+    if "=" in line:
+        return line.split("=", 1)[0].strip().strip("\"'") or None
+    return None
 
 
 def fail(file: str, key: str, problem: str, hint: str | None = None) -> DataError:
