@@ -20,6 +20,7 @@ import pytest
 from diffgyro.cli import main
 from diffgyro.errors import DataError
 from diffgyro.limits import (
+    add_figures,
     bias_figures,
     check,
     from_dict,
@@ -107,6 +108,16 @@ def test_bias_figures_in_closed_form():
     assert got["bias_range"]["worst"] == max(got["bias_range"][a] for a in "xyz")
     const = bias_figures({a: {"bias_poly(0).c0": -0.3} for a in "xyz"}, None, None, None)
     assert const["bias_range"]["worst"] == pytest.approx(0.3) and const["bias_tempco"]["x"] is None
+
+
+def test_temperature_range_figure():
+    rec = add_figures({"device": "a"}, {"temp_range"}, temp_range=[14.5, 36.0])
+    assert rec["temp_range"] == {"min": 14.5, "max": 36.0, "span": 21.5}
+    limits = from_dict({"limits": {"temp_range": {"span": {"min": 25.0}}}})
+    broken = check(limits, rec)["broken"]
+    assert broken[0]["limit"] == "temp_range.span" and broken[0]["by"] == pytest.approx(3.5)
+    none = add_figures({"device": "b"}, {"temp_range"}, temp_range=None)["temp_range"]
+    assert none == {"min": None, "max": None, "span": None}
 
 
 def test_residual_allan_reads_the_white_noise_density():

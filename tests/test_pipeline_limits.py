@@ -39,6 +39,7 @@ name = "stream line"
 status = "ok"
 "params.x.bias_poly(1).c0" = {{ abs = true, max = {c0_max!r} }}   # rad/s
 allan.rrw = {{ max = 1.0, optional = true }}   # rad/s^2/sqrt(Hz): 200 samples seldom show one
+temp_range.span = {{ min = 1.0 }}                # °C
 """)
     return str(path)
 
@@ -84,6 +85,8 @@ def test_streamed_fit_judges_every_device_as_the_in_memory_fit(dataset, referenc
         for x, y in zip(a["broken"], b["broken"]):
             assert x["by"] == pytest.approx(y["by"], rel=1e-9)
         assert set(devs[name]["allan"]) == {"arw", "bias_instability", "rrw", "x", "y", "z"}
+        assert devs[name]["temp_range"] == pytest.approx(expect[name]["temp_range"], rel=1e-12)
+        assert devs[name]["temp_range"]["span"] > 1.0
         for ax in "xyz":  # the read-outs of the residual, computed in the chunk
             for k, v in expect[name]["allan"][ax].items():
                 w = devs[name]["allan"][ax][k]

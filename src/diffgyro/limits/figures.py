@@ -10,8 +10,10 @@
   zero-rate offset over temperature.
 * ``bias_tempco``: the largest |d bias / dT| over that range (rad/s/K): the
   datasheet's zero-rate offset temperature coefficient.
+* ``temp_range``: ``min``, ``max`` and ``span`` of the temperatures the device was
+  calibrated over (°C): the range check of a thermal test.
 
-Each group holds ``x``, ``y``, ``z`` and ``worst`` (the largest over the axes that
+The first three groups hold ``x``, ``y``, ``z`` and ``worst`` (the largest over the axes that
 have a value; null when none has).
 """
 
@@ -106,6 +108,10 @@ def add_figures(record: dict, wanted, *, allan: dict | None = None, centre=None,
         out["allan"] = allan if allan is not None else {
             **dict.fromkeys(("arw", "bias_instability", "rrw")),
             **{ax: dict.fromkeys(("arw", "bias_instability", "rrw")) for ax in AXES}}
+    if "temp_range" in wanted:
+        lo, hi = (None, None) if temp_range is None else (number(temp_range[0]), number(temp_range[1]))
+        out["temp_range"] = {"min": lo, "max": hi,
+                             "span": None if lo is None or hi is None else hi - lo}
     if wanted & {"bias_range", "bias_tempco"}:
         figs = bias_figures(record.get("params"), centre, scale, temp_range)
         for k in ("bias_range", "bias_tempco"):

@@ -13,7 +13,8 @@
 
 A key is a dotted path into the device record that ``fit --json`` (or
 ``diagnose --json``) prints, plus the figures :mod:`.figures` adds when a
-limit asks for them (``allan.*``, ``bias_range.*``, ``bias_tempco.*``); ``*``
+limit asks for them (``allan.*``, ``bias_range.*``, ``bias_tempco.*``,
+``temp_range.*``); ``*``
 stands for every key at its level (``params.*.…``: each axis). Dotted keys may
 be quoted or written as TOML tables (``[limits.allan]`` then ``arw = {…}``).
 A bound is an inline table of ``min`` and/or ``max`` (numbers, in the record's
@@ -38,11 +39,11 @@ BOUND_KEYS = frozenset({"min", "max", "abs", "optional", "unit"})
 #: The first segment of a limit's path: the device record's fields and the figures added
 #: on request. ``motion`` and ``static_only`` are written by the motion check when present.
 ROOTS = frozenset({"status", "status_detail", "rms", "heldout_rms", "noise_floor", "steps",
-                   "n_samples", "params", "allan", "bias_range", "bias_tempco", "motion",
+                   "n_samples", "params", "allan", "bias_range", "bias_tempco", "temp_range", "motion",
                    "static_only", "verdict", "excess", "white_noise_rms", "noise_floor_allan",
                    "allan_slope"})
 #: Figures computed for a limit only (not in every record): their roots.
-COMPUTED = frozenset({"allan", "bias_range", "bias_tempco"})
+COMPUTED = frozenset({"allan", "bias_range", "bias_tempco", "temp_range"})
 MAX_FILE_BYTES = 1 << 20
 
 
