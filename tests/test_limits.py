@@ -51,6 +51,8 @@ def test_paths_hold_dots_inside_keys_and_wildcards():
     assert [p for p, _ in lookup(RECORD, "params.*.bias_poly(1).c1")] == [
         "params.x.bias_poly(1).c1", "params.y.bias_poly(1).c1", "params.z.bias_poly(1).c1"]
     assert lookup(RECORD, "params.x.bias_poly(2).c0") == [] and lookup(RECORD, "nothing") == []
+    assert [v for _, v in lookup(RECORD, "params.*.bias_poly(*).c0")] == [-0.07, 0.02, 0.04]
+    assert len(lookup(RECORD, "params.*.*")) == 6 and lookup(RECORD, "params.x.aux(*).a1") == []
 
 
 def test_bounds_say_which_limit_broke_and_by_how_much():

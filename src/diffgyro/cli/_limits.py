@@ -9,7 +9,6 @@ import sys
 from pathlib import Path
 from typing import Annotated
 
-import numpy as np
 import typer
 
 #: Broken limits shown per device in the text output (--json lists them all).
@@ -37,6 +36,8 @@ def load_limits(path: Path | None, model):
 
 def _temperature(result, i: int):
     """(centre, scale, range) of device ``i``'s temperature normalisation, or Nones."""
+    import numpy as np
+
     if result.temp_range is None:
         return None, None, None
     return (float(np.asarray(result.norm.centre)[i]), float(np.asarray(result.norm.scale)[i]),
@@ -47,6 +48,8 @@ def judge(limits, records: list[dict], result, batch, residuals=None) -> tuple[l
     """Records with the figures the limits ask for and their ``limits`` result, and the
     batch summary. ``result`` is the (base) FitResult; ``residuals`` (devices, n, 3) the
     fit residual when already at hand (diagnose holds it)."""
+    import numpy as np
+
     from diffgyro.limits import add_figures, check, residual_allan, summary, unmatched
 
     wanted = limits.computed

@@ -10,6 +10,7 @@ units; ``abs`` and a ``detail`` in words where they apply). A batch gets
 from __future__ import annotations
 
 import math
+from fnmatch import fnmatchcase
 
 from .spec import Limit, Limits, fail, split_path
 
@@ -17,7 +18,8 @@ from .spec import Limit, Limits, fail, split_path
 def lookup(record: dict, path: str) -> list[tuple[str, object]]:
     """Every (concrete path, value) that ``path`` names in ``record``: segments are matched
     against the keys, several segments joined by dots where a key holds dots
-    (``bias_poly(2).c0``), ``*`` matching every key of its level; [] where none does."""
+    (``bias_poly(2).c0``); ``*`` alone matches every key of its level, and inside a segment
+    any text (``bias_poly(*).c0``: any order); [] where nothing matches."""
     out: list[tuple[str, object]] = []
 
     def walk(node, parts: list[str], done: str) -> None:
@@ -26,14 +28,15 @@ def lookup(record: dict, path: str) -> list[tuple[str, object]]:
             return
         if not isinstance(node, dict):
             return
-        if parts[0] == "*":
-            for k in node:
-                walk(node[k], parts[1:], f"{done}.{k}" if done else str(k))
-            return
         for j in range(len(parts), 0, -1):  # the longest key first
             key = ".".join(parts[:j])
-            if key in node:
-                walk(node[key], parts[j:], f"{done}.{key}" if done else key)
+            if "*" in key:
+                found = [k for k in node if fnmatchcase(str(k), key.replace("[", "[[]"))]
+            else:
+                found = [key] if key in node else []
+            for k in found:
+                walk(node[k], parts[j:], f"{done}.{k}" if done else str(k))
+            if found:
                 return
 
     walk(record, split_path(path), "")
