@@ -116,3 +116,14 @@ def test_device_whose_fit_is_not_ok_is_not_judged(files, tmp_path, capsys):
     assert "class=not_judged>not_judged<" in page and "insufficient_range: temperature" in page
     index = (report / "index.html").read_text()
     assert "1 adequate, 0 missing an effect, 1 not judged" in index
+
+
+def test_column_some_files_lack_is_listed_not_dropped_silently(files, capsys):
+    """``vdd`` is logged in one file only: the batch cannot hold it, and every device lists
+    ``aux(vdd)`` under skipped with the count of devices that have it."""
+    out = json.loads(_run(capsys, ["diagnose", files["vdd"], files["mag"], "--model",
+                                   "bias_poly(1)", "--json", "--candidates", "aux"]).out)
+    assert [d["device"] for d in out["devices"]] == ["unit-vdd", "unit-good", "unit-flat"]
+    for d in out["devices"]:
+        assert "logged for 1 of 3 devices only" in d["skipped"]["aux(vdd)"]
+        assert "logged for 2 of 3 devices only" in d["skipped"]["aux(Magnetometer X (uT))"]

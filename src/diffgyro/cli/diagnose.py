@@ -173,9 +173,9 @@ def diagnose_command(
     from ._limits import load_limits
 
     lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
-    spec, batch, names = _load_checked(model, data, candidates, columns, gyro_unit, acc_unit,
-                                       temp_unit, time_unit, sampling_rate, drop_invalid, topic,
-                                       temp_topic)
+    spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
+                                                acc_unit, temp_unit, time_unit, sampling_rate,
+                                                drop_invalid, topic, temp_topic)
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -187,6 +187,9 @@ def diagnose_command(
     else:
         with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
             diag = diagnose(spec, batch, names, **opts)
+    if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
+        for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
+            d.skipped.update(partial)
     judged = None
     if lim is not None:
         from ._limits import judge
@@ -204,15 +207,19 @@ def diagnose_command(
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                   sampling_rate, drop_invalid, topic, temp_topic):
-    """The parsed model, the loaded batch and the candidate names; a DataError (exit 2) for a
-    bad spec, an unknown candidate or a signal the model needs that the data lacks."""
+    """The parsed model, the loaded batch, the candidate names and the extra columns some
+    devices lack (:func:`partial_columns`); a DataError (exit 2) for a bad spec, an unknown
+    candidate or a signal the model needs that the data lacks."""
+    from diffgyro.data import Batch
     from diffgyro.model import ErrorModel
 
     from .fit import load_for_model
 
     spec = ErrorModel.from_spec(model)
-    batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+    recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                          batch=False)
+    batch = Batch.from_recordings(recs)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:
         from diffgyro.effects import parse_term, registry
@@ -228,7 +235,20 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
 
         raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
                         file=batch.sources[0] if batch.sources else None)
-    return spec, batch, names
+    return spec, batch, names, partial_columns(recs)
+
+
+def partial_columns(recs) -> dict[str, str]:
+    """The extra columns some devices lack (a batch keeps those every device has), as the
+    ``aux(NAME)`` terms diagnose does not try and why: listed under ``skipped``."""
+    names = sorted({k for r in recs for k in r.aux} - set.intersection(*(set(r.aux) for r in recs)))
+    out = {}
+    for name in names:
+        have = sum(name in r.aux for r in recs)
+        out[f"aux({name})"] = (f"extra column {name!r} is logged for {have} of {len(recs)} "
+                               f"devices only: a term needs it on every device of the batch; "
+                               f"diagnose those devices apart to try it")
+    return out
 
 
 def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None) -> None:

@@ -35,18 +35,23 @@ DtempWindow = Annotated[float | None, typer.Option(
 
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None):
-    """Load data for ``model``: a DataError if every device is too short for it."""
+                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True):
+    """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
+    the recordings, not padded into a batch)."""
     from diffgyro.core import min_samples
     from diffgyro.io import check_min_samples
 
-    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+    recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                         sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                         batch=False)
     need = min_samples(model.n_params + model.n_nonlinear)
-    recs = batch.recordings()
     if all(r.n < need for r in recs):
         check_min_samples(recs[0], need, f"model {model.spec!r}")
-    return batch
+    if not batch:
+        return recs
+    from diffgyro.data import Batch
+
+    return Batch.from_recordings(recs)
 
 
 @app.command("fit")
