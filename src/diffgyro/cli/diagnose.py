@@ -190,6 +190,13 @@ def diagnose_command(
     if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
         for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
             d.skipped.update(partial)
+    _outputs(diag, ladder, batch, lim, report, out, as_json, err)
+
+
+def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
+             err) -> None:
+    """Judge the devices against the limits file (``lim``), then the report, the calibration
+    file and the printed result."""
     judged = None
     if lim is not None:
         from ._limits import judge
