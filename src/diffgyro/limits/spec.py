@@ -14,9 +14,10 @@
 A key is a dotted path into the device record that ``fit --json`` (or
 ``diagnose --json``) prints, plus the figures :mod:`.figures` adds when a
 limit asks for them (``allan.*``, ``bias_range.*``, ``bias_tempco.*``,
-``temp_range.*``); ``*``
-stands for every key at its level (``params.*.…``: each axis). Dotted keys may
-be quoted or written as TOML tables (``[limits.allan]`` then ``arw = {…}``).
+``temp_range.*``); ``*`` alone stands for every key at its level
+(``params.*.…``: each axis), inside a key for any text (``bias_poly(*).c0``).
+Dotted keys may be quoted or written as TOML tables (``[limits.allan]`` then
+``arw = {…}``).
 A bound is an inline table of ``min`` and/or ``max`` (numbers, in the record's
 units unless ``unit`` names another), ``abs = true`` to bound the magnitude,
 ``optional = true`` to pass a device where the value is missing. Anything else
@@ -76,7 +77,7 @@ class Limits:
 
     @property
     def computed(self) -> frozenset[str]:
-        """The computed figures some limit reads (``allan``, ``bias_range``, ``bias_tempco``)."""
+        """The computed figures some limit reads (:data:`COMPUTED`)."""
         return frozenset(lim.parts[0] for lim in self.limits) & COMPUTED
 
     @property
