@@ -341,8 +341,8 @@ def test_temperature_quantum_and_window():
 
 
 def test_unfittable_device_and_stochastic_base(tmp_path):
-    """A device the base model cannot fit (no temperature span for bias_poly(2)) gets no
-    named effect and a plain explanation; the others are diagnosed; a random walk in the
+    """A device the base model cannot fit (no temperature span for bias_poly(2)) is not
+    judged: no verdict, no named effect, the reason in words; the others are diagnosed; a random walk in the
     base model is refused with a hint (it is a candidate)."""
     from diffgyro.data import Recording
     from diffgyro.errors import SpecError
@@ -356,9 +356,10 @@ def test_unfittable_device_and_stochastic_base(tmp_path):
     dg = diagnose("bias_poly(2)", batch)
     good, bad = dg.devices
     assert good.verdict == "missing_effect" and good.best.effect == "gradient"
-    assert bad.verdict == "adequate" and not bad.candidates and "could not be fitted" in bad.explanation
+    assert bad.verdict == "not_judged" and not bad.candidates and "not judged" in bad.explanation
     rec = dg.to_json()["devices"][1]
-    assert rec["heldout_rms"] is None and rec["status"].startswith("insufficient_range")
+    assert rec["heldout_rms"] is None and rec["status"] == "insufficient_range"
+    assert rec["status_detail"].startswith("insufficient_range: temperature constant")
     write_report(dg, batch, tmp_path)  # the report copes with it
     with pytest.raises(SpecError, match="random_walk"):
         diagnose("bias_poly(2)+random_walk", batch)

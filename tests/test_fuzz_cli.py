@@ -3,7 +3,8 @@ to a good small recording (truncation, byte flips, swapped or duplicated rows an
 columns, constant or empty columns, extreme values, other encodings and line
 endings, wrong extensions and magic bytes, damaged Parquet/NPZ/compressed files
 and damaged logs: PX4 ULog, ROS 1 bag, ArduPilot DataFlash) through every
-command; export reads damaged calibration files. Each run ends with exit 0 and strict JSON on stdout (no
+command (fit and diagnose with a limits file); export reads damaged calibration files and
+fit and diagnose damaged limits files (TOML). Each run ends with exit 0 and strict JSON on stdout (no
 NaN/Infinity), or exit 2 and exactly one line on stderr naming the file: never a
 traceback. Derandomized, so CI sees the same examples every run."""
 
@@ -169,7 +170,22 @@ def ground(tmp_path_factory):
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         assert main(["fit", str(good), "--model", "bias_poly(1)", "--out", str(cal)]) == 0
     blobs["cal"] = cal.read_bytes()
-    return Ground(dir=d, blobs=blobs, cal=cal, count=[0])
+    limits = d / "limits.toml"
+    limits.write_text(LIMITS)
+    return Ground(dir=d, blobs=blobs, cal=cal, count=[0], limits=limits)
+
+
+#: A production line's limits (the recording's numbers pass them): a text field, bounds in
+#: the record's units and in a datasheet's, a wildcard over axes and coefficients.
+LIMITS = """[about]
+name = "fuzz line"
+
+[limits]
+status = "ok"
+heldout_rms = { max = 0.01 }          # rad/s
+noise_floor = { min = 0, max = 0.01 } # rad/s
+"params.*.*" = { abs = true, max = 20, unit = "deg/s" }
+"""
 
 
 def log_devices() -> list[dict]:
@@ -225,9 +241,10 @@ def damaged_file(draw, blobs: dict[str, bytes]) -> tuple[bytes, str]:
 def commands(path: str, ground: dict) -> dict[str, list[str]]:
     out = ground["dir"] / "out"
     return {
-        "fit": ["fit", path, "--model", "bias_poly(1)", "--json"],
+        "fit": ["fit", path, "--model", "bias_poly(1)", "--json", "--limits",
+                str(ground["limits"])],
         "diagnose": ["diagnose", path, "--model", "bias_poly(0)", "--json",
-                     "--candidates", "bias_poly,gradient"],
+                     "--candidates", "bias_poly,gradient", "--limits", str(ground["limits"])],
         "allan": ["allan", path, "--json"],
         "recipe": ["recipe", "binned-thermal", path, "--json", "--bin-width", "2.5"],
         "compensate": ["compensate", path, "--cal", str(ground["cal"]), "--json",
@@ -304,6 +321,63 @@ def test_damaged_calibration_file_gives_one_line(ground, data):
     check("compensate", argv, path)
 
 
+@st.composite
+def limits_damage(draw, text: str) -> tuple[bytes, str | None]:
+    """One edit of a limits file: a key renamed, a value of the wrong type, a line dropped
+    or doubled, or its bytes damaged; with the key the error must name, where one must."""
+    lines = text.splitlines()
+    rows = [i for i, line in enumerate(lines) if "=" in line and not line.startswith("#")]
+    i = draw(st.sampled_from(rows))
+    key = lines[i].split("=", 1)[0].strip().strip('"')
+    kind = draw(st.sampled_from(["rename", "value", "bound", "drop", "double", "bytes"]))
+    if kind == "rename":
+        new = draw(st.sampled_from(["heldout_rsm", "noise", "params.q.x", "allan", "status.x"]))
+        lines[i] = f'"{new}" =' + lines[i].split("=", 1)[1]
+        key = None  # refused as an unknown field, or a path no coefficient has: both named
+    elif kind == "value":
+        value = draw(st.sampled_from(["0.01", "'ok'", "true", "[1, 2]", "{}", "nan", "inf",
+                                      "[]", "{ max = 'x' }", "{ max = inf }", "{ min = 1, max = 0 }",
+                                      "{ maximum = 1 }", "{ max = 1, unit = 'parsec' }",
+                                      "{ max = 1, abs = 1 }", "1979-05-27"]))
+        lines[i] = lines[i].split("=", 1)[0] + "= " + value
+    elif kind == "bound":
+        lines[i] = lines[i].replace("max", draw(st.sampled_from(["mx", "min", "Max", "max.x"])), 1)
+    elif kind == "drop":
+        del lines[i]
+        key = None
+    elif kind == "double":
+        lines.insert(i, lines[i])
+        key = None  # a TOML error: line and column
+    content = ("\n".join(lines) + "\n").encode()
+    if kind == "bytes":
+        content, key = draw(byte_damage(content)), None
+    return content, key
+
+
+@FUZZ
+@given(data=st.data())
+def test_damaged_limits_file_gives_json_or_one_line(ground, data):
+    """fit and diagnose with a damaged limits file: exit 0 and strict JSON (the edit left a
+    valid file), or one line naming the file, and the key where the edit made a key wrong."""
+    content, key = data.draw(limits_damage(LIMITS), label="damaged limits")
+    ground["count"][0] += 1
+    path = ground["dir"] / f"limits{ground['count'][0]}.toml"
+    path.write_bytes(content)
+    good = str(ground["dir"] / "good.csv")
+    for command in ("fit", "diagnose"):
+        argv = commands(good, ground)[command]
+        argv[argv.index("--limits") + 1] = str(path)
+        code, out, err = run(argv)
+        assert "Traceback" not in err, err
+        if code == 0:
+            assert strict_json(out)["limits"]["file"] == str(path)
+            continue
+        line, = [x for x in err.strip().splitlines() if not x.startswith("diffgyro: warning")]
+        assert code == 2 and line.startswith(f"diffgyro: error: file {path}: "), err
+        if key is not None and "not valid TOML" not in line and "UTF-8" not in line:
+            assert f"key {key!r}" in line or f"key '{key}." in line, line
+
+
 @pytest.mark.parametrize("ext", [".csv", ".ulg", ".bag", ".bin"])
 @pytest.mark.parametrize("command", ["fit", "diagnose", "allan", "recipe", "compensate"])
 def test_the_good_recording_passes_every_command(ground, command, ext):
@@ -319,6 +393,8 @@ def test_the_good_recording_passes_every_command(ground, command, ext):
         return
     assert code == 0, err
     doc = strict_json(out)
+    if command in ("fit", "diagnose"):  # the good recording passes the line's limits
+        assert doc["limits"]["rejected"] == [] and doc["limits"]["yield"] == 1.0
     if command == "compensate":
         assert doc["devices"] == [{"device": d, "n_samples": N, "clamped": 0}
                                   for d in ("unit-a", "unit-b")]

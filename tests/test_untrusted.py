@@ -429,7 +429,9 @@ def test_every_json_command_says_why_a_device_is_not_ok(tmp_path, capsys):
                               "--candidates", "bias_poly"], capsys)
     assert code == 0, err
     steady = strict_json(out)["devices"][0]
-    assert steady["rms"] is None and reason in steady["status"] and reason in steady["explanation"]
+    assert steady["rms"] is None and steady["status"] == "insufficient_range"
+    assert reason in steady["status_detail"] and reason in steady["explanation"]
+    assert steady["verdict"] == "not_judged" and reason in steady["verdict_detail"]
 
     code, out, err = run_cli(["recipe", "binned-thermal", str(path), "--json",
                               "--bin-width", "2.5"], capsys)

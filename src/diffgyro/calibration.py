@@ -59,6 +59,8 @@ class DeviceCalibration:
     status_detail: str = ""
     #: Per extra column an ``aux(NAME)`` term reads: {"centre", "scale", "range": [lo, hi]}.
     aux: dict = field(default_factory=dict)
+    #: Pass/fail against a limits file (:mod:`diffgyro.limits`): {"result", "broken"}.
+    limits: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -74,6 +76,8 @@ class Calibration:
     units: dict = field(default_factory=dict)
     format: str = FORMAT
     format_version: int = FORMAT_VERSION
+    #: The batch's pass/fail summary (:func:`diffgyro.limits.summary`), when checked.
+    limits: dict = field(default_factory=dict)
 
     @property
     def error_model(self) -> ErrorModel:
@@ -93,12 +97,12 @@ class Calibration:
             "created": self.created, "diffgyro_version": self.diffgyro_version,
             "input_hash": self.input_hash, "units": self.units,
             "devices": [entry_json(d.__dict__) for d in self.devices],
-        }
+        } | ({"limits": self.limits} if self.limits else {})
 
 
 def entry_json(fields: dict) -> dict:
-    """A device entry as written: JSON-safe, without an empty ``aux`` block."""
-    return to_json_safe({k: v for k, v in fields.items() if k != "aux" or v})
+    """A device entry as written: JSON-safe, without an empty ``aux`` or ``limits`` block."""
+    return to_json_safe({k: v for k, v in fields.items() if k not in ("aux", "limits") or v})
 
 
 def data_hash(batch: Batch) -> str:
@@ -200,9 +204,9 @@ def _finite(x, where: str, allow_nan: bool = False) -> float:
 
 
 _FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
-                        "diffgyro_version", "input_hash", "units", "devices"})
+                        "diffgyro_version", "input_hash", "units", "devices", "limits"})
 _DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
-                          "temp_range", "quality", "params", "status_detail", "aux"})
+                          "temp_range", "quality", "params", "status_detail", "aux", "limits"})
 MAX_THETA = 700.0        # |log τ|: beyond this exp() overflows
 MAX_DTEMP_WINDOW = 1e6   # s
 MAX_NAME = 1000
@@ -306,7 +310,8 @@ def from_json(obj) -> Calibration:
                                      temp_centre=centre, temp_scale=scale, temp_range=tr,
                                      quality=quality, params=params,
                                      status_detail=_text(d, "status_detail", where),
-                                     aux=_aux_entries(d.get("aux", {}), model, where)))
+                                     aux=_aux_entries(d.get("aux", {}), model, where),
+                                     limits=_limits_entry(d.get("limits", {}), where)))
     window = _req(obj, "dtemp_window", float, "file")
     if not (0 < window <= MAX_DTEMP_WINDOW):
         raise SpecError(f"calibration file: dtemp_window must be a positive number of seconds "
@@ -318,10 +323,25 @@ def from_json(obj) -> Calibration:
     if not isinstance(units, dict) or len(units) > 256 or not all(
             isinstance(k, str) and isinstance(v, str) for k, v in units.items()):
         raise SpecError("calibration file: units must be an object of texts")
+    lim = obj.get("limits", {})
+    if not isinstance(lim, dict):
+        raise SpecError("calibration file: limits must be an object")
     return Calibration(model=model.spec, devices=out, dtemp_window=window,
                        created=_text(obj, "created", "file"),
                        diffgyro_version=_text(obj, "diffgyro_version", "file"),
-                       input_hash=ih, units=dict(units))
+                       input_hash=ih, units=dict(units), limits=lim)
+
+
+def _limits_entry(val, where: str) -> dict:
+    """A device's pass/fail against a limits file: ``{"result": "pass"|"fail", "broken": [...]}``."""
+    if val == {}:
+        return {}
+    if (not isinstance(val, dict) or val.get("result") not in ("pass", "fail")
+            or not isinstance(val.get("broken"), list)
+            or not all(isinstance(b, dict) for b in val["broken"])):
+        raise SpecError(f"calibration file: {where}.limits must be {{'result': 'pass' or 'fail', "
+                        f"'broken': [...]}}")
+    return val
 
 
 def _aux_entries(val, model: ErrorModel, where: str) -> dict:

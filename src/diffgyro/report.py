@@ -396,6 +396,7 @@ _CSS = """body{font-family:system-ui,sans-serif;max-width:1100px;margin:2em auto
 h1{font-size:1.4em}h2{font-size:1.15em;margin-top:1.6em}table{border-collapse:collapse;font-size:.85em}
 td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}
 td.l,th.l{text-align:left}.adequate{color:#1a7f37}.missing_effect{color:#b42318}
+.not_judged{color:#9a6700}.pass{color:#1a7f37}.fail{color:#b42318}
 .expl{background:#f7f7f7;border-left:4px solid #888;padding:.6em 1em}img{max-width:100%}"""
 
 
@@ -408,7 +409,43 @@ def _fmt(x) -> str:
     return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
 
 
-def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str:
+def _limits_html(record: dict | None) -> str:
+    """A device's pass/fail against a limits file, with every limit it broke."""
+    if not record or "limits" not in record:
+        return ""
+    lim = record["limits"]
+    res = lim["result"]
+    rows = "".join(
+        f"<tr><td class=l>{html.escape(b['limit'])}</td><td>{html.escape(_num(b.get('value')))}</td>"
+        f"<td>{html.escape(_num(b.get('min')))}</td><td>{html.escape(_num(b.get('max')))}</td>"
+        f"<td>{html.escape(_num(b.get('by')))}</td>"
+        f"<td class=l>{html.escape(b.get('detail', ''))}</td></tr>" for b in lim["broken"])
+    table = ("<table><tr><th class=l>limit</th><th>value</th><th>min</th><th>max</th><th>by</th>"
+             f"<th class=l>why</th></tr>{rows}</table>") if rows else ""
+    return f"<h2>Limits: <span class={res}>{res}</span></h2>{table}"
+
+
+def _num(x) -> str:
+    if x is None:
+        return "—"
+    return f"{x:.4g}" if isinstance(x, (int, float)) and not isinstance(x, bool) else str(x)
+
+
+def _limits_summary_html(summary: dict | None) -> str:
+    """The batch's yield against a limits file and the rejected units."""
+    if not summary:
+        return ""
+    y = summary["yield"]
+    rejected = ", ".join(html.escape(str(r)) for r in summary["rejected"]) or "none"
+    return (f"<h2>Limits {html.escape(str(summary['name']))}</h2><p>File "
+            f"<code>{html.escape(str(summary['file']))}</code>: {summary['passed']} of "
+            f"{summary['passed'] + summary['failed']} devices pass"
+            + ("" if y is None else f" (yield {100 * y:.1f} %)")
+            + f"; rejected: {rejected}.</p>")
+
+
+def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits=None) -> str:
+    """One device's page; ``limits``: its record with the --limits result."""
     d = diagnosis.devices[i]
     rows = "".join(
         f"<tr><td class=l>{html.escape(c.effect)}</td><td class=l>{html.escape(c.spec)}</td>"
@@ -417,10 +454,12 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str
     skipped = "".join(f"<li>{html.escape(k)}: {html.escape(v)}</li>" for k, v in d.skipped.items())
     body = [
         f"<h1>{html.escape(d.device)} — <span class={d.verdict}>{d.verdict}</span></h1>",
-        f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status {html.escape(d.status)}. "
+        f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status "
+        f"{html.escape(d.status_detail or d.status)}. "
         f"RMS {_fmt(d.rms)}, held-out RMS {_fmt(d.heldout_rms)}, noise floor {_fmt(d.noise_floor)} "
         f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
         f"<p class=expl>{html.escape(d.explanation)}</p>",
+        _limits_html(limits),
         "<h2>Candidates (best first)</h2><table><tr><th class=l>effect</th><th class=l>model</th>"
         "<th>held-out RMS</th><th>gap closed</th><th>paired t</th><th>significant</th></tr>"
         f"{rows}</table>",
@@ -462,19 +501,21 @@ def outliers(diagnosis, z: float = 5.0) -> list[tuple[str, str]]:
     return out
 
 
-def summary_page(diagnosis, ladder=None) -> str:
+def summary_page(diagnosis, ladder=None, limits=None) -> str:
+    """The batch page; ``limits``: (records, summary) of --limits."""
     plt = _plt()
     devs = diagnosis.devices
     counts = diagnosis.verdicts()
     body = [f"<h1>diffgyro diagnosis of {len(devs)} device(s)</h1>",
             f"<p>Model <code>{html.escape(diagnosis.spec)}</code>: {counts['adequate']} adequate, "
-            f"{counts['missing_effect']} missing an effect.</p>"]
+            f"{counts['missing_effect']} missing an effect, {counts['not_judged']} not judged "
+            f"(base fit not ok).</p>", _limits_summary_html(None if limits is None else limits[1])]
     best: dict[str, int] = {}
     for d in devs:
         if d.best is not None:
             best[d.best.effect] = best.get(d.best.effect, 0) + 1
     fig, axs = plt.subplots(1, 2, figsize=(10, 3))
-    axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red"])
+    axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red", "tab:olive"])
     axs[0].set_title("verdicts", fontsize=9)
     if best:
         axs[1].bar(list(best), list(best.values()), color="tab:red")
@@ -484,12 +525,18 @@ def summary_page(diagnosis, ladder=None) -> str:
 
     rows = "".join(
         f"<tr><td class=l><a href='{_slug(d.device)}.html'>{html.escape(d.device)}</a></td>"
-        f"<td class='l {d.verdict}'>{d.verdict}</td><td>{_fmt(d.heldout_rms)}</td>"
+        f"<td class='l {d.verdict}'>{d.verdict}</td>"
+        f"<td class=l>{html.escape(d.status_detail or d.status)}</td><td>{_fmt(d.heldout_rms)}</td>"
         f"<td>{_fmt(d.noise_floor)}</td><td class=l>{html.escape(d.best.effect if d.best else '')}</td>"
-        f"<td class=l>{html.escape(', '.join(c.effect for c in d.alternatives))}</td></tr>" for d in devs)
+        f"<td class=l>{html.escape(', '.join(c.effect for c in d.alternatives))}</td>"
+        + ("" if limits is None else f"<td class='l {limits[0][k]['limits']['result']}'>"
+                                     f"{limits[0][k]['limits']['result']}</td>")
+        + "</tr>" for k, d in enumerate(devs))
     body.append("<h2>Devices</h2><table><tr><th class=l>device</th><th class=l>verdict</th>"
+                "<th class=l>fit status</th>"
                 "<th>held-out RMS</th><th>noise floor</th><th class=l>add</th>"
-                f"<th class=l>close alternatives</th></tr>{rows}</table>")
+                "<th class=l>close alternatives</th>"
+                + ("" if limits is None else "<th class=l>limits</th>") + f"</tr>{rows}</table>")
 
     fit = ladder.final.fit if ladder is not None else diagnosis.fit
     coefs = _coefficients(fit)
@@ -531,9 +578,12 @@ def _slug(name: str) -> str:
     return keep or "device"
 
 
-def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=None) -> list[Path]:
+def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=None,
+                 limits=None) -> list[Path]:
     """Write ``index.html`` (batch summary) and one page per device into ``directory``.
 
+    ``limits``: (records, summary) of a limits file (:mod:`diffgyro.limits`): each page
+    says pass or fail and the limits broken, the summary the yield and the rejected units.
     Returns the paths written. Each page embeds its figures (base64 PNG).
     """
     directory = Path(directory)
@@ -546,9 +596,10 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
         while slug in seen:
             slug += "_"
         seen.add(slug)
-        page = device_page(diagnosis, batch, i, ladder, named.get(i))
+        page = device_page(diagnosis, batch, i, ladder, named.get(i),
+                           None if limits is None else limits[0][i])
         paths.append(write_atomic(directory / f"{slug}.html", page))
-    paths.insert(0, write_atomic(directory / "index.html", summary_page(diagnosis, ladder)))
+    paths.insert(0, write_atomic(directory / "index.html", summary_page(diagnosis, ladder, limits)))
     return paths
 
 

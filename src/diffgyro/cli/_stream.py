@@ -45,7 +45,7 @@ ResultsOpt = Annotated[
 
 def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit, temp_unit,
                time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir, resume, dask,
-               results) -> None:
+               results, limits=None) -> None:
     """``diffgyro fit`` over a dataset in chunks; same ``--json`` object as the plain fit."""
     from diffgyro.io import parse_columns
     from diffgyro.pipeline import DEFAULT_CHUNK_DEVICES, fit_dataset
@@ -58,18 +58,33 @@ def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_
         drop_invalid=drop_invalid, sampling_rate=sampling_rate,
         fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
         progress=True,
-        json_stream=sys.stdout if as_json else None)
+        json_stream=sys.stdout if as_json else None, limits=limits)
     bad = ", ".join(f"{n} {s}" for s, n in sorted(summary.statuses.items()) if s != "ok")
     print(f"diffgyro fit: {summary.n_ok} of {summary.n_devices} devices ok"
           + (f" ({bad})" if bad else "") + f"; {summary.chunks_run} of {summary.chunks_total} "
           f"chunks run, {summary.devices_per_second:.1f} devices/s", file=sys.stderr)
+    _print_limits("fit", summary.limits)
     for name, path in summary.outputs.items():
         print(f"diffgyro fit: {name} written to {path}", file=sys.stderr)
 
 
+def _print_limits(command: str, summary: dict | None) -> None:
+    """The yield and the rejected units of a streamed run (stderr: stdout holds --json)."""
+    if summary is None:
+        return
+    y = summary["yield"]
+    rejected = summary["rejected"]
+    shown = ", ".join(rejected[:20]) + (f" and {len(rejected) - 20} more" if len(rejected) > 20
+                                        else "") or "none"
+    print(f"diffgyro {command}: limits {summary['name']} ({summary['file']}): {summary['passed']} "
+          f"of {summary['passed'] + summary['failed']} devices pass"
+          + ("" if y is None else f" (yield {100 * y:.1f} %)") + f"; rejected: {shown}",
+          file=sys.stderr)
+
+
 def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window, columns,
                     gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
-                    chunk_devices, work_dir, resume, dask, results) -> None:
+                    chunk_devices, work_dir, resume, dask, results, limits=None) -> None:
     """``diffgyro diagnose`` over a dataset in chunks; same ``--json`` object (model, devices)."""
     import json
 
@@ -93,7 +108,7 @@ def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window
         units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
         drop_invalid=drop_invalid, sampling_rate=sampling_rate,
         fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
-        progress=True, json_stream=sys.stdout if as_json else None)
+        progress=True, json_stream=sys.stdout if as_json else None, limits=limits)
     verdicts: dict[str, int] = {}
     missing: dict[str, int] = {}
     with open(summary.outputs["results"], encoding="utf-8") as fh:
@@ -110,4 +125,5 @@ def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window
     if missing:
         top = ", ".join(f"{e} ({n})" for e, n in sorted(missing.items(), key=lambda x: -x[1]))
         print(f"diffgyro diagnose: missing effects found: {top}", file=sys.stderr)
+    _print_limits("diagnose", summary.limits)
     print(f"diffgyro diagnose: results written to {summary.outputs['results']}", file=sys.stderr)

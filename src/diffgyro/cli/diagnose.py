@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._limits import LimitsOpt
 from ._options import (
     AccUnit,
     Columns,
@@ -40,24 +41,39 @@ def _add(d) -> str:
     return text + (f", then {d.next.term}" if d.next is not None else "")
 
 
-def print_diagnosis(diag, console) -> None:
-    """A rich table of the devices, then each device's explanation."""
+def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
+    """A rich table of the devices, then each device's explanation (``judged``: the records
+    with their --limits result, a column of pass/fail)."""
     from rich.table import Table
 
     table = Table(title=f"diagnosis of {diag.spec} (rates in rad/s)")
     for col in ("device", "verdict", "rms", "held-out", "floor", "add", "held-out with it",
-                "close alternatives"):
+                "close alternatives", *(("limits",) if judged else ())):
         left = col in ("device", "verdict", "add", "close alternatives")
         table.add_column(col, justify="left" if left else "right", no_wrap=col != "close alternatives")
-    for d in diag.devices:
-        colour = "green" if d.verdict == "adequate" else "red"
+    for i, d in enumerate(diag.devices):
+        colour = {"adequate": "green", "not_judged": "yellow"}.get(d.verdict, "red")
         table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
                       _fmt(d.noise_floor), _add(d),
                       _fmt(d.best.heldout_rms) if d.best else "",
-                      ", ".join(c.term or c.effect for c in d.alternatives))
+                      ", ".join(c.term or c.effect for c in d.alternatives),
+                      *((judged[i]["limits"]["result"],) if judged else ()))
     console.print(table)
     for d in diag.devices:
         console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
+    for line in skipped_lines(diag):
+        console.print(line, markup=False, highlight=False, soft_wrap=True)
+
+
+def skipped_lines(diag) -> list[str]:
+    """Each candidate not tried, once, with its reason and the devices that skipped it."""
+    seen: dict[tuple[str, str], list[str]] = {}
+    for d in diag.devices:
+        for term, why in d.skipped.items():
+            seen.setdefault((term, why), []).append(d.device)
+    n = len(diag.devices)
+    return [f"not tried: {term} ({why}; {'every device' if len(devs) == n else ', '.join(devs)})"
+            for (term, why), devs in seen.items()]
 
 
 def print_ladder(ladder, console) -> None:
@@ -80,11 +96,15 @@ def wide_console():
     return Console() if sys.stdout.isatty() else Console(width=140)
 
 
-def _write_calibration(diag, batch, path: Path, err) -> None:
-    """The calibration of ``diag``'s model from the fit it holds (no second fit), atomically."""
+def _write_calibration(diag, batch, path: Path, err, judged=None) -> None:
+    """The calibration of ``diag``'s model from the fit it holds (no second fit), atomically;
+    ``judged``: (records, summary) of --limits, kept in the file."""
     from diffgyro import calibration
 
-    calibration.save(calibration.from_fit(diag.fit, batch), path)
+    from ._limits import attach
+
+    cal = calibration.from_fit(diag.fit, batch)
+    calibration.save(cal if judged is None else attach(cal, *judged), path)
     err.print(f"calibration of {diag.spec} written to {path}", markup=False, highlight=False)
 
 
@@ -112,7 +132,7 @@ def diagnose_command(
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
-    dask: DaskOpt = None, results: ResultsOpt = None,
+    dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -121,8 +141,16 @@ def diagnose_command(
     "verdict", "candidates": [{"effect", "spec", "heldout_rms", "significant"}, ...]}]}
     with candidates sorted best first (extra keys: explanation, evidence, alternatives, ...).
     A directory of Parquet files, --chunk-devices or --dask streams the data in chunks of
-    devices with resumable state in --work-dir (see docs/dask.md).
+    devices with resumable state in --work-dir (see docs/dask.md). --limits FILE.toml:
+    each device passes or fails the limits (records gain "limits", the object a
+    top-level "limits" with the yield), in the text, --json, the report and --out.
     """
+    if limits is not None and auto:
+        from diffgyro.errors import DataError
+
+        raise DataError("--limits judges the model given with --model; with --auto the model "
+                        "shipped is known only at the end",
+                        hint="run diagnose or fit --limits with the final model of the ladder")
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
         from ._stream import stream_diagnose
 
@@ -135,15 +163,19 @@ def diagnose_command(
 
         stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window, columns,
                         gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
-                        chunk_devices, work_dir, resume, dask, results)
+                        chunk_devices, work_dir, resume, dask, results, limits=limits)
         return
     from rich.console import Console
 
     from diffgyro.diagnose import diagnose, diagnose_auto
+    from diffgyro.model import ErrorModel
 
-    spec, batch, names = _load_checked(model, data, candidates, columns, gyro_unit, acc_unit,
-                                       temp_unit, time_unit, sampling_rate, drop_invalid, topic,
-                                       temp_topic)
+    from ._limits import load_limits
+
+    lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
+    spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
+                                                acc_unit, temp_unit, time_unit, sampling_rate,
+                                                drop_invalid, topic, temp_topic)
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -155,27 +187,46 @@ def diagnose_command(
     else:
         with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
             diag = diagnose(spec, batch, names, **opts)
+    if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
+        for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
+            d.skipped.update(partial)
+    _outputs(diag, ladder, batch, lim, report, out, as_json, err)
+
+
+def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
+             err) -> None:
+    """Judge the devices against the limits file (``lim``), then the report, the calibration
+    file and the printed result."""
+    judged = None
+    if lim is not None:
+        from ._limits import judge
+
+        judged = judge(lim, diag.to_json()["devices"], diag.fit, batch, diag.residuals)
     if report is not None:
         from diffgyro.report import write_report
 
         with err.status(f"writing the report to {report}"):
-            write_report(diag, batch, report, ladder=ladder)
+            write_report(diag, batch, report, ladder=ladder, limits=judged)
     if out is not None:
-        _write_calibration(ladder.final if ladder is not None else diag, batch, out, err)
-    _print_result(diag, ladder, as_json, report)
+        _write_calibration(ladder.final if ladder is not None else diag, batch, out, err, judged)
+    _print_result(diag, ladder, as_json, report, judged)
 
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                   sampling_rate, drop_invalid, topic, temp_topic):
-    """The parsed model, the loaded batch and the candidate names; a DataError (exit 2) for a
-    bad spec, an unknown candidate or a signal the model needs that the data lacks."""
+    """The parsed model, the loaded batch, the candidate names and the extra columns some
+    devices lack (:func:`partial_columns`); a DataError (exit 2) for a bad spec, an unknown
+    candidate or a signal the model needs that the data lacks."""
+    from diffgyro.data import Batch
     from diffgyro.model import ErrorModel
 
     from .fit import load_for_model
 
     spec = ErrorModel.from_spec(model)
-    batch = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+    recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                          batch=False)
+    batch = Batch.from_recordings(recs)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:
         from diffgyro.effects import parse_term, registry
@@ -183,29 +234,51 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
         for n in names:
             if n not in registry():
                 parse_term(n)  # SpecError naming the valid effects
-    missing = spec.requires() - set(batch.signals) - {"t"}
+    from diffgyro.data import aux_key
+
+    missing = spec.requires() - set(batch.signals) - {aux_key(k) for k in batch.aux} - {"t"}
     if missing:
         from diffgyro.errors import DataError
 
         raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
                         file=batch.sources[0] if batch.sources else None)
-    return spec, batch, names
+    return spec, batch, names, partial_columns(recs)
 
 
-def _print_result(diag, ladder, as_json: bool, report: Path | None) -> None:
-    """The JSON object (with the ladder and the final diagnosis after --auto), or the tables."""
+def partial_columns(recs) -> dict[str, str]:
+    """The extra columns some devices lack (a batch keeps those every device has), as the
+    ``aux(NAME)`` terms diagnose does not try and why: listed under ``skipped``."""
+    names = sorted({k for r in recs for k in r.aux} - set.intersection(*(set(r.aux) for r in recs)))
+    out = {}
+    for name in names:
+        have = sum(name in r.aux for r in recs)
+        out[f"aux({name})"] = (f"extra column {name!r} is logged for {have} of {len(recs)} "
+                               f"devices only: a term needs it on every device of the batch; "
+                               f"diagnose those devices apart to try it")
+    return out
+
+
+def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None) -> None:
+    """The JSON object (with the ladder and the final diagnosis after --auto), or the tables;
+    ``judged``: (records, summary) of --limits."""
     if as_json:
         from diffgyro.jsonio import dumps
 
         obj = diag.to_json()
+        if judged is not None:
+            obj["devices"], obj["limits"] = judged
         if ladder is not None:
             obj["ladder"] = ladder.records()
             obj["final"] = ladder.final.to_json()
         typer.echo(dumps(obj))
         return
     console = wide_console()
-    print_diagnosis(diag, console)
+    print_diagnosis(diag, console, None if judged is None else judged[0])
     if ladder is not None:
         print_ladder(ladder, console)
+    if judged is not None:
+        from ._limits import print_lines
+
+        print_lines(*judged, console=console)
     if report is not None:
         console.print(f"report: {Path(report) / 'index.html'}")

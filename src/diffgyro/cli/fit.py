@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._limits import LimitsOpt
 from ._options import (
     AccUnit,
     Columns,
@@ -34,18 +35,23 @@ DtempWindow = Annotated[float | None, typer.Option(
 
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None):
-    """Load data for ``model``: a DataError if every device is too short for it."""
+                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True):
+    """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
+    the recordings, not padded into a batch)."""
     from diffgyro.core import min_samples
     from diffgyro.io import check_min_samples
 
-    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+    recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                         sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                         batch=False)
     need = min_samples(model.n_params + model.n_nonlinear)
-    recs = batch.recordings()
     if all(r.n < need for r in recs):
         check_min_samples(recs[0], need, f"model {model.spec!r}")
-    return batch
+    if not batch:
+        return recs
+    from diffgyro.data import Batch
+
+    return Batch.from_recordings(recs)
 
 
 @app.command("fit")
@@ -59,9 +65,13 @@ def fit_command(
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
-    dask: DaskOpt = None, results: ResultsOpt = None,
+    dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
 ) -> None:
     """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
+
+    --limits FILE.toml: each device passes or fails the limits, with the limits it
+    broke and by how much; the batch gets its yield and the rejected units (in the
+    text, --json, the calibration file).
 
     A directory of Parquet files, --chunk-devices or --dask streams the data in
     chunks of devices with resumable state in --work-dir (see docs/dask.md).
@@ -76,9 +86,12 @@ def fit_command(
 
         stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit,
                    temp_unit, time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir,
-                   resume, dask, results)
+                   resume, dask, results, limits=limits)
         return
+    from ._limits import attach, judge, load_limits, print_lines
+
     em = ErrorModel.from_spec(model)
+    lim = load_limits(limits, em)
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                            sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
     if dtemp_window is None:
@@ -86,22 +99,31 @@ def fit_command(
 
         dtemp_window = suggest_dtemp_window(batch)
     result = fit(em, batch, dtemp_window=float(dtemp_window))
-    if out is not None:
-        calibration.save(calibration.from_fit(result, batch), out)
     records = result.records()
+    summary = None
+    if lim is not None:
+        records, summary = judge(lim, records, result, batch)
+    if out is not None:
+        cal = calibration.from_fit(result, batch)
+        calibration.save(cal if summary is None else attach(cal, records, summary), out)
     if as_json:
-        print(dumps({"model": em.spec, "devices": records}))
+        print(dumps({"model": em.spec, "devices": records}
+                    | ({} if summary is None else {"limits": summary})))
         return
     from rich.console import Console
     from rich.table import Table
 
     table = Table(title=f"fit {em.spec}  (rates in rad/s)")
-    for col in ("device", "status", "rms", "held-out rms", "noise floor", "samples"):
+    for col in ("device", "status", "rms", "held-out rms", "noise floor", "samples",
+                *(("limits",) if summary else ())):
         table.add_column(col)
     for r in records:
         table.add_row(r["device"], r["status_detail"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
-                      _fmt(r["noise_floor"]), str(r["n_samples"]))
+                      _fmt(r["noise_floor"]), str(r["n_samples"]),
+                      *((r["limits"]["result"],) if summary else ()))
     Console().print(table)
+    if summary is not None:
+        print_lines(records, summary)
     if out is not None:
         print(f"calibration written to {out}", file=sys.stderr)
 

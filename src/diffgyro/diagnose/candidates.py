@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from ..effects import AbstractNoise, AbstractTerm, registry
-from ..effects.base import MAX_ORDER, spec_arguments
+from ..effects.base import MAX_ORDER, is_column_name, spec_arguments
 from ..model import ErrorModel
 
 
@@ -56,6 +56,23 @@ def _column_terms(cls, model: ErrorModel, columns, explicit) -> list[AbstractTer
     used = {getattr(t, field) for t in model.terms if t.name == cls.name}
     terms = explicit if explicit is not None else [cls(**{field: c}) for c in columns]
     return [t for t in terms if getattr(t, field) not in used]
+
+
+def unnamed_columns(columns, names: list[str] | None = None) -> dict[str, str]:
+    """The column terms that cannot be written for extra columns whose names are not valid
+    term arguments (``Magnetometer X (uT)``), each with the reason and the way to try it:
+    listed under a device's ``skipped``, never an error (``names``: the effects tried)."""
+    bad = [c for c in columns if not is_column_name(c)]
+    wanted = None if names is None else {n.strip().split("(")[0] for n in names}
+    out = {}
+    for name, cls in registry().items():
+        if column_field(cls) is None or (wanted is not None and name not in wanted):
+            continue
+        for c in bad:
+            out[f"{name}({c})"] = (f"extra column name {c!r} cannot be written in a model term "
+                                   f"(letters, digits, _ and ., starting with a letter or _); to "
+                                   f"try it, rename it with --columns 'NEW={c}'")
+    return out
 
 
 def candidate_specs(model: ErrorModel, available: frozenset[str],

@@ -175,16 +175,25 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
     return d
 
 
-def unfitted(name: str, status: str, floor_axes: np.ndarray) -> DeviceDiagnosis:
-    """A device whose base model could not be fitted: nothing to diagnose against."""
+#: The verdict of a device whose base fit is not ``ok``: nothing is judged against a fit
+#: the data do not support (too few samples, no range, collinear terms, motion ...).
+NOT_JUDGED = "not_judged"
+VERDICTS = ("adequate", "missing_effect", NOT_JUDGED)
+
+
+def not_judged(name: str, status: str, status_detail: str, floor_axes: np.ndarray,
+               rms: float = math.nan, heldout_rms: float = math.nan) -> DeviceDiagnosis:
+    """A device whose base fit is not ``ok``: no verdict, no candidate, the reason said."""
     floor = float(np.sqrt(np.mean(floor_axes**2)))
     d = DeviceDiagnosis(
-        device=name, status=status, rms=float("nan"), heldout_rms=float("nan"),
+        device=name, status=status, rms=rms, heldout_rms=heldout_rms,
         white_noise_rms=floor, white_noise_axes=[float(v) for v in floor_axes],
-        floor_allan=float("nan"), verdict="adequate",
-        candidates=[], best=None, alternatives=[], random_walk=None, allan_slope=float("nan"))
-    d.explanation = (f"{name}: the base model could not be fitted ({status}); the data do not "
-                     f"support it, so no effect is named: simplify the model (see `diffgyro fit`).")
+        floor_allan=float("nan"), verdict=NOT_JUDGED,
+        candidates=[], best=None, alternatives=[], random_walk=None, allan_slope=float("nan"),
+        status_detail=status_detail)
+    d.explanation = (f"{name}: not judged — the base fit is not ok ({status_detail}); no effect "
+                     f"is named against a fit the data do not support: fix the recording or "
+                     f"simplify the model (see `diffgyro fit`).")
     return d
 
 

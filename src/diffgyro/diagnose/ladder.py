@@ -10,6 +10,7 @@ from ..data import Batch, Recording
 from ..jsonio import number
 from ..model import ErrorModel
 from .candidates import added_term
+from .decision import NOT_JUDGED
 from .floor import suggest_dtemp_window
 from .results import Diagnosis
 from .run import diagnose
@@ -129,8 +130,9 @@ def diagnose_auto(
             rws = [d.random_walk for d in diag.devices]
             h = [c.heldout_rms if c is not None else d.heldout_rms for c, d in zip(rws, diag.devices)]
             w = [d.white_noise_rms for d in diag.devices]
-            verdicts = ["adequate" if (hh**2 - ww**2) / max(ww**2, 1e-300) < th.excess_min
-                        else "missing_effect" for hh, ww in zip(h, w)]
+            verdicts = [d.verdict if d.verdict == NOT_JUDGED
+                        else "adequate" if (hh**2 - ww**2) / max(ww**2, 1e-300) < th.excess_min
+                        else "missing_effect" for hh, ww, d in zip(h, w, diag.devices)]
             steps.append(LadderStep(spec=spec, added=effect,
                                     heldout_rms=h, noise_floor=[d.noise_floor for d in diag.devices],
                                     rms=[c.rms if c is not None else d.rms for c, d in zip(rws, diag.devices)],

@@ -79,6 +79,9 @@ class DeviceDiagnosis:
     #: The second term the next round is expected to add after ``best`` (:mod:`.greedy`),
     #: scored as the pair base + best + next against the base model; None when not needed.
     next: Candidate | None = None
+    #: The base fit's status in words (:func:`diffgyro.status.explain`): why a device is not
+    #: ``ok`` and, then, why its verdict is ``not_judged``.
+    status_detail: str = ""
 
     @property
     def excess(self) -> float:
@@ -86,12 +89,21 @@ class DeviceDiagnosis:
         w2 = self.white_noise_rms**2
         return (self.heldout_rms**2 - w2) / max(w2, 1e-300)
 
+    @property
+    def verdict_detail(self) -> str:
+        """The verdict in words: ``not_judged`` says why (the base fit's status)."""
+        if self.verdict == "not_judged":
+            return f"not judged: the base fit is not ok ({self.status_detail or self.status})"
+        return self.verdict
+
     def record(self) -> dict:
         return {
             "device": self.device, "rms": number(self.rms), "heldout_rms": number(self.heldout_rms),
             "noise_floor": number(self.noise_floor), "verdict": self.verdict,
             "candidates": [c.record() for c in self.candidates],
             "status": self.status,
+            "status_detail": self.status_detail or self.status,
+            "verdict_detail": self.verdict_detail,
             "best": self.best.spec if self.best else None,
             "best_effect": self.best.effect if self.best else None,
             "best_term": self.best.term if self.best else None,
@@ -139,16 +151,31 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The ``diagnose --json`` object (extra keys per device)."""
-        return to_json_safe({"model": self.spec, "devices": [d.record() for d in self.devices],
+        devices = [d.record() for d in self.devices]
+        for d, params in zip(devices, self._params()):
+            d["params"] = params
+        return to_json_safe({"model": self.spec, "devices": devices,
                        "thresholds": asdict(self.thresholds),
                        "dtemp_window": self.options.get("dtemp_window")})
+
+    def _params(self) -> list[dict]:
+        """Every device's base-fit coefficients as ``fit --json`` writes them (``params``)."""
+        fit = self.fit
+        if fit is None or not hasattr(fit, "param_dict"):
+            return [{} for _ in self.devices]
+        if fit.model.n_nonlinear:
+            return [fit.param_dict(i) for i in range(len(self.devices))]
+        labels = fit.model.param_labels()
+        beta = np.asarray(fit.params.beta, float)
+        return [{ax: {lab: float(v) for lab, v in zip(labels[k], beta[i, k])}
+                 for k, ax in enumerate("xyz")} for i in range(len(self.devices))]
 
     def records(self) -> list[dict]:
         """One JSON-ready record per device (the ``devices`` list of :meth:`to_json`)."""
         return self.to_json()["devices"]
 
     def verdicts(self) -> dict[str, int]:
-        out = {"adequate": 0, "missing_effect": 0}
+        out = {"adequate": 0, "missing_effect": 0, "not_judged": 0}
         for d in self.devices:
             out[d.verdict] += 1
         return out

@@ -20,11 +20,12 @@ import numpy as np
 from .. import aux as aux_cols
 from ..data import Batch, Recording, as_slice, aux_key
 from ..effects import AbstractNoise, RandomWalk
+from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
-from .candidates import CandidateSpec, candidate_specs, term_column
-from .decision import allan_slope, decide, unfitted
+from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
+from .decision import allan_slope, decide, not_judged
 from .evidence import evidence
 from .floor import suggest_dtemp_window, white_noise_rms
 from .greedy import pairs as greedy_pairs
@@ -333,9 +334,13 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
     slope = allan_slope(adev, tau, total)
     first = np.isfinite(adev[:, 0])
     floor_allan = float(np.sqrt(np.mean(adev[first, 0] ** 2))) if first.any() else float("nan")
-    if not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
-            and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
-        return unfitted(batch.devices[i], res.status_detail(i), floors[i]), slope, floor_allan
+    status = res.status_name(i)
+    if status != "ok" or not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
+                              and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
+        d = not_judged(batch.devices[i], status, res.status_detail(i), floors[i],
+                       float(res.rms[i]), float(res.heldout_rms[i]))
+        d.skipped.update(skips)
+        return d, slope, floor_allan
     sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
     ev = evidence(out["residual"][i, :nv], batch.recording(i), sd, floors[i])
     ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
@@ -346,6 +351,7 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
         out["rw_interp"][i], out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
         blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
         edge=out["cand_edge"][i], base_spec=model.spec, pair=pair)
+    d.status_detail = res.status_detail(i)
     for name in unsupported:
         d.skipped[name] = UNSUPPORTED
     for c in cands:  # column candidates are listed by term (aux(vdd)), not under one name
@@ -360,10 +366,11 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
     their terms read (:func:`_extra_columns`), every column's problems per device, the
     column candidates no device can use (listed under skipped, never compiled) and the
     other noise processes offered (listed under skipped: the smoother scored here is the
-    random walk's)."""
+    random walk's); the column terms that cannot be written (:func:`.unnamed_columns`)."""
     aux, problems = _extra_columns(batch, model, res)
+    unnamed = unnamed_columns(problems, names)
     specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
-                            names, columns=tuple(problems))
+                            names, columns=tuple(k for k in problems if is_column_name(k)))
     dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
     every = [c for c in specs if not isinstance(c.term, AbstractNoise) and c not in dead]
     noise = [c for c in specs if isinstance(c.term, AbstractNoise)]
@@ -371,7 +378,7 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
     unscored = [c.effect for c in noise if c is not walk]
     read = set(res.aux_norm) | {term_column(c.term) for c in every}
     return (every, walk.spec if walk else None, {k: v for k, v in aux.items() if k in read},
-            problems, dead, unscored)
+            problems, dead, unscored, unnamed)
 
 
 def diagnose(
@@ -411,7 +418,8 @@ def diagnose(
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
-    every, rw_spec, aux, problems, dead, unscored = _candidates(model, batch, res, candidates)
+    every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
+                                                                         candidates)
     all_ranges, floors = _prepare(batch, res, every, aux)
     skips = _column_skips(every, all_ranges, problems, batch.n_devices)
     for c in dead:
@@ -419,6 +427,8 @@ def diagnose(
             skips[i][c.term.spec] = why
     for name, skip in ((n, s) for n in unscored for s in skips):
         skip[name] = NOISE_UNSCORED
+    for skip in skips:
+        skip.update(unnamed)
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]

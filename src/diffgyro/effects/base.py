@@ -224,6 +224,11 @@ MAX_ORDER = 9
 MAX_SPEC_LENGTH = 1000
 
 
+def is_column_name(text: str) -> bool:
+    """Whether ``text`` can be written as a term's column argument (``aux(NAME)``)."""
+    return bool(_COLUMN.fullmatch(text))
+
+
 def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
     """The (field, kind) arguments a term's spec takes, in order."""
     if cls.arguments:

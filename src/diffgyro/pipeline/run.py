@@ -56,6 +56,8 @@ class RunSummary:
     devices_per_second: float
     work_dir: str
     outputs: dict[str, str] = field(default_factory=dict)
+    #: The batch's pass/fail against ``limits=`` (:func:`diffgyro.limits.summary`), or None.
+    limits: dict | None = None
 
 
 # --------------------------------------------------------------------------- one chunk
@@ -155,6 +157,27 @@ def calibration_entries(result) -> list[dict]:
 PAD = "__diffgyro_pad_{}__"
 
 
+def _figures(records: list[dict], result, batch: Batch, wanted, residuals=None) -> None:
+    """Add the computed figures a limits file asks for (:mod:`diffgyro.limits.figures`) to the
+    records of one group, in place: the Allan read-outs of the fit residual need the samples,
+    so they are taken here, in the chunk, where the samples are."""
+    from ..limits import add_figures, residual_allan
+
+    n = len(records)
+    allan = [None] * n
+    if "allan" in wanted:
+        res = np.asarray(result.residuals(batch)) if residuals is None else residuals
+        allan = residual_allan(res[:n], np.asarray(batch.t)[:n], np.asarray(batch.n_valid)[:n])
+    trange = None if result.temp_range is None else np.asarray(result.temp_range, float)
+    centre, scale = np.asarray(result.norm.centre, float), np.asarray(result.norm.scale, float)
+    for i, r in enumerate(records):
+        fig = add_figures(r, set(wanted), allan=allan[i],
+                          centre=float(np.broadcast_to(centre, (batch.n_devices,))[i]),
+                          scale=float(np.broadcast_to(scale, (batch.n_devices,))[i]),
+                          temp_range=None if trange is None else trange[i].tolist())
+        r.update({k: v for k, v in fig.items() if k not in r})
+
+
 def _diagnose_group(group: list[Recording], setup: dict) -> dict[str, dict]:
     """``diagnose`` records of one group, padded to the chunk size (one compiled shape)."""
     from ..diagnose import diagnose
@@ -167,9 +190,12 @@ def _diagnose_group(group: list[Recording], setup: dict) -> dict[str, dict]:
     opts = dict(setup["fit_options"])
     if opts.get("dtemp_window") is None:
         opts.pop("dtemp_window", None)
-    diag = diagnose(setup["model"], Batch.from_recordings(group + pads),
-                    setup["task_options"].get("candidates"), **opts)
-    return {r["device"]: r for r in diag.to_json()["devices"][:n]}
+    batch = Batch.from_recordings(group + pads)
+    diag = diagnose(setup["model"], batch, setup["task_options"].get("candidates"), **opts)
+    records = diag.to_json()["devices"][:n]
+    if setup["task_options"].get("figures"):
+        _figures(records, diag.fit, batch, setup["task_options"]["figures"], diag.residuals)
+    return {r["device"]: r for r in records}
 
 
 def _invalid_diagnosis(device: str, reason: str) -> dict:
@@ -194,7 +220,9 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
         if diagnosing:
             records.update(_diagnose_group(group, setup))
             continue
-        result = _fitter(setup).fit(Batch.from_recordings(group))
+        batch = Batch.from_recordings(group)
+        result = _fitter(setup).fit(batch)
+        added = []
         for entry in calibration_entries(result):
             name = entry["device"]
             cal[name] = entry
@@ -204,6 +232,9 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
                                  "heldout_rms": q["heldout_rms"], "noise_floor": q["noise_floor"],
                                  "steps": q["steps"], "n_samples": q["n_samples"],
                                  "params": entry["params"]}
+            added.append(records[name])
+        if setup["task_options"].get("figures"):
+            _figures(added, result, batch, setup["task_options"]["figures"])
     for dev, reason in failed.items():
         records[dev] = (_invalid_diagnosis if diagnosing else _invalid_record)(dev, reason)
     h = hashlib.sha256()
@@ -286,8 +317,9 @@ _RESULT_COLUMNS = ("device", "status", "status_detail", "reason", "rms", "heldou
 class _ResultsWriter:
     """The per-device results table, JSON lines or Parquet (by the file suffix)."""
 
-    def __init__(self, path: Path):
+    def __init__(self, path: Path, limits: bool = False):
         self.path = path
+        self.limits = limits  # two more columns: limits_result and limits (JSON)
         self.parquet = path.suffix.lower() in (".parquet", ".pq")
         self._file = AtomicFile(path, None if self.parquet else "w")
         self._pq = None
@@ -302,11 +334,16 @@ class _ResultsWriter:
 
         cols = {c: [r.get(c) for r in records] for c in _RESULT_COLUMNS}
         cols["params"] = [None if p is None else dumps(p) for p in cols["params"]]
-        schema = pa.schema([("device", pa.string()), ("status", pa.string()),
-                            ("status_detail", pa.string()), ("reason", pa.string()),
-                            ("rms", pa.float64()), ("heldout_rms", pa.float64()),
-                            ("noise_floor", pa.float64()), ("steps", pa.int64()),
-                            ("n_samples", pa.int64()), ("params", pa.string())])
+        fields = [("device", pa.string()), ("status", pa.string()),
+                  ("status_detail", pa.string()), ("reason", pa.string()),
+                  ("rms", pa.float64()), ("heldout_rms", pa.float64()),
+                  ("noise_floor", pa.float64()), ("steps", pa.int64()),
+                  ("n_samples", pa.int64()), ("params", pa.string())]
+        if self.limits:
+            cols["limits_result"] = [r["limits"]["result"] for r in records]
+            cols["limits"] = [dumps(r["limits"]) for r in records]
+            fields += [("limits_result", pa.string()), ("limits", pa.string())]
+        schema = pa.schema(fields)
         table = pa.table(cols, schema=schema)
         if self._pq is None:
             self._pq = pq.ParquetWriter(self._file.tmp, schema)
@@ -338,8 +375,11 @@ class _CalibrationWriter:
         self._file.fh.write(("\n" if self.n == 0 else ",\n") + dumps(entry))
         self.n += 1
 
-    def commit(self) -> None:
-        self._file.fh.write("\n]\n}\n")
+    def commit(self, tail: dict | None = None) -> None:
+        """Close the devices list; ``tail``: top-level keys written after it (the limits
+        summary, known only once every device is written)."""
+        more = "".join(f",\n{dumps(k)}: {dumps(v)}" for k, v in (tail or {}).items())
+        self._file.fh.write(f"\n]{more}\n}}\n")
         self._file.commit()
 
     def abort(self) -> None:
@@ -347,10 +387,14 @@ class _CalibrationWriter:
 
 
 def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
-          json_stream: IO[str] | None = None) -> dict[str, int]:
-    """Write the outputs from the chunk files in plan order; counts of each status."""
+          json_stream: IO[str] | None = None, limits=None) -> dict[str, int]:
+    """Write the outputs from the chunk files in plan order; counts of each status.
+    ``limits`` (:class:`diffgyro.limits.Limits`): every record and calibration entry gets
+    its pass/fail, and the calibration file and JSON object the batch's summary
+    (``counts["limits"]``)."""
     from .. import __version__
     from ..calibration import units_of
+    from ..limits import check as check_limits
     from ..model import ErrorModel
 
     spec = manifest["key"]["model"]
@@ -360,7 +404,7 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
     cal_w = res_w = None
     try:
         if results is not None:
-            res_w = _ResultsWriter(results)
+            res_w = _ResultsWriter(results, limits is not None)
             writers.append(res_w)
         if out is not None:
             header = {"format": "diffgyro-calibration", "format_version": 1, "model": spec,
@@ -376,11 +420,19 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
         if json_stream is not None:
             json_stream.write(dumps({"model": spec})[:-1] + ', "devices": [')
         first = True
+        judged: list[dict] = []
         for c in plan:
             obj = work.read_chunk(c["chunk"], c["devices"])
             if obj is None:
                 raise DataError(f"chunk {c['chunk']} has no result file", file=str(work.path),
                                 hint="run the command again to finish it")
+            if limits is not None:
+                for rec, entry in zip(obj["records"], obj["calibration"]):
+                    rec["limits"] = check_limits(limits, rec)
+                    judged.append({"device": rec["device"], "limits": rec["limits"],
+                                   "found": _found(limits, rec)})
+                    if entry is not None:
+                        entry["limits"] = rec["limits"]
             for rec, entry in zip(obj["records"], obj["calibration"]):
                 counts[rec["status"]] = counts.get(rec["status"], 0) + 1
                 if cal_w is not None and entry is not None:
@@ -390,8 +442,13 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
                     first = False
             if res_w is not None:
                 res_w.write(obj["records"])
+        tail = {}
+        if limits is not None:
+            tail = {"limits": _limits_summary(limits, judged)}
+            counts["limits"] = tail["limits"]
         if json_stream is not None:
-            json_stream.write("\n]}\n")
+            json_stream.write("\n]" + "".join(f", {dumps(k)}: {dumps(v)}" for k, v in tail.items())
+                              + "}\n")
             json_stream.flush()
         if cal_w is not None:
             if cal_w.n == 0:
@@ -400,7 +457,7 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
                 print("diffgyro: no device could be fitted; no calibration file written",
                       file=sys.stderr)
             else:
-                cal_w.commit()
+                cal_w.commit(tail)
                 writers.remove(cal_w)
         if res_w is not None:
             res_w.commit()
@@ -409,6 +466,26 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
         for w in writers:
             w.abort()
     return counts
+
+
+def _found(limits, rec: dict) -> set[str]:
+    """The limit paths that name a field of ``rec`` (to warn of those no record holds)."""
+    from ..limits import lookup
+
+    return {lim.path for lim in limits.limits if lookup(rec, lim.path)}
+
+
+def _limits_summary(limits, judged: list[dict]) -> dict:
+    """The batch's limits summary; a warning for each limit no device record matched."""
+    from ..limits import summary
+
+    found = set().union(*(j.pop("found") for j in judged)) if judged else set()
+    for lim in limits.limits:
+        if lim.path not in found:
+            print(f"diffgyro: warning: limits file {limits.file}: {lim.path!r} matched no field "
+                  f"of any device record (every device fails it unless optional = true)",
+                  file=sys.stderr)
+    return summary(limits, judged)
 
 
 def combined_hash(chunk_hashes: Sequence[str]) -> str:
@@ -476,9 +553,23 @@ def _run(
     progress: bool = True,
     json_stream: IO[str] | None = None,
     on_chunk: Callable[[dict], None] | None = None,
+    limits=None,
 ) -> RunSummary:
-    """The streaming run behind :func:`fit_dataset` and :func:`diagnose_dataset`."""
+    """The streaming run behind :func:`fit_dataset` and :func:`diagnose_dataset`.
+    ``limits``: a :class:`diffgyro.limits.Limits` (or the path of a limits file) every
+    device is checked against when the outputs are merged; the figures it asks for are
+    computed in the chunks (they join the run's key, the bounds do not: a run finished
+    with other bounds is merged again without fitting)."""
     t_start = time.monotonic()
+    if limits is not None:
+        from ..limits import Limits, check_model, load
+        from ..model import ErrorModel
+
+        if not isinstance(limits, Limits):
+            limits = load(limits)
+        check_model(limits, ErrorModel.from_spec(model))
+        if limits.computed:
+            task_options = {**(task_options or {}), "figures": sorted(limits.computed)}
     em, files, cfg, key = _run_key(command, paths, model, chunk_devices, columns, units,
                                    drop_invalid, sampling_rate, fit_options, task_options)
     out = None if out is None else Path(out)
@@ -505,7 +596,8 @@ def _run(
                 _run_pending(work, manifest, pending, setup, dask, bar, on_chunk)
         finally:
             bar.close()
-        counts = _merge_all(work, manifest, out, results, json_stream)
+        counts = _merge_all(work, manifest, out, results, json_stream, limits)
+        judged = counts.pop("limits", None)
     finally:
         work.unlock()
     n_dev = manifest["n_devices"]
@@ -514,7 +606,7 @@ def _run(
     return RunSummary(n_devices=n_dev, n_ok=n_ok, n_failed=n_dev - n_ok, statuses=counts,
                       chunks_total=len(plan), chunks_run=len(pending), seconds=seconds,
                       devices_per_second=bar.rate, work_dir=str(work.path),
-                      outputs={k: v for k, v in manifest["outputs"].items() if v})
+                      outputs={k: v for k, v in manifest["outputs"].items() if v}, limits=judged)
 
 
 def _run_key(command, paths, model, chunk_devices, columns, units, drop_invalid,
@@ -607,7 +699,7 @@ def _run_pending(work: WorkDir, manifest: dict, pending: list[dict], setup: dict
 
 
 def _merge_all(work: WorkDir, manifest: dict, out: Path | None, results: Path,
-               json_stream) -> dict:
+               json_stream, limits=None) -> dict:
     """Every chunk's result merged into the outputs; the manifest marked complete."""
     hashes = []
     for c in manifest["chunks"]:
@@ -618,7 +710,7 @@ def _merge_all(work: WorkDir, manifest: dict, out: Path | None, results: Path,
         hashes.append(obj["input_hash"])
     manifest["input_hash"] = combined_hash(hashes)
     work.write_manifest(manifest)
-    counts = merge(work, manifest, out, results, json_stream)
+    counts = merge(work, manifest, out, results, json_stream, limits)
     manifest["complete"] = True
     manifest["outputs"] = {"calibration": None if out is None else str(out),
                            "results": str(results)}
