@@ -38,7 +38,7 @@ from __future__ import annotations
 from .cells import LIMITS, cell_problem, check_cells
 from .columns import parse_columns
 from .load import load, load_batch
-from .reports import Dropped, LoadReport, check_min_samples
+from .reports import Dropped, LoadReport, UnitNote, check_min_samples
 from .save import save
 from .units import UNITS, resolve_units
 
@@ -47,6 +47,7 @@ __all__ = [
     "Dropped",
     "LIMITS",
     "LoadReport",
+    "UnitNote",
     "cell_problem",
     "check_cells",
     "check_min_samples",

@@ -1,0 +1,232 @@
+"""Are the loaded numbers plausible in the unit they were read in?
+
+A signal whose unit nobody stated (no option, no unit in its header) is read
+in SI: rad/s, m/s², °C, s. Numbers that only make sense in another unit are
+caught here, from physics and data-sheet ranges, not from any simulator's
+settings. The rule (docs/formats.md, "Units"):
+
+* **refused** (:class:`DataError`, the option that passes it in the hint) when
+  no instrument read in that unit could give the numbers: a gyro at rest
+  biased by more than 1 rad/s (57 °/s) or noisier than 0.5 rad/s per sample, or
+  rates beyond 100 rad/s (5700 °/s, over the full scale of MEMS and
+  navigation gyros); an accelerometer at rest reading 0.8–1.25 (g) or
+  800–1250 (mg) where gravity is 9.81 m/s²; a temperature held at 175–500 "°C"
+  (kelvin; no IMU runs that hot); samples more than an hour apart.
+* **warned** (numbers kept) when they are unusual but possible: a rest bias
+  over 0.35 rad/s (20 °/s, the largest zero-rate offset of consumer MEMS data
+  sheets), noise over 0.05 rad/s per sample or a noise density over 3·10⁻³
+  rad/s/√Hz (0.17 °/s/√Hz, ten times a consumer MEMS gyro); an accelerometer
+  at rest far from 9.81 m/s²; samples 60 s to an hour apart, or time steps
+  of whole numbers of "seconds" (2, 5, 10 ...) as ms ticks give.
+* whole numbers (raw ADC counts, which the multi- and six-position recipes
+  calibrate on purpose) are never refused: a refusal becomes a warning that
+  says the numbers are kept as counts.
+
+Rest is found without knowing the unit: the quietest windows of the
+recording (a per-sample noise from first differences, so drifts and constant
+rotation rates do not count as motion). Devices of fewer than
+:data:`MIN_SAMPLES` samples are not checked (they say nothing of rest).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..data import Recording
+from ..errors import DataError
+from .reports import UnitNote
+from .units import _UNIT_OPTION, UNITS
+
+G0 = 9.80665  # standard gravity, m/s²
+#: rad/s: beyond the full scale of any MEMS (≤ 4000 °/s) or navigation gyro.
+RATE_PEAK = 100.0
+#: rad/s at rest: (warn, refuse): 20 °/s, the largest consumer-MEMS zero-rate offset; 57 °/s.
+REST_BIAS = (0.35, 1.0)
+#: rad/s per sample at rest: (warn, refuse).
+REST_NOISE = (0.05, 0.5)
+#: rad/s/√Hz (σ·√dt): ten times the white noise of a consumer MEMS gyro (0.015 °/s/√Hz).
+NOISE_DENSITY = 3e-3
+#: |a| at rest read as m/s² that is gravity in g or in mg.
+IN_G = (0.8, 1.25)
+IN_MG = (800.0, 1250.0)
+#: |a| at rest, m/s², that any accelerometer near the Earth's surface reads (warn outside).
+REST_ACCEL = (7.0, 13.0)
+#: °C: above this a temperature held throughout is kelvin (IMUs are rated to 125–175 °C).
+HOT = 175.0
+#: s between samples: (warn, refuse).
+SLOW_STEP = (60.0, 3600.0)
+
+
+@dataclass(frozen=True)
+class _Finding:
+    refuse: bool
+    what: str            # the numbers, e.g. "a rest bias of 1.2 rad/s"
+
+
+#: Samples a device needs to be checked: four windows of eight (fewer say nothing of rest).
+MIN_SAMPLES = 32
+
+
+def _windows(x: np.ndarray) -> np.ndarray:
+    """(windows, w, channels) non-overlapping windows of 8 to 64 samples."""
+    w = int(min(64, max(8, x.shape[0] // 16)))
+    k = x.shape[0] // w
+    return x[: k * w].reshape(k, w, -1)
+
+
+def _rest(x: np.ndarray) -> tuple[float, float]:
+    """(per-sample noise σ, |mean|) at rest: the quietest quarter of windows by the σ of
+    first differences; the mean is the 10th percentile of those windows' |mean| (a
+    bias, not a constant rotation)."""
+    win = _windows(x)
+    sigma = np.linalg.norm(np.diff(win, axis=1).std(axis=1), axis=1) / math.sqrt(2 * x.shape[1])
+    level = float(np.percentile(sigma, 25))
+    quiet = sigma <= 3.0 * level if level > 0 else sigma <= level
+    mean = np.linalg.norm(win[quiet].mean(axis=1), axis=1)
+    return level, float(np.percentile(mean, 10))
+
+
+def _whole(x: np.ndarray) -> bool:
+    head = x[:2000]
+    return bool(np.all(head == np.round(head)))
+
+
+def _median(values) -> float:
+    values = [v for v in values if np.isfinite(v)]
+    return float(np.median(values)) if values else float("nan")
+
+
+def _gyro(recs: Sequence[Recording], time_ok: bool) -> tuple[list[_Finding], float]:
+    """Findings on the gyro read as rad/s, and the factor to rad/s of a unit that fits
+    (the noise density only where the time base is trusted, ``time_ok``)."""
+    rest = [_rest(r.gyro) for r in recs]
+    noise, bias = _median(s for s, _ in rest), _median(b for _, b in rest)
+    peak = _median(float(np.percentile(np.linalg.norm(r.gyro, axis=1), 99.9)) for r in recs)
+    step = _median(float(np.median(np.diff(r.t))) for r in recs)
+    density = noise * math.sqrt(step) if time_ok and 1e-5 <= step <= SLOW_STEP[0] \
+        else float("nan")
+    out = []
+    if peak > RATE_PEAK:
+        out.append(_Finding(True, f"rates up to {peak:.3g} rad/s"))
+    if bias > REST_BIAS[0]:
+        out.append(_Finding(bias > REST_BIAS[1], f"a rest bias of {bias:.3g} rad/s"))
+    if noise > REST_NOISE[0]:
+        out.append(_Finding(noise > REST_NOISE[1], f"a rest noise of {noise:.3g} rad/s"))
+    elif density > NOISE_DENSITY:
+        out.append(_Finding(False, f"a noise density of {density:.3g} rad/s/√Hz"))
+
+    def fits(k: float) -> bool:
+        return (peak * k <= RATE_PEAK and bias * k <= REST_BIAS[0] and noise * k <= REST_NOISE[0]
+                and not density * k > NOISE_DENSITY)
+
+    factor = next((k for k in (math.pi / 180.0, math.pi / 180e3) if fits(k)), float("nan"))
+    return out, factor
+
+
+def _accel(recs: Sequence[Recording]) -> tuple[list[_Finding], float]:
+    mag = _median(_rest(r.accel)[1] if r.accel is not None else float("nan") for r in recs)
+    if not np.isfinite(mag):
+        return [], float("nan")
+    if IN_G[0] <= mag <= IN_G[1]:
+        return [_Finding(True, f"|a| = {mag:.4g} m/s² at rest (gravity is {G0} m/s²)")], G0
+    if IN_MG[0] <= mag <= IN_MG[1]:
+        return [_Finding(True, f"|a| = {mag:.4g} m/s² at rest (gravity is {G0} m/s²)")], G0 / 1e3
+    if not REST_ACCEL[0] <= mag <= REST_ACCEL[1]:
+        return [_Finding(False, f"|a| = {mag:.4g} m/s² at rest (gravity is {G0} m/s²)")], \
+            float("nan")
+    return [], float("nan")
+
+
+def _temp(recs: Sequence[Recording]) -> list[_Finding]:
+    temps = [r.temp for r in recs if r.temp is not None]
+    if not temps:
+        return []
+    low = min(float(np.min(t)) for t in temps)
+    if low > HOT:
+        mid = _median(float(np.median(t)) for t in temps)
+        return [_Finding(True, f"temperatures of {low:.4g} °C and above (median {mid:.4g} °C; "
+                               f"{mid - 273.15:.3g} °C if kelvin)")]
+    return []
+
+
+def _time(recs: Sequence[Recording]) -> list[_Finding]:
+    steps = [np.diff(r.t) for r in recs]
+    step = _median(float(np.median(s)) for s in steps)
+    if step > SLOW_STEP[0]:
+        return [_Finding(step > SLOW_STEP[1], f"a median sample interval of {step:.4g} s")]
+    medians = [float(np.median(s)) for s in steps]
+    if step >= 2.0 and all(abs(m - round(m)) <= 1e-6 * m for m in medians):
+        return [_Finding(False, f"time steps of whole numbers ({step:.6g} s median), as "
+                                f"millisecond ticks give")]
+    return []
+
+
+_SI = {"gyro": "rad/s", "accel": "m/s²", "temp": "°C", "t": "s"}
+_WHAT = {"gyro": "gyro", "accel": "accelerometer", "temp": "temperature", "t": "time"}
+
+
+def _unit_for(sig: str, factor: float) -> str | None:
+    for name, (scale, _) in UNITS[{"gyro": "rate", "accel": "accel"}[sig]].items():
+        if math.isclose(scale, factor, rel_tol=1e-12):
+            return {"mdeg/s": "mdps"}.get(name, name)
+    return None
+
+
+def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
+                    columns: dict[str, str]) -> list[UnitNote]:
+    """Warnings on the signals of one file read in an assumed SI unit (``assumed``:
+    ``"gyro"``, ``"accel"``, ``"temp"``, ``"t"``); a refusal raises :class:`DataError`
+    naming the file, the column (``columns``: signal -> how messages name it) and the
+    option that passes it."""
+    recs = [r for r in recs if r.n >= MIN_SAMPLES]
+    if not recs:
+        return []
+    notes = []
+    time_found = _time(recs) if "t" in assumed and "t" in columns else []
+    for sig in ("t", "gyro", "accel", "temp"):
+        if sig not in assumed or sig not in columns:
+            continue
+        factor = float("nan")
+        if sig == "gyro":
+            found, factor = _gyro(recs, time_ok=not time_found)
+        elif sig == "accel":
+            found, factor = _accel(recs)
+        elif sig == "temp":
+            found = _temp(recs)
+        else:
+            found = time_found
+        if not found:
+            continue
+        notes.append(_judge(sig, found, factor, recs, file, columns[sig]))
+    return notes
+
+
+def _judge(sig: str, found: list[_Finding], factor: float, recs, file: str,
+           column: str) -> UnitNote:
+    opt, si = _UNIT_OPTION[sig], _SI[sig]
+    what = ", ".join(f.what for f in found)
+    unit = _unit_for(sig, factor) if np.isfinite(factor) else None
+    if sig == "temp":
+        unit = "K"
+    elif sig == "t":  # ms ticks; beyond an hour, µs (a µs tick of an hour is 3.6 ms)
+        step = _median(float(np.median(np.diff(r.t))) for r in recs)
+        unit = "ms" if step < SLOW_STEP[0] else "us" if step > SLOW_STEP[1] else "ms (or us)"
+    counts = sig in ("gyro", "accel") and all(
+        _whole(getattr(r, sig)) for r in recs)
+    problem = f"{_WHAT[sig]} read as {si} gives {what}"
+    if counts:
+        return UnitNote(file, sig, "warning",
+                        f"{column}: {problem}; the values are whole numbers (raw counts?), "
+                        f"kept as they are (give {opt} if they are in a unit)")
+    suggest = f"{opt} {unit}" if unit else f"{opt} with the unit of the file"
+    if any(f.refuse for f in found):
+        raise DataError(f"{problem}: not plausible in {si}", file=file, column=column,
+                        hint=f"give {suggest}, or {opt} {si} if the numbers really are {si}")
+    plausible = f"plausible in {unit}: " if unit else ""
+    return UnitNote(file, sig, "warning",
+                    f"{column}: {problem}; {plausible}give {suggest}, or {opt} {si} to keep "
+                    f"these numbers without this warning")
