@@ -22,6 +22,7 @@ from ._options import (
     Topic,
     load_from_cli,
     streamed_dir,
+    units_json,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -34,13 +35,14 @@ DtempWindow = Annotated[float | None, typer.Option(
 
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None):
+                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, report=None):
     """Load data for ``model``: a DataError if every device is too short for it."""
     from diffgyro.core import min_samples
     from diffgyro.io import check_min_samples
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                          report=report)
     need = min_samples(model.n_params + model.n_nonlinear)
     recs = batch.recordings()
     if all(r.n < need for r in recs):
@@ -68,6 +70,7 @@ def fit_command(
     """
     from diffgyro import calibration
     from diffgyro.fit import fit
+    from diffgyro.io import LoadReport
     from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
@@ -79,8 +82,10 @@ def fit_command(
                    resume, dask, results)
         return
     em = ErrorModel.from_spec(model)
+    report = LoadReport()
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                           report=report)
     if dtemp_window is None:
         from diffgyro.diagnose import suggest_dtemp_window
 
@@ -90,7 +95,7 @@ def fit_command(
         calibration.save(calibration.from_fit(result, batch), out)
     records = result.records()
     if as_json:
-        print(dumps({"model": em.spec, "devices": records}))
+        print(dumps({"model": em.spec, "devices": records, "units": units_json(report)}))
         return
     from rich.console import Console
     from rich.table import Table

@@ -73,18 +73,18 @@ MIN_SAMPLES = 32
 
 def _windows(x: np.ndarray) -> np.ndarray:
     """(windows, w, channels) non-overlapping windows of 8 to 64 samples."""
-    w = int(min(64, max(8, x.shape[0] // 16)))
+    w = int(min(64, max(8, x.shape[0] // 64)))
     k = x.shape[0] // w
     return x[: k * w].reshape(k, w, -1)
 
 
 def _rest(x: np.ndarray) -> tuple[float, float]:
-    """(per-sample noise σ, |mean|) at rest: the quietest quarter of windows by the σ of
-    first differences; the mean is the 10th percentile of those windows' |mean| (a
-    bias, not a constant rotation)."""
+    """(per-sample noise σ, |mean|) at rest: the σ of first differences in the quietest
+    tenth of the windows; the |mean| is the 10th percentile over the windows within 3 σ
+    of that (a bias, not a constant rotation)."""
     win = _windows(x)
     sigma = np.linalg.norm(np.diff(win, axis=1).std(axis=1), axis=1) / math.sqrt(2 * x.shape[1])
-    level = float(np.percentile(sigma, 25))
+    level = float(np.percentile(sigma, 10))
     quiet = sigma <= 3.0 * level if level > 0 else sigma <= level
     mean = np.linalg.norm(win[quiet].mean(axis=1), axis=1)
     return level, float(np.percentile(mean, 10))
