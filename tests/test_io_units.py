@@ -199,6 +199,9 @@ def test_fit_cli_on_the_issue_example(tmp_path, capsys):
     assert "units from the headers: t in s" in err and "gyro in deg/s" in err
     record = json.loads(out)
     assert record["units"][0]["kind"] == "mapped"
+    assert main(["allan", str(path), "--json"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out)["units"] == record["units"] and "gyro in deg/s" in err
     assert main(["fit", str(path), "--model", "bias_poly(0)", "--gyro-unit", "rad/s"]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "column Gyroscope X (deg/s)" in err and "--gyro-unit" in err
@@ -229,7 +232,11 @@ def test_real_recordings_behave(tmp_path):
     load(tmp_path / "xsens.csv", report=report)
     assert [u.signal for u in report.units] == ["gyro", "accel"]
     assert all("raw counts" in u.message() for u in report.units)
-    # logs are read in SI by their readers: nothing to say
-    report = LoadReport()
-    load(DATA / "px4" / "sample_log_small.ulg", report=report)
-    assert report.units == []
+    # logs are read in SI by their readers: nothing to say; a flight log written out as a
+    # table (moving, vibrating) is still plausible in SI
+    for name in ("sample.ulg", "sample_log_small.ulg"):
+        report = LoadReport()
+        recs = load(DATA / "px4" / name, report=report)
+        assert report.units == []
+        load(save(recs, tmp_path / "px4.parquet"), report=report)
+        assert report.units == []
