@@ -78,16 +78,15 @@ def _windows(x: np.ndarray) -> np.ndarray:
     return x[: k * w].reshape(k, w, -1)
 
 
-def _rest(x: np.ndarray) -> tuple[float, float]:
-    """(per-sample noise σ, |mean|) at rest: the σ of first differences in the quietest
-    tenth of the windows; the |mean| is the 10th percentile over the windows within 3 σ
-    of that (a bias, not a constant rotation)."""
+def _rest(x: np.ndarray) -> tuple[float, np.ndarray]:
+    """(per-sample noise σ, |mean| of each window at rest): σ is that of the first
+    differences in the quietest tenth of the windows; windows within 3 σ of it are at
+    rest or turning at a constant rate."""
     win = _windows(x)
     sigma = np.linalg.norm(np.diff(win, axis=1).std(axis=1), axis=1) / math.sqrt(2 * x.shape[1])
     level = float(np.percentile(sigma, 10))
     quiet = sigma <= 3.0 * level if level > 0 else sigma <= level
-    mean = np.linalg.norm(win[quiet].mean(axis=1), axis=1)
-    return level, float(np.percentile(mean, 10))
+    return level, np.linalg.norm(win[quiet].mean(axis=1), axis=1)
 
 
 def _whole(x: np.ndarray) -> bool:
@@ -104,8 +103,12 @@ def _gyro(recs: Sequence[Recording], time_ok: bool) -> tuple[list[_Finding], flo
     """Findings on the gyro read as rad/s, and the factor to rad/s of a unit that fits
     (the noise density only where the time base is trusted, ``time_ok``)."""
     rest = [_rest(r.gyro) for r in recs]
-    noise, bias = _median(s for s, _ in rest), _median(b for _, b in rest)
-    peak = _median(float(np.percentile(np.linalg.norm(r.gyro, axis=1), 99.9)) for r in recs)
+    # the bias: the 10th percentile of the rest windows (a constant rotation is not one);
+    # the peak: the 99th percentile of |ω| (a few spikes are not the unit's doing)
+    noise = _median(s for s, _ in rest)
+    bias = _median(float(np.percentile(m, 10)) for _, m in rest)
+    peak = _median(float(np.percentile(np.linalg.norm(r.gyro, axis=1), 99, method="lower"))
+                   for r in recs)
     step = _median(float(np.median(np.diff(r.t))) for r in recs)
     density = noise * math.sqrt(step) if time_ok and 1e-5 <= step <= SLOW_STEP[0] \
         else float("nan")
@@ -128,7 +131,8 @@ def _gyro(recs: Sequence[Recording], time_ok: bool) -> tuple[list[_Finding], flo
 
 
 def _accel(recs: Sequence[Recording]) -> tuple[list[_Finding], float]:
-    mag = _median(_rest(r.accel)[1] if r.accel is not None else float("nan") for r in recs)
+    mag = _median(float(np.median(_rest(r.accel)[1])) if r.accel is not None else float("nan")
+                  for r in recs)
     if not np.isfinite(mag):
         return [], float("nan")
     if IN_G[0] <= mag <= IN_G[1]:
