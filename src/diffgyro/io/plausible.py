@@ -25,7 +25,9 @@ settings. The rule (docs/formats.md, "Units"):
 Rest is found without knowing the unit: the quietest windows of the
 recording (a per-sample noise from first differences, so drifts and constant
 rotation rates do not count as motion). Devices of fewer than
-:data:`MIN_SAMPLES` samples are not checked (they say nothing of rest).
+:data:`MIN_SAMPLES` samples are not checked (they say nothing of rest); long
+recordings and large files are sampled (:data:`MAX_WINDOWS` windows per device,
+:data:`MAX_DEVICES` devices per file) to keep the check's cost small.
 """
 
 from __future__ import annotations
@@ -71,11 +73,21 @@ class _Finding:
 MIN_SAMPLES = 32
 
 
+#: Windows looked at per device, evenly spread (bounds the cost on long recordings).
+MAX_WINDOWS = 512
+#: Devices looked at per file, evenly spread (the file's verdict is their median).
+MAX_DEVICES = 16
+
+
 def _windows(x: np.ndarray) -> np.ndarray:
-    """(windows, w, channels) non-overlapping windows of 8 to 64 samples."""
+    """(channels, windows, w): non-overlapping windows of 8 to 64 samples (at most
+    :data:`MAX_WINDOWS`, evenly spread), each channel contiguous (fast reductions)."""
     w = int(min(64, max(8, x.shape[0] // 64)))
     k = x.shape[0] // w
-    return x[: k * w].reshape(k, w, -1)
+    win = x[: k * w].reshape(k, w, -1)
+    if k > MAX_WINDOWS:
+        win = win[np.linspace(0, k - 1, MAX_WINDOWS).astype(np.int64)]
+    return np.ascontiguousarray(np.moveaxis(win, 2, 0))
 
 
 def _rest(x: np.ndarray) -> tuple[float, np.ndarray]:
@@ -83,10 +95,17 @@ def _rest(x: np.ndarray) -> tuple[float, np.ndarray]:
     differences in the quietest tenth of the windows; windows within 3 σ of it are at
     rest or turning at a constant rate."""
     win = _windows(x)
-    sigma = np.linalg.norm(np.diff(win, axis=1).std(axis=1), axis=1) / math.sqrt(2 * x.shape[1])
+    var = np.diff(win, axis=2).var(axis=2)                 # (channels, windows)
+    sigma = np.sqrt(var.sum(axis=0) / (2 * win.shape[0]))  # per channel, per sample
     level = float(np.percentile(sigma, 10))
     quiet = sigma <= 3.0 * level if level > 0 else sigma <= level
-    return level, np.linalg.norm(win[quiet].mean(axis=1), axis=1)
+    return level, np.sqrt((win[:, quiet].mean(axis=2) ** 2).sum(axis=0))
+
+
+def _step(t: np.ndarray) -> float:
+    """The median sample interval (of at most 10⁵ intervals, evenly spread)."""
+    stride = max(1, (t.shape[0] - 1) // 100_000)
+    return float(np.median((t[1:] - t[:-1])[::stride]))
 
 
 def _whole(x: np.ndarray) -> bool:
@@ -99,7 +118,8 @@ def _median(values) -> float:
     return float(np.median(values)) if values else float("nan")
 
 
-def _gyro(recs: Sequence[Recording], time_ok: bool) -> tuple[list[_Finding], float]:
+def _gyro(recs: Sequence[Recording], steps: list[float],
+          time_ok: bool) -> tuple[list[_Finding], float]:
     """Findings on the gyro read as rad/s, and the factor to rad/s of a unit that fits
     (the noise density only where the time base is trusted, ``time_ok``)."""
     rest = [_rest(r.gyro) for r in recs]
@@ -107,9 +127,9 @@ def _gyro(recs: Sequence[Recording], time_ok: bool) -> tuple[list[_Finding], flo
     # the peak: the 99th percentile of |ω| (a few spikes are not the unit's doing)
     noise = _median(s for s, _ in rest)
     bias = _median(float(np.percentile(m, 10)) for _, m in rest)
-    peak = _median(float(np.percentile(np.linalg.norm(r.gyro, axis=1), 99, method="lower"))
-                   for r in recs)
-    step = _median(float(np.median(np.diff(r.t))) for r in recs)
+    peak = _median(math.sqrt(float(np.percentile(np.einsum("ij,ij->i", r.gyro, r.gyro), 99,
+                                                 method="lower"))) for r in recs)
+    step = _median(steps)
     density = noise * math.sqrt(step) if time_ok and 1e-5 <= step <= SLOW_STEP[0] \
         else float("nan")
     out = []
@@ -151,19 +171,17 @@ def _temp(recs: Sequence[Recording]) -> list[_Finding]:
         return []
     low = min(float(np.min(t)) for t in temps)
     if low > HOT:
-        mid = _median(float(np.median(t)) for t in temps)
+        mid = _median(float(np.median(t[:: max(1, t.shape[0] // 100_000)])) for t in temps)
         return [_Finding(True, f"temperatures of {low:.4g} °C and above (median {mid:.4g} °C; "
                                f"{mid - 273.15:.3g} °C if kelvin)")]
     return []
 
 
-def _time(recs: Sequence[Recording]) -> list[_Finding]:
-    steps = [np.diff(r.t) for r in recs]
-    step = _median(float(np.median(s)) for s in steps)
+def _time(steps: list[float]) -> list[_Finding]:
+    step = _median(steps)
     if step > SLOW_STEP[0]:
         return [_Finding(step > SLOW_STEP[1], f"a median sample interval of {step:.4g} s")]
-    medians = [float(np.median(s)) for s in steps]
-    if step >= 2.0 and all(abs(m - round(m)) <= 1e-6 * m for m in medians):
+    if step >= 2.0 and all(abs(m - round(m)) <= 1e-6 * m for m in steps):
         return [_Finding(False, f"time steps of whole numbers ({step:.6g} s median), as "
                                 f"millisecond ticks give")]
     return []
@@ -189,14 +207,17 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
     recs = [r for r in recs if r.n >= MIN_SAMPLES]
     if not recs:
         return []
+    if len(recs) > MAX_DEVICES:
+        recs = [recs[int(i)] for i in np.linspace(0, len(recs) - 1, MAX_DEVICES)]
+    steps = [_step(r.t) for r in recs]
     notes = []
-    time_found = _time(recs) if "t" in assumed and "t" in columns else []
+    time_found = _time(steps) if "t" in assumed and "t" in columns else []
     for sig in ("t", "gyro", "accel", "temp"):
         if sig not in assumed or sig not in columns:
             continue
         factor = float("nan")
         if sig == "gyro":
-            found, factor = _gyro(recs, time_ok=not time_found)
+            found, factor = _gyro(recs, steps, time_ok=not time_found)
         elif sig == "accel":
             found, factor = _accel(recs)
         elif sig == "temp":
@@ -205,11 +226,11 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
             found = time_found
         if not found:
             continue
-        notes.append(_judge(sig, found, factor, recs, file, columns[sig]))
+        notes.append(_judge(sig, found, factor, recs, _median(steps), file, columns[sig]))
     return notes
 
 
-def _judge(sig: str, found: list[_Finding], factor: float, recs, file: str,
+def _judge(sig: str, found: list[_Finding], factor: float, recs, step: float, file: str,
            column: str) -> UnitNote:
     opt, si = _UNIT_OPTION[sig], _SI[sig]
     what = ", ".join(f.what for f in found)
@@ -217,7 +238,6 @@ def _judge(sig: str, found: list[_Finding], factor: float, recs, file: str,
     if sig == "temp":
         unit = "K"
     elif sig == "t":  # ms ticks; beyond an hour, µs (a µs tick of an hour is 3.6 ms)
-        step = _median(float(np.median(np.diff(r.t))) for r in recs)
         unit = "ms" if step < SLOW_STEP[0] else "us" if step > SLOW_STEP[1] else "ms (or us)"
     counts = sig in ("gyro", "accel") and all(
         _whole(getattr(r, sig)) for r in recs)
