@@ -16,7 +16,7 @@ from dataclasses import dataclass, field
 
 from ..data import COLUMN_TO_SIGNAL
 from ..errors import DataError
-from .units import _SIGNAL_KIND, _UNIT_OPTION, _canonical_unit
+from .units import SIGNAL_KIND, UNIT_OPTION, canonical_unit
 
 _BRACKETED = re.compile(r"^(?P<base>.*?)\s*(?:\((?P<p>[^()]+)\)|\[(?P<b>[^\[\]]+)\]|"
                         r"\{(?P<c>[^{}]+)\})\s*$")
@@ -56,8 +56,8 @@ def _standard_for(base: str, unit: str) -> tuple[str, str] | None:
             continue
         if std in ("g", "a", "r"):
             std += m.group("axis")
-        kind = _SIGNAL_KIND.get(_signal(std))
-        canonical = _canonical_unit(kind, unit) if kind else None
+        kind = SIGNAL_KIND.get(_signal(std))
+        canonical = canonical_unit(kind, unit) if kind else None
         if canonical is not None:
             return std, canonical
     return None
@@ -98,8 +98,8 @@ def header_units(names: Sequence[str], columns: Mapping[str, str],
         base, unit = split
         if name in given:
             std = given[name]
-            kind = _SIGNAL_KIND.get(_signal(std))
-            canonical = _canonical_unit(kind, unit) if kind else None
+            kind = SIGNAL_KIND.get(_signal(std))
+            canonical = canonical_unit(kind, unit) if kind else None
             if canonical is None:
                 continue
         else:
@@ -136,10 +136,10 @@ def merge_units(header: HeaderUnits, given: Mapping[str, str], file: str) -> dic
     out = dict(given)
     for sig, unit in header.units.items():
         if sig in given:
-            kind = _SIGNAL_KIND[sig]
-            theirs = _canonical_unit(kind, given[sig]) if kind else None
+            kind = SIGNAL_KIND[sig]
+            theirs = canonical_unit(kind, given[sig]) if kind else None
             if theirs is not None and theirs != unit:
-                opt = _UNIT_OPTION.get(sig, _UNIT_OPTION.get(
+                opt = UNIT_OPTION.get(sig, UNIT_OPTION.get(
                     {"rate": "gyro", "temp_ext": "temp"}.get(sig, ""), f"units[{sig!r}]"))
                 raise DataError(f"the header says {unit} but {opt} {given[sig]} was given",
                                 file=file, column=header.sources[sig][0],

@@ -41,7 +41,7 @@ import numpy as np
 from ..data import Recording
 from ..errors import DataError
 from .reports import UnitNote
-from .units import _UNIT_OPTION, UNITS
+from .units import UNIT_OPTION, UNITS
 
 G0 = 9.80665  # standard gravity, m/s²
 #: rad/s: beyond the full scale of any MEMS (≤ 4000 °/s) or navigation gyro.
@@ -232,7 +232,7 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
 
 def _judge(sig: str, found: list[_Finding], factor: float, recs, step: float, file: str,
            column: str) -> UnitNote:
-    opt, si = _UNIT_OPTION[sig], _SI[sig]
+    opt, si = UNIT_OPTION[sig], _SI[sig]
     what = ", ".join(f.what for f in found)
     unit = _unit_for(sig, factor) if np.isfinite(factor) else None
     if sig == "temp":
