@@ -241,3 +241,23 @@ def test_real_recordings_behave(tmp_path):
         assert report.units == []
         load(save(recs, tmp_path / "px4.parquet"), report=report)
         assert report.units == []
+
+
+def test_a_streamed_device_in_mdps_fails_alone(tmp_path):
+    """The streamed pipeline reads row groups, not whole files: a device only plausible in
+    another unit fails on its own (invalid_data, the option in its reason), the rest fit."""
+    from pipeline_data import MODEL, load_outputs, simulated, write_parquet
+
+    from diffgyro.pipeline import fit_dataset
+
+    batch, _ = simulated(3, 5, "u-")
+    frames = [r.to_frame() for r in batch.recordings()]
+    frames[1][["gx", "gy", "gz"]] *= 180e3 / math.pi
+    write_parquet(pd.concat(frames, ignore_index=True), tmp_path / "data" / "a.parquet")
+    out = tmp_path / "cal.json"
+    fit_dataset([tmp_path / "data"], MODEL, out=out, chunk_devices=3, progress=False)
+    status = {r["device"]: r for r in load_outputs(out)[1]}
+    assert status["u-001"]["status"] == "invalid_data"
+    assert "not plausible in rad/s" in status["u-001"]["reason"]
+    assert "--gyro-unit mdps" in status["u-001"]["reason"]
+    assert status["u-000"]["status"] == status["u-002"]["status"] == "ok"

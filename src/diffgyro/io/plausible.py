@@ -140,7 +140,8 @@ def _gyro(recs: Sequence[Recording], steps: list[float],
     if noise > REST_NOISE[0]:
         out.append(_Finding(noise > REST_NOISE[1], f"a rest noise of {noise:.3g} rad/s"))
     elif density > NOISE_DENSITY:
-        out.append(_Finding(False, f"a noise density of {density:.3g} rad/s/√Hz"))
+        out.append(_Finding(False, f"a noise density of {density:.3g} rad/s/√Hz (σ·√dt, "
+                                   f"from {step:.3g} s between samples)"))
 
     def fits(k: float) -> bool:
         return (peak * k <= RATE_PEAK and bias * k <= REST_BIAS[0] and noise * k <= REST_NOISE[0]
