@@ -17,7 +17,8 @@ settings. The rule (docs/formats.md, "Units"):
   sheets), noise over 0.05 rad/s per sample or a noise density over 3·10⁻³
   rad/s/√Hz (0.17 °/s/√Hz, ten times a consumer MEMS gyro); an accelerometer
   at rest far from 9.81 m/s²; samples 60 s to an hour apart, or time steps
-  of whole numbers of "seconds" (2, 5, 10 ...) as ms ticks give.
+  of whole numbers of "seconds" (2, 5, 10 ... as ms ticks give) with which a
+  gyro plausible in every other way has a noise density no gyro has.
 * whole numbers (raw ADC counts, which the multi- and six-position recipes
   calibrate on purpose) are never refused: a refusal becomes a warning that
   says the numbers are kept as counts.
@@ -118,36 +119,53 @@ def _median(values) -> float:
     return float(np.median(values)) if values else float("nan")
 
 
-def _gyro(recs: Sequence[Recording], steps: list[float],
-          time_ok: bool) -> tuple[list[_Finding], float]:
+@dataclass(frozen=True)
+class _GyroStats:
+    """A file's gyro read as rad/s: medians over its devices."""
+
+    noise: float    # per-sample σ at rest
+    bias: float     # the 10th percentile of the rest windows' |mean| (not a constant turn)
+    peak: float     # the 99th percentile of |ω| (a few spikes are not the unit's doing)
+    step: float     # s between samples, as read
+
+    @classmethod
+    def of(cls, recs: Sequence[Recording], steps: list[float]) -> _GyroStats:
+        rest = [_rest(r.gyro) for r in recs]
+        return cls(noise=_median(s for s, _ in rest),
+                   bias=_median(float(np.percentile(m, 10)) for _, m in rest),
+                   peak=_median(math.sqrt(float(np.percentile(
+                       np.einsum("ij,ij->i", r.gyro, r.gyro), 99, method="lower")))
+                       for r in recs),
+                   step=_median(steps))
+
+    @property
+    def density(self) -> float:
+        """σ·√dt, rad/s/√Hz (nan for a time step no IMU has)."""
+        return self.noise * math.sqrt(self.step) if 1e-5 <= self.step <= SLOW_STEP[0] \
+            else float("nan")
+
+    def plausible(self, k: float = 1.0, density: bool = True) -> bool:
+        """Whether the numbers times ``k`` are plausible rad/s (the noise density too)."""
+        return (self.peak * k <= RATE_PEAK and self.bias * k <= REST_BIAS[0]
+                and self.noise * k <= REST_NOISE[0]
+                and not (density and self.density * k > NOISE_DENSITY))
+
+
+def _gyro(g: _GyroStats, time_ok: bool) -> tuple[list[_Finding], float]:
     """Findings on the gyro read as rad/s, and the factor to rad/s of a unit that fits
     (the noise density only where the time base is trusted, ``time_ok``)."""
-    rest = [_rest(r.gyro) for r in recs]
-    # the bias: the 10th percentile of the rest windows (a constant rotation is not one);
-    # the peak: the 99th percentile of |ω| (a few spikes are not the unit's doing)
-    noise = _median(s for s, _ in rest)
-    bias = _median(float(np.percentile(m, 10)) for _, m in rest)
-    peak = _median(math.sqrt(float(np.percentile(np.einsum("ij,ij->i", r.gyro, r.gyro), 99,
-                                                 method="lower"))) for r in recs)
-    step = _median(steps)
-    density = noise * math.sqrt(step) if time_ok and 1e-5 <= step <= SLOW_STEP[0] \
-        else float("nan")
     out = []
-    if peak > RATE_PEAK:
-        out.append(_Finding(True, f"rates up to {peak:.3g} rad/s"))
-    if bias > REST_BIAS[0]:
-        out.append(_Finding(bias > REST_BIAS[1], f"a rest bias of {bias:.3g} rad/s"))
-    if noise > REST_NOISE[0]:
-        out.append(_Finding(noise > REST_NOISE[1], f"a rest noise of {noise:.3g} rad/s"))
-    elif density > NOISE_DENSITY:
-        out.append(_Finding(False, f"a noise density of {density:.3g} rad/s/√Hz (σ·√dt, "
-                                   f"from {step:.3g} s between samples)"))
-
-    def fits(k: float) -> bool:
-        return (peak * k <= RATE_PEAK and bias * k <= REST_BIAS[0] and noise * k <= REST_NOISE[0]
-                and not density * k > NOISE_DENSITY)
-
-    factor = next((k for k in (math.pi / 180.0, math.pi / 180e3) if fits(k)), float("nan"))
+    if g.peak > RATE_PEAK:
+        out.append(_Finding(True, f"rates up to {g.peak:.3g} rad/s"))
+    if g.bias > REST_BIAS[0]:
+        out.append(_Finding(g.bias > REST_BIAS[1], f"a rest bias of {g.bias:.3g} rad/s"))
+    if g.noise > REST_NOISE[0]:
+        out.append(_Finding(g.noise > REST_NOISE[1], f"a rest noise of {g.noise:.3g} rad/s"))
+    elif time_ok and g.density > NOISE_DENSITY:
+        out.append(_Finding(False, f"a noise density of {g.density:.3g} rad/s/√Hz (σ·√dt, "
+                                   f"from {g.step:.3g} s between samples)"))
+    factor = next((k for k in (math.pi / 180.0, math.pi / 180e3)
+                   if g.plausible(k, density=time_ok)), float("nan"))
     return out, factor
 
 
@@ -178,13 +196,18 @@ def _temp(recs: Sequence[Recording]) -> list[_Finding]:
     return []
 
 
-def _time(steps: list[float]) -> list[_Finding]:
+def _time(steps: list[float], gyro: _GyroStats) -> list[_Finding]:
+    """Samples too far apart; or whole-number steps of 2 s or more (ms ticks of a 500 Hz
+    or slower clock) with which a gyro plausible in every other way has a noise density
+    no gyro has: a clock 1000 times too slow (a slow logger in s keeps the density)."""
     step = _median(steps)
     if step > SLOW_STEP[0]:
         return [_Finding(step > SLOW_STEP[1], f"a median sample interval of {step:.4g} s")]
-    if step >= 2.0 and all(abs(m - round(m)) <= 1e-6 * m for m in steps):
-        return [_Finding(False, f"time steps of whole numbers ({step:.6g} s median), as "
-                                f"millisecond ticks give")]
+    if (step >= 2.0 and all(abs(m - round(m)) <= 1e-6 * m for m in steps)
+            and gyro.density > NOISE_DENSITY and gyro.plausible(density=False)):
+        return [_Finding(False, f"whole-number steps of {step:.6g} s (median), with which the "
+                                f"gyro's noise density is {gyro.density:.3g} rad/s/√Hz, more "
+                                f"than a gyro's ({gyro.density / math.sqrt(1e3):.3g} with ms)")]
     return []
 
 
@@ -211,14 +234,15 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
     if len(recs) > MAX_DEVICES:
         recs = [recs[int(i)] for i in np.linspace(0, len(recs) - 1, MAX_DEVICES)]
     steps = [_step(r.t) for r in recs]
+    gyro = _GyroStats.of(recs, steps)
     notes = []
-    time_found = _time(steps) if "t" in assumed and "t" in columns else []
+    time_found = _time(steps, gyro) if "t" in assumed and "t" in columns else []
     for sig in ("t", "gyro", "accel", "temp"):
         if sig not in assumed or sig not in columns:
             continue
         factor = float("nan")
         if sig == "gyro":
-            found, factor = _gyro(recs, steps, time_ok=not time_found)
+            found, factor = _gyro(gyro, time_ok=not time_found)
         elif sig == "accel":
             found, factor = _accel(recs)
         elif sig == "temp":
