@@ -229,7 +229,7 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
     naming the file, the column (``columns``: signal -> how messages name it) and the
     option that passes it."""
     recs = [r for r in recs if r.n >= MIN_SAMPLES]
-    if not recs:
+    if not recs or not assumed & set(columns):
         return []
     if len(recs) > MAX_DEVICES:
         recs = [recs[int(i)] for i in np.linspace(0, len(recs) - 1, MAX_DEVICES)]
