@@ -235,7 +235,7 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
         recs = [recs[int(i)] for i in np.linspace(0, len(recs) - 1, MAX_DEVICES)]
     steps = [_step(r.t) for r in recs]
     gyro = _GyroStats.of(recs, steps)
-    notes = []
+    notes, refused = [], []
     time_found = _time(steps, gyro) if "t" in assumed and "t" in columns else []
     for sig in ("t", "gyro", "accel", "temp"):
         if sig not in assumed or sig not in columns:
@@ -251,12 +251,29 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
             found = time_found
         if not found:
             continue
-        notes.append(_judge(sig, found, factor, recs, _median(steps), file, columns[sig]))
+        judged = _judge(sig, found, factor, recs, _median(steps), file, columns[sig])
+        (notes if isinstance(judged, UnitNote) else refused).append(judged)
+    if refused:  # every refused signal in one line, the first one's column named
+        raise DataError("; ".join([refused[0].problem] + [f"column {r.column}: {r.problem}"
+                                                          for r in refused[1:]]), file=file,
+                        column=refused[0].column,
+                        hint="give " + " and ".join(r.suggest for r in refused) + ", or "
+                             + " and ".join(r.keep for r in refused)
+                             + (" if the numbers really are in that unit" if len(refused) == 1
+                                else " if the numbers really are in those units"))
     return notes
 
 
+@dataclass(frozen=True)
+class _Refusal:
+    column: str
+    problem: str
+    suggest: str   # the option that fits the numbers, e.g. "--gyro-unit deg/s"
+    keep: str      # the option that keeps them, e.g. "--gyro-unit rad/s"
+
+
 def _judge(sig: str, found: list[_Finding], factor: float, recs, step: float, file: str,
-           column: str) -> UnitNote:
+           column: str) -> UnitNote | _Refusal:
     opt, si = UNIT_OPTION[sig], _SI[sig]
     what = ", ".join(f.what for f in found)
     unit = _unit_for(sig, factor) if np.isfinite(factor) else None
@@ -273,8 +290,7 @@ def _judge(sig: str, found: list[_Finding], factor: float, recs, step: float, fi
                         f"kept as they are (give {opt} if they are in a unit)")
     suggest = f"{opt} {unit}" if unit else f"{opt} with the unit of the file"
     if any(f.refuse for f in found):
-        raise DataError(f"{problem}: not plausible in {si}", file=file, column=column,
-                        hint=f"give {suggest}, or {opt} {si} if the numbers really are {si}")
+        return _Refusal(column, f"{problem}: not plausible in {si}", suggest, f"{opt} {si}")
     plausible = f"plausible in {unit}: " if unit else ""
     return UnitNote(file, sig, "warning",
                     f"{column}: {problem}; {plausible}give {suggest}, or {opt} {si} to keep "
