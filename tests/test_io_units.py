@@ -264,11 +264,11 @@ def test_a_streamed_device_in_mdps_fails_alone(tmp_path):
 
 def test_every_refused_signal_in_one_line(frames, tmp_path):
     frame = frames["static"].copy()
-    frame[GYRO] *= 180.0 / math.pi
+    frame[GYRO] *= 180e3 / math.pi
     frame[ACCEL] /= 9.80665
     _, refused = _load(_write(frame, None, tmp_path / "both.parquet"))
     assert refused is not None and "\n" not in refused
     assert "column gx, gy, gz: gyro read as rad/s" in refused
     assert "column ax, ay, az: accelerometer read as m/s²" in refused
-    assert "give --gyro-unit deg/s and --acc-unit g, or --gyro-unit rad/s and --acc-unit m/s²" \
+    assert "give --gyro-unit mdps and --acc-unit g, or --gyro-unit rad/s and --acc-unit m/s²" \
         in refused
