@@ -1,6 +1,6 @@
 """The command line on corrupted recordings (issue 22): hypothesis-generated damage
-to a good small recording (truncation, byte flips, swapped or duplicated rows and
-columns, constant or empty columns, extreme values, other encodings and line
+to a good small recording (its header plain or with units; truncation, byte flips,
+swapped or duplicated rows and columns, constant or empty columns, extreme values, other encodings and line
 endings, wrong extensions and magic bytes, damaged Parquet/NPZ/compressed files
 and damaged logs: PX4 ULog, ROS 1 bag, ArduPilot DataFlash) through every
 command (fit and diagnose with a limits file); export reads damaged calibration files and
@@ -25,6 +25,10 @@ from diffgyro.cli import main
 
 N = 48  # samples per device: small, so that each run takes milliseconds once compiled
 HEADER = ["device", "t", "gx", "gy", "gz", "temp", "ax", "ay", "az"]
+# the same columns as readable headers with their units (read from the headers)
+UNIT_HEADER = ["device", "time (s)", "Gyroscope X (rad/s)", "Gyroscope Y (rad/s)",
+               "Gyroscope Z (rad/s)", "Temperature (°C)", "acc_x[m/s²]", "acc_y[m/s²]",
+               "acc_z[m/s²]"]
 
 
 def good_rows() -> list[list[str]]:
@@ -220,6 +224,8 @@ def damaged_file(draw, blobs: dict[str, bytes]) -> tuple[bytes, str]:
             data = draw(byte_damage(data))
     else:
         rows = good_rows()
+        if draw(st.integers(0, 3)) == 0:
+            rows[0] = list(UNIT_HEADER)
         for _ in range(draw(st.integers(0, 2))):
             rows = draw(text_damage(rows))
         sep = draw(st.sampled_from([",", ",", ";", "\t", " "]))

@@ -57,7 +57,8 @@ def test_six_position_output_follows_the_input_unit(capsys):
     assert code == 0, err
     # the same numbers read as rad/s, with the turn given as −360 "rad" (−360·180/π degrees),
     # give the same numbers: the output is always in the input unit
-    code, out_rad, err = run(capsys, *base, "--rotation-angle", -360.0 * 180.0 / np.pi)
+    code, out_rad, err = run(capsys, *base, "--rotation-angle", -360.0 * 180.0 / np.pi,
+                             "--gyro-unit", "rad/s")  # the option that keeps implausible rad/s
     assert code == 0, err
     deg, rad = json.loads(out_deg), json.loads(out_rad)
     np.testing.assert_allclose(deg["gyro_bias"], rad["gyro_bias"], rtol=1e-9)
@@ -77,8 +78,12 @@ def test_options_and_errors(capsys, tmp_path):
                        "--sampling-rate", 102.4)
     assert code == 2 and "--sections" in err
     code, _, err = run(capsys, "recipe", "binned-thermal", csv, "--columns", COLS,
-                       "--sampling-rate", 102.4)
+                       "--sampling-rate", 102.4, "--gyro-unit", "deg/s")
     assert code == 2 and "temp" in err
+    # the same file read as rad/s (no --gyro-unit) is refused, naming the option that passes
+    code, _, err = run(capsys, "recipe", "binned-thermal", csv, "--columns", COLS,
+                       "--sampling-rate", 102.4)
+    assert code == 2 and "not plausible in rad/s" in err and "--gyro-unit deg/s" in err
 
 
 def test_binned_thermal_and_static_kalman_from_files(capsys, tmp_path):

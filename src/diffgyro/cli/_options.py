@@ -116,8 +116,10 @@ def load_from_cli(
     batch: bool = True,
     topic: str | None = None,
     temp_topic: str | None = None,
+    report=None,
 ):
-    """Load data files from command-line options; report dropped rows and warnings on stderr.
+    """Load data files from command-line options; report dropped rows, warnings and the
+    units read from headers on stderr (and in ``report``, a :class:`LoadReport`, if given).
 
     Returns a :class:`~diffgyro.data.Batch` (or a list of recordings with
     ``batch=False``). Raises :class:`~diffgyro.errors.DataError` on bad input.
@@ -125,7 +127,7 @@ def load_from_cli(
     from diffgyro.data import Batch
     from diffgyro.io import LoadReport, load, parse_columns
 
-    report = LoadReport()
+    report = LoadReport() if report is None else report
     recordings = load(paths, parse_columns(columns),
                       units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
                       drop_invalid=drop_invalid, sampling_rate=sampling_rate,
@@ -134,3 +136,11 @@ def load_from_cli(
     for line in report.lines():
         print(f"diffgyro: {line}", file=sys.stderr)
     return Batch.from_recordings(recordings) if batch else recordings
+
+
+def units_json(report) -> list[dict]:
+    """The ``"units"`` field of ``--json`` output: the load's unit lines (read from
+    headers, or warned), each ``{"file", "signal", "kind", "text"}``."""
+    from dataclasses import asdict
+
+    return [asdict(u) for u in report.units]

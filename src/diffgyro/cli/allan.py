@@ -23,6 +23,7 @@ from ._options import (
     TimeUnit,
     Topic,
     load_from_cli,
+    units_json,
 )
 
 AXES = ("gx", "gy", "gz")
@@ -60,15 +61,18 @@ def allan_command(
     curve holds just the τ asked for (those longer than a quarter of a
     device's recording are left out, with a warning).
     """
+    from diffgyro.io import LoadReport
     from diffgyro.jsonio import dumps
 
     wanted = _parse_taus(taus)
+    loaded = LoadReport()
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
-                          topic=topic, temp_topic=temp_topic)
+                          topic=topic, temp_topic=temp_topic, report=loaded)
     _warn_uneven(batch)
     parts = _curves(batch, per_decade, wanted)
     doc = _merged_json(parts, batch)
+    doc["units"] = units_json(loaded)
     if wanted is not None:
         _warn_missing_taus(doc, wanted)
     if report is not None:

@@ -23,6 +23,7 @@ from ._options import (
     Topic,
     load_from_cli,
     streamed_dir,
+    units_json,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -35,15 +36,16 @@ DtempWindow = Annotated[float | None, typer.Option(
 
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True):
+                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True,
+                   report=None):
     """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
-    the recordings, not padded into a batch)."""
+    the recordings, not padded into a batch). Unit notes go to ``report`` if given."""
     from diffgyro.core import min_samples
     from diffgyro.io import check_min_samples
 
     recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                         batch=False)
+                         batch=False, report=report)
     need = min_samples(model.n_params + model.n_nonlinear)
     if all(r.n < need for r in recs):
         check_min_samples(recs[0], need, f"model {model.spec!r}")
@@ -78,6 +80,7 @@ def fit_command(
     """
     from diffgyro import calibration
     from diffgyro.fit import fit
+    from diffgyro.io import LoadReport
     from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
@@ -92,8 +95,10 @@ def fit_command(
 
     em = ErrorModel.from_spec(model)
     lim = load_limits(limits, em)
+    report = LoadReport()
     batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                           report=report)
     if dtemp_window is None:
         from diffgyro.diagnose import suggest_dtemp_window
 
@@ -107,7 +112,7 @@ def fit_command(
         cal = calibration.from_fit(result, batch)
         calibration.save(cal if summary is None else attach(cal, records, summary), out)
     if as_json:
-        print(dumps({"model": em.spec, "devices": records}
+        print(dumps({"model": em.spec, "devices": records, "units": units_json(report)}
                     | ({} if summary is None else {"limits": summary})))
         return
     from rich.console import Console

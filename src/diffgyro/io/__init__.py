@@ -5,7 +5,11 @@ optional groups ``temp``, ``temp_ext``, ``ax..az``, ``mx..mz``, ``rx..rz`` and
 ``qw..qz``, in SI units (s, rad/s, m/s², °C). One file may hold many devices
 in long format (a ``device`` column); without it the device id is the file
 stem. Other column names and units are mapped at load time
-(:func:`parse_columns`, ``units=``). PX4 ULog, ROS bags and ArduPilot
+(:func:`parse_columns`, ``units=``); a unit written in a header
+(``Gyroscope X (deg/s)``) is read from it (:mod:`.headers`), and the numbers of
+a signal whose unit nobody stated are checked for plausibility in SI
+(:mod:`.plausible`: refused, or warned about, naming the option that passes;
+one :class:`UnitNote` line each in the :class:`LoadReport`). PX4 ULog, ROS bags and ArduPilot
 DataFlash logs are read by :mod:`diffgyro.logs` into the same schema and then
 checked like any table.
 
@@ -38,7 +42,7 @@ from __future__ import annotations
 from .cells import LIMITS, cell_problem, check_cells
 from .columns import parse_columns
 from .load import load, load_batch
-from .reports import Dropped, LoadReport, check_min_samples
+from .reports import Dropped, LoadReport, UnitNote, check_min_samples
 from .save import save
 from .units import UNITS, resolve_units
 
@@ -47,6 +51,7 @@ __all__ = [
     "Dropped",
     "LIMITS",
     "LoadReport",
+    "UnitNote",
     "cell_problem",
     "check_cells",
     "check_min_samples",

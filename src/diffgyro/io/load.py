@@ -16,7 +16,9 @@ from ..logs import log_format
 from .cells import cell_problem, check_cells
 from .columns import check_columns
 from .convert import DeviceIds, device_ids, label, to_float
-from .reports import Dropped, LoadReport
+from .headers import header_units, merge_units
+from .plausible import check_plausible
+from .reports import Dropped, LoadReport, UnitNote
 from .source import COMPRESSION, Source, is_number, release_read_buffers
 from .units import resolve_units
 
@@ -42,6 +44,7 @@ def load(
     report: LoadReport | None = None,
     topic: str | None = None,
     temp_topic: str | None = None,
+    check_units: bool = True,
 ) -> list[Recording]:
     """Read recordings from CSV / Parquet / NPZ files in the standard schema, or logs.
 
@@ -63,6 +66,14 @@ def load(
         topic: ROS bags: the ``sensor_msgs/msg/Imu`` topic(s), comma-separated
             (default: all).
         temp_topic: ROS bags: the ``sensor_msgs/msg/Temperature`` topic.
+        check_units: check that the numbers of each signal whose unit nobody
+            stated are plausible in SI (:mod:`diffgyro.io.plausible`).
+
+    A table's headers may carry units, ``Gyroscope X (deg/s)`` or
+    ``acc_x[g]`` (:mod:`diffgyro.io.headers`): they are converted like
+    ``units``, and the column is mapped when its name is recognisable; a
+    ``units`` entry that contradicts a header is an error. Each file's header
+    units and each implausible signal give one line in ``report.units``.
 
     Logs (``.ulg``, ``.bag``, ``.mcap``, a rosbag2 folder, ``.bin``, ``.log``)
     are read by :mod:`diffgyro.logs`; ``device`` then replaces the file stem
@@ -72,7 +83,8 @@ def load(
     first-appearance order within a file.
     """
     columns = check_columns(columns)
-    conv = resolve_units(units)
+    resolve_units(units)  # an unknown unit fails before any file is read
+    units = dict(units or {})
     if sampling_rate is not None:
         try:
             sampling_rate = float(sampling_rate)
@@ -86,8 +98,8 @@ def load(
     owner: dict[str, str] = {}
     log_options = {"topic": topic, "temp_topic": temp_topic}
     for path in _as_paths(paths):
-        for rec in _load_file(path, columns, conv, drop_invalid, sampling_rate, device,
-                              min_samples, report, log_options):
+        for rec in _load_file(path, columns, units, drop_invalid, sampling_rate, device,
+                              min_samples, report, log_options, check_units):
             if rec.device in owner:
                 raise DataError(
                     f"device id appears in two files: {owner[rec.device]} and {rec.source}",
@@ -110,17 +122,28 @@ def load_batch(
     report: LoadReport | None = None,
     length: int | None = None,
     bucket: bool = True,
+    check_units: bool = True,
 ) -> Batch:
     """:func:`load`, then :meth:`Batch.from_recordings` (padded to a bucket length)."""
     recs = load(paths, columns, units, drop_invalid, sampling_rate, device,
-                min_samples=min_samples, report=report)
+                min_samples=min_samples, report=report, check_units=check_units)
     return Batch.from_recordings(recs, length=length, bucket=bucket)
 
 
-def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_samples,
-               report, log_options=None) -> list[Recording]:
-    """The recordings of one file: its layout found, its cells read and checked per device."""
+def _load_file(path, columns, units, drop_invalid, sampling_rate, device, min_samples,
+               report, log_options=None, check_units=True) -> list[Recording]:
+    """The recordings of one file: its layout found, its cells read and checked per device,
+    the units of the signals nobody gave a unit for checked for plausibility."""
     src = _open(path, device, log_options, report)
+    assumed: set[str] = set()
+    if src.log is None:  # a log's reader gives SI units; a table may say its units
+        header = header_units(src.names, columns, src.file)
+        units = merge_units(header, units, src.file)
+        columns = {**header.columns, **columns}
+        if header.units:
+            _note(report, UnitNote(src.file, "", "mapped", header.describe()))
+        assumed = {sig for sig in ("t", "gyro", "accel", "temp") if sig not in units}
+    conv = resolve_units(units)
     lay = _layout(src, path, columns, device, sampling_rate)
     devices, values, aux_all = _read(src, lay, columns, report)
     # group rows by device: first-appearance order, file order within a device
@@ -131,7 +154,21 @@ def _load_file(path, columns, conv, drop_invalid, sampling_rate, device, min_sam
                   for dev, rows in zip(devices.names, np.split(order, bounds), strict=True)]
     del values, aux_all  # may be views of the file reader's buffers
     release_read_buffers()
+    if check_units and assumed:
+        named = {sig: ", ".join(label(c, lay.present[c]) for c in SIGNALS[sig])
+                 for sig in ("gyro", "accel", "temp") if sig in lay.signals}
+        if "t" in lay.present:
+            named["t"] = label("t", lay.present["t"])
+        for note in check_plausible(recordings, lay.file, assumed, named):
+            _note(report, note)
     return recordings
+
+
+def _note(report, note: UnitNote) -> None:
+    if report is not None:
+        report.units.append(note)
+    else:
+        warnings.warn(note.message(), stacklevel=4)  # the caller of load()
 
 
 def _open(path: Path, device, log_options, report) -> Source:

@@ -24,6 +24,22 @@ class Dropped:
                 f"device {self.device} (first: row {self.first_row})")
 
 
+@dataclass(frozen=True)
+class UnitNote:
+    """One line on the units of one file: a unit read from its headers (``kind``
+    ``"mapped"``) or numbers only plausible in another unit (``"warning"``); the
+    numbers are kept as loaded. A refusal is a :class:`DataError` instead."""
+
+    file: str
+    signal: str   # "t", "gyro", "accel", "temp" ... ("" for a whole-file mapping line)
+    kind: str     # "mapped" | "warning"
+    text: str
+
+    def message(self) -> str:
+        head = "warning: " if self.kind == "warning" else ""
+        return f"{head}file {self.file}: {self.text}"
+
+
 @dataclass
 class LoadReport:
     """What :func:`load` skipped or noticed; pass one in as ``report=`` to receive it."""
@@ -33,13 +49,16 @@ class LoadReport:
     warnings: list[str] = field(default_factory=list)
     #: One line per file that had extra columns holding text (they are not loaded).
     ignored: list[str] = field(default_factory=list)
+    #: Units read from headers and unit warnings (:class:`UnitNote`), one line each.
+    units: list[UnitNote] = field(default_factory=list)
 
     @property
     def n_dropped(self) -> int:
         return sum(d.rows for d in self.dropped)
 
     def lines(self) -> list[str]:
-        return [d.message() for d in self.dropped] + list(self.warnings) + list(self.ignored)
+        return ([d.message() for d in self.dropped] + list(self.warnings) + list(self.ignored)
+                + [u.message() for u in self.units])
 
 
 def check_min_samples(recording: Recording, n_needed: int, why: str = "the model") -> None:

@@ -33,16 +33,18 @@ _ALIASES = {
     "c": "C", "°c": "C", "degc": "C", "celsius": "C", "k": "K", "kelvin": "K",
     "f": "F", "°f": "F", "degf": "F", "fahrenheit": "F",
 }
-# which unit table each signal uses (None: any unit, no conversion)
-_SIGNAL_KIND: dict[str, str | None] = {"t": "time", "gyro": "rate", "rate": "rate",
-                                       "accel": "accel", "temp": "temp", "temp_ext": "temp",
-                                       "mag": None}
-# how a user sets each unit (for messages)
-_UNIT_OPTION = {"t": "--time-unit", "gyro": "--gyro-unit", "accel": "--acc-unit",
-                "temp": "--temp-unit"}
+#: Which unit table each signal uses (None: any unit, no conversion).
+SIGNAL_KIND: dict[str, str | None] = {"t": "time", "gyro": "rate", "rate": "rate",
+                                      "accel": "accel", "temp": "temp", "temp_ext": "temp",
+                                      "mag": None}
+#: How a user sets each unit (for messages).
+UNIT_OPTION = {"t": "--time-unit", "gyro": "--gyro-unit", "accel": "--acc-unit",
+               "temp": "--temp-unit"}
 
 
-def _canonical_unit(kind: str, text: str) -> str | None:
+def canonical_unit(kind: str, text: str) -> str | None:
+    """The name in :data:`UNITS` of unit ``text`` of ``kind`` (aliases such as ``dps``,
+    ``°/s``, ``m/s²``, ``degC``, ``µs`` included); None if it is not one."""
     table = UNITS[kind]
     raw = str(text).strip()
     if raw in table:
@@ -65,22 +67,22 @@ def resolve_units(units: Mapping[str, str] | None) -> dict[str, tuple[float, flo
     """
     units = dict(units or {})
     for key in units:
-        if key not in _SIGNAL_KIND:
+        if key not in SIGNAL_KIND:
             raise DataError(f"unknown signal {key!r} in units",
-                            hint="valid: " + ", ".join(_SIGNAL_KIND))
+                            hint="valid: " + ", ".join(SIGNAL_KIND))
     if "gyro" in units and "rate" not in units:
         units["rate"] = units["gyro"]
     if "temp" in units and "temp_ext" not in units:
         units["temp_ext"] = units["temp"]
     out: dict[str, tuple[float, float]] = {}
     for sig, text in units.items():
-        kind = _SIGNAL_KIND[sig]
+        kind = SIGNAL_KIND[sig]
         if kind is None or text is None:
             continue
-        name = _canonical_unit(kind, text)
+        name = canonical_unit(kind, text)
         if name is None:
-            how = _UNIT_OPTION.get(sig, f"units[{sig!r}]")
-            if sig in _UNIT_OPTION:
+            how = UNIT_OPTION.get(sig, f"units[{sig!r}]")
+            if sig in UNIT_OPTION:
                 how += f" / units[{sig!r}]"
             raise DataError(f"unknown {sig} unit {str(text)!r} (option {how})",
                             hint="valid: " + ", ".join(UNITS[kind]))

@@ -483,4 +483,24 @@ def _recording(dev: str, file: str, cols: FileColumns, values: dict[str, np.ndar
                        f"row {int(rows[k - 1])} (time must strictly increase)")
         raise DataError(problem, file=file, device=dev, column=cols.present.get("t", "t"),
                         row=int(rows[k]))
-    return Recording(**fields, device=dev, source=file)
+    rec = Recording(**fields, device=dev, source=file)
+    _check_units(rec, file, cols, cfg)
+    return rec
+
+
+def _check_units(rec: Recording, file: str, cols: FileColumns, cfg: ReadConfig) -> None:
+    """Refuse a device whose numbers are only plausible in another unit than the assumed SI
+    (:mod:`diffgyro.io.plausible`, per device here: a chunk does not see the whole file;
+    the warnings' lines are given where the file is read whole, by :func:`diffgyro.io.load`)."""
+    from ..io.plausible import check_plausible
+
+    assumed = {sig for sig in ("t", "gyro", "accel", "temp") if sig not in cfg.units}
+    named = {sig: ", ".join(cols.present[c] for c in SIGNALS[sig])
+             for sig in ("gyro", *cols.signals) if sig in ("gyro", "accel", "temp")}
+    if "t" in cols.present:
+        named["t"] = cols.present["t"]
+    try:
+        check_plausible([rec], file, assumed, named)
+    except DataError as err:
+        raise DataError(err.problem, file=file, device=rec.device, column=err.column,
+                        hint=err.hint) from None
