@@ -30,7 +30,7 @@ from jaxtyping import Array, Bool, Float
 from .components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
 
 #: Levenberg–Marquardt iterations per stage.
-ITERATIONS = 60
+ITERATIONS = 40
 #: Logarithms kept inside this range (no underflow of a power switched down to nothing).
 _LOG_FLOOR = -150.0
 
@@ -93,11 +93,17 @@ def tau_grid(n_scales: int, dt) -> Float[Array, " K"]:
 
 
 def start_pairs(n_scales: int) -> tuple[jax.Array, jax.Array]:
-    """Index pairs (a, b), b ≥ a + 2, into :func:`tau_grid` (two correlation times ≥ 4× apart)."""
+    """Index pairs (a, b) into :func:`tau_grid` to start from, shared by every structure (one
+    compiled program): (a, a) for every a (one Gauss–Markov process, or none: the times are
+    then unused) and, for two, every pair of even indices with b ≥ a + 2 (times a factor 4 or
+    more apart, on a two-octave grid: the Levenberg–Marquardt steps refine them)."""
     import numpy as np
 
     k = n_scales + 4
     a, b = np.triu_indices(k, 2)
+    keep = (a % 2 == 0) & (b % 2 == 0)
+    a = np.concatenate([np.arange(k), a[keep]])
+    b = np.concatenate([np.arange(k), b[keep]])
     return jnp.asarray(a), jnp.asarray(b)
 
 

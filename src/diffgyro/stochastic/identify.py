@@ -8,8 +8,9 @@ Per series (vmapped over devices × axes, one compiled program):
 3. Ω_ref: the inverse covariance of ν̂ under the richest candidate's fit
    (:mod:`.covariance`); every candidate refitted with it, and scored by the
    criterion (:mod:`.selection`);
-4. the chosen structure refitted with the efficient weight of its own fit
-   (Σ at its estimate), its intervals from the sandwich (:mod:`.intervals`).
+4. the chosen structure's intervals from the sandwich (:mod:`.intervals`) with
+   Ω_ref as the weight and Σ at the chosen estimate (Ω_ref is a consistent
+   estimate of the efficient weight whenever the richest model holds the truth).
 """
 
 from __future__ import annotations
@@ -36,6 +37,11 @@ from .intervals import Z95, sandwich
 from .selection import PENALTY, catalogue, effective_rank, label, structure_mask
 from .wavelet_variance import dyadic_m, haar_wv
 
+#: Series per call of the compiled program. Larger batches of this program hung XLA's CPU
+#: runtime (every worker idle, the caller waiting: observed at 60 series, not at 8); a fixed
+#: chunk also keeps to one compiled program whatever the batch.
+CHUNK = 8
+
 
 def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     valid = jnp.isfinite(wv_hat) & (wv_hat > 0) & (count > 1)
@@ -48,38 +54,37 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     pairs = start_pairs(n_scales)
     chol1 = diag_chol(cnt, mf, valid)
     weight1 = 1.0 / jnp.diag(chol1) ** 2
-
-    def stage1(mask):
-        th0 = starting_values(mask, wv_hat, valid, tau, dt, weight1, grid, pairs)
-        return levenberg_marquardt(th0, mask, wv_hat, valid, tau, dt, n, chol1)[0]
-
-    th1 = jax.vmap(stage1)(masks)
+    th0 = jax.vmap(lambda mk: starting_values(mk, wv_hat, valid, tau, dt, weight1, grid, pairs))(masks)
     full = masks[-1]
     scaled = lambda th, mk: wv_covariance(th, mk, mf, cnt, n, dt) / (s[:, None] * s[None, :])  # noqa: E731
-    cov_ref = scaled(th1[-1], full)
-    chol_ref = scaled_chol(cov_ref, valid)
 
-    def stage2(th, mask):
-        th2, obj = levenberg_marquardt(th, mask, wv_hat, valid, tau, dt, n, chol_ref)
-        d = jacobian_scaled(th2, mask, wv_hat, valid, tau, dt)
-        dw = jax.scipy.linalg.solve_triangular(chol_ref, d, lower=True)
-        return th2, obj, effective_rank(dw)
+    def stage(th, k):
+        # stage 0: diagonal first-stage weights; stage 1: Ω_ref from the richest fit of stage 0
+        chol_ref = scaled_chol(scaled(th[-1], full), valid)
+        chol = jnp.where(k == 0, chol1, chol_ref)
+        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, wv_hat, valid, tau, dt, n, chol))(
+            th, masks)
+        return th, (obj, chol)
 
-    th2, obj, rank = jax.vmap(stage2)(th1, masks)
+    th2, (objs, chols) = jax.lax.scan(stage, th0, jnp.arange(2))
+    obj, chol_ref = objs[1], chols[1]
+
+    def rank_of(th, mask):
+        d = jacobian_scaled(th, mask, wv_hat, valid, tau, dt)
+        return effective_rank(jax.scipy.linalg.solve_triangular(chol_ref, d, lower=True))
+
+    rank = jax.vmap(rank_of)(th2, masks)
     k_nominal = jnp.sum(masks, axis=1)
     crit = obj + penalty * rank
     pick = jnp.argmin(jnp.where(jnp.isfinite(crit), crit + 1e-9 * k_nominal, jnp.inf))
     mask = masks[pick]
-    cov_c = scaled(th2[pick], mask)
-    chol_c = scaled_chol(cov_c, valid)
-    th3, obj3 = levenberg_marquardt(th2[pick], mask, wv_hat, valid, tau, dt, n, chol_c)
-    d = jacobian_scaled(th3, mask, wv_hat, valid, tau, dt)
-    cov_at = scaled_chol(scaled(th3, mask), valid)
-    cov_at = cov_at @ cov_at.T
-    cov_theta = sandwich(d, chol_c, cov_at, mask)
+    th = th2[pick]
+    cov_at = scaled(th, mask)
+    d = jacobian_scaled(th, mask, wv_hat, valid, tau, dt)
+    cov_theta = sandwich(d, chol_ref, cov_at, mask)
     wv_sd = jnp.sqrt(jnp.diag(cov_at)) * s
     return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
-                theta=th3, cov=cov_theta, wv_sd=wv_sd, objective_chosen=obj3)
+                theta=th, cov=cov_theta, wv_sd=wv_sd)
 
 
 @eqx.filter_jit
@@ -193,9 +198,20 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
     m = dyadic_m(n)
     wv, count = haar_wv(y, jnp.asarray(dtb), None if n_valid is None else jnp.asarray(nv), m)
     flat = lambda a: jnp.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
-    out = _identify_batch(flat(wv), flat(count), flat(nv.astype(np.float64)), flat(dtb),
-                          jnp.asarray(m), jnp.asarray(masks), jnp.asarray(float(penalty)), len(m))
-    out = {k: np.asarray(v).reshape(lead + np.asarray(v).shape[1:]) for k, v in out.items()}
+    args = [np.asarray(flat(a)) for a in (wv, count, nv.astype(np.float64), dtb)]
+    total = args[0].shape[0]
+    step = min(CHUNK, total)
+    parts = []
+    for lo in range(0, total, step):  # fixed-size chunks: one compiled program for any batch
+        chunk = [a[lo:lo + step] for a in args]
+        short = step - chunk[0].shape[0]
+        if short:  # pad the last chunk with copies of its first series
+            chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
+        res = _identify_batch(*map(jnp.asarray, chunk), jnp.asarray(m), jnp.asarray(masks),
+                              jnp.asarray(float(penalty)), len(m))
+        parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    out = {k: v.reshape(lead + v.shape[1:]) for k, v in out.items()}
     tau = m[None, :] * dtb.reshape(-1, 1)
     return NoiseModels(structures=structures, masks=masks, tau=tau.reshape(lead + (len(m),)),
                        wv=np.asarray(wv), wv_sd=out["wv_sd"], valid=out["valid"], dt=dtb,
