@@ -50,10 +50,10 @@ DT = 0.01
 TRUTHS = {
     "white + random_walk": dict(arw=1e-3, rrw=2e-4),
     "white + gauss_markov": dict(arw=1e-3, gm=((1e-3, 10.0),)),
-    "white + gauss_markov×2": dict(arw=1e-3, gm=((1e-3, 1.0), (2e-3, 20.0))),
-    "white + gauss_markov + random_walk": dict(arw=1e-3, gm=((1e-3, 5.0),), rrw=4e-5),
+    "white + gauss_markov×2": dict(arw=1e-3, gm=((4e-3, 0.5), (3e-3, 5.0))),
+    "white + gauss_markov + random_walk": dict(arw=1e-3, gm=((3e-3, 0.5),), rrw=5.5e-4),
     "white + quantization": dict(arw=1e-3, q=1e-4),
-    "white + random_walk + rate_ramp": dict(arw=1e-3, rrw=1e-4, ramp=1e-5),
+    "white + random_walk + rate_ramp": dict(arw=1e-3, rrw=1e-3, ramp=2e-4),
 }
 
 

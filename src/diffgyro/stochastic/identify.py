@@ -5,12 +5,11 @@ Per series (vmapped over devices × axes, one compiled program):
 1. the empirical Haar wavelet variance ν̂ on dyadic scales (:mod:`.wavelet_variance`);
 2. every candidate of the catalogue fitted with first-stage (diagonal) weights
    (:mod:`.estimator`);
-3. Ω_ref: the inverse covariance of ν̂ under the richest candidate's fit
-   (:mod:`.covariance`); every candidate refitted with it, and scored by the
-   criterion (:mod:`.selection`);
+3. Ω_ref: the inverse covariance of ν̂ (:mod:`.covariance`) under the
+   candidate that step 2 scores best; every candidate refitted with it and
+   scored by the criterion (:mod:`.selection`);
 4. the chosen structure's intervals from the sandwich (:mod:`.intervals`) with
-   Ω_ref as the weight and Σ at the chosen estimate (Ω_ref is a consistent
-   estimate of the efficient weight whenever the richest model holds the truth).
+   Ω_ref as the weight and Σ at the chosen estimate.
 """
 
 from __future__ import annotations
@@ -25,9 +24,10 @@ import numpy as np
 from .components import model_wv
 from .covariance import wv_covariance
 from .estimator import (
-    diag_chol,
-    jacobian_scaled,
+    diag_rel_cov,
+    jacobian_log,
     levenberg_marquardt,
+    log_moments,
     scaled_chol,
     start_pairs,
     starting_values,
@@ -46,43 +46,59 @@ CHUNK = 8
 def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     valid = jnp.isfinite(wv_hat) & (wv_hat > 0) & (count > 1)
     wv_hat = jnp.where(valid, wv_hat, 1.0)
+    log_wv = jnp.log(wv_hat)
     mf = m.astype(wv_hat.dtype)
     tau = mf * dt
     cnt = count.astype(wv_hat.dtype)
-    s = wv_hat
     grid = tau_grid(n_scales, dt)
     pairs = start_pairs(n_scales)
-    chol1 = diag_chol(cnt, mf, valid)
-    weight1 = 1.0 / jnp.diag(chol1) ** 2
+    rel0 = diag_rel_cov(cnt, mf)
+    weight1 = 1.0 / jnp.diag(rel0)
     th0 = jax.vmap(lambda mk: starting_values(mk, wv_hat, valid, tau, dt, weight1, grid, pairs))(masks)
-    full = masks[-1]
-    scaled = lambda th, mk: wv_covariance(th, mk, mf, cnt, n, dt) / (s[:, None] * s[None, :])  # noqa: E731
 
-    def stage(th, k):
-        # stage 0: diagonal first-stage weights; stage 1: Ω_ref from the richest fit of stage 0
-        chol_ref = scaled_chol(scaled(th[-1], full), valid)
-        chol = jnp.where(k == 0, chol1, chol_ref)
-        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, wv_hat, valid, tau, dt, n, chol))(
+    def rel_cov(th, mk):
+        nu = model_wv(th, mk, tau, dt)
+        return wv_covariance(th, mk, mf, cnt, n, dt) / (nu[:, None] * nu[None, :])
+
+    def weights(rel):
+        cov_log, bias = log_moments(rel)
+        return scaled_chol(cov_log, valid), log_wv - bias
+
+    chol0, target0 = weights(rel0)
+    k_nominal = jnp.sum(masks, axis=1)
+
+    def stage(carry, k):
+        # stage 0: diagonal first-stage weights; stage 1: Ω_ref, from the covariance of ν̂
+        # under the candidate that stage 0 scored best (its own objective + 2 per parameter)
+        th, obj = carry
+        ref = jnp.argmin(jnp.where(jnp.isfinite(obj), obj + 2.0 * k_nominal, jnp.inf))
+        chol1, target1 = weights(rel_cov(th[ref], masks[ref]))
+        chol = jnp.where(k == 0, chol0, chol1)
+        target = jnp.where(k == 0, target0, target1)
+        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, chol))(
             th, masks)
-        return th, (obj, chol)
+        return (th, obj), chol
 
-    th2, (objs, chols) = jax.lax.scan(stage, th0, jnp.arange(2))
-    obj, chol_ref = objs[1], chols[1]
+    obj0 = jnp.zeros(masks.shape[0], wv_hat.dtype)
+    (th2, obj), chols = jax.lax.scan(stage, (th0, obj0), jnp.arange(2))
+    chol_ref = chols[1]
 
     def rank_of(th, mask):
-        d = jacobian_scaled(th, mask, wv_hat, valid, tau, dt)
+        d = jacobian_log(th, mask, valid, tau, dt)
         return effective_rank(jax.scipy.linalg.solve_triangular(chol_ref, d, lower=True))
 
     rank = jax.vmap(rank_of)(th2, masks)
-    k_nominal = jnp.sum(masks, axis=1)
-    crit = obj + penalty * rank
-    pick = jnp.argmin(jnp.where(jnp.isfinite(crit), crit + 1e-9 * k_nominal, jnp.inf))
+    crit = obj + penalty * k_nominal
+    pick = jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))
     mask = masks[pick]
     th = th2[pick]
-    cov_at = scaled(th, mask)
-    d = jacobian_scaled(th, mask, wv_hat, valid, tau, dt)
-    cov_theta = sandwich(d, chol_ref, cov_at, mask)
-    wv_sd = jnp.sqrt(jnp.diag(cov_at)) * s
+    rel_at = rel_cov(th, mask)
+    cov_log_at, _ = log_moments(rel_at)
+    vv = valid[:, None] & valid[None, :]
+    d = jacobian_log(th, mask, valid, tau, dt)
+    cov_theta = sandwich(d, chol_ref, jnp.where(vv, cov_log_at, 0.0), mask)
+    nu = model_wv(th, mask, tau, dt)
+    wv_sd = jnp.sqrt(jnp.diag(rel_at)) * nu
     return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
                 theta=th, cov=cov_theta, wv_sd=wv_sd)
 
