@@ -171,7 +171,11 @@ def main(argv=None) -> int:
     ap.add_argument("--penalty", type=float, default=None)
     ap.add_argument("--no-peers", action="store_true")
     ap.add_argument("--json", type=Path, default=None)
+    ap.add_argument("--timing", type=int, default=0, metavar="DEVICES",
+                    help="only time identify on DEVICES × 3 axes of --n samples (and allantools on 3)")
     args = ap.parse_args(argv)
+    if args.timing:
+        return timing(args)
 
     import jax
 
@@ -255,6 +259,53 @@ def main(argv=None) -> int:
            "structures": rows}
     print(f"identify: {y.shape[0] * y.shape[1]} series of {args.n} samples: first call "
           f"{first:.1f} s, warm {warm:.1f} s")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(out, indent=1) + "\n")
+    return 0
+
+
+def timing(args) -> int:
+    """Time identify on devices × 3 axes of white + Gauss–Markov noise, and the fastest peer."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+
+    from diffgyro.stochastic import identify, simulate_noise
+
+    f = jax.jit(jax.vmap(lambda k: simulate_noise(k, args.n, DT, arw=1e-3, gm=((1e-3, 10.0),))))
+    keys = jax.random.split(jax.random.PRNGKey(0), args.timing * 3)
+    y = jnp.concatenate([f(keys[i:i + 30]) for i in range(0, len(keys), 30)])
+    y = y.reshape(args.timing, 3, args.n).block_until_ready()
+    t0 = time.perf_counter()
+    identify(y, DT)
+    first = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    res = identify(y, DT)
+    warm = time.perf_counter() - t0
+    peer = {}
+    try:
+        import allantools
+
+        yy = np.asarray(y[0])
+        m = 2 ** np.arange(int(math.log2(args.n // 4)) + 1)
+        t0 = time.perf_counter()
+        for a in range(3):
+            allantools.oadev(yy[a], rate=1.0 / DT, data_type="freq", taus=m * DT)
+        peer["allantools_oadev_s_per_series"] = (time.perf_counter() - t0) / 3
+    except ImportError:
+        pass
+    out = {"benchmark": "noise_identification_timing", "devices": args.timing, "axes": 3,
+           "samples": args.n, "identify_first_call_s": first, "identify_warm_s": warm,
+           "backend": jax.default_backend(), "device": str(jax.devices()[0]),
+           "chosen_white_gm": float(np.mean([len(res.structure(i, a)) == 2 and
+                                             res.structure(i, a)[1] == "gauss_markov"
+                                             for i in range(args.timing) for a in range(3)])),
+           **peer}
+    if peer:
+        out["allantools_dyadic_curves_only_s"] = peer["allantools_oadev_s_per_series"] * args.timing * 3
+    print(json.dumps(out, indent=1))
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(out, indent=1) + "\n")

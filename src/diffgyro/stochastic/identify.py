@@ -41,6 +41,8 @@ from .wavelet_variance import dyadic_m, haar_wv
 #: runtime (every worker idle, the caller waiting: observed at 60 series, not at 8); a fixed
 #: chunk also keeps to one compiled program whatever the batch.
 CHUNK = 8
+#: Series per call on a GPU or TPU, where one call must carry more work.
+ACCEL_CHUNK = 128
 
 
 def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
@@ -216,7 +218,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
     flat = lambda a: jnp.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
     args = [np.asarray(flat(a)) for a in (wv, count, nv.astype(np.float64), dtb)]
     total = args[0].shape[0]
-    step = min(CHUNK, total)
+    step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK, total)
     parts = []
     for lo in range(0, total, step):  # fixed-size chunks: one compiled program for any batch
         chunk = [a[lo:lo + step] for a in args]
