@@ -285,3 +285,30 @@ def test_filter_parameters_by_hand(tmp_path, capsys):
     assert "gyroscope_noise_density: 1.000000e-03" in yaml
     assert f"gyroscope_random_walk: {k:.6e}" in yaml
     assert "update_rate: 200" in yaml
+
+
+def test_bias_filter_with_the_identified_model_is_calibrated():
+    """A filter carrying white + Gauss–Markov + random walk: standardised innovations white with
+    unit variance, and the bias error the size the filter states; a random-walk-only filter
+    (the Gauss–Markov process as its equivalent walk) tracks it worse."""
+    from diffgyro.stochastic.bias_filter import bias_filter, state_space
+
+    n, dt = 40_000, 0.01
+    k1, k2 = jax.random.split(jax.random.PRNGKey(11))
+    bias = simulate_noise(k1, n, dt, gm=((2e-3, 2.0),), rrw=2e-4)
+    y = bias + simulate_noise(k2, n, dt, arw=1e-3)
+
+    def comp(kind, **params):
+        return {"kind": kind, "params": {k: {"value": v} for k, v in params.items()}}
+
+    model = [comp("white", arw=1e-3), comp("gauss_markov", sigma=2e-3, tau=2.0),
+             comp("random_walk", rrw=2e-4)]
+    b, pb, e, f = bias_filter(y, *state_space(model, dt, p0_walk=1e-6))
+    z = np.asarray(e / jnp.sqrt(f))[100:]
+    assert np.var(z) == pytest.approx(1.0, abs=0.05)
+    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 0.03
+    err = np.asarray(b - bias)[100:]
+    assert np.mean(err**2 / np.asarray(pb)[100:]) == pytest.approx(1.0, abs=0.15)
+    walk = [comp("white", arw=1e-3), comp("random_walk", rrw=math.sqrt(2e-4**2 + 2 * 2e-3**2 / 2.0))]
+    b_rw, *_ = bias_filter(y, *state_space(walk, dt, p0_walk=1e-6))
+    assert np.sqrt(np.mean(err**2)) < 0.98 * np.sqrt(np.mean(np.asarray(b_rw - bias)[100:] ** 2))

@@ -7,7 +7,8 @@
 * :mod:`.estimator`: the GMWM fit of one structure;
 * :mod:`.selection`: the catalogue of structures and the criterion;
 * :mod:`.intervals`: asymptotic confidence intervals;
-* :mod:`.identify`: all of it for a batch of series; :mod:`.simulate`: known truth.
+* :mod:`.identify`: all of it for a batch of series; :mod:`.simulate`: known truth;
+* :mod:`.bias_filter`: a Kalman filter of the bias that carries the identified model.
 """
 
 from .identify import NoiseModels, components_of, identify
