@@ -85,6 +85,9 @@ def noise_command(
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=2,
                           topic=topic, temp_topic=temp_topic)
+    from .allan import _warn_uneven
+
+    _warn_uneven(batch)  # the wavelet variance, as the Allan deviation, assumes even sampling
     doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty)
     if report is not None:
         _write_report(doc, models, report)
@@ -117,6 +120,9 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
                          f"least {MIN_SAMPLES} (static, at the full rate)")
         elif not np.all(np.isfinite(gyro)):
             entry.update(status="bad_data", status_detail="non-finite gyro samples")
+        elif np.any(np.ptp(gyro, axis=0) == 0):
+            flat = ", ".join(ax for ax, p in zip(("gx", "gy", "gz"), np.ptp(gyro, axis=0)) if p == 0)
+            entry.update(status="bad_data", status_detail=f"constant {flat}: no noise to model")
         else:
             dt = sample_interval(batch.t[i], n)
             if not (math.isfinite(dt) and dt > 0):
