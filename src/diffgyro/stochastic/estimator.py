@@ -7,9 +7,9 @@ The Generalized Method of Wavelet Moments (Guerrier et al., JASA 2013) minimises
 over the parameters θ of a composite model, ν̂ the empirical Haar wavelet
 variances on dyadic scales, ν(θ) their theoretical values
 (:mod:`.components`) and Ω an efficient weight: the inverse of the
-covariance of ν̂ (:mod:`.covariance`). Everything is scaled by ν̂ (relative
-residuals), so scales whose variances differ by ten decades weigh by their
-precision alone.
+covariance of the moments (:mod:`.covariance`). Here the moments are the
+logarithms of the wavelet variances (below), so scales whose variances differ
+by ten decades weigh by their relative precision alone.
 
 How a fit runs (one structure, one series; vmapped outside):
 

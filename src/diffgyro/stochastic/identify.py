@@ -201,13 +201,14 @@ def components_of(theta, cov, mask) -> list[dict]:
 def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> NoiseModels:
     """Identify the stochastic model of every series ``y`` (..., n) in rad/s sampled every ``dt``
     seconds (scalar or per series); ``n_valid``: real samples of each padded series;
-    ``structures``: the candidates (default :func:`~.selection.catalogue`, richest last)."""
+    ``structures``: the candidates (default :func:`~.selection.catalogue`), each with white
+    noise; ``penalty``: the criterion's factor per parameter (:data:`~.selection.PENALTY`)."""
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
     n = y.shape[-1]
     structures = list(structures) if structures is not None else catalogue()
     masks = np.stack([structure_mask(s) for s in structures])
-    # the richest candidate (most parameters) must come last: it defines Ω_ref
+    # candidates ordered by their number of parameters (ties keep the given order)
     order = np.argsort(masks.sum(1), kind="stable")
     structures = [structures[i] for i in order]
     masks = masks[order]

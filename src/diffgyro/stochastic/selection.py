@@ -58,7 +58,7 @@ def structure_mask(structure: tuple[str, ...]) -> np.ndarray:
 
 def catalogue(max_gm: int = 2) -> list[tuple[str, ...]]:
     """Every structure: white noise, with or without quantization, 0..max_gm Gauss–Markov
-    processes, a random walk and a ramp. The richest comes last."""
+    processes, a random walk and a ramp, fewest parameters first."""
     out = []
     for q, gm, rw, ramp in itertools.product((0, 1), range(max_gm + 1), (0, 1), (0, 1)):
         s = ("white",) + ("quantization",) * q + ("gauss_markov",) * gm \
