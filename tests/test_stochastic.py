@@ -312,3 +312,20 @@ def test_bias_filter_with_the_identified_model_is_calibrated():
     walk = [comp("white", arw=1e-3), comp("random_walk", rrw=math.sqrt(2e-4**2 + 2 * 2e-3**2 / 2.0))]
     b_rw, *_ = bias_filter(y, *state_space(walk, dt, p0_walk=1e-6))
     assert np.sqrt(np.mean(err**2)) < 0.98 * np.sqrt(np.mean(np.asarray(b_rw - bias)[100:] ** 2))
+
+
+def test_motion_hook_marks_a_moving_device(tmp_path, capsys, monkeypatch):
+    """The motion check (``cli.noise.MOTION_CHECK``) takes a device out: status in_motion, no axes."""
+    import pandas as pd
+
+    from diffgyro.cli import main, noise
+
+    n = 256
+    pd.DataFrame({"device": "m", "t": np.arange(n) * 0.01, "gx": np.sin(np.arange(n) / 9.0),
+                  "gy": np.cos(np.arange(n) / 7.0), "gz": np.arange(n) * 1e-3}).to_csv(
+        tmp_path / "moved.csv", index=False)
+    monkeypatch.setattr(noise, "MOTION_CHECK", lambda batch: ["rotated 90° at 1.2 s"] * batch.n_devices)
+    assert main(["noise", str(tmp_path / "moved.csv"), "--json"]) == 0
+    (dev,) = json.loads(capsys.readouterr().out)["devices"]
+    assert dev["status"] == "in_motion" and dev["axes"] is None
+    assert dev["status_detail"] == "rotated 90° at 1.2 s"
