@@ -33,8 +33,6 @@ from ._options import (
 )
 
 AXES = ("x", "y", "z")
-#: Fewest samples for a model: 64 give 5 dyadic scales, enough for two or three parameters.
-MIN_SAMPLES = 64
 #: The motion check: ``MOTION_CHECK(batch)`` returns, per device, None when it stood still or
 #: a one-line reason (the device's status becomes ``in_motion``, its axes null). None: no check.
 MOTION_CHECK: Callable | None = None
@@ -98,49 +96,12 @@ def noise_command(
 
 
 def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
-    """(``noise --json`` object, {device index: NoiseModels of its 3 axes}) of a batch."""
-    import numpy as np
+    """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
+    from diffgyro.stochastic.devices import identify_devices
 
-    from diffgyro.allan import sample_interval
-    from diffgyro.stochastic import catalogue, identify
-    from diffgyro.stochastic.selection import PENALTY
-
-    pen = PENALTY if penalty is None else penalty
-    motion = MOTION_CHECK(batch) if MOTION_CHECK is not None else [None] * batch.n_devices
-    entries, models, groups = [], {}, {}
-    for i, dev in enumerate(batch.devices):
-        n = int(batch.n_valid[i])
-        entry = {"device": dev, "status": "ok", "status_detail": "ok", "axes": None}
-        entries.append(entry)
-        gyro = np.asarray(batch.gyro[i, :n], np.float64)
-        if motion[i] is not None:
-            entry.update(status="in_motion", status_detail=str(motion[i]))
-        elif n < MIN_SAMPLES:
-            entry.update(status="too_short", status_detail=f"{n} samples; a noise model needs at "
-                         f"least {MIN_SAMPLES} (static, at the full rate)")
-        elif not np.all(np.isfinite(gyro)):
-            entry.update(status="bad_data", status_detail="non-finite gyro samples")
-        elif np.any(np.ptp(gyro, axis=0) == 0):
-            flat = ", ".join(ax for ax, p in zip(("gx", "gy", "gz"), np.ptp(gyro, axis=0)) if p == 0)
-            entry.update(status="bad_data", status_detail=f"constant {flat}: no noise to model")
-        else:
-            dt = sample_interval(batch.t[i], n)
-            if not (math.isfinite(dt) and dt > 0):
-                entry.update(status="bad_data", status_detail="no sampling interval")
-            else:
-                entry["sample_interval"] = dt
-                groups.setdefault(n, []).append((i, dt))
-    for n, members in groups.items():  # devices of one length identified together
-        idx = [i for i, _ in members]
-        y = np.stack([np.asarray(batch.gyro[i, :n], np.float64).T for i in idx])  # (d, 3, n)
-        dts = np.array([[dt] * 3 for _, dt in members])
-        res = identify(y, dts, structures=catalogue(max_gm), penalty=pen)
-        for j, i in enumerate(idx):
-            models[i] = (res, j)
-            entries[i]["axes"] = {
-                ax: {"structure": list(res.structure(j, a)), "components": res.components(j, a),
-                     "rejected": res.rejected(j, a)}
-                for a, ax in enumerate(AXES)}
+    motion = MOTION_CHECK(batch) if MOTION_CHECK is not None else None
+    entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
+                                       motion=motion, max_gm=max_gm, penalty=penalty)
     return {"devices": entries}, models
 
 
