@@ -45,7 +45,7 @@ def export_command(
     accel_random_walk: Annotated[float | None, typer.Option(
         "--accel-random-walk", help="kalibr: accelerometer random walk, m/s³/√Hz.")] = None,
     ekf_dt: Annotated[float | None, typer.Option(
-        "--ekf-dt", help="px4-ekf, ardupilot-ekf: the filter's step in s (default: "
+        "--ekf-dt", min=1e-6, max=10.0, help="px4-ekf, ardupilot-ekf: the filter's step in s (default: "
                          "EKF2_PREDICT_US 0.010, EKF3 0.012).", show_default=False)] = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,

@@ -77,7 +77,11 @@ def device_densities(doc: dict, device: str | None) -> tuple[str, float, float, 
         raise DataError(f"no noise model: {d.get('status_detail') or d.get('status')}", device=name)
     ns, ks, report = [], [], []
     for ax, a in d["axes"].items():
-        n, k, notes = axis_densities(a)
+        try:
+            n, k, notes = axis_densities(a)
+        except (KeyError, TypeError, ValueError, ZeroDivisionError, AttributeError):
+            raise DataError(f"axis {ax}: a component without its parameters' values "
+                            "(kind, params.NAME.value)", device=name) from None
         report += [f"device {name} axis {ax}: {t}" for t in notes]
         if n is not None:
             ns.append(n)
