@@ -83,9 +83,7 @@ def noise_command(
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=2,
                           topic=topic, temp_topic=temp_topic)
-    from .allan import _warn_uneven
-
-    _warn_uneven(batch)  # the wavelet variance, as the Allan deviation, assumes even sampling
+    _warn_uneven(batch)
     doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty)
     if report is not None:
         _write_report(doc, models, report)
@@ -103,6 +101,20 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
                                        motion=motion, max_gm=max_gm, penalty=penalty)
     return {"devices": entries}, models
+
+
+def _warn_uneven(batch) -> None:
+    """A warning per device whose sampling is uneven: the wavelet variance assumes even steps."""
+    import sys
+
+    import numpy as np
+
+    for i, dev in enumerate(batch.devices):
+        gaps = np.diff(np.asarray(batch.t[i, :int(batch.n_valid[i])]))
+        if gaps.size and np.median(gaps) > 0 and np.max(gaps) > 1.5 * np.median(gaps):
+            print(f"diffgyro: warning: device {dev}: uneven sampling (largest gap {np.max(gaps):.4g} s,"
+                  f" median {np.median(gaps):.4g} s); the noise model assumes evenly spaced samples",
+                  file=sys.stderr)
 
 
 def _fmt(x) -> str:
