@@ -27,7 +27,8 @@ def export_command(
     source: Annotated[Path, typer.Argument(
         help="Calibration file from 'diffgyro fit --out' (px4, ardupilot, c-header); for kalibr "
              "an 'allan --json' output or a static recording.", show_default=False)],
-    fmt: Annotated[str, typer.Option("--format", "-f", help="px4, ardupilot, kalibr or c-header.",
+    fmt: Annotated[str, typer.Option("--format", "-f", help="px4, ardupilot, kalibr, c-header; "
+                                     "px4-ekf, ardupilot-ekf (from 'noise --json').",
                                      show_default=False)],
     device: Annotated[str | None, typer.Option("--device", help="The device to export "
                                                "(default: every device, where the format holds several).")] = None,
@@ -43,6 +44,9 @@ def export_command(
         "--accel-noise-density", help="kalibr: accelerometer noise density, m/s²/√Hz.")] = None,
     accel_random_walk: Annotated[float | None, typer.Option(
         "--accel-random-walk", help="kalibr: accelerometer random walk, m/s³/√Hz.")] = None,
+    ekf_dt: Annotated[float | None, typer.Option(
+        "--ekf-dt", min=1e-6, max=10.0, help="px4-ekf, ardupilot-ekf: the filter's step in s (default: "
+                         "EKF2_PREDICT_US 0.010, EKF3 0.012).", show_default=False)] = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
@@ -58,6 +62,20 @@ def export_command(
     fmt = fmt.lower()
     if fmt not in FORMATS:
         raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
+    if fmt in ("px4-ekf", "ardupilot-ekf"):
+        from diffgyro.export import ekf_noise
+
+        name, n, k, report = ekf_noise.device_densities(_read_json(source, "noise models"), device)
+        if fmt == "px4-ekf":
+            dt = ekf_noise.PX4_DT if ekf_dt is None else ekf_dt
+            text = ekf_noise.write_px4(ekf_noise.px4_parameters(n, k, dt), name, dt)
+        else:
+            dt = ekf_noise.ARDUPILOT_DT if ekf_dt is None else ekf_dt
+            text = ekf_noise.write_ardupilot(ekf_noise.ardupilot_parameters(n, k, dt), name, dt)
+        for line in report:
+            print(f"diffgyro: {line}", file=sys.stderr)
+        _emit(text, out, source)
+        return
     if fmt == "kalibr":
         from diffgyro.export import kalibr
 
@@ -90,6 +108,25 @@ def _ids(text: str) -> list[int]:
         raise DataError(f"--device-id {text!r} must be integers (comma-separated)") from None
 
 
+def _read_json(source: Path, what: str):
+    from diffgyro.errors import DataError
+
+    try:
+        return json.loads(source.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError) as err:
+        raise DataError(f"cannot read {what}: {err}".splitlines()[0], file=str(source)) from None
+
+
+def _is_noise_doc(doc) -> bool:
+    """A ``noise --json`` object (axes holding components), not an ``allan --json`` one."""
+    try:
+        return any(isinstance(d.get("axes"), dict) and any(
+            isinstance(a, dict) and "components" in a for a in d["axes"].values())
+            for d in doc["devices"])
+    except (AttributeError, KeyError, TypeError):
+        return False
+
+
 def _kalibr_noise(source: Path, device, rate, load_opts):
     """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
     from diffgyro.errors import DataError
@@ -101,6 +138,16 @@ def _kalibr_noise(source: Path, device, rate, load_opts):
         except (OSError, UnicodeDecodeError, ValueError) as err:
             raise DataError(f"cannot read Allan read-outs: {err}".splitlines()[0],
                             file=str(source)) from None
+        if _is_noise_doc(doc):
+            from diffgyro.export import ekf_noise
+
+            name, n, k, report = ekf_noise.device_densities(doc, device)
+            dt = next((d.get("sample_interval") for d in doc["devices"] if str(d.get("device")) == name),
+                      None)
+            if rate is None and not (isinstance(dt, (int, float)) and dt > 0):
+                raise DataError("the noise models give no sampling interval", file=str(source),
+                                hint="pass --rate HZ")
+            return kalibr.ImuNoise(name, n, k, float(rate) if rate is not None else 1.0 / dt), report
         try:
             return kalibr.from_allan(doc, device, rate)
         except DataError as err:

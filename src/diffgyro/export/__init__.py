@@ -10,7 +10,7 @@ from __future__ import annotations
 from ..calibration import Calibration
 from ..errors import DataError
 
-FORMATS = ("px4", "ardupilot", "kalibr", "c-header")
+FORMATS = ("px4", "ardupilot", "kalibr", "c-header", "px4-ekf", "ardupilot-ekf")
 
 
 def select_devices(cal: Calibration, device: str | None, fmt: str, max_devices: int) -> list[str]:

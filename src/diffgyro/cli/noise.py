@@ -1,0 +1,245 @@
+"""``diffgyro noise``: the stochastic model of every device and gyro axis, with intervals.
+
+Per device and axis: the structure chosen from the catalogue (white noise,
+quantization, up to two first-order Gauss–Markov processes, random walk, rate
+ramp) by the wavelet-variance criterion, each parameter with its 95 % interval
+(:mod:`diffgyro.stochastic`). ``--json`` follows the contract of docs/noise.md
+(SI units); the text output adds the display units (°/√h, °/h, °/h/√h).
+"""
+
+from __future__ import annotations
+
+import html
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Annotated
+
+import typer
+
+from . import app
+from ._options import (
+    AccUnit,
+    Columns,
+    DataFiles,
+    DropInvalid,
+    GyroUnit,
+    SamplingRate,
+    TempTopic,
+    TempUnit,
+    TimeUnit,
+    Topic,
+    load_from_cli,
+)
+
+AXES = ("x", "y", "z")
+#: The motion check: ``MOTION_CHECK(batch)`` returns, per device, None when it stood still or
+#: a one-line reason (the device's status becomes ``in_motion``, its axes null). None: no check.
+MOTION_CHECK: Callable | None = None
+#: Display units: (factor from SI, unit) per parameter.
+_DEG = 180.0 / math.pi
+DISPLAY = {
+    "arw": (_DEG * 60.0, "°/√h"),
+    "q": (1e6, "µrad"),
+    "sigma": (_DEG * 3600.0, "°/h"),
+    "tau": (1.0, "s"),
+    "rrw": (_DEG * 3600.0 * 60.0, "°/h/√h"),
+    "r": (_DEG * 3600.0**2, "°/h²"),
+}
+_NAMES = {"arw": "ARW", "q": "quantization Q", "sigma": "GM σ (bias instability)",
+          "tau": "GM correlation time", "rrw": "RRW", "r": "rate ramp"}
+
+
+@app.command("noise")
+def noise_command(
+    data: DataFiles,
+    json_out: Annotated[bool, typer.Option("--json", help="Print the models as JSON (SI units).")] = False,
+    report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
+    max_gm: Annotated[int, typer.Option("--max-gauss-markov", min=0, max=2,
+                                        help="Most Gauss–Markov processes per model.")] = 2,
+    penalty: Annotated[float | None, typer.Option(
+        "--penalty", min=0.0, help="Criterion's factor on the parameters the data determine "
+                                   "(2: WVIC; default: the documented one).", show_default=False)] = None,
+    columns: Columns = None,
+    gyro_unit: GyroUnit = None,
+    acc_unit: AccUnit = None,
+    temp_unit: TempUnit = None,
+    time_unit: TimeUnit = None,
+    sampling_rate: SamplingRate = None,
+    drop_invalid: DropInvalid = False,
+    topic: Topic = None,
+    temp_topic: TempTopic = None,
+) -> None:
+    """Identify the gyro noise model per device and axis (static recordings; rates in rad/s).
+
+    The structure is chosen from white noise, quantization, up to two
+    first-order Gauss–Markov processes, a random walk and a rate ramp by a
+    criterion that charges each parameter (WVIC); every parameter comes with
+    its 95 % interval; the rejected structures are listed with their
+    criterion values. Record the device static: motion is not noise.
+    """
+    from diffgyro.jsonio import dumps
+
+    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                          sampling_rate, drop_invalid, min_samples=2,
+                          topic=topic, temp_topic=temp_topic)
+    _warn_uneven(batch)
+    doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty)
+    if report is not None:
+        _write_report(doc, models, report)
+    if json_out:
+        typer.echo(dumps(doc))
+    else:
+        _print_text(doc, report)
+
+
+def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
+    """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
+    from diffgyro.stochastic.devices import identify_devices
+
+    motion = MOTION_CHECK(batch) if MOTION_CHECK is not None else None
+    entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
+                                       motion=motion, max_gm=max_gm, penalty=penalty)
+    return {"devices": entries}, models
+
+
+def _warn_uneven(batch) -> None:
+    """A warning per device whose sampling is uneven: the wavelet variance assumes even steps."""
+    import sys
+
+    import numpy as np
+
+    for i, dev in enumerate(batch.devices):
+        gaps = np.diff(np.asarray(batch.t[i, :int(batch.n_valid[i])]))
+        if gaps.size and np.median(gaps) > 0 and np.max(gaps) > 1.5 * np.median(gaps):
+            print(f"diffgyro: warning: device {dev}: uneven sampling (largest gap {np.max(gaps):.4g} s,"
+                  f" median {np.median(gaps):.4g} s); the noise model assumes evenly spaced samples",
+                  file=sys.stderr)
+
+
+def _fmt(x) -> str:
+    return "—" if x is None or not math.isfinite(x) else f"{x:.4g}"
+
+
+def display_line(name: str, p: dict) -> str:
+    """One parameter in display units and SI, with its 95 % interval."""
+    k, unit = DISPLAY[name]
+    lo, hi = p["ci"]
+    sc = lambda v: None if v is None else v * k  # noqa: E731
+    text = (f"{_NAMES[name]}: {_fmt(sc(p['value']))} {unit} "
+            f"[{_fmt(sc(lo))}, {_fmt(sc(hi))}]")
+    if unit not in ("s",):
+        text += f"  ({_fmt(p['value'])} {p['unit']})"
+    return text
+
+
+def _print_text(doc: dict, report: Path | None) -> None:
+    import typer as _t
+
+    from diffgyro.stochastic.selection import label
+
+    for dev in doc["devices"]:
+        if dev["status"] != "ok":
+            _t.echo(f"{dev['device']}: {dev['status']}: {dev['status_detail']}")
+            continue
+        for ax, a in dev["axes"].items():
+            _t.echo(f"{dev['device']} {ax}: {label(tuple(a['structure']))}")
+            for c in a["components"]:
+                for name, p in c["params"].items():
+                    _t.echo(f"    {display_line(name, p)}")
+            alts = [f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3]]
+            _t.echo(f"    next best: {'; '.join(alts)}")
+    _t.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
+    if report is not None:
+        _t.echo(f"report: {report / 'index.html'}")
+
+
+def plot_noise(res, j: int, title: str | None = None):
+    """Allan deviation of one device's three axes: the empirical curve with 95 % intervals,
+    each identified component and their sum."""
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    from diffgyro.stochastic.selection import label
+
+    names = ("white", "quantization", "Gauss–Markov 1", "Gauss–Markov 2", "random walk", "rate ramp")
+    fig, axs = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
+    for a, ax in enumerate(axs):
+        tau = res.tau[j, a]
+        ok = res.valid[j, a]
+        avar = 2.0 * res.wv[j, a]
+        half = 2.0 * 1.96 * res.wv_sd[j, a]
+        lo = np.sqrt(np.maximum(avar - half, avar * 1e-3))
+        ax.errorbar(tau[ok], np.sqrt(avar[ok]), yerr=[np.sqrt(avar[ok]) - lo[ok],
+                    np.sqrt(avar[ok] + half[ok]) - np.sqrt(avar[ok])], fmt="o", ms=3, color="k",
+                    label="empirical (95 %)")
+        fine = np.geomspace(tau[0], tau[ok][-1] if ok.any() else tau[-1], 200)
+        rows, total = res.model_curve((j, a), fine)
+        for r, nm in zip(rows, names):
+            if np.all(np.isnan(r)):
+                continue
+            ax.loglog(fine, np.sqrt(r), "--", lw=1, label=nm)
+        ax.loglog(fine, np.sqrt(total), "-", lw=2, color="C3", label="model")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_title(f"{AXES[a]}: {label(res.structure(j, a))}", fontsize=9)
+        ax.set_xlabel("τ (s)")
+        ax.grid(True, which="both", alpha=0.3)
+        ymin = np.nanmin(np.sqrt(avar[ok])) / 10 if ok.any() else None
+        if ymin:
+            ax.set_ylim(bottom=ymin)
+    axs[0].set_ylabel("Allan deviation (rad/s)")
+    axs[0].legend(fontsize=7)
+    if title:
+        fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def _write_report(doc: dict, models: dict, out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from diffgyro.jsonio import atomic_write_text, dumps
+    from diffgyro.stochastic.selection import label
+
+    out.mkdir(parents=True, exist_ok=True)
+    parts = []
+    for i, dev in enumerate(doc["devices"]):
+        name = dev["device"]
+        if i not in models:
+            parts.append(f"<h2>{html.escape(str(name))}</h2><p>{html.escape(dev['status'])}: "
+                         f"{html.escape(dev['status_detail'])}</p>")
+            continue
+        res, j = models[i]
+        safe = "".join(c if c.isalnum() or c in "-_." else "_" for c in str(name)) or f"device{i}"
+        png = f"noise_{i:03d}_{safe}.png"
+        fig = plot_noise(res, j, title=f"{name}: identified noise model")
+        fig.savefig(out / png, dpi=110, bbox_inches="tight")
+        plt.close(fig)
+        rows = []
+        for ax, a in dev["axes"].items():
+            for c in a["components"]:
+                for pname, p in c["params"].items():
+                    rows.append(f"<tr><td>{ax}</td><td>{html.escape(c['kind'])}</td>"
+                                f"<td>{html.escape(display_line(pname, p))}</td></tr>")
+            alts = "; ".join(f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3])
+            rows.append(f"<tr><td>{ax}</td><td>chosen: {html.escape(label(tuple(a['structure'])))}"
+                        f"</td><td>next best: {html.escape(alts)}</td></tr>")
+        parts.append(f"<h2>{html.escape(str(name))}</h2><table>{''.join(rows)}</table>"
+                     f"<img src=\"{png}\" alt=\"noise model of {html.escape(str(name))}\">")
+    page = f"""<!doctype html>
+<html><head><meta charset="utf-8"><title>diffgyro noise</title>
+<style>body{{font-family:sans-serif;max-width:75em;margin:2em auto}}
+table{{border-collapse:collapse}}td{{border:1px solid #ccc;padding:.2em .6em}}
+img{{max-width:100%}}</style></head><body>
+<h1>Identified gyro noise models</h1>
+<p>Points: overlapping Allan deviation at dyadic τ with 95 % intervals (from the identified
+model). Dashed: each component; solid: their sum. Intervals of parameters are 95 %.</p>
+{''.join(parts)}
+</body></html>
+"""
+    atomic_write_text(out / "index.html", page)
+    atomic_write_text(out / "noise.json", dumps(doc))

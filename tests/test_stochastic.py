@@ -1,0 +1,331 @@
+"""The stochastic model: closed-form wavelet variances, their covariance, GMWM identification with
+intervals and structure choice (a small version of benchmarks/noise_identification.py), the
+``noise`` command and the filter parameters exported from it."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgyro.stochastic import identify, label, simulate_noise, structure_mask
+from diffgyro.stochastic.components import avar_gauss_markov, model_wv
+from diffgyro.stochastic.covariance import psd, wv_covariance
+from diffgyro.stochastic.wavelet_variance import dyadic_m, haar_wv
+
+DT = 0.01
+#: Every identification test runs 12 series of this length and interval (655 s, as the
+#: benchmark's records): one compiled program for all.
+N = 1 << 15
+DT_ID = 0.02
+
+
+def _theta(**powers):
+    """Log-parameter vector from {name: value} of the layout (others 0, masked off)."""
+    from diffgyro.stochastic.components import LAYOUT
+
+    th = np.zeros(len(LAYOUT))
+    for k, v in powers.items():
+        th[LAYOUT.index(k)] = math.log(v)
+    return jnp.asarray(th)
+
+
+CASES = {  # (powers, structure)
+    "white": (dict(white=1e-6), ("white",)),
+    "quantization": (dict(quantization=1e-8), ("quantization",)),
+    "gm short": (dict(gm1_var=1e-6, gm1_tau=3 * DT), ("gauss_markov",)),
+    "gm long": (dict(gm1_var=1e-6, gm1_tau=1e4 * DT), ("gauss_markov",)),
+    "random walk": (dict(random_walk=1e-8), ("random_walk",)),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+def test_closed_forms_equal_the_spectral_integral(case):
+    """ν²(m) = ∫|H_m|² S df with the Haar gain sin⁴(πfm)/(m² sin²πf): the closed forms of
+    components.py against an independent quadrature of each component's spectrum."""
+    powers, structure = CASES[case]
+    th, mask = _theta(**powers), jnp.asarray(structure_mask(structure))
+    m = 2.0 ** np.arange(6)
+    f = (np.arange(400_000) + 0.5) / 800_000  # midpoints of (0, 1/2)
+    s = np.asarray(psd(th, mask, jnp.asarray(f), DT))
+    gain = np.sin(np.pi * f[None, :] * m[:, None]) ** 4 / (m[:, None] ** 2 * np.sin(np.pi * f) ** 2)
+    integral = 2.0 * np.sum(gain * s, axis=1) / 800_000  # two-sided
+    closed = np.asarray(model_wv(th, mask, jnp.asarray(m * DT), DT))
+    np.testing.assert_allclose(closed, integral, rtol=2e-4)
+
+
+def test_gauss_markov_reaches_the_ieee_continuous_form():
+    """T ≫ dt: the sampled AR(1) formula tends to IEEE Std 952's σ²T/τ·(2 − T/τ(3 − 4e^{−τ/T} + e^{−2τ/T}))."""
+    s2, t, dt = 1e-6, 50.0, 1e-3
+    tau = np.array([1.0, 10.0, 50.0, 200.0, 1000.0])
+    ieee = s2 * t / tau * (2.0 - t / tau * (3.0 - 4.0 * np.exp(-tau / t) + np.exp(-2.0 * tau / t)))
+    got = np.asarray(avar_gauss_markov(s2, t, jnp.asarray(tau), dt))
+    np.testing.assert_allclose(got, ieee, rtol=1e-3)
+
+
+def test_empirical_wavelet_variance_and_its_covariance_match_the_model():
+    """Mean of ν̂² over 256 simulated series = the closed form; their spread and neighbour
+    correlation = covariance.py's (white + Gauss–Markov + random walk + ramp)."""
+    n = 4096
+    kw = dict(arw=1e-3, gm=((2e-3, 0.2),), rrw=1e-3, ramp=1e-3)
+    sim = jax.jit(jax.vmap(lambda k: simulate_noise(k, n, DT, **kw)))
+    y = sim(jax.random.split(jax.random.PRNGKey(3), 256))
+    m = dyadic_m(n)
+    wv, count = haar_wv(y, DT, None, m)
+    th = _theta(white=1e-6, gm1_var=4e-6, gm1_tau=0.2, random_walk=1e-6, rate_ramp=1e-6)
+    mask = jnp.asarray(structure_mask(("white", "gauss_markov", "random_walk", "rate_ramp")))
+    theory = np.asarray(model_wv(th, mask, jnp.asarray(m * DT), DT))
+    cov = np.asarray(wv_covariance(th, mask, jnp.asarray(m, float), jnp.asarray(count[0], float), n, DT))
+    emp = np.asarray(wv)
+    sd = np.sqrt(np.diag(cov))
+    small = m <= 128  # enough terms per series for the first-order covariance
+    se_mean = emp.std(0) / math.sqrt(len(emp))
+    assert np.all(np.abs(emp.mean(0) - theory)[small] < 4 * se_mean[small])
+    ratio = emp.std(0) / sd
+    assert np.all((ratio[small] > 0.8) & (ratio[small] < 1.2)), ratio
+    corr_emp = np.corrcoef(emp.T)[np.arange(4), np.arange(1, 5)]
+    corr_th = (cov / np.outer(sd, sd))[np.arange(4), np.arange(1, 5)]
+    np.testing.assert_allclose(corr_emp, corr_th, atol=0.12)
+
+
+#: A small version of the benchmark: truth per structure (SI units), two seeds each.
+TRUTHS = {
+    "white + random_walk": dict(arw=1e-3, rrw=2e-4),
+    "white + gauss_markov": dict(arw=1e-3, gm=((1e-3, 10.0),)),
+    "white + gauss_markov×2": dict(arw=1e-3, gm=((4e-3, 0.5), (3e-3, 5.0))),
+    "white + gauss_markov + random_walk": dict(arw=1e-3, gm=((3e-3, 0.5),), rrw=5.5e-4),
+    "white + quantization": dict(arw=1e-3, q=2e-4),
+    "white + random_walk + rate_ramp": dict(arw=1e-3, rrw=1e-3, ramp=2e-4),
+}
+
+
+def _simulate(truths, seed):
+    ys = []
+    for i, kw in enumerate(truths):
+        f = jax.jit(jax.vmap(lambda k, kw=kw: simulate_noise(k, N, DT_ID, **kw)))
+        ys.append(f(jax.random.split(jax.random.PRNGKey(seed + i), 2)))
+    return jnp.concatenate(ys)  # (12, N)
+
+
+@pytest.fixture(scope="module")
+def identified():
+    y = _simulate(list(TRUTHS.values()), 500)
+    return y, identify(y, DT_ID)
+
+
+def _flat(components):
+    out, gm = {}, 0
+    for c in components:
+        for k, p in c["params"].items():
+            if c["kind"] == "gauss_markov":
+                out[f"gm{gm + 1}_{k}"] = p
+            else:
+                out[k] = p
+        gm += c["kind"] == "gauss_markov"
+    return out
+
+
+def _truth_flat(kw):
+    out = {"arw": kw["arw"]}
+    if kw.get("q"):
+        out["q"] = kw["q"]
+    for i, (s, t) in enumerate(sorted(kw.get("gm", ()), key=lambda p: p[1])):
+        out[f"gm{i + 1}_sigma"], out[f"gm{i + 1}_tau"] = s, t
+    if kw.get("rrw"):
+        out["rrw"] = kw["rrw"]
+    if kw.get("ramp"):
+        out["r"] = kw["ramp"]
+    return out
+
+
+def test_identify_chooses_the_structure_and_its_intervals_hold_the_truth(identified):
+    _, res = identified
+    right = covered = total = 0
+    for i, (name, kw) in enumerate(TRUTHS.items()):
+        for s in range(2):
+            j = 2 * i + s
+            if label(res.structure(j)) != name:
+                continue
+            right += 1
+            got = _flat(res.components(j))
+            for k, v in _truth_flat(kw).items():
+                p = got[k]
+                assert p["ci"][0] <= p["value"] <= p["ci"][1]
+                total += 1
+                covered += p["ci"][0] <= v <= p["ci"][1]
+                # the estimate is near the truth: white noise to a few per cent, the rest within
+                # a factor that the record length allows
+                assert abs(math.log(p["value"] / v)) < (0.03 if k == "arw" else 0.7), (name, k)
+    assert right >= 10  # of 12
+    assert covered >= 0.85 * total
+
+
+def test_rejected_alternatives_are_scored_and_sorted(identified):
+    _, res = identified
+    rej = res.rejected(0)
+    assert len(rej) == len(res.structures) - 1
+    deltas = [r["delta"] for r in rej]
+    assert all(d >= 0 for d in deltas) and deltas == sorted(deltas)
+    assert {r["structure"] for r in rej} | {label(res.structure(0))} == {
+        label(s) for s in res.structures}
+
+
+def test_asymptotic_intervals_agree_with_a_parametric_bootstrap(identified):
+    """The sandwich's standard errors of log σ and log τ of a white + Gauss–Markov fit against the
+    spread of 12 refits of recordings simulated from the fitted model."""
+    _, res = identified
+    j = 2  # white + gauss_markov, seed 0
+    assert label(res.structure(j)) == "white + gauss_markov"
+    got = _flat(res.components(j))
+    kw = dict(arw=got["arw"]["value"], gm=((got["gm1_sigma"]["value"], got["gm1_tau"]["value"]),))
+    sim = jax.jit(jax.vmap(lambda k: simulate_noise(k, N, DT_ID, **kw)))
+    boot = identify(sim(jax.random.split(jax.random.PRNGKey(900), 12)), DT_ID)
+    logs = {k: [] for k in ("arw", "gm1_sigma", "gm1_tau")}
+    for b in range(12):
+        if label(boot.structure(b)) == "white + gauss_markov":
+            fb = _flat(boot.components(b))
+            for k in logs:
+                logs[k].append(math.log(fb[k]["value"]))
+    assert len(logs["arw"]) >= 9
+    for k, vals in logs.items():
+        lo, hi = got[k]["ci"]
+        se = (math.log(hi) - math.log(lo)) / (2 * 1.959964)
+        ratio = float(np.std(vals, ddof=1)) / se
+        assert 0.5 < ratio < 1.8, (k, ratio)
+
+
+def test_noise_command_json_contract_text_and_report(tmp_path, capsys, identified):
+    import pandas as pd
+
+    from diffgyro.cli import main
+
+    y, _ = identified
+    y = np.asarray(y)
+    frames = []
+    for d in range(4):  # 4 devices × 3 axes: the 12 series of the fixture
+        frames.append(pd.DataFrame({"device": f"imu{d}", "t": np.arange(N) * DT_ID,
+                                    "gx": y[3 * d], "gy": y[3 * d + 1], "gz": y[3 * d + 2]}))
+    frames.append(pd.DataFrame({"device": "short", "t": np.arange(20) * DT_ID, "gx": y[0, :20],
+                                "gy": y[1, :20], "gz": y[2, :20]}))
+    path = tmp_path / "static.csv"
+    pd.concat(frames).to_csv(path, index=False)
+    assert main(["noise", str(path), "--json", "--report", str(tmp_path / "rep")]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    devs = {d["device"]: d for d in doc["devices"]}
+    assert devs["short"]["status"] == "too_short" and devs["short"]["axes"] is None
+    assert "64" in devs["short"]["status_detail"]
+    units = {"arw": "rad/s/√Hz", "q": "rad", "sigma": "rad/s", "tau": "s", "rrw": "rad/s/√s",
+             "r": "rad/s²"}
+    d0 = devs["imu0"]
+    assert d0["status"] == "ok" and set(d0["axes"]) == {"x", "y", "z"}
+    for ax in d0["axes"].values():
+        assert ax["rejected"] and all("criterion" in r for r in ax["rejected"])
+        for c in ax["components"]:
+            assert c["kind"] in ("white", "quantization", "gauss_markov", "random_walk", "rate_ramp")
+            for name, p in c["params"].items():
+                assert p["unit"] == units[name]
+                assert p["ci"][0] <= p["value"] <= p["ci"][1]
+    # imu0's x axis is the first series of white + random walk: ARW and RRW near the truth
+    x = _flat(d0["axes"]["x"]["components"])
+    assert x["arw"]["value"] == pytest.approx(1e-3, rel=0.03)
+    rep = tmp_path / "rep"
+    assert (rep / "index.html").read_text().count("<img") == 4
+    assert len(list(rep.glob("*.png"))) == 4
+    # text: display units
+    from diffgyro.cli.noise import _print_text
+
+    _print_text(doc, None)
+    text = capsys.readouterr().out
+    assert "°/√h" in text and "too_short" in text and "next best" in text
+    # filter parameters from the JSON
+    (tmp_path / "noise.json").write_text(json.dumps({"devices": [devs["imu0"]]}))
+    assert main(["export", str(tmp_path / "noise.json"), "--format", "px4-ekf"]) == 0
+    out = capsys.readouterr().out
+    assert "EKF2_GYR_NOISE" in out and "EKF2_GYR_B_NOISE" in out
+
+
+def test_filter_parameters_by_hand(tmp_path, capsys):
+    """PX4 EKF2 and ArduPilot EKF3 add (Δt·noise)² per step: parameter = density/√Δt; a
+    Gauss–Markov bias enters as the random walk √(2σ²/T); Kalibr takes the densities."""
+    from diffgyro.cli import main
+    from diffgyro.export import ekf_noise
+
+    p = ekf_noise.px4_parameters(1e-3, 2e-5)
+    assert p["EKF2_GYR_NOISE"] == pytest.approx(1e-3 / math.sqrt(0.01))
+    assert p["EKF2_GYR_B_NOISE"] == pytest.approx(2e-4)
+    a = ekf_noise.ardupilot_parameters(1e-3, 2e-5)
+    assert a["EK3_GYRO_P_NSE"] == pytest.approx(1e-3 / math.sqrt(0.012))
+    assert a["EK3_GBIAS_P_NSE"] == pytest.approx(2e-5 / math.sqrt(0.012))
+
+    def param(v):
+        return {"value": v, "ci": [v / 2, v * 2], "unit": "-"}
+
+    axis = {"components": [{"kind": "white", "params": {"arw": param(1e-3)}},
+                           {"kind": "gauss_markov", "params": {"sigma": param(1e-3), "tau": param(200.0)}},
+                           {"kind": "random_walk", "params": {"rrw": param(1e-4)}}], "rejected": []}
+    small = {"components": [{"kind": "white", "params": {"arw": param(5e-4)}}], "rejected": []}
+    doc = {"devices": [{"device": "imu", "status": "ok", "status_detail": "ok", "sample_interval": 0.005,
+                        "axes": {"x": axis, "y": small, "z": small}}]}
+    name, n, k, report = ekf_noise.device_densities(doc, None)
+    assert (name, n) == ("imu", 1e-3)
+    assert k == pytest.approx(math.sqrt(1e-8 + 2e-6 / 200.0))
+    assert any("Gauss–Markov" in r for r in report)
+    path = tmp_path / "noise.json"
+    path.write_text(json.dumps(doc))
+    assert main(["export", str(path), "--format", "ardupilot-ekf", "--ekf-dt", "0.0025"]) == 0
+    out = capsys.readouterr().out
+    assert f"EK3_GYRO_P_NSE,{1e-3 / math.sqrt(0.0025):.6g}"[:18] in out
+    assert main(["export", str(path), "--format", "kalibr", "--accel-noise-density", "1e-3",
+                 "--accel-random-walk", "1e-4"]) == 0
+    yaml = capsys.readouterr().out
+    assert "gyroscope_noise_density: 1.000000e-03" in yaml
+    assert f"gyroscope_random_walk: {k:.6e}" in yaml
+    assert "update_rate: 200" in yaml
+
+
+def test_bias_filter_with_the_identified_model_is_calibrated():
+    """A filter carrying white + Gauss–Markov + random walk: standardised innovations white with
+    unit variance, and the bias error the size the filter states; a random-walk-only filter
+    (the Gauss–Markov process as its equivalent walk) tracks it worse."""
+    from diffgyro.stochastic.bias_filter import bias_filter, state_space
+
+    n, dt = 40_000, 0.01
+    k1, k2 = jax.random.split(jax.random.PRNGKey(11))
+    bias = simulate_noise(k1, n, dt, gm=((2e-3, 2.0),), rrw=2e-4)
+    y = bias + simulate_noise(k2, n, dt, arw=1e-3)
+
+    def comp(kind, **params):
+        return {"kind": kind, "params": {k: {"value": v} for k, v in params.items()}}
+
+    model = [comp("white", arw=1e-3), comp("gauss_markov", sigma=2e-3, tau=2.0),
+             comp("random_walk", rrw=2e-4)]
+    b, pb, e, f = bias_filter(y, *state_space(model, dt, p0_walk=1e-6))
+    z = np.asarray(e / jnp.sqrt(f))[100:]
+    assert np.var(z) == pytest.approx(1.0, abs=0.05)
+    assert abs(np.corrcoef(z[:-1], z[1:])[0, 1]) < 0.03
+    err = np.asarray(b - bias)[100:]
+    assert np.mean(err**2 / np.asarray(pb)[100:]) == pytest.approx(1.0, abs=0.15)
+    walk = [comp("white", arw=1e-3), comp("random_walk", rrw=math.sqrt(2e-4**2 + 2 * 2e-3**2 / 2.0))]
+    b_rw, *_ = bias_filter(y, *state_space(walk, dt, p0_walk=1e-6))
+    assert np.sqrt(np.mean(err**2)) < 0.98 * np.sqrt(np.mean(np.asarray(b_rw - bias)[100:] ** 2))
+
+
+def test_motion_hook_marks_a_moving_device(tmp_path, capsys, monkeypatch):
+    """The motion check (``cli.noise.MOTION_CHECK``) takes a device out: status in_motion, no axes."""
+    import pandas as pd
+
+    from diffgyro.cli import main, noise
+
+    n = 256
+    pd.DataFrame({"device": "m", "t": np.arange(n) * 0.01, "gx": np.sin(np.arange(n) / 9.0),
+                  "gy": np.cos(np.arange(n) / 7.0), "gz": np.arange(n) * 1e-3}).to_csv(
+        tmp_path / "moved.csv", index=False)
+    monkeypatch.setattr(noise, "MOTION_CHECK", lambda batch: ["rotated 90° at 1.2 s"] * batch.n_devices)
+    assert main(["noise", str(tmp_path / "moved.csv"), "--json"]) == 0
+    (dev,) = json.loads(capsys.readouterr().out)["devices"]
+    assert dev["status"] == "in_motion" and dev["axes"] is None
+    assert dev["status_detail"] == "rotated 90° at 1.2 s"
