@@ -1,0 +1,268 @@
+"""Was the device at rest? A per-device motion check from the recording itself.
+
+A fit without a rate reference (no ``rx, ry, rz``) reads every rotation of the
+device as sensor error: on a flight, drive or handheld log the "bias" of
+``bias_poly(0)`` is the mean turn rate, and an Allan deviation is the motion's.
+:func:`motion_check` finds the rotation no such model can explain.
+
+The recording is cut into windows of ``window`` samples (about a quarter of a
+second). In every window:
+
+* the window-mean rate ``m_k`` (and specific force, where logged);
+* the local noise ``s_k`` per axis from successive differences inside the window
+  (``√(mean Δ²/2)``): white noise and vibration raise it, a turn does not.
+
+The device's rest noise ``σ`` per axis is a low quantile of the local noise
+(the quietest windows, corrected for the quantile's bias), so the threshold
+comes from the device's own noise floor, not from a fixed rate. Slow change
+(thermal drift of the bias over minutes to hours, Earth rate, a constant
+offset) is the baseline: the median of the window means over blocks of about a
+minute, linearly interpolated, computed twice (the second time over the windows
+the first pass left static). A window moves when its deviation from the baseline
+stands out of the noise its mean can have::
+
+    ‖ (m_k − baseline_k) / max(K·max(σ, s_k)/√W, floor) ‖ > 1
+
+with ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
+below 1e-7) and a physical floor (:data:`EARTH_RATE` for the gyro: a sensor good
+enough to see Earth rotate does not call it motion; :data:`ACCEL_FLOOR` for the
+accelerometer). The accelerometer, where logged, catches what the gyro baseline
+could absorb (a long slow turn tilts gravity); vibration of a running engine
+raises ``s_k`` and averages out of ``m_k``, so it is not motion.
+
+A moving window marks its samples and one window either side (the transitions)
+as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
+Everything is pure JAX per device, vmapped over the batch and compiled once
+per shape and window sizes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .jsonio import number
+
+#: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
+EARTH_RATE = 7.292115e-5
+#: The accelerometer's floor on a window-mean deviation (m/s², about 0.2 mg).
+ACCEL_FLOOR = 2e-3
+#: Deviations of a window mean, in its own noise, above which the window moves.
+K_SIGMA = 6.0
+#: Quantile of the windows' local noise taken as the rest noise.
+REST_QUANTILE = 0.1
+#: Quantile of the windows' half-window differences that gives a window mean's rest noise.
+HALF_QUANTILE = 0.2
+#: Window length (s) and baseline block (s) aimed at.
+WINDOW_S = 0.25
+BLOCK_S = 60.0
+#: Fraction of a recording that may move before a fit without a rate reference is
+#: not ``ok`` (status ``in_motion``).
+MAX_MOVING_FRACTION = 0.02
+
+
+class Motion(eqx.Module):
+    """Motion check of every device (leading device axis).
+
+    ``moving_fraction`` (0..1 of the valid samples), ``rate_peak`` and
+    ``rate_rms`` (rad/s, the window-mean rate of the moving windows less the
+    baseline, over the moving windows; 0 when none moved), ``rest_noise``
+    (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
+    window mean at rest noise that counts as moving, RMS over axes), and the
+    per-sample ``static`` mask (valid, not moving, not next to a moving window).
+    """
+
+    moving_fraction: Float[Array, " d"]
+    rate_peak: Float[Array, " d"]
+    rate_rms: Float[Array, " d"]
+    rest_noise: Float[Array, " d"]
+    threshold: Float[Array, " d"]
+    static: Bool[Array, "d n"]
+    window: int = eqx.field(static=True, default=0)
+
+    def record(self, i: int) -> dict:
+        """Device ``i``'s ``motion`` object (JSON-ready; null where not computed)."""
+        return {k: number(getattr(self, k)[i]) for k in
+                ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")}
+
+    def moved(self, i: int, limit: float = MAX_MOVING_FRACTION) -> bool:
+        """Whether device ``i`` moved more than ``limit`` of its recording."""
+        f = float(self.moving_fraction[i])
+        return math.isfinite(f) and f > limit
+
+    def select(self, idx) -> Motion:
+        """The devices ``idx`` (an index array)."""
+        idx = np.asarray(idx)
+        return Motion(*(jnp.asarray(getattr(self, k))[idx] for k in
+                        ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold",
+                         "static")), window=self.window)
+
+
+def describe(rec: dict) -> str:
+    """How much of a recording moved and how fast, from a ``motion`` record."""
+    def g(x):
+        return "—" if x is None else f"{x:.2g}"
+
+    frac = rec.get("moving_fraction")
+    pct = "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
+    return (f"{pct} % of the recording moved (rates up to {g(rec.get('rate_peak'))} rad/s, "
+            f"{g(rec.get('rate_rms'))} rad/s RMS, against a rest noise of "
+            f"{g(rec.get('rest_noise'))} rad/s)")
+
+
+def window_sizes(dt: float) -> tuple[int, int]:
+    """Samples per window and windows per baseline block for a sampling interval ``dt``
+    (powers of two, so nearby rates share a compiled check)."""
+    dt = dt if math.isfinite(dt) and dt > 0 else 0.01
+    w = int(np.clip(2 ** round(math.log2(max(WINDOW_S / dt, 1.0))), 4, 1024))
+    b = int(np.clip(2 ** round(math.log2(max(BLOCK_S / (w * dt), 1.0))), 4, 4096))
+    return w, b
+
+
+def _windowed(x, mask, w: int):
+    """(k, w, c) windows of ``x`` (padding invalid), their masks and difference-pair masks."""
+    n = x.shape[0]
+    k = -(-n // w)
+    pad = k * w - n
+    xs = jnp.concatenate([x, jnp.zeros((pad, x.shape[1]), x.dtype)])
+    ms = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
+    d = jnp.concatenate([jnp.zeros((1, x.shape[1]), x.dtype), jnp.diff(xs, axis=0)])
+    pair = ms & jnp.concatenate([jnp.zeros((1,), bool), ms[:-1]])
+    return xs.reshape(k, w, -1), ms.reshape(k, w), d.reshape(k, w, -1), pair.reshape(k, w)
+
+
+def _window_stats(x, mask, w: int):
+    """Per window: means, local noise from successive differences (per axis), the difference
+    of the means of its two halves, valid-sample counts, and validity."""
+    xs, ms, d, pair = _windowed(x, mask, w)
+    c = jnp.sum(ms, axis=1).astype(x.dtype)
+    xm = xs * ms[..., None]
+    mean = jnp.sum(xm, axis=1) / jnp.maximum(c, 1.0)[:, None]
+    h = w // 2
+    c1, c2 = jnp.sum(ms[:, :h], axis=1), jnp.sum(ms[:, h:], axis=1)
+    half = (jnp.sum(xm[:, :h], axis=1) / jnp.maximum(c1, 1)[:, None]
+            - jnp.sum(xm[:, h:], axis=1) / jnp.maximum(c2, 1)[:, None])
+    cp = jnp.sum(pair, axis=1).astype(x.dtype)
+    s2 = jnp.sum((d * pair[..., None]) ** 2, axis=1) / jnp.maximum(cp, 1.0)[:, None] / 2.0
+    valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c2 > 0)
+    return mean, jnp.sqrt(s2), half, c, valid
+
+
+def _rest_noise(local, half, valid, w: int):
+    """Rest noise per axis: of one sample (σ, from the local noise), and of a window mean.
+
+    σ is the :data:`REST_QUANTILE` of the valid windows' local noise, divided by that
+    quantile of the χ distribution of a window's estimate (≈ normal). A window mean's
+    noise is at least σ/√w, and at least what the half-window differences show at rest
+    (their :data:`HALF_QUANTILE`, over that quantile of a normal's magnitude, halved):
+    sensor outputs are low-pass filtered, and filtered noise averages more slowly than
+    white noise does."""
+    v = jnp.where(valid[:, None], local, jnp.nan)
+    q = jnp.nanquantile(v, REST_QUANTILE, axis=0)
+    z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
+    sigma = q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
+    hq = jnp.nanquantile(jnp.where(valid[:, None], jnp.abs(half), jnp.nan), HALF_QUANTILE, axis=0)
+    zh = 0.2533471031357997  # the normal quantile of (1 + HALF_QUANTILE) / 2
+    mean_noise = jnp.maximum(sigma / math.sqrt(w), hq / zh / 2.0)
+    return sigma, mean_noise
+
+
+def _baseline(mean, use, b: int):
+    """Slow baseline of the window means: the median over blocks of ``b`` windows of the
+    windows in ``use``, linearly interpolated between block centres (blocks with none
+    take the median of all windows in ``use``)."""
+    k = mean.shape[0]
+    kb = -(-k // b)
+    pad = kb * b - k
+    vals = jnp.where(use[:, None], mean, jnp.nan)
+    vals = jnp.concatenate([vals, jnp.full((pad, mean.shape[1]), jnp.nan, mean.dtype)])
+    med = jnp.nanmedian(vals.reshape(kb, b, -1), axis=1)  # (kb, c)
+    overall = jnp.nanmedian(vals, axis=0)
+    med = jnp.where(jnp.isnan(med), overall[None, :], med)
+    centres = (jnp.arange(kb) + 0.5) * b - 0.5
+    idx = jnp.arange(k).astype(mean.dtype)
+    return jax.vmap(lambda col: jnp.interp(idx, centres.astype(mean.dtype), col), 1, 1)(med)
+
+
+def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
+    """Moving windows of one signal, its window deviations, window validity, rest noise and
+    threshold. ``step``: the deviation is the change from the previous window (the
+    accelerometer: a device at rest in a new pose has a new gravity, not motion)."""
+    mean, local, half, c, valid = _window_stats(x, mask, w)
+    sigma, mean_noise = _rest_noise(local, half, valid, w)
+    sigma = jnp.where(jnp.isnan(sigma), 0.0, sigma)
+    mean_noise = jnp.where(jnp.isnan(mean_noise), 0.0, mean_noise)
+    # vibration raises the local noise, and with it what a window mean may scatter
+    louder = jnp.maximum(local / jnp.where(sigma > 0, sigma, 1.0)[None, :], 1.0)
+    var = (mean_noise[None, :] * louder) ** 2 * (w / jnp.maximum(c, 1.0))[:, None]
+
+    def flag(dev, var, ok):
+        thr = jnp.maximum(K_SIGMA * jnp.sqrt(var), floor)
+        z = jnp.sqrt(jnp.sum((dev / thr) ** 2, axis=1))
+        return (z > 1.0) & ok
+
+    if step:
+        prev = jnp.concatenate([mean[:1], mean[:-1]])
+        ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
+        var_prev = jnp.concatenate([var[:1], var[:-1]])
+        dev = mean - prev
+        moving = flag(dev, var + var_prev, ok)
+    else:
+        moving = flag(mean - _baseline(mean, valid, b), var, valid)
+        dev = mean - _baseline(mean, valid & ~moving, b)
+        moving = flag(dev, var, valid)
+    thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
+    return moving, dev, valid, sigma, thr0
+
+
+def _one_device(gyro, accel, mask, w: int, b: int):
+    n = gyro.shape[0]
+    moving, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
+    if accel is not None:
+        acc_moving, _, _, _, _ = _moving_windows(accel, mask, w, b, ACCEL_FLOOR, step=True)
+        moving = moving | acc_moving
+    rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
+    n_mov = jnp.sum(moving)
+    peak = jnp.max(jnp.where(moving, rate, 0.0))
+    rms = jnp.sqrt(jnp.sum(jnp.where(moving, rate**2, 0.0)) / jnp.maximum(n_mov, 1))
+    samples = jnp.repeat(moving, w)[:n] & mask
+    near = moving | jnp.concatenate([moving[1:], jnp.zeros((1,), bool)]) | jnp.concatenate(
+        [jnp.zeros((1,), bool), moving[:-1]])
+    static = ~jnp.repeat(near, w)[:n] & mask
+    count = jnp.sum(mask)
+    some = jnp.any(valid)
+    frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
+    nan = jnp.asarray(jnp.nan, gyro.dtype)
+    return dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
+                rate_rms=jnp.where(some, rms, nan),
+                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
+                threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan), static=static)
+
+
+@eqx.filter_jit
+def _check(gyro, accel, mask, w: int, b: int):
+    return jax.vmap(lambda g, a, m: _one_device(g, a, m, w, b))(gyro, accel, mask)
+
+
+def motion_check(batch, dt: float | None = None) -> Motion:
+    """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
+    module docstring); ``dt`` the sampling interval (default: the median over devices)."""
+    from .core import sampling_intervals
+
+    if dt is None:
+        dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
+    w, b = window_sizes(dt)
+    f64 = jnp.float64 if np.asarray(batch.gyro).dtype == np.float64 else jnp.float32
+    gyro = jnp.asarray(batch.gyro, f64)
+    accel = None if batch.accel is None else jnp.asarray(batch.accel, f64)
+    out = _check(gyro, accel, jnp.asarray(batch.mask), w, b)
+    return Motion(**out, window=w)
+
+
+__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "Motion", "describe",
+           "motion_check", "window_sizes"]
