@@ -86,6 +86,17 @@ TempTopic = Annotated[
     typer.Option("--temp-topic", help="ROS bags: the sensor_msgs/msg/Temperature topic joined "
                                       "to the Imu samples (default: the only one, if any)."),
 ]
+StaticOnly = Annotated[
+    bool,
+    typer.Option("--static-only", help="Use only the samples where the device was at rest "
+                                       "(the motion check's static intervals; moving samples "
+                                       "and a window either side are left out)."),
+]
+
+
+def motion_notes(records: list[dict]) -> list[str]:
+    """One line per device that is not ok: its name and why (the text output's notes)."""
+    return [f"{r['device']}: {r['status_detail']}" for r in records if r.get("status") != "ok"]
 
 
 def streamed_dir(path: Path) -> bool:
