@@ -24,6 +24,7 @@ from ._options import (
     TimeUnit,
     Topic,
     load_from_cli,
+    longest_static,
 )
 
 AXES = ("gx", "gy", "gz")
@@ -77,7 +78,7 @@ def allan_command(
     motion = motion_check(batch)
     recorded = [int(n) for n in batch.n_valid]
     if static_only:
-        batch = _longest_static(batch, motion)
+        batch = longest_static(batch, motion, MIN_SAMPLES)
     _warn_uneven(batch)
     parts = _curves(batch, per_decade, wanted)
     doc = _merged_json(parts, batch)
@@ -90,29 +91,6 @@ def allan_command(
         typer.echo(dumps(doc))
     else:
         _print_table(doc, report)
-
-
-def _longest_static(batch, motion):
-    """Each device's longest run of static samples, as a batch (a DataError naming the
-    device when that run is shorter than :data:`MIN_SAMPLES`)."""
-    import numpy as np
-
-    from diffgyro.data import Batch
-    from diffgyro.errors import DataError
-
-    recs = []
-    for i, rec in enumerate(batch.recordings()):
-        st = np.asarray(motion.static[i])[:rec.n]
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], st.astype(np.int8), [0]])))
-        starts, stops = edges[::2], edges[1::2]
-        if not len(starts) or (stops - starts).max() < MIN_SAMPLES:
-            raise DataError(f"no static interval of at least {MIN_SAMPLES} samples for "
-                            "--static-only", device=batch.devices[i],
-                            file=batch.sources[i] if i < len(batch.sources) else None,
-                            hint="record the device at rest")
-        k = int(np.argmax(stops - starts))
-        recs.append(rec.slice(int(starts[k]), int(stops[k])))
-    return Batch.from_recordings(recs)
 
 
 def _add_motion(doc: dict, motion, batch, recorded, static_only: bool) -> None:

@@ -16,6 +16,7 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
@@ -112,7 +113,7 @@ def diagnose_command(
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
-    dask: DaskOpt = None, results: ResultsOpt = None,
+    dask: DaskOpt = None, results: ResultsOpt = None, static_only: StaticOnly = False,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -122,8 +123,15 @@ def diagnose_command(
     with candidates sorted best first (extra keys: explanation, evidence, alternatives, ...).
     A directory of Parquet files, --chunk-devices or --dask streams the data in chunks of
     devices with resumable state in --work-dir (see docs/dask.md).
+    A device that moved (no rate reference in MODEL) gets status in_motion and no
+    verdict; --static-only diagnoses each device's longest static interval.
     """
-    if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
+    streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
+    if static_only and streamed:
+        raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
+                                 "files, --chunk-devices, --dask); diagnose the files directly",
+                                 param_hint="--static-only")
+    if streamed:
         from ._stream import stream_diagnose
 
         if out is not None:
@@ -144,6 +152,18 @@ def diagnose_command(
     spec, batch, names = _load_checked(model, data, candidates, columns, gyro_unit, acc_unit,
                                        temp_unit, time_unit, sampling_rate, drop_invalid, topic,
                                        temp_topic)
+    static = None
+    if static_only:
+        from diffgyro.motion import motion_check
+
+        from ._options import longest_static
+        from .allan import MIN_SAMPLES
+
+        motion = motion_check(batch)
+        recorded = [int(n) for n in batch.n_valid]
+        batch = longest_static(batch, motion, MIN_SAMPLES)
+        static = [{"motion": motion.record(i), "static_only": True, "n_samples": int(batch.n_valid[i]),
+                   "n_recorded": recorded[i]} for i in range(batch.n_devices)]
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -162,7 +182,7 @@ def diagnose_command(
             write_report(diag, batch, report, ladder=ladder)
     if out is not None:
         _write_calibration(ladder.final if ladder is not None else diag, batch, out, err)
-    _print_result(diag, ladder, as_json, report)
+    _print_result(diag, ladder, as_json, report, static)
 
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -192,12 +212,15 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
     return spec, batch, names
 
 
-def _print_result(diag, ladder, as_json: bool, report: Path | None) -> None:
-    """The JSON object (with the ladder and the final diagnosis after --auto), or the tables."""
+def _print_result(diag, ladder, as_json: bool, report: Path | None, static=None) -> None:
+    """The JSON object (with the ladder and the final diagnosis after --auto), or the tables;
+    ``static``: per device, the motion of the whole recording and the samples --static-only kept."""
     if as_json:
         from diffgyro.jsonio import dumps
 
         obj = diag.to_json()
+        for rec, extra in zip(obj["devices"], static or []):
+            rec.update(extra)
         if ladder is not None:
             obj["ladder"] = ladder.records()
             obj["final"] = ladder.final.to_json()
@@ -205,6 +228,9 @@ def _print_result(diag, ladder, as_json: bool, report: Path | None) -> None:
         return
     console = wide_console()
     print_diagnosis(diag, console)
+    for d, extra in zip(diag.devices, static or []):
+        console.print(f"{d.device}: static only: {extra['n_samples']} of {extra['n_recorded']} "
+                      "samples (the longest static interval)", markup=False)
     if ladder is not None:
         print_ladder(ladder, console)
     if report is not None:

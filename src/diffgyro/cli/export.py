@@ -112,9 +112,9 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
         except DataError as err:
             raise DataError(err.problem, file=str(source), device=err.device,
                             hint=err.hint) from None
-    from .allan import MIN_SAMPLES
-
     from diffgyro.motion import motion_check
+
+    from .allan import MIN_SAMPLES
 
     batch = load_from_cli([source], *load_opts, min_samples=MIN_SAMPLES)
     gyro_doc = kalibr.allan_of(batch, "gyro", motion_check(batch))

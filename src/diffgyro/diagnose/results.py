@@ -139,7 +139,10 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The DESIGN.md §4 ``diagnose --json`` object (extra keys per device)."""
-        return to_json_safe({"model": self.spec, "devices": [d.record() for d in self.devices],
+        motion = getattr(self.fit, "motion", None)
+        return to_json_safe({"model": self.spec,
+                       "devices": [d.record() | {"motion": None if motion is None else motion.record(i)}
+                                   for i, d in enumerate(self.devices)],
                        "thresholds": asdict(self.thresholds),
                        "dtemp_window": self.options.get("dtemp_window")})
 

@@ -336,6 +336,10 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
     if not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
             and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
         return unfitted(batch.devices[i], res.status_detail(i), floors[i]), slope, floor_allan
+    if res.status_name(i) == "in_motion":  # the residual is the motion: nothing to name
+        d = unfitted(batch.devices[i], res.status_detail(i), floors[i])
+        d.explanation = f"{batch.devices[i]}: no effect is named: {res.status_detail(i)}"
+        return d, slope, floor_allan
     sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
     ev = evidence(out["residual"][i, :nv], batch.recording(i), sd, floors[i])
     ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
