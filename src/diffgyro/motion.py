@@ -174,19 +174,29 @@ def _rest_noise(local, half, valid, w: int):
 
 def _baseline(mean, use, b: int):
     """Slow baseline of the window means: the median over blocks of ``b`` windows of the
-    windows in ``use``, linearly interpolated between block centres (blocks with none
-    take the median of all windows in ``use``)."""
+    windows in ``use``, linearly interpolated between block centres."""
     k = mean.shape[0]
     kb = -(-k // b)
     pad = kb * b - k
     vals = jnp.where(use[:, None], mean, jnp.nan)
     vals = jnp.concatenate([vals, jnp.full((pad, mean.shape[1]), jnp.nan, mean.dtype)])
     med = jnp.nanmedian(vals.reshape(kb, b, -1), axis=1)  # (kb, c)
-    overall = jnp.nanmedian(vals, axis=0)
-    med = jnp.where(jnp.isnan(med), overall[None, :], med)
-    centres = (jnp.arange(kb) + 0.5) * b - 0.5
-    idx = jnp.arange(k).astype(mean.dtype)
-    return jax.vmap(lambda col: jnp.interp(idx, centres.astype(mean.dtype), col), 1, 1)(med)
+    # a block without windows in use (padding, or all moving) holds the last block before it
+    # that has some (the first such block before any)
+    has = ~jnp.isnan(med[:, 0])
+    idx = jnp.arange(kb)
+    last = jax.lax.cummax(jnp.where(has, idx, -1))
+    first = jnp.argmax(has)
+    med = med[jnp.where(last >= 0, last, first)]
+    med = jnp.where(jnp.isnan(med), jnp.nanmedian(vals, axis=0)[None, :], med)
+    if kb == 1:
+        return jnp.broadcast_to(med, mean.shape)
+    # linear between block centres, and extrapolated from the nearest two at the ends
+    # (a warm-up's drift is fastest in the first half block)
+    pos = (jnp.arange(k).astype(mean.dtype) + 0.5) / b - 0.5
+    j = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, kb - 2)
+    frac = (pos - j)[:, None]
+    return med[j] + frac * (med[j + 1] - med[j])
 
 
 def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
