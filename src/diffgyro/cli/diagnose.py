@@ -152,18 +152,7 @@ def diagnose_command(
     spec, batch, names = _load_checked(model, data, candidates, columns, gyro_unit, acc_unit,
                                        temp_unit, time_unit, sampling_rate, drop_invalid, topic,
                                        temp_topic)
-    static = None
-    if static_only:
-        from diffgyro.motion import motion_check
-
-        from ._options import longest_static
-        from .allan import MIN_SAMPLES
-
-        motion = motion_check(batch)
-        recorded = [int(n) for n in batch.n_valid]
-        batch = longest_static(batch, motion, MIN_SAMPLES)
-        static = [{"motion": motion.record(i), "static_only": True, "n_samples": int(batch.n_valid[i]),
-                   "n_recorded": recorded[i]} for i in range(batch.n_devices)]
+    batch, static = _static_only(batch) if static_only else (batch, None)
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -183,6 +172,22 @@ def diagnose_command(
     if out is not None:
         _write_calibration(ladder.final if ladder is not None else diag, batch, out, err)
     _print_result(diag, ladder, as_json, report, static)
+
+
+def _static_only(batch):
+    """Each device's longest static interval, and per device the motion of the whole
+    recording and the samples kept (extra keys of its --json record)."""
+    from diffgyro.motion import motion_check
+
+    from ._options import longest_static
+    from .allan import MIN_SAMPLES
+
+    motion = motion_check(batch)
+    recorded = [int(n) for n in batch.n_valid]
+    batch = longest_static(batch, motion, MIN_SAMPLES)
+    return batch, [{"motion": motion.record(i), "static_only": True,
+                    "n_samples": int(batch.n_valid[i]), "n_recorded": recorded[i]}
+                   for i in range(batch.n_devices)]
 
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
