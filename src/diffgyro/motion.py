@@ -124,33 +124,51 @@ def window_sizes(dt: float) -> tuple[int, int]:
     return w, b
 
 
-def _windowed(x, mask, w: int):
-    """(k, w, c) windows of ``x`` (padding invalid), their masks and difference-pair masks."""
+def _window_stats(x, mask, w: int):
+    """Per window: means, local noise from successive differences inside it (per axis), the
+    difference of the means of its two halves, valid-sample counts, and validity.
+
+    Axes first ((c, k, w) blocks), so every reduction runs along contiguous samples."""
     n = x.shape[0]
     k = -(-n // w)
-    pad = k * w - n
-    xs = jnp.concatenate([x, jnp.zeros((pad, x.shape[1]), x.dtype)])
-    ms = jnp.concatenate([mask, jnp.zeros((pad,), bool)])
-    d = jnp.concatenate([jnp.zeros((1, x.shape[1]), x.dtype), jnp.diff(xs, axis=0)])
-    pair = ms & jnp.concatenate([jnp.zeros((1,), bool), ms[:-1]])
-    return xs.reshape(k, w, -1), ms.reshape(k, w), d.reshape(k, w, -1), pair.reshape(k, w)
-
-
-def _window_stats(x, mask, w: int):
-    """Per window: means, local noise from successive differences (per axis), the difference
-    of the means of its two halves, valid-sample counts, and validity."""
-    xs, ms, d, pair = _windowed(x, mask, w)
-    c = jnp.sum(ms, axis=1).astype(x.dtype)
-    xm = xs * ms[..., None]
-    mean = jnp.sum(xm, axis=1) / jnp.maximum(c, 1.0)[:, None]
+    if k * w != n:  # pad to whole windows (invalid)
+        x = jnp.concatenate([x, jnp.zeros((k * w - n, x.shape[1]), x.dtype)])
+        mask = jnp.concatenate([mask, jnp.zeros((k * w - n,), bool)])
+    ms = mask.reshape(k, w)
+    xs = jnp.where(ms[None], x.T.reshape(-1, k, w), 0.0)
     h = w // 2
-    c1, c2 = jnp.sum(ms[:, :h], axis=1), jnp.sum(ms[:, h:], axis=1)
-    half = (jnp.sum(xm[:, :h], axis=1) / jnp.maximum(c1, 1)[:, None]
-            - jnp.sum(xm[:, h:], axis=1) / jnp.maximum(c2, 1)[:, None])
+    c1 = jnp.sum(ms[:, :h], axis=1).astype(x.dtype)
+    c = c1 + jnp.sum(ms[:, h:], axis=1)
+    s1 = jnp.sum(xs[..., :h], axis=-1).T
+    total = s1 + jnp.sum(xs[..., h:], axis=-1).T
+    mean = total / jnp.maximum(c, 1.0)[:, None]
+    half = s1 / jnp.maximum(c1, 1.0)[:, None] - (total - s1) / jnp.maximum(c - c1, 1.0)[:, None]
+    pair = ms[:, 1:] & ms[:, :-1]
     cp = jnp.sum(pair, axis=1).astype(x.dtype)
-    s2 = jnp.sum((d * pair[..., None]) ** 2, axis=1) / jnp.maximum(cp, 1.0)[:, None] / 2.0
-    valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c2 > 0)
+    d = jnp.where(pair[None], xs[..., 1:] - xs[..., :-1], 0.0)
+    s2 = jnp.sum(d * d, axis=-1).T / jnp.maximum(cp, 1.0)[:, None] / 2.0
+    valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
     return mean, jnp.sqrt(s2), half, c, valid
+
+
+def _masked_quantile(x, valid, q: float, axis: int = 0):
+    """The ``q`` quantile (linear between order statistics) of the ``valid`` entries of ``x``
+    along ``axis``, NaN where none; one integer sort (XLA on CPU sorts integers several
+    times faster than floats, whose comparator must also order NaN)."""
+    itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
+    top = jnp.iinfo(itype).max
+    i = jax.lax.bitcast_convert_type(x, itype)
+    key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
+    key = jnp.sort(jnp.where(valid, key, top), axis=axis)
+    key = jnp.where(key < 0, key ^ top, key)
+    s = jax.lax.bitcast_convert_type(key, x.dtype)
+    n = jnp.sum(valid, axis=axis, keepdims=True)
+    h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
+    lo = jnp.floor(h).astype(jnp.int32)
+    a = jnp.take_along_axis(s, lo, axis=axis)
+    b = jnp.take_along_axis(s, jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)), axis=axis)
+    out = jnp.where(n > 0, a + (b - a) * (h - lo), jnp.nan)
+    return jnp.squeeze(out, axis)
 
 
 def _rest_noise(local, half, valid, w: int):
@@ -162,11 +180,11 @@ def _rest_noise(local, half, valid, w: int):
     (their :data:`HALF_QUANTILE`, over that quantile of a normal's magnitude, halved):
     sensor outputs are low-pass filtered, and filtered noise averages more slowly than
     white noise does."""
-    v = jnp.where(valid[:, None], local, jnp.nan)
-    q = jnp.nanquantile(v, REST_QUANTILE, axis=0)
+    ok = jnp.broadcast_to(valid[:, None], local.shape)
+    q = _masked_quantile(local, ok, REST_QUANTILE)
     z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
     sigma = q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
-    hq = jnp.nanquantile(jnp.where(valid[:, None], jnp.abs(half), jnp.nan), HALF_QUANTILE, axis=0)
+    hq = _masked_quantile(jnp.abs(half), ok, HALF_QUANTILE)
     zh = 0.2533471031357997  # the normal quantile of (1 + HALF_QUANTILE) / 2
     mean_noise = jnp.maximum(sigma / math.sqrt(w), hq / zh / 2.0)
     return sigma, mean_noise
@@ -178,9 +196,10 @@ def _baseline(mean, use, b: int):
     k = mean.shape[0]
     kb = -(-k // b)
     pad = kb * b - k
-    vals = jnp.where(use[:, None], mean, jnp.nan)
-    vals = jnp.concatenate([vals, jnp.full((pad, mean.shape[1]), jnp.nan, mean.dtype)])
-    med = jnp.nanmedian(vals.reshape(kb, b, -1), axis=1)  # (kb, c)
+    vals = jnp.concatenate([mean, jnp.zeros((pad, mean.shape[1]), mean.dtype)])
+    ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
+    ok = jnp.broadcast_to(ok[:, None], vals.shape)
+    med = _masked_quantile(vals.reshape(kb, b, -1), ok.reshape(kb, b, -1), 0.5, axis=1)  # (kb, c)
     # a block without windows in use (padding, or all moving) holds the last block before it
     # that has some (the first such block before any)
     has = ~jnp.isnan(med[:, 0])
@@ -188,7 +207,7 @@ def _baseline(mean, use, b: int):
     last = jax.lax.cummax(jnp.where(has, idx, -1))
     first = jnp.argmax(has)
     med = med[jnp.where(last >= 0, last, first)]
-    med = jnp.where(jnp.isnan(med), jnp.nanmedian(vals, axis=0)[None, :], med)
+    med = jnp.where(jnp.isnan(med), _masked_quantile(vals, ok, 0.5)[None, :], med)
     if kb == 1:
         return jnp.broadcast_to(med, mean.shape)
     # linear between block centres, and extrapolated from the nearest two at the ends
@@ -231,6 +250,11 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
 
 
 def _one_device(gyro, accel, mask, w: int, b: int):
+    # float32 is ample to tell motion from noise, and halves the traffic of the one
+    # pass over the samples; the results are given back in the input's precision
+    out_dtype = gyro.dtype
+    gyro = gyro.astype(jnp.float32)
+    accel = None if accel is None else accel.astype(jnp.float32)
     n = gyro.shape[0]
     moving, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
     if accel is not None:
@@ -240,18 +264,22 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     n_mov = jnp.sum(moving)
     peak = jnp.max(jnp.where(moving, rate, 0.0))
     rms = jnp.sqrt(jnp.sum(jnp.where(moving, rate**2, 0.0)) / jnp.maximum(n_mov, 1))
-    samples = jnp.repeat(moving, w)[:n] & mask
+    def per_sample(flag):
+        return jnp.broadcast_to(flag[:, None], (flag.shape[0], w)).reshape(-1)[:n]
+
+    samples = per_sample(moving) & mask
     near = moving | jnp.concatenate([moving[1:], jnp.zeros((1,), bool)]) | jnp.concatenate(
         [jnp.zeros((1,), bool), moving[:-1]])
-    static = ~jnp.repeat(near, w)[:n] & mask
+    static = ~per_sample(near) & mask
     count = jnp.sum(mask)
     some = jnp.any(valid)
     frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
     nan = jnp.asarray(jnp.nan, gyro.dtype)
-    return dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
-                rate_rms=jnp.where(some, rms, nan),
-                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
-                threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan), static=static)
+    out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
+               rate_rms=jnp.where(some, rms, nan),
+               rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
+               threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan))
+    return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static}
 
 
 @eqx.filter_jit
