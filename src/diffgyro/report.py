@@ -405,6 +405,16 @@ def _fmt(x) -> str:
     return "—" if x is None or not math.isfinite(float(x)) else f"{float(x):.3g}"
 
 
+def _motion_line(diagnosis, i: int) -> str:
+    """Whether device ``i`` was at rest (the fit's motion check), as a paragraph."""
+    motion = getattr(diagnosis.fit, "motion", None)
+    if motion is None:
+        return ""
+    from .motion import describe
+
+    return f"<p class=motion>Motion check: {html.escape(describe(motion.record(i)))}.</p>"
+
+
 def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str:
     d = diagnosis.devices[i]
     rows = "".join(
@@ -418,6 +428,7 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> str
         f"RMS {_fmt(d.rms)}, held-out RMS {_fmt(d.heldout_rms)}, noise floor {_fmt(d.noise_floor)} "
         f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
         f"<p class=expl>{html.escape(d.explanation)}</p>",
+        _motion_line(diagnosis, i),
         "<h2>Candidates (best first)</h2><table><tr><th class=l>effect</th><th class=l>model</th>"
         "<th>held-out RMS</th><th>gap closed</th><th>paired t</th><th>significant</th></tr>"
         f"{rows}</table>",
