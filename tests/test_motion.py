@@ -232,3 +232,24 @@ def test_diagnose_gives_no_verdict_on_motion(capsys):
     assert dev["status"].startswith("in_motion")
     assert dev["motion"]["moving_fraction"] > MAX_MOVING_FRACTION
     assert dev["best"] is None and "no effect is named" in dev["explanation"]
+
+
+def test_a_recipe_that_assumes_rest_says_it_moved_and_runs_on_the_static_part(tmp_path, capsys):
+    """binned-thermal on a warm-up with turns about z: a warning and status in_motion; with
+    --static-only the z offset is the true bias again (the x line is the thermal drift)."""
+    path = tmp_path / "turns.csv"
+    _device("d", turns=True).to_frame().to_csv(path, index=False)
+    code, output = _run(capsys, ["recipe", "binned-thermal", str(path)])
+    assert code == 0 and "in_motion" in output and "--static-only" in output
+    plain = _json(capsys, ["recipe", "binned-thermal", str(path), "--json"])
+    assert plain["status"] == "in_motion"
+    static = _json(capsys, ["recipe", "binned-thermal", str(path), "--json", "--static-only"])
+    assert static["status"] == "ok" and static["static_only"] is True
+    def z_at_32(r):  # the z bias line read inside the run (its offset is at 0 °C)
+        return r["offset"][2] + 32.0 * r["slope"][2]
+
+    assert abs(z_at_32(static) - BIAS[2]) < 1e-4
+    assert abs(z_at_32(plain) - BIAS[2]) > 2e-3
+    assert static["slope"][0] == pytest.approx(0.002, rel=0.02)
+    code, output = _run(capsys, ["recipe", "static-kalman", str(path), "--static-only"])
+    assert code == 2 and "does not apply" in output
