@@ -565,7 +565,7 @@ def fit(
     batch = as_batch(data)
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    motion = motion_check(batch)
+    motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
     recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
     if static_only:
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
@@ -573,13 +573,35 @@ def fit(
     if not isinstance(result, FitResult):  # the state-space path keeps its own records
         return result
     status = result.status
-    if not static_only and "rate" not in model.requires():
+    if not static_only:
         from .motion import MAX_MOVING_FRACTION
 
-        moved = jnp.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
-        status = jnp.where(moved & (status == OK), IN_MOTION, status)
+        moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
+        if np.any(moved & (np.asarray(status) == OK)):
+            motion = _unexplained(result, batch, motion, moved)
+            moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
+        status = jnp.where(jnp.asarray(moved) & (status == OK), IN_MOTION, status)
     return _replace(result, status=status, motion=motion, n_recorded=recorded,
                     static_only=static_only)
+
+
+def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Motion:
+    """The motion check of what the fitted model leaves unexplained (its residual), for the
+    devices whose recording moved; the others keep ``motion``. A fast thermal transient the
+    model follows is not motion; a turn no model without a rate reference can follow
+    stays in the residual."""
+    resid = np.asarray(result.residuals(batch))
+    accel = None if batch.rate is not None else batch.accel  # as motion_check reads them
+    again = motion_check(eqx.tree_at(lambda b: (b.gyro, b.rate, b.accel), batch,
+                                     (resid, None, accel), is_leaf=lambda x: x is None))
+
+    def pick(a, b):
+        m = np.asarray(moved).reshape((-1,) + (1,) * (np.ndim(a) - 1))
+        return jnp.asarray(np.where(m, np.asarray(b), np.asarray(a)))
+
+    fields = ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")
+    return Motion(**{k: pick(getattr(motion, k), getattr(again, k)) for k in fields},
+                  static=motion.static, window=motion.window)
 
 
 def _replace(result: FitResult, **changes) -> FitResult:

@@ -16,14 +16,14 @@ The device's rest noise ``σ`` per axis is a low quantile of the local noise
 (the quietest windows, corrected for the quantile's bias), so the threshold
 comes from the device's own noise floor, not from a fixed rate. Slow change
 (thermal drift of the bias over minutes to hours, Earth rate, a constant
-offset) is the baseline: the median of the window means over blocks of about a
-minute, linearly interpolated, computed twice (the second time over the windows
+offset) is the baseline: the median of the window means over blocks of about
+half a minute, linearly interpolated, computed twice (the second time over the windows
 the first pass left static). A window moves when its deviation from the baseline
 stands out of the noise its mean can have::
 
-    ‖ (m_k − baseline_k) / max(K·max(σ, s_k)/√W, floor) ‖ > 1
+    ‖ (m_k − baseline_k) / max(K·ν·max(1, s_k/σ), floor) ‖ > 1
 
-with ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
+with ``ν`` the noise of a window mean at rest (:func:`_rest_noise`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
 below 1e-7) and a physical floor (:data:`EARTH_RATE` for the gyro: a sensor good
 enough to see Earth rotate does not call it motion; :data:`ACCEL_FLOOR` for the
 accelerometer). The accelerometer, where logged, catches what the gyro baseline
@@ -60,7 +60,7 @@ REST_QUANTILE = 0.1
 HALF_QUANTILE = 0.2
 #: Window length (s) and baseline block (s) aimed at.
 WINDOW_S = 0.25
-BLOCK_S = 60.0
+BLOCK_S = 30.0
 #: Fraction of a recording that may move before a fit without a rate reference is
 #: not ``ok`` (status ``in_motion``).
 MAX_MOVING_FRACTION = 0.02
@@ -147,8 +147,9 @@ def _window_stats(x, mask, w: int):
     cp = jnp.sum(pair, axis=1).astype(x.dtype)
     d = jnp.where(pair[None], xs[..., 1:] - xs[..., :-1], 0.0)
     s2 = jnp.sum(d * d, axis=-1).T / jnp.maximum(cp, 1.0)[:, None] / 2.0
+    step = jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(1, 2))  # per axis
     valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
-    return mean, jnp.sqrt(s2), half, c, valid
+    return mean, jnp.sqrt(s2), half, c, valid, jnp.where(jnp.isfinite(step), step, 0.0)
 
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
@@ -171,7 +172,7 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
     return jnp.squeeze(out, axis)
 
 
-def _rest_noise(local, half, valid, w: int):
+def _rest_noise(local, half, valid, w: int, quantum=0.0):
     """Rest noise per axis: of one sample (σ, from the local noise), and of a window mean.
 
     σ is the :data:`REST_QUANTILE` of the valid windows' local noise, divided by that
@@ -179,11 +180,14 @@ def _rest_noise(local, half, valid, w: int):
     noise is at least σ/√w, and at least what the half-window differences show at rest
     (their :data:`HALF_QUANTILE`, over that quantile of a normal's magnitude, halved):
     sensor outputs are low-pass filtered, and filtered noise averages more slowly than
-    white noise does."""
+    white noise does. A quantised output (``quantum``: the smallest change between samples)
+    has at least the rounding noise quantum/√12 per sample, though the quietest windows may
+    not change at all."""
     ok = jnp.broadcast_to(valid[:, None], local.shape)
     q = _masked_quantile(local, ok, REST_QUANTILE)
     z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
-    sigma = q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
+    sigma = jnp.maximum(q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5),
+                        quantum / math.sqrt(12.0))
     hq = _masked_quantile(jnp.abs(half), ok, HALF_QUANTILE)
     zh = 0.2533471031357997  # the normal quantile of (1 + HALF_QUANTILE) / 2
     mean_noise = jnp.maximum(sigma / math.sqrt(w), hq / zh / 2.0)
@@ -222,12 +226,12 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     """Moving windows of one signal, its window deviations, window validity, rest noise and
     threshold. ``step``: the deviation is the change from the previous window (the
     accelerometer: a device at rest in a new pose has a new gravity, not motion)."""
-    mean, local, half, c, valid = _window_stats(x, mask, w)
-    sigma, mean_noise = _rest_noise(local, half, valid, w)
+    mean, local, half, c, valid, quantum = _window_stats(x, mask, w)
+    sigma, mean_noise = _rest_noise(local, half, valid, w, quantum)
     sigma = jnp.where(jnp.isnan(sigma), 0.0, sigma)
     mean_noise = jnp.where(jnp.isnan(mean_noise), 0.0, mean_noise)
     # vibration raises the local noise, and with it what a window mean may scatter
-    louder = jnp.maximum(local / jnp.where(sigma > 0, sigma, 1.0)[None, :], 1.0)
+    louder = jnp.maximum(local / jnp.where(sigma > 0, sigma, jnp.inf)[None, :], 1.0)
     var = (mean_noise[None, :] * louder) ** 2 * (w / jnp.maximum(c, 1.0))[:, None]
 
     def flag(dev, var, ok):
@@ -289,7 +293,10 @@ def _check(gyro, accel, mask, w: int, b: int):
 
 def motion_check(batch, dt: float | None = None) -> Motion:
     """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
-    module docstring); ``dt`` the sampling interval (default: the median over devices)."""
+    module docstring); ``dt`` the sampling interval (default: the median over devices).
+    Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
+    less the reference (the rotation the reference does not explain), and not the
+    accelerometer (the referenced turns tilt gravity)."""
     from .core import sampling_intervals
 
     if dt is None:
@@ -298,6 +305,9 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     f64 = jnp.float64 if np.asarray(batch.gyro).dtype == np.float64 else jnp.float32
     gyro = jnp.asarray(batch.gyro, f64)
     accel = None if batch.accel is None else jnp.asarray(batch.accel, f64)
+    if batch.rate is not None:  # what the rate reference does not explain; the turns it
+        gyro = gyro - jnp.asarray(batch.rate, f64)  # gives tilt gravity, and that is no news
+        accel = None
     out = _check(gyro, accel, jnp.asarray(batch.mask), w, b)
     return Motion(**out, window=w)
 

@@ -253,8 +253,7 @@ def _payload(results, failed, rest=None) -> dict:
     return {"devices": [
         {"device": d, "status": "ok", **to_json_safe(r.to_dict()), **rest.get(d, {})}
         if r is not None else
-        {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}",
-         **{k: v for k, v in rest.get(d, {}).items() if k not in ("status", "status_detail")}}
+        {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}"}
         for d, r in results]}
 
 
