@@ -271,3 +271,14 @@ def test_a_recipe_that_assumes_rest_says_it_moved_and_runs_on_the_static_part(tm
     assert static["slope"][0] == pytest.approx(0.002, rel=0.02)
     code, output = _run(capsys, ["recipe", "static-kalman", str(path), "--static-only"])
     assert code == 2 and "does not apply" in output
+
+
+def test_a_random_walk_does_not_absorb_the_turns():
+    """The state-space path: its smoothed bias could follow a turn, so the status reads the
+    recording; --static-only fits the rest and finds the true z bias."""
+    rec = _device("walk", turns=True, duration=300.0)
+    res = fit("bias_poly(0)+random_walk", rec)
+    assert res.status_name(0) == "in_motion"
+    static = fit("bias_poly(0)+random_walk", rec, static_only=True).records()[0]
+    assert static["status"] == "ok" and static["static_only"] is True
+    assert abs(static["params"]["z"]["bias_poly(0).c0"] - BIAS[2]) < 1e-4

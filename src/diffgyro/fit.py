@@ -570,14 +570,14 @@ def fit(
     if static_only:
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
     result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    if not isinstance(result, FitResult):  # the state-space path keeps its own records
-        return result
     status = result.status
     if not static_only:
         from .motion import MAX_MOVING_FRACTION
 
         moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
-        if np.any(moved & (np.asarray(status) == OK)):
+        # (a random walk's smoothed bias follows a turn: only a deterministic model's
+        # residual tells a thermal transient from motion)
+        if isinstance(result, FitResult) and np.any(moved & (np.asarray(status) == OK)):
             motion = _unexplained(result, batch, motion, moved)
             moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
         status = jnp.where(jnp.asarray(moved) & (status == OK), IN_MOTION, status)
@@ -604,8 +604,9 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
                   static=motion.static, window=motion.window)
 
 
-def _replace(result: FitResult, **changes) -> FitResult:
-    """``result`` with some fields changed (static ones included)."""
+def _replace(result, **changes):
+    """``result`` (a FitResult, or the state-space path's fit) with some fields changed
+    (static ones included)."""
     import dataclasses
 
     return dataclasses.replace(result, **changes)
