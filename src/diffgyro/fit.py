@@ -571,7 +571,7 @@ def fit(
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
     result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     status = result.status
-    if not static_only:
+    if not static_only and batch.rate is None:  # a fit with a rate reference subtracts it
         from .motion import MAX_MOVING_FRACTION
 
         moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION

@@ -23,7 +23,10 @@ stands out of the noise its mean can have::
 
     ‖ (m_k − baseline_k) / max(K·ν·max(1, s_k/σ), floor) ‖ > 1
 
-with ``ν`` the noise of a window mean at rest (:func:`_rest_noise`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
+in a run of such windows that starts or holds a jump between neighbouring windows
+of the same size (a turn starts within a window or two; thermal drift changes
+little from one window to the next), with ``ν`` the noise of a window mean at rest
+(:func:`_rest_noise`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
 below 1e-7) and a physical floor (:data:`EARTH_RATE` for the gyro: a sensor good
 enough to see Earth rotate does not call it motion; :data:`ACCEL_FLOOR` for the
 accelerometer). The accelerometer, where logged, catches what the gyro baseline
@@ -222,6 +225,15 @@ def _baseline(mean, use, b: int):
     return med[j] + frac * (med[j + 1] - med[j])
 
 
+def _runs_with(flag, mark):
+    """``flag`` with every run of True that holds no ``mark`` cleared."""
+    k = flag.shape[0]
+    start = flag & ~jnp.concatenate([jnp.zeros((1,), bool), flag[:-1]])
+    run = jnp.where(flag, jnp.cumsum(start) - 1, k)
+    has = jax.ops.segment_max((flag & mark).astype(jnp.int32), run, num_segments=k + 1)
+    return flag & (has[run] > 0)
+
+
 def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     """Moving windows of one signal, its window deviations, window validity, rest noise and
     threshold. ``step``: the deviation is the change from the previous window (the
@@ -239,16 +251,18 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
         z = jnp.sqrt(jnp.sum((dev / thr) ** 2, axis=1))
         return (z > 1.0) & ok
 
+    prev = jnp.concatenate([mean[:1], mean[:-1]])
+    ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
+    var_prev = jnp.concatenate([var[:1], var[:-1]])
+    jump = flag(mean - prev, var + var_prev, ok)  # a change between neighbouring windows
     if step:
-        prev = jnp.concatenate([mean[:1], mean[:-1]])
-        ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
-        var_prev = jnp.concatenate([var[:1], var[:-1]])
-        dev = mean - prev
-        moving = flag(dev, var + var_prev, ok)
-    else:
-        moving = flag(mean - _baseline(mean, valid, b), var, valid)
-        dev = mean - _baseline(mean, valid & ~moving, b)
-        moving = flag(dev, var, valid)
+        return jump, mean - prev, valid, sigma, jnp.maximum(K_SIGMA * mean_noise, floor)
+    # a window leaves the baseline; a run of such windows is motion when it starts or
+    # holds a jump (a turn starts within a window or two; thermal drift creeps)
+    jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
+    moving = _runs_with(flag(mean - _baseline(mean, valid, b), var, valid), jump)
+    dev = mean - _baseline(mean, valid & ~moving, b)
+    moving = _runs_with(flag(dev, var, valid), jump)
     thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
     return moving, dev, valid, sigma, thr0
 
