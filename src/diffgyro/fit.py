@@ -556,7 +556,8 @@ def fit(
 
     Every device's recording is checked for motion (:func:`diffgyro.motion.motion_check`,
     ``check_motion=False`` skips it): without a rate reference in the model, a device
-    that moved more than :data:`diffgyro.motion.MAX_MOVING_FRACTION` of its recording
+    that moved (:meth:`diffgyro.motion.Motion.moved_all`: more than 2 % of its recording,
+    turns of at least ten times the threshold)
     gets status ``in_motion`` instead of ``ok``. ``static_only`` fits the detected
     static samples only (the moving ones, and a window either side, masked out).
     """
@@ -572,14 +573,12 @@ def fit(
     result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     status = result.status
     if not static_only and batch.rate is None:  # a fit with a rate reference subtracts it
-        from .motion import MAX_MOVING_FRACTION
-
-        moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
+        moved = motion.moved_all()
         # (a random walk's smoothed bias follows a turn: only a deterministic model's
         # residual tells a thermal transient from motion)
         if isinstance(result, FitResult) and np.any(moved & (np.asarray(status) == OK)):
             motion = _unexplained(result, batch, motion, moved)
-            moved = np.asarray(motion.moving_fraction) > MAX_MOVING_FRACTION
+            moved = motion.moved_all()
         status = jnp.where(jnp.asarray(moved) & (status == OK), IN_MOTION, status)
     return _replace(result, status=status, motion=motion, n_recorded=recorded,
                     static_only=static_only)

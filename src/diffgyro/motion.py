@@ -67,6 +67,10 @@ BLOCK_S = 30.0
 #: Fraction of a recording that may move before a fit without a rate reference is
 #: not ``ok`` (status ``in_motion``).
 MAX_MOVING_FRACTION = 0.02
+#: ... and whose turns reach this many times the threshold (a slow unexplained change of
+#: the bias, a supply or duty step, can leave the baseline by a few thresholds; a turn by
+#: hand or vehicle leaves it by hundreds).
+MIN_PEAK_RATIO = 10.0
 
 
 class Motion(eqx.Module):
@@ -93,10 +97,18 @@ class Motion(eqx.Module):
         return {k: number(getattr(self, k)[i]) for k in
                 ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")}
 
-    def moved(self, i: int, limit: float = MAX_MOVING_FRACTION) -> bool:
-        """Whether device ``i`` moved more than ``limit`` of its recording."""
-        f = float(self.moving_fraction[i])
-        return math.isfinite(f) and f > limit
+    def moved_all(self) -> Bool[np.ndarray, " d"]:
+        """Whether each device moved: more than :data:`MAX_MOVING_FRACTION` of its recording,
+        with turns of at least :data:`MIN_PEAK_RATIO` times its threshold."""
+        frac = np.asarray(self.moving_fraction, float)
+        peak = np.asarray(self.rate_peak, float)
+        thr = np.asarray(self.threshold, float)
+        with np.errstate(invalid="ignore"):
+            return (frac > MAX_MOVING_FRACTION) & (peak >= MIN_PEAK_RATIO * thr)
+
+    def moved(self, i: int) -> bool:
+        """Whether device ``i`` moved (:meth:`moved_all`)."""
+        return bool(self.moved_all()[i])
 
     def select(self, idx) -> Motion:
         """The devices ``idx`` (an index array)."""
@@ -326,5 +338,5 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     return Motion(**out, window=w)
 
 
-__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "Motion", "describe",
+__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "describe",
            "motion_check", "window_sizes"]
