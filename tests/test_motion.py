@@ -276,7 +276,7 @@ def test_a_recipe_that_assumes_rest_says_it_moved_and_runs_on_the_static_part(tm
 def test_a_random_walk_does_not_absorb_the_turns():
     """The state-space path: its smoothed bias could follow a turn, so the status reads the
     recording; --static-only fits the rest and finds the true z bias."""
-    rec = _device("walk", turns=True, duration=300.0)
+    rec = _device("walk", turns=True, duration=240.0, fs=50.0)
     res = fit("bias_poly(0)+random_walk", rec)
     assert res.status_name(0) == "in_motion"
     static = fit("bias_poly(0)+random_walk", rec, static_only=True).records()[0]
