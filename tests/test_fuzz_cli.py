@@ -307,7 +307,10 @@ def test_damaged_recording_gives_json_or_one_line(ground, command, data):
     ground["count"][0] += 1
     path = ground["dir"] / f"rec{ground['count'][0]}{suffix}"
     path.write_bytes(content)
-    check(command, commands(str(path), ground)[command], path)
+    argv = commands(str(path), ground)[command]
+    if command != "compensate" and data.draw(st.booleans(), label="--static-only"):
+        argv = [*argv, "--static-only"]
+    check(command, argv, path)
 
 
 @FUZZ
@@ -320,7 +323,8 @@ def test_damaged_calibration_file_gives_one_line(ground, data):
     ground["count"][0] += 1
     path = ground["dir"] / f"cal{ground['count'][0]}.json"
     path.write_bytes(content)
-    check("export", commands(str(path), ground)["export"], path)
+    argv = commands(str(path), ground)["export"]
+    check("export", [*argv, "--force"] if data.draw(st.booleans(), label="--force") else argv, path)
     good = str(ground["dir"] / "good.csv")
     argv = commands(good, ground)["compensate"]
     argv[argv.index("--cal") + 1] = str(path)

@@ -61,6 +61,10 @@ class DeviceCalibration:
     aux: dict = field(default_factory=dict)
     #: Pass/fail against a limits file (:mod:`diffgyro.limits`): {"result", "broken"}.
     limits: dict = field(default_factory=dict)
+    #: The motion check of the recording (:mod:`diffgyro.motion`; rad/s, fractions 0..1).
+    motion: dict = field(default_factory=dict)
+    #: Fitted from the detected static intervals only.
+    static_only: bool = False
 
 
 @dataclass
@@ -101,8 +105,10 @@ class Calibration:
 
 
 def entry_json(fields: dict) -> dict:
-    """A device entry as written: JSON-safe, without an empty ``aux`` or ``limits`` block."""
-    return to_json_safe({k: v for k, v in fields.items() if k not in ("aux", "limits") or v})
+    """A device entry as written: JSON-safe, without an empty ``aux``, ``limits`` or ``motion``
+    block and without ``static_only`` when false."""
+    return to_json_safe({k: v for k, v in fields.items()
+                         if k not in ("aux", "limits", "motion", "static_only") or v})
 
 
 def data_hash(batch: Batch) -> str:
@@ -149,7 +155,8 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
             np.asarray(result.temp_range[i], float).tolist(),
             quality={k: s[k] for k in ("rms", "heldout_rms", "noise_floor", "n_samples", "steps")},
             params=s["params"],
-            aux=aux_entries(result, i)))
+            aux=aux_entries(result, i), motion=s.get("motion") or {},
+            static_only=bool(s.get("static_only", False))))
     return Calibration(
         model=result.model.spec, devices=devices, dtemp_window=float(result.options.dtemp_window),
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
@@ -206,7 +213,8 @@ def _finite(x, where: str, allow_nan: bool = False) -> float:
 _FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
                         "diffgyro_version", "input_hash", "units", "devices", "limits"})
 _DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
-                          "temp_range", "quality", "params", "status_detail", "aux", "limits"})
+                          "temp_range", "quality", "params", "status_detail", "aux", "limits",
+                          "motion", "static_only"})
 MAX_THETA = 700.0        # |log τ|: beyond this exp() overflows
 MAX_DTEMP_WINDOW = 1e6   # s
 MAX_NAME = 1000
@@ -244,6 +252,13 @@ def _flat_numbers(val, where: str, max_items: int = 256) -> dict:
         else:
             out[k] = None if math.isnan(v) else _finite(v, f"{where}.{k[:40]}")
     return out
+
+
+def _flag(obj: dict, key: str, where: str) -> bool:
+    val = obj.get(key, False)
+    if not isinstance(val, bool):
+        raise SpecError(f"calibration file: {where}.{key} must be true or false")
+    return val
 
 
 def _device_name(name: str, where: str) -> str:
@@ -311,7 +326,9 @@ def from_json(obj) -> Calibration:
                                      quality=quality, params=params,
                                      status_detail=_text(d, "status_detail", where),
                                      aux=_aux_entries(d.get("aux", {}), model, where),
-                                     limits=_limits_entry(d.get("limits", {}), where)))
+                                     limits=_limits_entry(d.get("limits", {}), where),
+                                     motion=_flat_numbers(d.get("motion", {}), f"{where}.motion", 16),
+                                     static_only=_flag(d, "static_only", where)))
     window = _req(obj, "dtemp_window", float, "file")
     if not (0 < window <= MAX_DTEMP_WINDOW):
         raise SpecError(f"calibration file: dtemp_window must be a positive number of seconds "

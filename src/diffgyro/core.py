@@ -23,8 +23,8 @@ from .effects import AbstractNoise
 from .errors import SpecError
 
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
-                "insufficient_data", "failed")
-OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED = range(6)
+                "insufficient_data", "failed", "in_motion")
+OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED, IN_MOTION = range(7)
 #: How often each compiled batch function was traced (tests check that a new batch
 #: size within a bucket does not compile again).
 TRACE_COUNTS: collections.Counter = collections.Counter()

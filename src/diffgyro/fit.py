@@ -26,6 +26,7 @@ from . import aux as aux_cols
 from . import noise
 from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
     FAILED,
+    IN_MOTION,
     INSUFFICIENT_DATA,
     INSUFFICIENT_RANGE,
     NOT_CONVERGED,
@@ -54,6 +55,7 @@ from .linalg import (  # noqa: F401  (re-exported)
     solve_normal_inner,
 )
 from .model import ErrorModel, Params
+from .motion import Motion, motion_check
 from .signals import Signals, TempNorm, make_signals
 from .status import collinear_terms, explain
 
@@ -445,6 +447,12 @@ class FitResult(eqx.Module):
     aux_norm: dict[str, TempNorm] = eqx.field(default_factory=dict)
     #: Calibrated range of every extra column the model reads ((d, 2) each).
     aux_range: dict[str, Float[Array, "d 2"]] = eqx.field(default_factory=dict)
+    #: Whether each device was at rest (:mod:`diffgyro.motion`); None when not checked.
+    motion: Motion | None = None
+    #: Fitted from the detected static intervals only (``static_only=True``).
+    static_only: bool = eqx.field(static=True, default=False)
+    #: Valid samples of each recording before the moving ones were left out.
+    n_recorded: Float[Array, " d"] | None = None
 
     @property
     def n_devices(self) -> int:
@@ -458,7 +466,8 @@ class FitResult(eqx.Module):
         return explain(self.status_name(i), self.model, range_flags=self.range_flags[i],
                        collinear=self.collinear[i],
                        temp_range=None if self.temp_range is None else self.temp_range[i],
-                       n_samples=self.n_samples[i], steps=self.steps[i])
+                       n_samples=self.n_samples[i], steps=self.steps[i],
+                       motion=None if self.motion is None else self.motion.record(i))
 
     def device_params(self, i: int) -> Params:
         return jax.tree.map(lambda a: a[i], self.params)
@@ -498,7 +507,8 @@ class FitResult(eqx.Module):
             "steps": int(self.steps[i]),
             "n_samples": int(self.n_samples[i]),
             "params": self.param_dict(i),
-        }
+            "motion": None if self.motion is None else self.motion.record(i),
+        } | ({"static_only": True, "n_recorded": int(self.n_recorded[i])} if self.static_only else {})
 
     def records(self) -> list[dict]:
         return [self.summary(i) for i in range(self.n_devices)]
@@ -532,6 +542,8 @@ def fit(
     options: FitOptions | None = None,
     theta0: Float[Array, "d q"] | None = None,
     aux_norm: dict[str, TempNorm] | None = None,
+    static_only: bool = False,
+    check_motion: bool = True,
     **option_overrides,
 ) -> FitResult:
     """Calibrate every device of ``data`` with ``model`` (a spec string or ErrorModel).
@@ -541,10 +553,66 @@ def fit(
     ``theta0`` (devices × nonlinear parameters, solver space = log τ)
     replaces the grid start of the nonlinear solve. Keyword overrides set
     fields of :class:`FitOptions` (``n_folds=5``, ``max_steps=100``, ...).
+
+    Every device's recording is checked for motion (:func:`diffgyro.motion.motion_check`,
+    ``check_motion=False`` skips it): without a rate reference in the model, a device
+    that moved (:meth:`diffgyro.motion.Motion.moved_all`: more than 2 % of its recording,
+    turns of at least ten times the threshold)
+    gets status ``in_motion`` instead of ``ok``. ``static_only`` fits the detected
+    static samples only (the moving ones, and a window either side, masked out).
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
     batch = as_batch(data)
+    if not (check_motion or static_only):
+        return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+    motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
+    recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
+    if static_only:
+        batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
+    result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+    status = result.status
+    if not static_only and batch.rate is None:  # a fit with a rate reference subtracts it
+        moved = motion.moved_all()
+        # (a random walk's smoothed bias follows a turn: only a deterministic model's
+        # residual tells a thermal transient from motion)
+        if isinstance(result, FitResult) and np.any(moved & (np.asarray(status) == OK)):
+            motion = _unexplained(result, batch, motion, moved)
+            moved = motion.moved_all()
+        status = jnp.where(jnp.asarray(moved) & (status == OK), IN_MOTION, status)
+    return _replace(result, status=status, motion=motion, n_recorded=recorded,
+                    static_only=static_only)
+
+
+def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Motion:
+    """The motion check of what the fitted model leaves unexplained (its residual), for the
+    devices whose recording moved; the others keep ``motion``. A fast thermal transient the
+    model follows is not motion; a turn no model without a rate reference can follow
+    stays in the residual."""
+    resid = np.asarray(result.residuals(batch))
+    accel = None if batch.rate is not None else batch.accel  # as motion_check reads them
+    again = motion_check(eqx.tree_at(lambda b: (b.gyro, b.rate, b.accel), batch,
+                                     (resid, None, accel), is_leaf=lambda x: x is None))
+
+    def pick(a, b):
+        m = np.asarray(moved).reshape((-1,) + (1,) * (np.ndim(a) - 1))
+        return jnp.asarray(np.where(m, np.asarray(b), np.asarray(a)))
+
+    fields = ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")
+    return Motion(**{k: pick(getattr(motion, k), getattr(again, k)) for k in fields},
+                  static=motion.static, window=motion.window)
+
+
+def _replace(result, **changes):
+    """``result`` (a FitResult, or the state-space path's fit) with some fields changed
+    (static ones included)."""
+    import dataclasses
+
+    return dataclasses.replace(result, **changes)
+
+
+def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, option_overrides):
+    """:func:`fit` without the motion check."""
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)

@@ -389,6 +389,12 @@ class RandomWalkFit(eqx.Module):
     options: object
     p0: Float[Array, ""]
     reml: bool = eqx.field(static=True, default=False)
+    #: Whether each device was at rest (:mod:`diffgyro.motion`); None when not checked.
+    motion: object = None
+    #: Fitted from the detected static intervals only.
+    static_only: bool = eqx.field(static=True, default=False)
+    #: Valid samples of each recording before the moving ones were left out.
+    n_recorded: Float[Array, " d"] | None = None
 
     @property
     def n_devices(self) -> int:
@@ -458,7 +464,8 @@ class RandomWalkFit(eqx.Module):
             need = max(20, 4 * (self.model.n_params + self.model.n_nonlinear + 2))
             return (f"{name}: {int(self.n_samples[i])} observed samples; the state-space fit "
                     f"of {self.model.spec} needs at least {need}")
-        return explain(name, self.model, n_samples=self.n_samples[i], steps=self.steps[i])
+        return explain(name, self.model, n_samples=self.n_samples[i], steps=self.steps[i],
+                       motion=None if self.motion is None else self.motion.record(i))
 
     def device_params(self, i: int) -> Params:
         return jax.tree.map(lambda a: a[i], self.params)
@@ -488,7 +495,8 @@ class RandomWalkFit(eqx.Module):
             "heldout_rms": number(self.heldout_rms[i]), "noise_floor": number(self.noise_floor[i]),
             "loglik": number(self.loglik[i]), "steps": int(self.steps[i]),
             "n_samples": int(self.n_samples[i]), "params": self.param_dict(i),
-        }
+            "motion": None if self.motion is None else self.motion.record(i),
+        } | ({"static_only": True, "n_recorded": int(self.n_recorded[i])} if self.static_only else {})
 
     def records(self) -> list[dict]:
         return [self.summary(i) for i in range(self.n_devices)]

@@ -444,6 +444,16 @@ def _limits_summary_html(summary: dict | None) -> str:
             + f"; rejected: {rejected}.</p>")
 
 
+def _motion_line(diagnosis, i: int) -> str:
+    """Whether device ``i`` was at rest (the fit's motion check), as a paragraph."""
+    motion = getattr(diagnosis.fit, "motion", None)
+    if motion is None:
+        return ""
+    from .motion import describe
+
+    return f"<p class=motion>Motion check: {html.escape(describe(motion.record(i)))}.</p>"
+
+
 def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits=None) -> str:
     """One device's page; ``limits``: its record with the --limits result."""
     d = diagnosis.devices[i]
@@ -460,6 +470,7 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits
         f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
         f"<p class=expl>{html.escape(d.explanation)}</p>",
         _limits_html(limits),
+        _motion_line(diagnosis, i),
         "<h2>Candidates (best first)</h2><table><tr><th class=l>effect</th><th class=l>model</th>"
         "<th>held-out RMS</th><th>gap closed</th><th>paired t</th><th>significant</th></tr>"
         f"{rows}</table>",

@@ -50,7 +50,7 @@ def _range_reason(term, temp_range) -> str:
 
 
 def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=None,
-            n_samples=None, steps=None) -> str:
+            n_samples=None, steps=None, motion=None) -> str:
     """``status_detail``: the status name, and for a device not ``ok`` why, in plain words."""
     terms = model.terms
     if name == "ok":
@@ -76,6 +76,11 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
         after = "" if steps is None else f" after {int(steps)} steps"
         return (f"{name}: the time-constant solve stopped{after} without converging "
                 f"(or short of the best start point); the coefficients are not trusted")
+    if name == "in_motion":
+        from .motion import describe
+
+        return (f"{name}: {describe(motion or {})}; record at rest, give a rate reference "
+                f"(rx, ry, rz), or fit the static intervals only with --static-only")
     if name == "failed":
         return (f"{name}: the solve gave non-finite numbers (coefficients or residual); "
                 f"no calibration for this device: check its data for extreme values")

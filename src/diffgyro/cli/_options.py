@@ -86,6 +86,40 @@ TempTopic = Annotated[
     typer.Option("--temp-topic", help="ROS bags: the sensor_msgs/msg/Temperature topic joined "
                                       "to the Imu samples (default: the only one, if any)."),
 ]
+StaticOnly = Annotated[
+    bool,
+    typer.Option("--static-only", help="Use only the samples where the device was at rest "
+                                       "(the motion check's static intervals; moving samples "
+                                       "and a window either side are left out)."),
+]
+
+
+def longest_static(batch, motion, min_samples: int):
+    """Each device's longest run of static samples, as a batch (a DataError naming the
+    device when that run is shorter than ``min_samples``)."""
+    import numpy as np
+
+    from diffgyro.data import Batch
+    from diffgyro.errors import DataError
+
+    recs = []
+    for i, rec in enumerate(batch.recordings()):
+        st = np.asarray(motion.static[i])[:rec.n]
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], st.astype(np.int8), [0]])))
+        starts, stops = edges[::2], edges[1::2]
+        if not len(starts) or (stops - starts).max() < min_samples:
+            raise DataError(f"no static interval of at least {min_samples} samples for "
+                            "--static-only", device=batch.devices[i],
+                            file=batch.sources[i] if i < len(batch.sources) else None,
+                            hint="record the device at rest")
+        k = int(np.argmax(stops - starts))
+        recs.append(rec.slice(int(starts[k]), int(stops[k])))
+    return Batch.from_recordings(recs)
+
+
+def motion_notes(records: list[dict]) -> list[str]:
+    """One line per device that is not ok: its name and why (the text output's notes)."""
+    return [f"{r['device']}: {r['status_detail']}" for r in records if r.get("status") != "ok"]
 
 
 def streamed_dir(path: Path) -> bool:

@@ -18,11 +18,13 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
     load_from_cli,
+    longest_static,
     units_json,
 )
 
@@ -51,6 +53,7 @@ def allan_command(
     drop_invalid: DropInvalid = False,
     topic: Topic = None,
     temp_topic: TempTopic = None,
+    static_only: StaticOnly = False,
 ) -> None:
     """Overlapping Allan deviation per device and gyro axis (rates in rad/s).
 
@@ -60,19 +63,30 @@ def allan_command(
     static: moving data measure the motion, not the noise. With --taus the
     curve holds just the τ asked for (those longer than a quarter of a
     device's recording are left out, with a warning).
+
+    Every device is checked for motion: a device that moved gets status
+    in_motion (its read-outs are the motion's, not the sensor's noise).
+    --static-only computes the curve over each device's longest static
+    interval (never over static pieces glued across the motion).
     """
     from diffgyro.io import LoadReport
     from diffgyro.jsonio import dumps
+    from diffgyro.motion import motion_check
 
     wanted = _parse_taus(taus)
     loaded = LoadReport()
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
                           topic=topic, temp_topic=temp_topic, report=loaded)
+    motion = motion_check(batch)
+    recorded = [int(n) for n in batch.n_valid]
+    if static_only:
+        batch = longest_static(batch, motion, MIN_SAMPLES)
     _warn_uneven(batch)
     parts = _curves(batch, per_decade, wanted)
     doc = _merged_json(parts, batch)
     doc["units"] = units_json(loaded)
+    _add_motion(doc, motion, batch, recorded, static_only)
     if wanted is not None:
         _warn_missing_taus(doc, wanted)
     if report is not None:
@@ -81,6 +95,26 @@ def allan_command(
         typer.echo(dumps(doc))
     else:
         _print_table(doc, report)
+
+
+def _add_motion(doc: dict, motion, batch, recorded, static_only: bool) -> None:
+    """Each device's motion check, and a status that says whether its read-outs are a
+    sensor's noise (``in_motion`` when the curve's samples include motion)."""
+    from diffgyro.motion import describe
+
+    for i, dev in enumerate(doc["devices"]):
+        rec = motion.record(i)
+        moved = motion.moved(i) and not static_only
+        dev["status"] = "in_motion" if moved else "ok"
+        dev["status_detail"] = (f"in_motion: {describe(rec)}; these read-outs measure the motion, "
+                                "not the sensor's noise: record at rest, or use --static-only"
+                                if moved else "ok")
+        dev["motion"] = rec
+        if static_only:
+            n = int(batch.n_valid[i])
+            t = batch.t[i]
+            dev.update(static_only=True, n_samples=n, n_recorded=recorded[i],
+                       segment=[float(t[0]), float(t[n - 1])])
 
 
 def _parse_taus(text: str | None) -> list[float] | None:
@@ -161,6 +195,13 @@ def _print_table(doc: dict, report: Path | None) -> None:
             table.add_row(str(dev["device"]), name, _fmt(ax["arw"]), _fmt(ax["bias_instability"]),
                           _fmt(ax["rrw"]), span)
     Console(width=120).print(table)
+    for dev in doc["devices"]:
+        if dev.get("status", "ok") != "ok":
+            print(f"{dev['device']}: {dev['status_detail']}")
+        elif dev.get("static_only"):
+            print(f"{dev['device']}: static only: {dev['n_samples']} of {dev['n_recorded']} samples "
+                  f"(the longest static interval, t = {dev['segment'][0]:.6g} to "
+                  f"{dev['segment'][1]:.6g} s)")
     if report is not None:
         Console(width=120).print(f"report: {report / 'index.html'}")
 
@@ -189,6 +230,9 @@ def _write_report(parts, batch, doc: dict, out: Path) -> None:
             rows.append(f"<tr><td>{html.escape(str(dev))}</td><td>{axname}</td>"
                         f"<td>{_fmt(ax['arw'])}</td><td>{_fmt(ax['bias_instability'])}</td>"
                         f"<td>{_fmt(ax['rrw'])}</td></tr>")
+    notes = "\n".join(f"<p class=\"status\"><b>{html.escape(str(d['device']))}</b>: "
+                      f"{html.escape(d['status_detail'])}</p>" for d in doc["devices"]
+                      if d.get("status", "ok") != "ok")
     imgs = "\n".join(f"<h2>{html.escape(str(d))}</h2><img src=\"{n}\" alt=\"Allan deviation of "
                      f"{html.escape(str(d))}\">" for d, n in figs)
     page = f"""<!doctype html>
@@ -197,6 +241,7 @@ def _write_report(parts, batch, doc: dict, out: Path) -> None:
 table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:.2em .6em;text-align:right}}
 img{{max-width:100%}}</style></head><body>
 <h1>Overlapping Allan deviation</h1>
+{notes}
 <p>Rates in rad/s. ARW: the −1/2 line read at τ = 1 s (rad/s/√Hz). Bias instability: the flat
 minimum divided by 0.664 (rad/s). RRW: the +1/2 line read at τ = 3 s (rad/s²/√Hz). Shaded bands:
 one-sigma chi-square intervals. A dash means the curve shows no such region.</p>

@@ -17,6 +17,7 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
@@ -133,6 +134,7 @@ def diagnose_command(
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
+    static_only: StaticOnly = False,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -144,6 +146,8 @@ def diagnose_command(
     devices with resumable state in --work-dir (see docs/dask.md). --limits FILE.toml:
     each device passes or fails the limits (records gain "limits", the object a
     top-level "limits" with the yield), in the text, --json, the report and --out.
+    A device that moved (no rate reference in MODEL) gets status in_motion and no
+    verdict; --static-only diagnoses each device's longest static interval.
     """
     if limits is not None and auto:
         from diffgyro.errors import DataError
@@ -151,7 +155,12 @@ def diagnose_command(
         raise DataError("--limits judges the model given with --model; with --auto the model "
                         "shipped is known only at the end",
                         hint="run diagnose or fit --limits with the final model of the ladder")
-    if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
+    streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
+    if static_only and streamed:
+        raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
+                                 "files, --chunk-devices, --dask); diagnose the files directly",
+                                 param_hint="--static-only")
+    if streamed:
         from ._stream import stream_diagnose
 
         if out is not None:
@@ -176,6 +185,7 @@ def diagnose_command(
     spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
                                                 acc_unit, temp_unit, time_unit, sampling_rate,
                                                 drop_invalid, topic, temp_topic)
+    batch, static = _static_only(batch) if static_only else (batch, None)
     opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
     err = Console(stderr=True)
     ladder = None
@@ -190,13 +200,13 @@ def diagnose_command(
     if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
         for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
             d.skipped.update(partial)
-    _outputs(diag, ladder, batch, lim, report, out, as_json, err)
+    _outputs(diag, ladder, batch, lim, report, out, as_json, err, static)
 
 
 def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
-             err) -> None:
+             err, static=None) -> None:
     """Judge the devices against the limits file (``lim``), then the report, the calibration
-    file and the printed result."""
+    file and the printed result (``static``: what --static-only kept, per device)."""
     judged = None
     if lim is not None:
         from ._limits import judge
@@ -209,7 +219,23 @@ def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as
             write_report(diag, batch, report, ladder=ladder, limits=judged)
     if out is not None:
         _write_calibration(ladder.final if ladder is not None else diag, batch, out, err, judged)
-    _print_result(diag, ladder, as_json, report, judged)
+    _print_result(diag, ladder, as_json, report, judged, static)
+
+
+def _static_only(batch):
+    """Each device's longest static interval, and per device the motion of the whole
+    recording and the samples kept (extra keys of its --json record)."""
+    from diffgyro.motion import motion_check
+
+    from ._options import longest_static
+    from .allan import MIN_SAMPLES
+
+    motion = motion_check(batch)
+    recorded = [int(n) for n in batch.n_valid]
+    batch = longest_static(batch, motion, MIN_SAMPLES)
+    return batch, [{"motion": motion.record(i), "static_only": True,
+                    "n_samples": int(batch.n_valid[i]), "n_recorded": recorded[i]}
+                   for i in range(batch.n_devices)]
 
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -258,15 +284,19 @@ def partial_columns(recs) -> dict[str, str]:
     return out
 
 
-def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None) -> None:
+def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None,
+                  static=None) -> None:
     """The JSON object (with the ladder and the final diagnosis after --auto), or the tables;
-    ``judged``: (records, summary) of --limits."""
+    ``judged``: (records, summary) of --limits; ``static``: per device, the motion of the
+    whole recording and the samples --static-only kept."""
     if as_json:
         from diffgyro.jsonio import dumps
 
         obj = diag.to_json()
         if judged is not None:
             obj["devices"], obj["limits"] = judged
+        for rec, extra in zip(obj["devices"], static or []):
+            rec.update(extra)
         if ladder is not None:
             obj["ladder"] = ladder.records()
             obj["final"] = ladder.final.to_json()
@@ -274,6 +304,9 @@ def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None)
         return
     console = wide_console()
     print_diagnosis(diag, console, None if judged is None else judged[0])
+    for d, extra in zip(diag.devices, static or []):
+        console.print(f"{d.device}: static only: {extra['n_samples']} of {extra['n_recorded']} "
+                      "samples (the longest static interval)", markup=False)
     if ladder is not None:
         print_ladder(ladder, console)
     if judged is not None:

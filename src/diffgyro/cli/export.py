@@ -50,11 +50,16 @@ def export_command(
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
+    force: Annotated[bool, typer.Option("--force", help="Write a device whose status is not ok "
+                                        "(in_motion, insufficient_range, ...) anyway; the file "
+                                        "says so in a comment.")] = False,
 ) -> None:
     """Write SOURCE in an autopilot's or estimator's format (docs/export.md: formulas, units).
 
     A model the format cannot hold exactly (px4, ardupilot: anything but bias_poly(k ≤ 3))
     is refused, never truncated; the float32 error of autopilot parameters is reported.
+    A device that is not ok (a fit's status, or Allan read-outs of a recording that
+    moved) is refused with the reason, unless --force.
     """
     from diffgyro.errors import DataError
     from diffgyro.export import FORMATS, render
@@ -80,20 +85,21 @@ def export_command(
         from diffgyro.export import kalibr
 
         noise, report = _kalibr_noise(source, device, rate, (columns, gyro_unit, acc_unit, temp_unit,
-                                      time_unit, sampling_rate, drop_invalid))
+                                      time_unit, sampling_rate, drop_invalid), force)
         from dataclasses import replace
 
         if accel_noise_density is not None:
             noise = replace(noise, accel_noise_density=accel_noise_density)
         if accel_random_walk is not None:
             noise = replace(noise, accel_random_walk=accel_random_walk)
-        text = kalibr.write(noise, topic)
+        text = kalibr.write(noise, topic, [ln for ln in report if ln.startswith("WARNING: written")])
     else:
         from diffgyro import calibration
 
         cal = calibration.load(source)
         ids = None if device_id is None else _ids(device_id)
-        text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids)
+        text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
+                              force=force)
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
     _emit(text, out, source)
@@ -127,7 +133,7 @@ def _is_noise_doc(doc) -> bool:
         return False
 
 
-def _kalibr_noise(source: Path, device, rate, load_opts):
+def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
     """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
     from diffgyro.errors import DataError
     from diffgyro.export import kalibr
@@ -149,16 +155,18 @@ def _kalibr_noise(source: Path, device, rate, load_opts):
                                 hint="pass --rate HZ")
             return kalibr.ImuNoise(name, n, k, float(rate) if rate is not None else 1.0 / dt), report
         try:
-            return kalibr.from_allan(doc, device, rate)
+            return kalibr.from_allan(doc, device, rate, force=force)
         except DataError as err:
             raise DataError(err.problem, file=str(source), device=err.device,
                             hint=err.hint) from None
+    from diffgyro.motion import motion_check
+
     from .allan import MIN_SAMPLES
 
     batch = load_from_cli([source], *load_opts, min_samples=MIN_SAMPLES)
-    gyro_doc = kalibr.allan_of(batch, "gyro")
+    gyro_doc = kalibr.allan_of(batch, "gyro", motion_check(batch))
     acc_doc = kalibr.allan_of(batch, "accel") if batch.accel is not None else None
-    return kalibr.from_allan(gyro_doc, device, rate, acc_doc)
+    return kalibr.from_allan(gyro_doc, device, rate, acc_doc, force=force)
 
 
 def _emit(text: str, out: str | None, source: Path) -> None:

@@ -17,11 +17,13 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
     load_from_cli,
+    motion_notes,
     streamed_dir,
     units_json,
 )
@@ -68,6 +70,7 @@ def fit_command(
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
+    static_only: StaticOnly = False,
 ) -> None:
     """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
 
@@ -87,6 +90,11 @@ def fit_command(
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
         from ._stream import stream_fit
 
+        if static_only:
+            raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
+                                     "files, --chunk-devices, --dask); fit the files directly",
+                                     param_hint="--static-only")
+
         stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_unit,
                    temp_unit, time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir,
                    resume, dask, results, limits=limits)
@@ -103,7 +111,7 @@ def fit_command(
         from diffgyro.diagnose import suggest_dtemp_window
 
         dtemp_window = suggest_dtemp_window(batch)
-    result = fit(em, batch, dtemp_window=float(dtemp_window))
+    result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)
     records = result.records()
     summary = None
     if lim is not None:
@@ -119,14 +127,18 @@ def fit_command(
     from rich.table import Table
 
     table = Table(title=f"fit {em.spec}  (rates in rad/s)")
-    for col in ("device", "status", "rms", "held-out rms", "noise floor", "samples",
+    for col in ("device", "status", "rms", "held-out rms", "noise floor", "moving", "samples",
                 *(("limits",) if summary else ())):
         table.add_column(col)
     for r in records:
-        table.add_row(r["device"], r["status_detail"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
-                      _fmt(r["noise_floor"]), str(r["n_samples"]),
+        mo = (r.get("motion") or {}).get("moving_fraction")
+        n = str(r["n_samples"]) + (f" of {r['n_recorded']} (static only)" if r.get("static_only") else "")
+        table.add_row(r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
+                      _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
                       *((r["limits"]["result"],) if summary else ()))
     Console().print(table)
+    for line in motion_notes(records):
+        print(line)
     if summary is not None:
         print_lines(records, summary)
     if out is not None:

@@ -20,6 +20,7 @@ from ._options import (
     DropInvalid,
     GyroUnit,
     SamplingRate,
+    StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
@@ -100,8 +101,13 @@ def recipe_command(
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
+    static_only: StaticOnly = False,
 ) -> None:
-    """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object)."""
+    """Run recipe NAME on DATA exactly as published; print its numbers (--json: one object).
+
+    Recipes that assume the device at rest (binned-thermal) check each recording for
+    motion: the result carries the motion check and, where the device moved, status
+    in_motion and a warning; --static-only runs them on the static samples only."""
     # Over 80 lines only through its signature: typer reads each recipe option from a
     # parameter of this function; the work is in the helpers below.
     from diffgyro.io import resolve_units
@@ -128,8 +134,9 @@ def recipe_command(
 
             raise DataError(f"device {device!r} is not in the data", file=str(data))
     conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
+    recordings, rest = _rest_check(name, recordings, static_only)
     results, failed = _run_devices(recipe, name, recordings, given, conv, str(data))
-    payload = _payload(results, failed)
+    payload = _payload(results, failed, rest)
     results = [(d, r) for d, r in results if r is not None]
     if out is not None:
         atomic_write_text(out, dumps(payload, indent=2) + "\n")
@@ -138,7 +145,48 @@ def recipe_command(
         return
     for err in failed.values():
         typer.echo(f"diffgyro: warning: {err}", err=True)
+    for dev, extra in (rest or {}).items():
+        if extra["status"] != "ok":
+            typer.echo(f"diffgyro: warning: device {dev}: {extra['status_detail']}", err=True)
     _print_human(name, recipe, results)
+
+
+#: Recipes whose method assumes the device at rest throughout.
+REST_RECIPES = ("binned-thermal",)
+
+
+def _rest_check(name: str, recordings, static_only: bool):
+    """For a recipe that assumes rest: the recordings (their static samples only with
+    ``static_only``) and per device the motion check, status and samples kept."""
+    import numpy as np
+
+    from diffgyro.data import Batch, Recording
+    from diffgyro.errors import DataError
+    from diffgyro.motion import describe, motion_check
+
+    if name not in REST_RECIPES:
+        if static_only:
+            raise DataError(f"option --static-only does not apply to recipe {name}",
+                            hint="it applies to the recipes that assume rest: "
+                                 + ", ".join(REST_RECIPES))
+        return recordings, None
+    motion = motion_check(Batch.from_recordings(recordings))
+    out, rest = [], {}
+    for i, rec in enumerate(recordings):
+        extra = {"motion": motion.record(i), "status": "ok", "status_detail": "ok"}
+        if static_only:
+            keep = np.asarray(motion.static[i])[:rec.n]
+            rec = Recording(**{s: (None if getattr(rec, s) is None else np.asarray(getattr(rec, s))[keep])
+                               for s in rec.signals}, device=rec.device, source=rec.source,
+                            aux={k: np.asarray(v)[keep] for k, v in rec.aux.items()})
+            extra.update(static_only=True, n_samples=int(keep.sum()), n_recorded=int(keep.size))
+        elif motion.moved(i):
+            extra.update(status="in_motion", status_detail=(
+                f"in_motion: {describe(extra['motion'])}; recipe {name} assumes the device at "
+                "rest: record at rest, or run it on the static intervals only with --static-only"))
+        out.append(rec)
+        rest[rec.device] = extra
+    return out, rest
 
 
 def _recipe_options(recipe, name: str, data: Path, given: dict, sections: Path | None,
@@ -194,14 +242,17 @@ def _run_devices(recipe, name: str, recordings, given: dict, conv: dict, file: s
     return results, failed
 
 
-def _payload(results, failed) -> dict:
-    """The JSON result: the recipe's own object for one device, else a record per device."""
+def _payload(results, failed, rest=None) -> dict:
+    """The JSON result: the recipe's own object for one device, else a record per device;
+    ``rest``: per device the motion check of a recipe that assumes rest."""
     from diffgyro.jsonio import to_json_safe
 
+    rest = rest or {}
     if len(results) == 1:
-        return to_json_safe(results[0][1].to_dict())
+        return to_json_safe(results[0][1].to_dict() | rest.get(results[0][0], {}))
     return {"devices": [
-        {"device": d, "status": "ok", **to_json_safe(r.to_dict())} if r is not None else
+        {"device": d, "status": "ok", **to_json_safe(r.to_dict()), **rest.get(d, {})}
+        if r is not None else
         {"device": d, "status": "failed", "status_detail": f"failed: {failed[d].problem}"}
         for d, r in results]}
 

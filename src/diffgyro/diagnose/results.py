@@ -151,7 +151,9 @@ class Diagnosis:
 
     def to_json(self) -> dict:
         """The ``diagnose --json`` object (extra keys per device)."""
-        devices = [d.record() for d in self.devices]
+        motion = getattr(self.fit, "motion", None)
+        devices = [d.record() | {"motion": None if motion is None else motion.record(i)}
+                   for i, d in enumerate(self.devices)]
         for d, params in zip(devices, self._params()):
             d["params"] = params
         return to_json_safe({"model": self.spec, "devices": devices,

@@ -34,9 +34,64 @@ def _slots(fmt: str, first: int | None, count: int, slots: range) -> int:
     return first
 
 
+def refuse_not_ok(devices: list[tuple[str, str, str]], force: bool) -> list[str]:
+    """``(device, status, status_detail)`` of the devices to write: a DataError naming the
+    first that is not ``ok`` and why, or with ``force`` one line per such device for the
+    file's comments and the report."""
+    bad = [(name, status, detail) for name, status, detail in devices if status != "ok"]
+    if bad and not force:
+        name, status, detail = bad[0]
+        why = detail if detail not in ("", status) else status
+        raise DataError(f"refusing to export a device whose status is not ok ({why})",
+                        device=name, hint="fix the recording or the model, or pass --force to "
+                        "write it anyway (the file then says so)")
+    return [f"WARNING: written with --force: device {name} has status {status}"
+            + (f" ({detail})" if detail not in ("", status) else "") for name, status, detail in bad]
+
+
+def _forced(cal: Calibration, names: list[str], force: bool) -> tuple[Calibration, list[str]]:
+    """The calibration with the forced devices marked ok for the writers, and the lines
+    that say so."""
+    import dataclasses
+
+    lines = refuse_not_ok([(n, cal.device(n).status, cal.device(n).status_detail) for n in names],
+                          force)
+    if not lines:
+        return cal, []
+    devs = [dataclasses.replace(d, status="ok") if d.device in names else d for d in cal.devices]
+    return dataclasses.replace(cal, devices=devs), lines
+
+
+def _with_note(text: str, lines: list[str], fmt: str) -> str:
+    """``text`` with the --force lines as comments: after the first line of a parameter
+    file (QGroundControl reads its header line), first in a C header."""
+    if not lines:
+        return text
+    if fmt == "c-header":
+        return "".join(f"/* {ln.replace('*/', '* /')} */\n" for ln in lines) + text
+    head, _, rest = text.partition("\n")
+    return head + "\n" + "".join(f"# {ln}\n" for ln in lines) + rest
+
+
 def render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
-           device_ids: list[int] | None = None) -> tuple[str, list[str]]:
-    """Text of the ``fmt`` file for ``cal`` and report lines (not part of the file)."""
+           device_ids: list[int] | None = None, force: bool = False) -> tuple[str, list[str]]:
+    """Text of the ``fmt`` file for ``cal`` and report lines (not part of the file).
+
+    A device whose status is not ``ok`` is refused (a DataError naming it and why);
+    ``force`` writes it anyway, with a comment in the file that says so."""
+    if fmt in ("px4", "ardupilot", "c-header"):
+        from . import ardupilot, px4
+
+        max_devices = {"px4": len(px4.SLOTS), "ardupilot": len(ardupilot.SLOTS), "c-header": 1}[fmt]
+        names = select_devices(cal, device, fmt, max_devices)
+        cal, lines = _forced(cal, names, force)
+        text, report = _render(cal, fmt, device, instance, device_ids)
+        return _with_note(text, lines, fmt), lines + report
+    return _render(cal, fmt, device, instance, device_ids)
+
+
+def _render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
+            device_ids: list[int] | None = None) -> tuple[str, list[str]]:
     from . import ardupilot, c_header, px4
 
     if fmt == "px4":

@@ -68,9 +68,11 @@ def _rate(axes: dict, device: str) -> float:
 
 
 def from_allan(doc: dict, device: str | None, rate: float | None,
-               accel: dict | None = None) -> tuple[ImuNoise, list[str]]:
+               accel: dict | None = None, force: bool = False) -> tuple[ImuNoise, list[str]]:
     """Densities of one device from an ``allan --json`` object (gyro; ``accel``: the same
-    object for the accelerometer, or None)."""
+    object for the accelerometer, or None). A device whose read-outs are not a sensor's
+    noise (status ``in_motion``) is refused unless ``force``; the report's first lines
+    then say so."""
     devs = doc.get("devices") if isinstance(doc, dict) else None
     if not isinstance(devs, list) or not devs or not all(
             isinstance(d, dict) and isinstance(d.get("axes"), dict) for d in devs):
@@ -84,7 +86,10 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
                         hint=f"it has {', '.join(names[:10])}")
     pick = names.index(device) if device is not None else 0
     name, axes = names[pick], devs[pick]["axes"]
-    report: list[str] = []
+    from . import refuse_not_ok
+
+    report: list[str] = refuse_not_ok([(name, str(devs[pick].get("status", "ok")),
+                                        str(devs[pick].get("status_detail", "")))], force)
     nd, rw = (_worst(axes, k, "gyroscope " + w, name, report) for k, w in _KEYS)
     acc = [None, None]
     if accel is not None:
@@ -95,8 +100,10 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
     return ImuNoise(name, nd, rw, f, acc[0], acc[1]), report
 
 
-def allan_of(batch, which: str = "gyro") -> dict:
-    """``allan --json`` object of a batch's gyro, or of its accelerometer (m/s² for rad/s)."""
+def allan_of(batch, which: str = "gyro", motion=None) -> dict:
+    """``allan --json`` object of a batch's gyro, or of its accelerometer (m/s² for rad/s);
+    with ``motion`` (:class:`diffgyro.motion.Motion`) a device that moved gets status
+    ``in_motion``."""
     from ..allan import STOP_RATIO, allan, default_m, sample_interval, to_json
 
     y = np.moveaxis(np.asarray(getattr(batch, which), np.float64), -1, 1)
@@ -104,10 +111,18 @@ def allan_of(batch, which: str = "gyro") -> dict:
     dt = np.array([sample_interval(batch.t[i], nv[i]) for i in range(batch.n_devices)])
     m = default_m(int(nv.max()), 10, STOP_RATIO)
     res = allan(y, dt[:, None], m, nv[:, None].repeat(3, axis=1))
-    return to_json(res, batch.devices)
+    doc = to_json(res, batch.devices)
+    if motion is not None:
+        from ..motion import describe
+
+        for i, dev in enumerate(doc["devices"]):
+            if motion.moved(i):
+                dev["status"] = "in_motion"
+                dev["status_detail"] = f"in_motion: {describe(motion.record(i))}"
+    return doc
 
 
-def write(noise: ImuNoise, topic: str = "/imu0") -> str:
+def write(noise: ImuNoise, topic: str = "/imu0", notes: list[str] = ()) -> str:
     """The imu.yaml text (continuous-time values, SI units, comments name them)."""
     if noise.accel_noise_density is None or noise.accel_random_walk is None:
         raise DataError("Kalibr's imu.yaml needs accelerometer_noise_density and "
@@ -129,4 +144,5 @@ def write(noise: ImuNoise, topic: str = "/imu0") -> str:
         f"rostopic: {topic}",
         f"update_rate: {f:.6g}   # Hz",
     ]
+    lines[1:1] = [f"# {ln}" for ln in notes]
     return "\n".join(lines) + "\n"

@@ -96,7 +96,7 @@ def concat_results(parts: list[FitResult]) -> FitResult:
         vals = [getattr(p, f.name) for p in parts]
         if f.name == "devices":
             kw[f.name] = tuple(d for v in vals for d in v)
-        elif f.name in ("model", "options"):
+        elif f.name in ("model", "options", "static_only"):
             kw[f.name] = vals[0]
         elif vals[0] is None:
             kw[f.name] = None

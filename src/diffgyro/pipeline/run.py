@@ -150,7 +150,8 @@ def calibration_entries(result) -> list[dict]:
                         "steps": int(steps[i])},
             "params": params,
             "status_detail": st if st == "ok" else result.status_detail(i),
-            "aux": aux_entries(result, i)}))
+            "aux": aux_entries(result, i),
+            "motion": {} if result.motion is None else result.motion.record(i)}))
     return out
 
 

@@ -1,0 +1,342 @@
+"""Was the device at rest? A per-device motion check from the recording itself.
+
+A fit without a rate reference (no ``rx, ry, rz``) reads every rotation of the
+device as sensor error: on a flight, drive or handheld log the "bias" of
+``bias_poly(0)`` is the mean turn rate, and an Allan deviation is the motion's.
+:func:`motion_check` finds the rotation no such model can explain.
+
+The recording is cut into windows of ``window`` samples (about a quarter of a
+second). In every window:
+
+* the window-mean rate ``m_k`` (and specific force, where logged);
+* the local noise ``s_k`` per axis from successive differences inside the window
+  (``√(mean Δ²/2)``): white noise and vibration raise it, a turn does not.
+
+The device's rest noise ``σ`` per axis is a low quantile of the local noise
+(the quietest windows, corrected for the quantile's bias), so the threshold
+comes from the device's own noise floor, not from a fixed rate. Slow change
+(thermal drift of the bias over minutes to hours, Earth rate, a constant
+offset) is the baseline: the median of the window means over blocks of about
+half a minute, linearly interpolated, computed twice (the second time over the windows
+the first pass left static). A window moves when its deviation from the baseline
+stands out of the noise its mean can have::
+
+    ‖ (m_k − baseline_k) / max(K·ν·max(1, s_k/σ), floor) ‖ > 1
+
+in a run of such windows that starts or holds a jump between neighbouring windows
+of the same size (a turn starts within a window or two; thermal drift changes
+little from one window to the next), with ``ν`` the noise of a window mean at rest
+(:func:`_rest_noise`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
+below 1e-7) and a physical floor (:data:`EARTH_RATE` for the gyro: a sensor good
+enough to see Earth rotate does not call it motion; :data:`ACCEL_FLOOR` for the
+accelerometer). The accelerometer, where logged, catches what the gyro baseline
+could absorb (a long slow turn tilts gravity); vibration of a running engine
+raises ``s_k`` and averages out of ``m_k``, so it is not motion.
+
+A moving window marks its samples and one window either side (the transitions)
+as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
+Everything is pure JAX per device, vmapped over the batch and compiled once
+per shape and window sizes.
+"""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Float
+
+from .jsonio import number
+
+#: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
+EARTH_RATE = 7.292115e-5
+#: The accelerometer's floor on a window-mean deviation (m/s², about 0.2 mg).
+ACCEL_FLOOR = 2e-3
+#: Deviations of a window mean, in its own noise, above which the window moves.
+K_SIGMA = 6.0
+#: Quantile of the windows' local noise taken as the rest noise.
+REST_QUANTILE = 0.1
+#: Quantile of the windows' half-window differences that gives a window mean's rest noise.
+HALF_QUANTILE = 0.2
+#: Window length (s) and baseline block (s) aimed at.
+WINDOW_S = 0.25
+BLOCK_S = 30.0
+#: Fraction of a recording that may move before a fit without a rate reference is
+#: not ``ok`` (status ``in_motion``).
+MAX_MOVING_FRACTION = 0.02
+#: ... and whose turns reach this many times the threshold (a slow unexplained change of
+#: the bias, a supply or duty step, can leave the baseline by a few thresholds; a turn by
+#: hand or vehicle leaves it by hundreds).
+MIN_PEAK_RATIO = 10.0
+
+
+class Motion(eqx.Module):
+    """Motion check of every device (leading device axis).
+
+    ``moving_fraction`` (0..1 of the valid samples), ``rate_peak`` and
+    ``rate_rms`` (rad/s, the window-mean rate of the moving windows less the
+    baseline, over the moving windows; 0 when none moved), ``rest_noise``
+    (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
+    window mean at rest noise that counts as moving, RMS over axes), and the
+    per-sample ``static`` mask (valid, not moving, not next to a moving window).
+    """
+
+    moving_fraction: Float[Array, " d"]
+    rate_peak: Float[Array, " d"]
+    rate_rms: Float[Array, " d"]
+    rest_noise: Float[Array, " d"]
+    threshold: Float[Array, " d"]
+    static: Bool[Array, "d n"]
+    window: int = eqx.field(static=True, default=0)
+
+    def record(self, i: int) -> dict:
+        """Device ``i``'s ``motion`` object (JSON-ready; null where not computed)."""
+        return {k: number(getattr(self, k)[i]) for k in
+                ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")}
+
+    def moved_all(self) -> Bool[np.ndarray, " d"]:
+        """Whether each device moved: more than :data:`MAX_MOVING_FRACTION` of its recording,
+        with turns of at least :data:`MIN_PEAK_RATIO` times its threshold."""
+        frac = np.asarray(self.moving_fraction, float)
+        peak = np.asarray(self.rate_peak, float)
+        thr = np.asarray(self.threshold, float)
+        with np.errstate(invalid="ignore"):
+            return (frac > MAX_MOVING_FRACTION) & (peak >= MIN_PEAK_RATIO * thr)
+
+    def moved(self, i: int) -> bool:
+        """Whether device ``i`` moved (:meth:`moved_all`)."""
+        return bool(self.moved_all()[i])
+
+    def select(self, idx) -> Motion:
+        """The devices ``idx`` (an index array)."""
+        idx = np.asarray(idx)
+        return Motion(*(jnp.asarray(getattr(self, k))[idx] for k in
+                        ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold",
+                         "static")), window=self.window)
+
+
+def describe(rec: dict) -> str:
+    """How much of a recording moved and how fast, from a ``motion`` record."""
+    def g(x):
+        return "—" if x is None else f"{x:.2g}"
+
+    frac = rec.get("moving_fraction")
+    pct = "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
+    return (f"{pct} % of the recording moved (rates up to {g(rec.get('rate_peak'))} rad/s, "
+            f"{g(rec.get('rate_rms'))} rad/s RMS, against a rest noise of "
+            f"{g(rec.get('rest_noise'))} rad/s)")
+
+
+def window_sizes(dt: float) -> tuple[int, int]:
+    """Samples per window and windows per baseline block for a sampling interval ``dt``
+    (powers of two, so nearby rates share a compiled check)."""
+    dt = dt if math.isfinite(dt) and dt > 0 else 0.01
+    w = int(np.clip(2 ** round(math.log2(max(WINDOW_S / dt, 1.0))), 4, 1024))
+    b = int(np.clip(2 ** round(math.log2(max(BLOCK_S / (w * dt), 1.0))), 4, 4096))
+    return w, b
+
+
+def _window_stats(x, mask, w: int):
+    """Per window: means, local noise from successive differences inside it (per axis), the
+    difference of the means of its two halves, valid-sample counts, and validity.
+
+    Axes first ((c, k, w) blocks), so every reduction runs along contiguous samples."""
+    n = x.shape[0]
+    k = -(-n // w)
+    if k * w != n:  # pad to whole windows (invalid)
+        x = jnp.concatenate([x, jnp.zeros((k * w - n, x.shape[1]), x.dtype)])
+        mask = jnp.concatenate([mask, jnp.zeros((k * w - n,), bool)])
+    ms = mask.reshape(k, w)
+    xs = jnp.where(ms[None], x.T.reshape(-1, k, w), 0.0)
+    h = w // 2
+    c1 = jnp.sum(ms[:, :h], axis=1).astype(x.dtype)
+    c = c1 + jnp.sum(ms[:, h:], axis=1)
+    s1 = jnp.sum(xs[..., :h], axis=-1).T
+    total = s1 + jnp.sum(xs[..., h:], axis=-1).T
+    mean = total / jnp.maximum(c, 1.0)[:, None]
+    half = s1 / jnp.maximum(c1, 1.0)[:, None] - (total - s1) / jnp.maximum(c - c1, 1.0)[:, None]
+    pair = ms[:, 1:] & ms[:, :-1]
+    cp = jnp.sum(pair, axis=1).astype(x.dtype)
+    d = jnp.where(pair[None], xs[..., 1:] - xs[..., :-1], 0.0)
+    s2 = jnp.sum(d * d, axis=-1).T / jnp.maximum(cp, 1.0)[:, None] / 2.0
+    step = jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(1, 2))  # per axis
+    valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
+    return mean, jnp.sqrt(s2), half, c, valid, jnp.where(jnp.isfinite(step), step, 0.0)
+
+
+def _masked_quantile(x, valid, q: float, axis: int = 0):
+    """The ``q`` quantile (linear between order statistics) of the ``valid`` entries of ``x``
+    along ``axis``, NaN where none; one integer sort (XLA on CPU sorts integers several
+    times faster than floats, whose comparator must also order NaN)."""
+    itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
+    top = jnp.iinfo(itype).max
+    i = jax.lax.bitcast_convert_type(x, itype)
+    key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
+    key = jnp.sort(jnp.where(valid, key, top), axis=axis)
+    key = jnp.where(key < 0, key ^ top, key)
+    s = jax.lax.bitcast_convert_type(key, x.dtype)
+    n = jnp.sum(valid, axis=axis, keepdims=True)
+    h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
+    lo = jnp.floor(h).astype(jnp.int32)
+    a = jnp.take_along_axis(s, lo, axis=axis)
+    b = jnp.take_along_axis(s, jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)), axis=axis)
+    out = jnp.where(n > 0, a + (b - a) * (h - lo), jnp.nan)
+    return jnp.squeeze(out, axis)
+
+
+def _rest_noise(local, half, valid, w: int, quantum=0.0):
+    """Rest noise per axis: of one sample (σ, from the local noise), and of a window mean.
+
+    σ is the :data:`REST_QUANTILE` of the valid windows' local noise, divided by that
+    quantile of the χ distribution of a window's estimate (≈ normal). A window mean's
+    noise is at least σ/√w, and at least what the half-window differences show at rest
+    (their :data:`HALF_QUANTILE`, over that quantile of a normal's magnitude, halved):
+    sensor outputs are low-pass filtered, and filtered noise averages more slowly than
+    white noise does. A quantised output (``quantum``: the smallest change between samples)
+    has at least the rounding noise quantum/√12 per sample, though the quietest windows may
+    not change at all."""
+    ok = jnp.broadcast_to(valid[:, None], local.shape)
+    q = _masked_quantile(local, ok, REST_QUANTILE)
+    z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
+    sigma = jnp.maximum(q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5),
+                        quantum / math.sqrt(12.0))
+    hq = _masked_quantile(jnp.abs(half), ok, HALF_QUANTILE)
+    zh = 0.2533471031357997  # the normal quantile of (1 + HALF_QUANTILE) / 2
+    mean_noise = jnp.maximum(sigma / math.sqrt(w), hq / zh / 2.0)
+    return sigma, mean_noise
+
+
+def _baseline(mean, use, b: int):
+    """Slow baseline of the window means: the median over blocks of ``b`` windows of the
+    windows in ``use``, linearly interpolated between block centres."""
+    k = mean.shape[0]
+    kb = -(-k // b)
+    pad = kb * b - k
+    vals = jnp.concatenate([mean, jnp.zeros((pad, mean.shape[1]), mean.dtype)])
+    ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
+    ok = jnp.broadcast_to(ok[:, None], vals.shape)
+    med = _masked_quantile(vals.reshape(kb, b, -1), ok.reshape(kb, b, -1), 0.5, axis=1)  # (kb, c)
+    # a block without windows in use (padding, or all moving) holds the last block before it
+    # that has some (the first such block before any)
+    has = ~jnp.isnan(med[:, 0])
+    idx = jnp.arange(kb)
+    last = jax.lax.cummax(jnp.where(has, idx, -1))
+    first = jnp.argmax(has)
+    med = med[jnp.where(last >= 0, last, first)]
+    med = jnp.where(jnp.isnan(med), _masked_quantile(vals, ok, 0.5)[None, :], med)
+    if kb == 1:
+        return jnp.broadcast_to(med, mean.shape)
+    # linear between block centres, and extrapolated from the nearest two at the ends
+    # (a warm-up's drift is fastest in the first half block)
+    pos = (jnp.arange(k).astype(mean.dtype) + 0.5) / b - 0.5
+    j = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, kb - 2)
+    frac = (pos - j)[:, None]
+    return med[j] + frac * (med[j + 1] - med[j])
+
+
+def _runs_with(flag, mark):
+    """``flag`` with every run of True that holds no ``mark`` cleared."""
+    k = flag.shape[0]
+    start = flag & ~jnp.concatenate([jnp.zeros((1,), bool), flag[:-1]])
+    run = jnp.where(flag, jnp.cumsum(start) - 1, k)
+    has = jax.ops.segment_max((flag & mark).astype(jnp.int32), run, num_segments=k + 1)
+    return flag & (has[run] > 0)
+
+
+def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
+    """Moving windows of one signal, its window deviations, window validity, rest noise and
+    threshold. ``step``: the deviation is the change from the previous window (the
+    accelerometer: a device at rest in a new pose has a new gravity, not motion)."""
+    mean, local, half, c, valid, quantum = _window_stats(x, mask, w)
+    sigma, mean_noise = _rest_noise(local, half, valid, w, quantum)
+    sigma = jnp.where(jnp.isnan(sigma), 0.0, sigma)
+    mean_noise = jnp.where(jnp.isnan(mean_noise), 0.0, mean_noise)
+    # vibration raises the local noise, and with it what a window mean may scatter
+    louder = jnp.maximum(local / jnp.where(sigma > 0, sigma, jnp.inf)[None, :], 1.0)
+    var = (mean_noise[None, :] * louder) ** 2 * (w / jnp.maximum(c, 1.0))[:, None]
+
+    def flag(dev, var, ok):
+        thr = jnp.maximum(K_SIGMA * jnp.sqrt(var), floor)
+        z = jnp.sqrt(jnp.sum((dev / thr) ** 2, axis=1))
+        return (z > 1.0) & ok
+
+    prev = jnp.concatenate([mean[:1], mean[:-1]])
+    ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
+    var_prev = jnp.concatenate([var[:1], var[:-1]])
+    jump = flag(mean - prev, var + var_prev, ok)  # a change between neighbouring windows
+    if step:
+        return jump, mean - prev, valid, sigma, jnp.maximum(K_SIGMA * mean_noise, floor)
+    # a window leaves the baseline; a run of such windows is motion when it starts or
+    # holds a jump (a turn starts within a window or two; thermal drift creeps)
+    jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
+    moving = _runs_with(flag(mean - _baseline(mean, valid, b), var, valid), jump)
+    dev = mean - _baseline(mean, valid & ~moving, b)
+    moving = _runs_with(flag(dev, var, valid), jump)
+    thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
+    return moving, dev, valid, sigma, thr0
+
+
+def _one_device(gyro, accel, mask, w: int, b: int):
+    # float32 is ample to tell motion from noise, and halves the traffic of the one
+    # pass over the samples; the results are given back in the input's precision
+    out_dtype = gyro.dtype
+    gyro = gyro.astype(jnp.float32)
+    accel = None if accel is None else accel.astype(jnp.float32)
+    n = gyro.shape[0]
+    moving, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
+    if accel is not None:
+        acc_moving, _, _, _, _ = _moving_windows(accel, mask, w, b, ACCEL_FLOOR, step=True)
+        moving = moving | acc_moving
+    rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
+    n_mov = jnp.sum(moving)
+    peak = jnp.max(jnp.where(moving, rate, 0.0))
+    rms = jnp.sqrt(jnp.sum(jnp.where(moving, rate**2, 0.0)) / jnp.maximum(n_mov, 1))
+    def per_sample(flag):
+        return jnp.broadcast_to(flag[:, None], (flag.shape[0], w)).reshape(-1)[:n]
+
+    samples = per_sample(moving) & mask
+    near = moving | jnp.concatenate([moving[1:], jnp.zeros((1,), bool)]) | jnp.concatenate(
+        [jnp.zeros((1,), bool), moving[:-1]])
+    static = ~per_sample(near) & mask
+    count = jnp.sum(mask)
+    some = jnp.any(valid)
+    frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
+    nan = jnp.asarray(jnp.nan, gyro.dtype)
+    out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
+               rate_rms=jnp.where(some, rms, nan),
+               rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
+               threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan))
+    return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static}
+
+
+@eqx.filter_jit
+def _check(gyro, accel, mask, w: int, b: int):
+    return jax.vmap(lambda g, a, m: _one_device(g, a, m, w, b))(gyro, accel, mask)
+
+
+def motion_check(batch, dt: float | None = None) -> Motion:
+    """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
+    module docstring); ``dt`` the sampling interval (default: the median over devices).
+    Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
+    less the reference (the rotation the reference does not explain), and not the
+    accelerometer (the referenced turns tilt gravity)."""
+    from .core import sampling_intervals
+
+    if dt is None:
+        dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
+    w, b = window_sizes(dt)
+    f64 = jnp.float64 if np.asarray(batch.gyro).dtype == np.float64 else jnp.float32
+    gyro = jnp.asarray(batch.gyro, f64)
+    accel = None if batch.accel is None else jnp.asarray(batch.accel, f64)
+    if batch.rate is not None:  # what the rate reference does not explain; the turns it
+        gyro = gyro - jnp.asarray(batch.rate, f64)  # gives tilt gravity, and that is no news
+        accel = None
+    out = _check(gyro, accel, jnp.asarray(batch.mask), w, b)
+    return Motion(**out, window=w)
+
+
+__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "describe",
+           "motion_check", "window_sizes"]

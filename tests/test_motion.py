@@ -1,0 +1,284 @@
+"""Motion awareness: simulated devices with known truth (at rest with thermal drift or
+engine vibration: not flagged; turning: flagged; --static-only recovers the true bias), and
+real public logs (flights, hand rotations, six- and multi-position sessions flagged; logs of
+vehicles on the ground not flagged), the fit's bias checked against pyulog's mean of the
+static samples."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import scipy.io
+
+from diffgyro import calibration
+from diffgyro.cli import main
+from diffgyro.core import STATUS_NAMES
+from diffgyro.data import Batch, Recording
+from diffgyro.fit import fit
+from diffgyro.motion import MAX_MOVING_FRACTION, motion_check
+
+DATA = Path(__file__).parent / "data"
+FLIGHT = DATA / "px4" / "sample.ulg"
+GROUND = [DATA / "px4" / "sample_log_small.ulg", DATA / "px4" / "sample_appended_multiple.ulg"]
+BIAS = np.array([0.004, -0.0025, 0.0011])
+
+
+def _device(name, *, turns=False, vibration=False, fs=100.0, duration=900.0, seed=0):
+    """A gyro at rest whose bias drifts with a warm-up of 25 °C (0.002 rad/s/°C on x: slow
+    thermal drift, 0.05 rad/s over the run), optionally turned (0.6 rad/s turns of 4 s about
+    z, then back) or shaken by an engine (0.05 rad/s at 37 Hz)."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(int(fs * duration)) / fs
+    temp = 20.0 + 25.0 * (1.0 - np.exp(-t / 300.0))
+    gyro = BIAS + rng.normal(0.0, 0.003, (t.size, 3))
+    gyro[:, 0] += 0.002 * (temp - temp[0])
+    acc = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.02, (t.size, 3))
+    if turns:
+        for k, start in enumerate(np.arange(60.0, duration - 60.0, 60.0)):
+            on = (t >= start) & (t < start + 4.0)
+            gyro[on, 2] += 0.6 if k % 2 == 0 else -0.6
+    if vibration:
+        gyro += 0.05 * np.sin(2 * np.pi * 37.0 * t)[:, None] * np.array([1.0, 0.6, 0.3])
+    return Recording(t=t, gyro=gyro, temp=temp, accel=acc, device=name)
+
+
+@pytest.fixture(scope="module")
+def simulated():
+    return Batch.from_recordings([_device("drift"), _device("turns", turns=True, seed=1),
+                                  _device("engine", vibration=True, fs=200.0, seed=2)])
+
+
+def test_status_name_is_appended():
+    assert STATUS_NAMES[-1] == "in_motion" and STATUS_NAMES.index("failed") == 5
+
+
+def test_simulated_rest_drift_and_vibration_are_not_motion_turns_are(simulated):
+    m = motion_check(simulated)
+    frac = np.asarray(m.moving_fraction)
+    # 14 turns of 4 s in 900 s: 6.2 % of the samples
+    assert frac[0] == 0.0 and frac[2] == 0.0
+    assert 0.055 < frac[1] < 0.08
+    assert 0.5 < float(m.rate_peak[1]) < 0.7
+    assert float(m.rest_noise[0]) == pytest.approx(0.003, rel=0.15)
+    res = fit("bias_poly(2)", simulated)
+    assert [res.status_name(i) for i in range(3)] == ["ok", "in_motion", "ok"]
+    rec = res.records()[1]
+    assert rec["status_detail"].startswith("in_motion: 6 % of the recording moved")
+    assert "--static-only" in rec["status_detail"]
+    assert set(rec["motion"]) == {"moving_fraction", "rate_peak", "rate_rms", "rest_noise",
+                                  "threshold"}
+
+
+def test_static_only_recovers_the_true_bias(simulated):
+    one = simulated.select([1])
+    plain = fit("bias_poly(2)", one)
+    static = fit("bias_poly(2)", one, static_only=True)
+    assert static.status_name(0) == "ok"
+    rec = static.records()[0]
+    assert rec["static_only"] is True and rec["n_recorded"] == one.n_valid[0]
+    assert rec["n_samples"] < 0.94 * rec["n_recorded"]
+    # z carries the turns: the plain fit reads their mean, the static fit the bias
+    truth = BIAS[2]
+    se = 0.003 / np.sqrt(rec["n_samples"])
+    z_plain = float(plain.params.beta[0, 2, 0])
+    z_static = float(static.params.beta[0, 2, 0])
+    assert abs(z_static - truth) < 6 * se * 3
+    assert abs(z_plain - truth) > 20 * abs(z_static - truth)
+
+
+def test_a_rate_reference_is_not_flagged():
+    rec = _device("table", turns=True, duration=300.0)
+    rate = np.zeros_like(rec.gyro)
+    rate[:, 2] = rec.gyro[:, 2] - BIAS[2]
+    rec = Recording(t=rec.t, gyro=rec.gyro, rate=np.round(rate, 1), device="table")
+    assert motion_check(Batch.from_recordings([Recording(t=rec.t, gyro=rec.gyro)])).moved(0)
+    for spec in ("bias_poly(0)+scale_poly(0)", "bias_poly(0)"):  # the fit subtracts the rate
+        res = fit(spec, rec)
+        assert res.records()[0]["motion"]["moving_fraction"] == 0.0
+        # (a scale factor on x and y, which the table does not turn, is not supported)
+        assert res.status_name(0) == ("ok" if spec == "bias_poly(0)" else "insufficient_range")
+
+
+def test_a_fast_thermal_transient_the_model_follows_is_not_motion():
+    """A quiet gyro at 1 Hz whose bias follows a fast temperature step (time constant 20 s,
+    0.002 rad/s per °C over 10 °C): window means leave any slow baseline, yet the model
+    bias_poly(1) follows them, so its residual holds no motion and the fit is ok."""
+    rng = np.random.default_rng(3)
+    t = np.arange(1800.0)
+    temp = 25.0 + 10.0 * (1.0 - np.exp(-np.clip(t - 600.0, 0.0, None) / 20.0))
+    gyro = 0.001 + 0.002 * (temp - 25.0)[:, None] * np.ones(3) + rng.normal(0, 1e-4, (t.size, 3))
+    rec = Recording(t=t, gyro=gyro, temp=temp, device="step")
+    assert motion_check(Batch.from_recordings([rec])).moved(0)
+    res = fit("bias_poly(1)", rec)
+    assert res.status_name(0) == "ok"
+    assert res.records()[0]["motion"]["moving_fraction"] == 0.0
+
+
+# --------------------------------------------------------------------------- real logs
+
+
+def _run(capsys, args):
+    code = main(args)
+    out = capsys.readouterr()
+    return code, out.out + out.err
+
+
+def _json(capsys, args):
+    code = main(args)
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    return json.loads(out.out)
+
+
+@pytest.fixture(scope="module")
+def broad():
+    d = scipy.io.loadmat(DATA / "broad" / "05_undisturbed_slow_rotation_with_breaks_B.mat")
+    fs = float(d["sampling_rate"][0, 0])
+    n = len(d["imu_gyr"])
+    rec = Recording(t=np.arange(n) / fs, gyro=d["imu_gyr"], accel=d["imu_acc"], device="broad")
+    return Batch.from_recordings([rec]), d["movement"].ravel() == 0
+
+
+def test_broad_hand_rotations_flagged_and_static_matches_the_labels(broad):
+    """BROAD trial 05: 49 % of the samples labelled moving; the check finds 49 %, and what it
+    calls static is labelled rest (precision > 0.99)."""
+    batch, rest = broad
+    m = motion_check(batch)
+    n = rest.size
+    assert float(m.moving_fraction[0]) == pytest.approx(1.0 - rest.mean(), abs=0.03)
+    static = np.asarray(m.static[0])[:n]
+    assert (static & rest).sum() / static.sum() > 0.99
+    assert (static & rest).sum() / rest.sum() > 0.9
+    assert fit("bias_poly(0)", batch).status_name(0) == "in_motion"
+
+
+def test_six_and_multi_position_sessions_are_flagged():
+    import pandas as pd
+
+    df = pd.read_csv(DATA / "imucal" / "example_ferraris_session.csv")
+    six = Recording(t=df.n_samples.to_numpy() / 102.4,
+                    gyro=np.deg2rad(df[["gyr_x", "gyr_y", "gyr_z"]].to_numpy()),
+                    accel=df[["acc_x", "acc_y", "acc_z"]].to_numpy(), device="imucal")
+    g = np.loadtxt(DATA / "imu_tk" / "xsens_gyro.mat")
+    a = np.loadtxt(DATA / "imu_tk" / "xsens_acc.mat")
+    multi = Recording(t=g[:, 0] - g[0, 0], gyro=g[:, 1:4] * 2.09e-4, accel=a[:, 1:4] * 2.41e-3,
+                      device="imu_tk")
+    res = fit("bias_poly(0)", [six, multi])
+    assert [res.status_name(i) for i in range(2)] == ["in_motion", "in_motion"]
+    frac = [r["motion"]["moving_fraction"] for r in res.records()]
+    assert 0.1 < frac[0] < 0.3 and 0.15 < frac[1] < 0.45
+
+
+def _pyulog_gyro(path):
+    from pyulog import ULog
+
+    d = ULog(str(path), ["sensor_combined"]).get_dataset("sensor_combined").data
+    return np.column_stack([d[f"gyro_rad[{k}]"] for k in range(3)]).astype(np.float64)
+
+
+def test_px4_flight_is_flagged_and_static_only_fits_the_static_mean(tmp_path, capsys):
+    doc = _json(capsys, ["fit", str(FLIGHT), "--model", "bias_poly(0)", "--json"])
+    dev = doc["devices"][0]
+    assert dev["status"] == "in_motion"
+    assert dev["motion"]["rate_peak"] > 1.0
+    cal = tmp_path / "cal.json"
+    doc = _json(capsys, ["fit", str(FLIGHT), "--model", "bias_poly(0)", "--json", "--static-only",
+                 "--out", str(cal)])
+    dev = doc["devices"][0]
+    assert dev["status"] == "ok" and dev["static_only"] is True
+    # the reference reader's samples, masked with the detected static intervals
+    from diffgyro.io import load
+
+    batch = Batch.from_recordings(load([FLIGHT]))
+    static = np.asarray(motion_check(batch).static[0])[:int(batch.n_valid[0])]
+    ref = _pyulog_gyro(FLIGHT)[static].mean(axis=0)
+    got = [dev["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+    assert dev["n_samples"] == static.sum()
+    saved = calibration.load(cal).devices[0]
+    assert saved.static_only and saved.motion == dev["motion"]
+
+
+@pytest.mark.parametrize("path", GROUND, ids=lambda p: p.name)
+def test_px4_logs_on_the_ground_are_not_flagged(path, capsys):
+    """Vehicles on the ground (land detector: landed; one armed with motors running):
+    nothing moved, status ok, and the bias is pyulog's mean of the samples."""
+    dev = _json(capsys, ["fit", str(path), "--model", "bias_poly(0)", "--json"])["devices"][0]
+    assert dev["status"] == "ok", dev["status_detail"]
+    assert dev["motion"]["moving_fraction"] < MAX_MOVING_FRACTION
+    ref = _pyulog_gyro(path).mean(axis=0)
+    got = [dev["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
+
+
+def test_export_refuses_a_device_in_motion_unless_forced(tmp_path, capsys):
+    cal = tmp_path / "cal.json"
+    _json(capsys, ["fit", str(FLIGHT), "--model", "bias_poly(0)", "--json", "--out", str(cal)])
+    assert calibration.load(cal).devices[0].motion["moving_fraction"] > MAX_MOVING_FRACTION
+    for fmt in ("px4", "ardupilot", "c-header"):
+        code, output = _run(capsys, ["export", str(cal), "--format", fmt])
+        assert code == 2
+        assert "sample/sensor_combined" in output and "in_motion" in output
+        assert "--force" in output
+        code, output = _run(capsys, ["export", str(cal), "--format", fmt, "--force", "-o",
+                                  str(tmp_path / f"x.{fmt}")])
+        assert code == 0, output
+        text = (tmp_path / f"x.{fmt}").read_text()
+        assert "written with --force" in text and "in_motion" in text
+
+
+def test_allan_on_a_moving_recording_says_so(capsys):
+    doc = _json(capsys, ["allan", str(FLIGHT), "--json", "--taus", "0.1,1"])
+    dev = doc["devices"][0]
+    assert dev["status"] == "in_motion" and "not the sensor's noise" in dev["status_detail"]
+    code, output = _run(capsys, ["allan", str(FLIGHT), "--taus", "0.1,1"])
+    assert "not the sensor's noise" in output
+    doc = _json(capsys, ["allan", str(FLIGHT), "--json", "--taus", "0.1,1", "--static-only"])
+    dev = doc["devices"][0]
+    assert dev["status"] == "ok" and dev["static_only"] is True
+    t0, t1 = dev["segment"]
+    assert dev["n_samples"] < dev["n_recorded"] and t1 > t0
+    code, output = _run(capsys, ["export", str(FLIGHT), "--format", "kalibr"])
+    assert code == 2 and "in_motion" in output
+
+
+def test_diagnose_gives_no_verdict_on_motion(capsys):
+    dev = _json(capsys, ["diagnose", str(FLIGHT), "--model", "bias_poly(0)", "--json"])["devices"][0]
+    assert dev["status"].startswith("in_motion")
+    assert dev["motion"]["moving_fraction"] > MAX_MOVING_FRACTION
+    assert dev["best"] is None and "no effect is named" in dev["explanation"]
+
+
+def test_a_recipe_that_assumes_rest_says_it_moved_and_runs_on_the_static_part(tmp_path, capsys):
+    """binned-thermal on a warm-up with turns about z: a warning and status in_motion; with
+    --static-only the z offset is the true bias again (the x line is the thermal drift)."""
+    path = tmp_path / "turns.csv"
+    _device("d", turns=True).to_frame().to_csv(path, index=False)
+    code, output = _run(capsys, ["recipe", "binned-thermal", str(path)])
+    assert code == 0 and "in_motion" in output and "--static-only" in output
+    plain = _json(capsys, ["recipe", "binned-thermal", str(path), "--json"])
+    assert plain["status"] == "in_motion"
+    static = _json(capsys, ["recipe", "binned-thermal", str(path), "--json", "--static-only"])
+    assert static["status"] == "ok" and static["static_only"] is True
+    def z_at_32(r):  # the z bias line read inside the run (its offset is at 0 °C)
+        return r["offset"][2] + 32.0 * r["slope"][2]
+
+    assert abs(z_at_32(static) - BIAS[2]) < 1e-4
+    assert abs(z_at_32(plain) - BIAS[2]) > 2e-3
+    assert static["slope"][0] == pytest.approx(0.002, rel=0.02)
+    code, output = _run(capsys, ["recipe", "static-kalman", str(path), "--static-only"])
+    assert code == 2 and "does not apply" in output
+
+
+def test_a_random_walk_does_not_absorb_the_turns():
+    """The state-space path: its smoothed bias could follow a turn, so the status reads the
+    recording; --static-only fits the rest and finds the true z bias."""
+    rec = _device("walk", turns=True, duration=240.0, fs=50.0)
+    res = fit("bias_poly(0)+random_walk", rec)
+    assert res.status_name(0) == "in_motion"
+    static = fit("bias_poly(0)+random_walk", rec, static_only=True).records()[0]
+    assert static["status"] == "ok" and static["static_only"] is True
+    assert abs(static["params"]["z"]["bias_poly(0).c0"] - BIAS[2]) < 1e-4
