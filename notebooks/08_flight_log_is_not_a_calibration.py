@@ -16,8 +16,8 @@
 # An autopilot log holds the gyro at a high rate, so it is tempting to fit a
 # bias to it. But the mean of a gyro that turned is the mean turn rate, not a
 # bias. This notebook runs diffgyro on a real public PX4 log that holds both:
-# a vehicle turned by up to 2 rad/s for its first seconds, then left at rest
-# for a minute (`tests/data/px4/sample.ulg`, pyulog's test log, BSD-3-Clause;
+# a vehicle still for 2 s, turned by up to 2 rad/s for the next 6 s, then
+# left at rest for a minute (`tests/data/px4/sample.ulg`, pyulog's test log, BSD-3-Clause;
 # the vehicle is disarmed: its motor outputs stay at 900 µs, so the turns are
 # the vehicle handled, not flown — a flight's turns are read the same way).
 #
