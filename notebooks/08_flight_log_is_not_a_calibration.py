@@ -158,8 +158,10 @@ assert code == 0 and "written with --force" in forced
 #
 # The log's last minute, from 8 s on, is the vehicle at rest: cut out as a
 # recording of its own it is `ok`. So are two other PX4 logs of vehicles on
-# the ground (`sample_log_small.ulg`, landed; `sample_appended_multiple.ulg`),
-# and their bias is the mean of their samples.
+# the ground (`sample_log_small.ulg`, armed with its motors running;
+# `sample_appended_multiple.ulg`, landed throughout). At rest, the bias is
+# the mean of the samples (`tests/test_motion.py` checks the ground logs'
+# against pyulog's reading).
 
 # %%
 rest_part = t >= 8.0
@@ -174,6 +176,7 @@ at_rest = calibration.load(work / "rest.json").devices
 assert [d.status for d in at_rest] == ["ok"] * 3
 assert all(d.motion["moving_fraction"] == 0.0 for d in at_rest)
 bias_rest = np.array([at_rest[0].params[a]["bias_poly(0).c0"] for a in "xyz"])
+np.testing.assert_allclose(bias_rest, rest.gyro.mean(axis=0), rtol=0, atol=1e-9)
 
 # %% [markdown]
 # ## 4. `--static-only`: the bias from the static intervals
