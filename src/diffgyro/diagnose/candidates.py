@@ -94,6 +94,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]
+        if getattr(cls, "grammar", False) and explicit is None:
+            continue  # grammar terms are synthesised (diagnose/synthesis.py), not enumerated
         if issubclass(cls, AbstractNoise) and model.noise is not None:
             continue  # one noise component per model
         if column_field(cls):
