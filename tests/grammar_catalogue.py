@@ -122,12 +122,11 @@ def _sweep(rng, n: int, profile: int, lo=10.0, hi=50.0) -> np.ndarray:
 def _steps(rng, n: int, lo: float, hi: float, mean_len: float) -> np.ndarray:
     """A piecewise-constant column with random levels in [lo, hi] (both ends reached)."""
     out = np.empty(n)
-    k, first = 0, True
+    k = 0
     while k < n:
         m = int(rng.uniform(0.5, 1.5) * mean_len)
         out[k:k + m] = rng.uniform(lo, hi)
         k += m
-        first = False
     out[:int(mean_len / 2)] = lo
     out[-int(mean_len / 2):] = hi
     return out

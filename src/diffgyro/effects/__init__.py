@@ -47,7 +47,7 @@ from .warmup import Warmup
 __all__ = [
     "AXES", "AbstractEffect", "AbstractNoise", "AbstractTerm", "Aux", "BiasPoly", "GSens",
     "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
-    "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
+    "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "Term", "ThermalLag", "Warmup",
     "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
     "spec_arguments",
 ]
