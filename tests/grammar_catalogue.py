@@ -222,3 +222,48 @@ def make(case: str, profile: int = 0, device: str = "unit") -> tuple[Recording, 
     gyro = w + err + SIGMA * noise.standard_normal((n, 3))
     return Recording(t=t, gyro=gyro, temp=temp, accel=accel, rate=rate, aux=aux,
                      device=device, source=f"{case}-{profile}.csv"), w
+
+
+def noise_only(n_devices: int, seed: int = 0, n: int = 2000) -> list[Recording]:
+    """Devices whose base model ``NOISE_BASE`` is right, with correlated noise on top of
+    white noise: first-order Gauss–Markov, random walk or flicker-like (a sum of
+    Gauss–Markov processes over three decades), each at a level from barely visible to
+    several times the white noise. They tumble through a temperature sweep and log an
+    extra column, so the synthesis library is large."""
+    out = []
+    for i in range(n_devices):
+        rng = np.random.default_rng(seed * 100003 + i)
+        accel, w = _tumble(rng, _directions("cube"), n, hold=40.0)
+        t = np.arange(n) / FS
+        temp = _sweep(rng, n, i % 2) + 0.01 * rng.standard_normal(n)
+        vdd = 3.3 + 0.1 * _steps(rng, n, -1.0, 1.0, 200.0)
+        kind = ("gm", "rw", "flicker")[i % 3]
+        level = SIGMA * float(np.exp(rng.uniform(np.log(0.3), np.log(3.0))))
+        if kind == "gm":
+            tau = float(np.exp(rng.uniform(np.log(30.0), np.log(600.0))))
+            a = math.exp(-1.0 / (tau * FS))
+            x = np.zeros((n, 3))
+            e = rng.standard_normal((n, 3)) * level * math.sqrt(1 - a * a)
+            for k in range(1, n):
+                x[k] = a * x[k - 1] + e[k]
+        elif kind == "rw":
+            x = np.cumsum(rng.standard_normal((n, 3)), axis=0) * level / math.sqrt(n)
+        else:
+            x = np.zeros((n, 3))
+            for tau in (10.0, 100.0, 1000.0):
+                a = math.exp(-1.0 / (tau * FS))
+                e = rng.standard_normal((n, 3)) * level / math.sqrt(3) * math.sqrt(1 - a * a)
+                y = np.zeros((n, 3))
+                for k in range(1, n):
+                    y[k] = a * y[k - 1] + e[k]
+                x += y
+        bias = rng.normal(0, 1e-3, 3)
+        gs = rng.normal(0, 3e-4, (3, 3)) / G
+        err = bias + np.outer((temp - 30) / 10, rng.normal(0, 2e-4, 3)) + accel @ gs.T
+        gyro = w + err + x + SIGMA * rng.standard_normal((n, 3))
+        out.append(Recording(t=t, gyro=gyro, temp=temp, accel=accel, rate=w, aux={"vdd": vdd},
+                             device=f"{kind}{i:03d}", source=f"noise-{i}.csv"))
+    return out
+
+
+NOISE_BASE = "bias_poly(1)+g_sens"

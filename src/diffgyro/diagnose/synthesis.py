@@ -31,6 +31,7 @@ import math
 from dataclasses import dataclass
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -45,10 +46,13 @@ N_BLOCKS = 10
 #: Most synthesised terms proposed together.
 MAX_TERMS = 3
 #: Time constants tried for a lag candidate, as fractions of the record.
-LAG_FRACTIONS = (0.005, 0.01, 0.02, 0.04, 0.08, 0.16)
+LAG_FRACTIONS = (0.005, 0.01, 0.02, 0.04, 0.08)
 #: Paired t over the blocks a step must reach (or no block worse by more than the
 #: thresholds' ``consistency`` times the mean gain, as for a built-in candidate).
 T_MIN = 3.0
+#: Held-out MSE gain (fraction of the floor's MSE) a synthesised term must bring: many
+#: candidates are tried, so a term must matter, not merely be significant.
+GAIN_MIN = 0.25
 #: Built-in products: the term grammar does not offer these again.
 BUILT_IN = frozenset({"temp^2", "temp*w"})
 NOTE = "synthesised from the recording's signals (term grammar); fit it to learn any time constant"
@@ -133,14 +137,19 @@ def library(model: ErrorModel, names: list[str]) -> list[str]:
 
 @eqx.filter_jit
 def _columns(model, terms, thetas, inp, theta_b):
-    """Base design (n, 3, p) and every library column at its time constant (n, 3, m)."""
-    sig = make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
-                       temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
-                       dtemp_window=inp["window"], dt=inp["dt"], aux=inp["aux"])
-    dtype = sig.gyro.dtype
-    x = model.design(sig, theta_b) if model.n_params else jnp.zeros((sig.t.shape[0], 3, 0), dtype)
-    cols = [term.columns(sig, th) for term, th in zip(terms, thetas)]
-    return x, jnp.concatenate(cols, axis=-1), sig.gyro - sig.rate
+    """Per device of a chunk: base design (L, 3, p), every library column at its time
+    constant (L, 3, m) and ``gyro − rate`` (L, 3); ``thetas[j]`` (devices, q_j)."""
+    def one(inp, thetas, theta_b):
+        sig = make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
+                           temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
+                           dtemp_window=inp["window"], dt=inp["dt"], aux=inp["aux"])
+        dtype = sig.gyro.dtype
+        x = (model.design(sig, theta_b) if model.n_params
+             else jnp.zeros((sig.t.shape[0], 3, 0), dtype))
+        cols = [term.columns(sig, th) for term, th in zip(terms, thetas)]
+        return x, jnp.concatenate(cols, axis=-1), sig.gyro - sig.rate
+
+    return jax.vmap(one)(inp, thetas, theta_b)
 
 
 def _block_sums(z: np.ndarray, y: np.ndarray, n_blocks: int):
@@ -183,10 +192,12 @@ def _full_sse(zz, zy, yy, cols: list[int]) -> float:
 
 
 def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
-           th: Thresholds, max_terms: int = MAX_TERMS) -> tuple[list[int], np.ndarray]:
+           th: Thresholds, max_terms: int = MAX_TERMS,
+           vocabulary: frozenset = frozenset()) -> tuple[list[int], np.ndarray]:
     """Forward selection of candidate groups (column indices) on top of ``base``; returns
     the chosen groups' indices (empty when no set reaches the floor) and the held-out SSE
-    per block of the final set."""
+    per block of the final set. Groups in ``vocabulary`` (built-in terms) need the
+    thresholds' ``gain_min``, synthesised ones :data:`GAIN_MIN`."""
     cur = list(base)
     sse_cur = _heldout(zz, zy, yy, cur)
     chosen: list[int] = []
@@ -209,7 +220,7 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
         gain = float((sse_cur.sum() - best_sse.sum()) / denom.sum()) / floor2
         mean = float(np.mean(diff))
         steady = mean > 0 and (t >= T_MIN or float(np.min(diff)) >= -th.consistency * mean)
-        if not (steady and gain >= th.gain_min):
+        if not (steady and gain >= (th.gain_min if best in vocabulary else GAIN_MIN)):
             break
         chosen.append(best)
         cur = cur + groups[best]
@@ -218,73 +229,115 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
     return (chosen if reached else []), sse_cur
 
 
-def _inputs(batch, res, i: int, aux: dict) -> dict:
+def _inputs(batch, res, idx: np.ndarray, aux: dict) -> dict:
+    """The devices ``idx`` as the compiled columns take them (padded rows, masked)."""
     from ..core import sampling_intervals
 
-    n = int(batch.n_valid[i])
-
     def arr(x):
-        return None if x is None else jnp.asarray(np.asarray(x[i, :n], np.float64))
+        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
 
     norm = None
     if batch.temp is not None:
-        norm = TempNorm(centre=jnp.asarray(np.asarray(res.norm.centre)[i]),
-                        scale=jnp.asarray(np.asarray(res.norm.scale)[i]))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.ones(n, bool), rate=arr(batch.rate),
-                temp=arr(batch.temp), temp_ext=arr(batch.temp_ext), accel=arr(batch.accel),
-                norm=norm, dt=jnp.asarray(sampling_intervals(batch)[i]),
-                window=jnp.asarray(float(res.options.dtemp_window)),
-                aux={k: jnp.asarray(np.asarray(v[i, :n], np.float64)) for k, v in aux.items()})
+        d = batch.n_devices
+        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (d,))),
+                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (d,))))
+    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
+                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
+                accel=arr(batch.accel), norm=norm, dt=arr(sampling_intervals(batch)),
+                window=jnp.full(len(idx), float(res.options.dtemp_window)),
+                aux={k: arr(v) for k, v in aux.items()})
 
 
-def propose(i: int, d, batch, res, model: ErrorModel, aux: dict, builtins: list,
+#: Devices per compiled call of the library's columns.
+CHUNK = 8
+
+
+def propose(i: int, floor: float, batch, res, model: ErrorModel, aux: dict, builtins: list,
             th: Thresholds) -> Proposal | None:
-    """The smallest synthesised set that reaches device ``i``'s floor, or None.
-    ``builtins``: linear built-in candidates (CandidateSpec) that compete with it."""
-    rec = batch.recording(i)
-    names = signal_names(rec, [k for k in aux if k in rec.aux])
-    exprs = library(model, names)
-    if not exprs:
-        return None
-    n = int(batch.n_valid[i])
-    duration = float(rec.t[-1] - rec.t[0])
-    terms, thetas, labels = [], [], []
+    """The smallest synthesised set that reaches device ``i``'s white-noise ``floor``
+    (rad/s), or None. ``res``: the fit of ``model`` on ``batch``; ``aux``: the extra
+    columns, centred and scaled ((devices, n) each); ``builtins``: linear built-in
+    candidates (CandidateSpec) that compete with the synthesised terms."""
+    return propose_many([i], [floor], batch, res, model, aux, [builtins], th).get(i)
+
+
+def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorModel, aux: dict,
+                 builtins: list[list], th: Thresholds) -> dict[int, Proposal]:
+    """:func:`propose` for the devices ``idx`` (their floors and built-in rivals), their
+    library columns computed :data:`CHUNK` devices at a time."""
+    if not idx:
+        return {}
+    recs = {i: batch.recording(i) for i in idx}
+    names = {i: signal_names(recs[i], [k for k in aux if k in recs[i].aux]) for i in idx}
+    union = sorted({n for i in idx for n in names[i]},
+                   key=lambda n: (list(STANDARD).index(n) if n in STANDARD else len(STANDARD), n))
+    exprs = library(model, union)
+    rivals, seen = [], set()
+    for bl in builtins:
+        for c in bl:
+            if c.spec not in seen:
+                seen.add(c.spec)
+                rivals.append(c)
+    terms, fracs, labels = [], [], []
     for e in exprs:
         term = Term(expr=e)
-        if term.n_nonlinear:
-            for f in LAG_FRACTIONS:
-                terms.append(term)
-                thetas.append(jnp.asarray([math.log(max(f * duration, 1.0))]))
-                labels.append(term.spec)
-        else:
+        for f in (LAG_FRACTIONS if term.n_nonlinear else (None,)):
             terms.append(term)
-            thetas.append(jnp.zeros((0,)))
+            fracs.append(f)
             labels.append(term.spec)
-    for c in builtins:  # the vocabulary competes: a built-in column group per candidate
-        terms.append(c.term)
-        thetas.append(jnp.zeros((0,)))
-        labels.append(c.term.spec)
-    inp = _inputs(batch, res, i, aux)
-    theta_b = jnp.asarray(np.asarray(res.params.theta)[i])
-    x, c, y = (np.asarray(v) for v in _columns(model, tuple(terms), tuple(thetas), inp, theta_b))
-    p = x.shape[-1]
-    widths = [t.n_params for t in terms]
+    terms += [c.term for c in rivals]
+    fracs += [None] * len(rivals)
+    labels += [c.spec for c in rivals]
+    if not exprs:
+        return {}
+    p = model.n_params
+    n_grammar = len(terms) - len(rivals)
     groups, k = [], p
-    for j, w in enumerate(widths):
-        old = next((b.old for b in builtins if b.term is terms[j]), None)
-        skip = old.n_params if old is not None else 0
-        groups.append(list(range(k + skip, k + w)))
-        k += w
-    z = np.concatenate([x, c], axis=-1)
+    for j, term in enumerate(terms):
+        old = None if j < n_grammar else rivals[j - n_grammar].old
+        groups.append(list(range(k + (old.n_params if old is not None else 0), k + term.n_params)))
+        k += term.n_params
+    out = {}
+    order = list(idx)
+    for start in range(0, len(order), CHUNK):
+        part = order[start:start + CHUNK]
+        pad = np.asarray(part + [part[-1]] * (CHUNK - len(part)) if len(order) > CHUNK else part)
+        dur = np.asarray([float(batch.t[i, int(batch.n_valid[i]) - 1] - batch.t[i, 0]) for i in pad])
+        thetas = tuple(jnp.asarray(np.log(np.maximum(f * dur, 1.0))[:, None]) if f is not None
+                       else jnp.zeros((len(pad), 0)) for f in fracs)
+        theta_b = jnp.asarray(np.asarray(res.params.theta)[pad])
+        xs, cs, ys = (np.asarray(v) for v in _columns(model, tuple(terms), thetas,
+                                                       _inputs(batch, res, pad, aux), theta_b))
+        for r, i in enumerate(part):
+            fl = floors[idx.index(i)]
+            allowed = set(names[i])
+            mine = {c.spec for c in builtins[idx.index(i)]}
+            usable = [j for j, t in enumerate(terms)
+                      if (isinstance(t, Term) and {n for n, _, _ in t.factors} <= allowed)
+                      or (not isinstance(t, Term) and labels[j] in mine)]
+            prop = _select_device(xs[r], cs[r], ys[r], int(batch.n_valid[i]), fl, p, terms, labels,
+                                  groups, usable, rivals, model, th)
+            if prop is not None:
+                out[i] = prop
+    return out
+
+
+def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, model,
+                   th) -> Proposal | None:
+    z = np.concatenate([x, c], axis=-1)[:n]
+    y = y[:n]
     ok = np.all(np.isfinite(z), axis=(1, 2)) & np.all(np.isfinite(y), axis=1)
-    z, y = np.where(ok[:, None, None], z, 0.0)[:n], np.where(ok[:, None], y, 0.0)[:n]
+    z, y = np.where(ok[:, None, None], z, 0.0), np.where(ok[:, None], y, 0.0)
     zz, zy, yy, cnt = _block_sums(z, y, N_BLOCKS)
-    floor2 = max(d.white_noise_rms ** 2, 1e-300)
-    chosen, sse = select(zz, zy, yy, cnt, list(range(p)), groups, floor2, th)
+    floor2 = max(floor ** 2, 1e-300)
+    vocab = frozenset(k for k, j in enumerate(usable) if not isinstance(terms[j], Term))
+    chosen, sse = select(zz, zy, yy, cnt, list(range(p)), [groups[j] for j in usable], floor2, th,
+                         vocabulary=vocab)
+    chosen = [usable[k] for k in chosen]
     new = [labels[j] for j in chosen if isinstance(terms[j], Term)]
     if not new:
         return None  # nothing reaches the floor, or the vocabulary alone does
-    kept = [next(b for b in builtins if b.term is terms[j]) for j in chosen
+    kept = [next(r for r in rivals if r.spec == labels[j]) for j in chosen
             if not isinstance(terms[j], Term)]
     base_sse = _heldout(zz, zy, yy, list(range(p)))
     diff = (base_sse - sse) / (3.0 * cnt)
@@ -330,18 +383,16 @@ def apply(devices: list, batch, res, model: ErrorModel, aux: dict, cands: list,
           ok: np.ndarray, th: Thresholds) -> dict[int, Proposal]:
     """Propose a synthesised term for every device the vocabulary leaves open (in place:
     its best candidate, verdict and explanation); returns the proposals by device index."""
-    out = {}
-    for i, d in enumerate(devices):
-        if not qualifies(d, th):
-            continue
-        sig_names = {c.spec for c in d.candidates if c.significant and not c.stochastic}
-        builtins = [c for j, c in enumerate(cands) if c.term.n_nonlinear == 0
-                    and c.spec in sig_names and (ok.size == 0 or ok[i, j])]
-        prop = propose(i, d, batch, res, model, aux, builtins, th)
-        if prop is None:
-            continue
-        out[i] = prop
-        _record(d, prop)
+    idx = [i for i, d in enumerate(devices) if qualifies(d, th)]
+    rivals = []
+    for i in idx:
+        sig_names = {c.spec for c in devices[i].candidates if c.significant and not c.stochastic}
+        rivals.append([c for j, c in enumerate(cands) if c.term.n_nonlinear == 0
+                       and c.spec in sig_names and (ok.size == 0 or ok[i, j])])
+    out = propose_many(idx, [devices[i].white_noise_rms for i in idx], batch, res, model, aux,
+                       rivals, th)
+    for i, prop in out.items():
+        _record(devices[i], prop)
     return out
 
 
@@ -366,3 +417,31 @@ def _record(d, prop: Proposal) -> None:
         f"{prop.heldout_rms:.3g} rad/s against a white-noise floor of {d.white_noise_rms:.3g} "
         f"(selected on held-out time blocks). Fit it: diffgyro fit --model '{prop.spec}', then "
         f"carry the calibration to a second recording (diffgyro compensate --json).")
+
+
+def propose_all(model: ErrorModel | str, batch, res=None, th: Thresholds | None = None,
+                **fit_options) -> dict[int, Proposal]:
+    """The synthesis on every device of ``batch``, as if no built-in term closed its gap:
+    fits ``model`` (unless ``res`` is its fit), scales the extra columns as diagnose does
+    and returns the proposals by device index (a device without one is left out)."""
+    from .. import aux as aux_cols
+    from ..fit import fit as fit_fn
+    from .floor import white_noise_rms
+
+    model = ErrorModel.from_spec(model) if isinstance(model, str) else model
+    res = res if res is not None else fit_fn(model, batch, **fit_options)
+    th = th or Thresholds()
+    used = aux_cols.aux_names(model.requires())
+    fresh = [k for k in batch.aux if k not in used]
+    norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
+                for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
+    aux = {k: np.nan_to_num(v) for k, v in aux_cols.scaled(batch, norms).items()}
+    floors = []
+    for i in range(batch.n_devices):
+        n = int(batch.n_valid[i])
+        rate = None if batch.rate is None else np.asarray(batch.rate[i, :n], np.float64)
+        gyro = np.asarray(batch.gyro[i, :n], np.float64)
+        axes = white_noise_rms(gyro if rate is None else gyro - rate, np.ones(n, bool), rate)
+        floors.append(float(np.sqrt(np.mean(np.asarray(axes) ** 2))))
+    idx = list(range(batch.n_devices))
+    return propose_many(idx, floors, batch, res, model, aux, [[] for _ in idx], th)
