@@ -72,8 +72,14 @@ class Proposal:
 
 def qualifies(d, th: Thresholds) -> bool:
     """A device the vocabulary leaves open: ``missing_effect`` and no built-in term, nor
-    the greedy pair, closes ``rw_prefer`` of the gap."""
-    if d.verdict != "missing_effect" or not math.isfinite(d.heldout_rms):
+    the greedy pair, closes ``rw_prefer`` of the gap; or ``adequate`` only because no
+    candidate is significant while the held-out error is :data:`GAIN_MIN` or more above
+    the floor (a gap no built-in term can close)."""
+    if not math.isfinite(d.heldout_rms):
+        return False
+    if d.verdict == "adequate":
+        return d.excess >= GAIN_MIN and not any(c.significant for c in d.candidates)
+    if d.verdict != "missing_effect":
         return False
     b = d.best
     if b is not None and not b.stochastic and b.closure >= th.rw_prefer:
