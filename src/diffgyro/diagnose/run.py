@@ -449,7 +449,7 @@ def diagnose(
     if synthesis:
         from .synthesis import apply as synthesise
 
-        synthesise(devices, batch, res, model, aux, cands, ranges <= 0, th)
+        synthesise(devices, batch, res, model, cands, ranges <= 0, th)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,

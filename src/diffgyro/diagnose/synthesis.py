@@ -385,18 +385,35 @@ def describe(expr: str) -> str:
     return f"the bias follows {words}{reading}"
 
 
-def apply(devices: list, batch, res, model: ErrorModel, aux: dict, cands: list,
-          ok: np.ndarray, th: Thresholds) -> dict[int, Proposal]:
+def extra_columns(batch, model: ErrorModel, res) -> dict[str, np.ndarray]:
+    """Every extra column of ``batch``, centred and scaled ((devices, n), zero where not
+    finite): those the model reads as the fit did, the others over each device's range."""
+    from .. import aux as aux_cols
+
+    used = aux_cols.aux_names(model.requires())
+    fresh = [k for k in batch.aux if k not in used]
+    with np.errstate(all="ignore"):
+        norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
+                    for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
+        scaled = aux_cols.scaled(batch, norms)
+    return {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in scaled.items()}
+
+
+def apply(devices: list, batch, res, model: ErrorModel, cands: list, ok: np.ndarray,
+          th: Thresholds) -> dict[int, Proposal]:
     """Propose a synthesised term for every device the vocabulary leaves open (in place:
-    its best candidate, verdict and explanation); returns the proposals by device index."""
+    its best candidate, verdict and explanation); returns the proposals by device index.
+    ``cands``: diagnose's scored candidates, ``ok`` (devices, candidates) where supported."""
     idx = [i for i, d in enumerate(devices) if qualifies(d, th)]
     rivals = []
     for i in idx:
         sig_names = {c.spec for c in devices[i].candidates if c.significant and not c.stochastic}
         rivals.append([c for j, c in enumerate(cands) if c.term.n_nonlinear == 0
                        and c.spec in sig_names and (ok.size == 0 or ok[i, j])])
-    out = propose_many(idx, [devices[i].white_noise_rms for i in idx], batch, res, model, aux,
-                       rivals, th)
+    if not idx:
+        return {}
+    out = propose_many(idx, [devices[i].white_noise_rms for i in idx], batch, res, model,
+                       extra_columns(batch, model, res), rivals, th)
     for i, prop in out.items():
         _record(devices[i], prop)
     return out
@@ -430,18 +447,13 @@ def propose_all(model: ErrorModel | str, batch, res=None, th: Thresholds | None 
     """The synthesis on every device of ``batch``, as if no built-in term closed its gap:
     fits ``model`` (unless ``res`` is its fit), scales the extra columns as diagnose does
     and returns the proposals by device index (a device without one is left out)."""
-    from .. import aux as aux_cols
     from ..fit import fit as fit_fn
     from .floor import white_noise_rms
 
     model = ErrorModel.from_spec(model) if isinstance(model, str) else model
     res = res if res is not None else fit_fn(model, batch, **fit_options)
     th = th or Thresholds()
-    used = aux_cols.aux_names(model.requires())
-    fresh = [k for k in batch.aux if k not in used]
-    norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
-                for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
-    aux = {k: np.nan_to_num(v) for k, v in aux_cols.scaled(batch, norms).items()}
+    aux = extra_columns(batch, model, res)
     floors = []
     for i in range(batch.n_devices):
         n = int(batch.n_valid[i])
