@@ -15,7 +15,8 @@ Besides one hidden effect at a time, the thermal plan has a two-effect class
 thermal look-alike, is named first, not the walk), an extra-column class
 (``vdd``: a bias that follows a logged supply voltage, right when ``aux(vdd)``
 is named first) and an effect outside the vocabulary (``temp_x_dtemp``, bias ∝
-T·dT/dt: right when ``missing_effect`` names no term).
+T·dT/dt: right when ``missing_effect`` names no built-in term; named first when the
+synthesis proposes a product of the logged signals).
 """
 
 from __future__ import annotations
@@ -102,8 +103,9 @@ def _right(d: dict, effect: str | None, look: dict) -> tuple[bool, bool]:
     missing = d["verdict"] == "missing_effect"
     if effect is None:
         return d["verdict"] == "adequate", False
-    if effect == "temp_x_dtemp":  # outside the vocabulary: missing, no term named
-        return missing and d["best"] is None, False
+    if effect == "temp_x_dtemp":  # outside the vocabulary: missing, no built-in term named
+        synthesised = d.get("best_effect") == "term"  # a product of the signals proposed
+        return missing and (d["best"] is None or synthesised), synthesised
     if effect == "vdd":
         hit = d.get("best_term") == "aux(vdd)"
         return missing and hit, hit
