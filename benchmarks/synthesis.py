@@ -61,8 +61,8 @@ def main(argv=None) -> dict:
     out["rows"].append({"case": "diagnose", "off_s": off, "on_s": on, "ratio": on / off})
     for name, case in gc.CASES.items():
         b = Batch.from_recordings([gc.make(name, 0)[0]])
-        off = timed(lambda: diagnose(case.base, b, synthesis=False), 1)
-        on = timed(lambda: diagnose(case.base, b), 1)
+        off = timed(lambda c=case, b=b: diagnose(c.base, b, synthesis=False), 1)
+        on = timed(lambda c=case, b=b: diagnose(c.base, b), 1)
         best = diagnose(case.base, b).devices[0].best
         out["rows"].append({"case": f"outside:{name}", "off_s": off, "on_s": on,
                             "ratio": on / off, "proposed": best.spec if best else None})

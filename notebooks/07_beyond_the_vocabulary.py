@@ -121,7 +121,7 @@ print(d.explanation)
 assert d.verdict == "missing_effect" and d.best.effect == "term"
 assert d.best.term == "term(temp*az)"
 proposed = d.best.spec
-proposed
+print(proposed)
 
 # %% [markdown]
 # ## Fit it: the error falls to the floor
