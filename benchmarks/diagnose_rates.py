@@ -16,7 +16,9 @@ thermal look-alike, is named first, not the walk), an extra-column class
 (``vdd``: a bias that follows a logged supply voltage, right when ``aux(vdd)``
 is named first) and an effect outside the vocabulary (``temp_x_dtemp``, bias ∝
 T·dT/dt: right when ``missing_effect`` names no built-in term; named first when the
-synthesis proposes a product of the logged signals).
+synthesis proposes a product of the logged signals), and two more the term synthesis
+must name with the right signals (``heater_lag``: a logged heater column through a
+300 s lag, ``temp_x_vdd``: die temperature × supply voltage).
 """
 
 from __future__ import annotations
@@ -37,13 +39,18 @@ sys.path.insert(0, str(ROOT / "tests"))
 CATALOGUE = [
     ("thermal", "bias_poly(2)", ["gradient", "temp_diff", "thermal_lag", "hysteresis", "warmup",
                                  "random_walk", "bias_poly", None, None, "gradient+bias_poly",
-                                 "vdd", "temp_x_dtemp"]),
+                                 "vdd", "temp_x_dtemp", "heater_lag", "temp_x_vdd"]),
     ("rate_table", "bias_poly(1)+scale_poly(0)+misalignment",
      ["scale_asym", "scale_nonlin", "g_sens", None]),
     ("rate_table", "bias_poly(1)+scale_poly(0)", ["misalignment", None]),
     ("rate_table", "bias_poly(1)", ["scale_poly", None]),
     ("multi_position", "bias_poly(1)+scale_poly(0)+misalignment", ["g_sens", "warmup", "random_walk", None]),
 ]
+
+
+#: Outside-the-vocabulary classes the term synthesis should name, and the signals its
+#: proposed term must read.
+SYNTHESISED = {"heater_lag": ("lag(heater)",), "temp_x_vdd": ("temp", "vdd")}
 
 
 def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2.0,
@@ -106,6 +113,10 @@ def _right(d: dict, effect: str | None, look: dict) -> tuple[bool, bool]:
     if effect == "temp_x_dtemp":  # outside the vocabulary: missing, no built-in term named
         synthesised = d.get("best_effect") == "term"  # a product of the signals proposed
         return missing and (d["best"] is None or synthesised), synthesised
+    if effect in SYNTHESISED:  # outside the vocabulary: a term of the right signals proposed
+        hit = d.get("best_effect") == "term" and all(
+            f in (d.get("best_term") or "") for f in SYNTHESISED[effect])
+        return missing and hit, hit
     if effect == "vdd":
         hit = d.get("best_term") == "aux(vdd)"
         return missing and hit, hit

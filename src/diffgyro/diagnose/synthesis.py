@@ -20,7 +20,8 @@ a block comes from the other blocks' sums alone, so each step is a few small sol
 candidate, never a pass over the samples. A term is added when it improves the held-out
 error consistently over the blocks (paired t over blocks) and materially (against the
 noise floor); selection stops when the held-out error reaches the floor. Only a set that
-reaches the floor is proposed, the smallest found: a residual of correlated noise (a
+reaches the floor (or closes ``rw_prefer`` of the gap to it, as a built-in term must to be
+preferred to the random walk) is proposed, the smallest found: a residual of correlated noise (a
 random walk, flicker) is not closed by any product of the logged signals, so it gets no
 invented term.
 """
@@ -201,11 +202,11 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
            th: Thresholds, max_terms: int = MAX_TERMS,
            vocabulary: frozenset = frozenset()) -> tuple[list[int], np.ndarray]:
     """Forward selection of candidate groups (column indices) on top of ``base``; returns
-    the chosen groups' indices (empty when no set reaches the floor) and the held-out SSE
-    per block of the final set. Groups in ``vocabulary`` (built-in terms) need the
+    the chosen groups' indices (empty when no set reaches the floor or closes the thresholds'
+    ``rw_prefer`` of the gap to it) and the held-out SSE per block of the final set. Groups in ``vocabulary`` (built-in terms) need the
     thresholds' ``gain_min``, synthesised ones :data:`GAIN_MIN`."""
     cur = list(base)
-    sse_cur = _heldout(zz, zy, yy, cur)
+    sse_cur = sse_base = _heldout(zz, zy, yy, cur)
     chosen: list[int] = []
     denom = 3.0 * cnt
     for _ in range(max_terms):
@@ -231,7 +232,11 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
         chosen.append(best)
         cur = cur + groups[best]
         sse_cur = best_sse
-    reached = sse_cur.sum() / denom.sum() <= floor2 * (1.0 + th.excess_min)
+    mse, mse_base = sse_cur.sum() / denom.sum(), sse_base.sum() / denom.sum()
+    closure = (mse_base - mse) / (mse_base - floor2) if mse_base > floor2 else 0.0
+    # the floor reached, or the gap closed as a built-in term must close it to be preferred
+    # to the random walk (flicker and read-out quantisation stay above the white floor)
+    reached = mse <= floor2 * (1.0 + th.excess_min) or closure >= th.rw_prefer
     return (chosen if reached else []), sse_cur
 
 
