@@ -189,3 +189,15 @@ def test_registered_term_composes_with_grammar_terms():
     res = fit(spec, Batch.from_recordings([rec]))
     assert res.model.spec == spec and isinstance(res.model.terms[-1], Term)
     assert float(res.heldout_rms[0]) < 1.05 * SIGMA
+
+
+def test_report_draws_the_residual_against_the_product(heater):
+    from diffgyro.report import residual_drop_figure
+
+    batch, res = heater
+    n = int(batch.n_valid[0])
+    base = fit(CASES["heater"].base, batch)
+    e0 = np.asarray(base.residuals(batch))[0, :n]
+    e1 = np.asarray(res.residuals(batch))[0, :n]
+    fig = residual_drop_figure(base.model, res.model.spec, batch.recording(0), e0, e1)
+    assert fig.axes[1].get_xlabel() == "lag(heater)"

@@ -202,6 +202,7 @@ class Term(AbstractEffect):
     arguments = (("expr", "expr"),)
     #: Synthesised by diagnose from the recording's signals, never offered as a built-in.
     grammar: ClassVar[bool] = True
+    follows = "term:EXPR"  # the instance's product: followed_signal()
 
     def __check_init__(self):
         if self.expr:
@@ -240,12 +241,8 @@ class Term(AbstractEffect):
         return frozenset(out)
 
     def followed_signal(self):
-        fs = self.factors
-        if len(fs) == 1 and fs[0][2] == 1 and not fs[0][1]:
-            n = fs[0][0]
-            return {"temp": "temp", "dtemp": "dtemp", "heating": "heating"}.get(
-                n, None if n in STANDARD else f"aux:{n}")
-        return None
+        """``term:EXPR``: the report draws the residual against the product itself."""
+        return f"term:{self.expr}"
 
     def param_names(self):
         return ("c",)
@@ -305,3 +302,32 @@ class Term(AbstractEffect):
             w = f"{w} through a first-order lag" if lg else w
             parts.append(w if p == 1 else f"({w})^{p}")
         return " × ".join(parts)
+
+
+def product_of(expr: str, rec, dtemp=None, axis: int = 0):
+    """The product ``expr`` of a recording's signals in plain units (°C, g, rad/s, the
+    column's own; a lagged factor unlagged: its τ is the fit's), for figures; None when the
+    recording lacks one of them."""
+    import numpy as np
+
+    out = np.ones(rec.n)
+    for name, _, p in parse_factors(expr):
+        if name in ("temp", "heating"):
+            x = rec.temp
+            if x is not None and name == "heating":
+                x = None if dtemp is None else np.sign(dtemp)
+        elif name == "temp_ext":
+            x = rec.temp_ext
+        elif name == "dtemp":
+            x = None if dtemp is None else 60.0 * np.asarray(dtemp)
+        elif name in ("ax", "ay", "az"):
+            x = None if rec.accel is None else rec.accel[:, "xyz".index(name[1])] / G
+        elif name in ("rx", "ry", "rz", "w"):
+            k = axis if name == "w" else "xyz".index(name[1])
+            x = None if rec.rate is None else rec.rate[:, k]
+        else:
+            x = rec.aux.get(name)
+        if x is None:
+            return None
+        out = out * np.asarray(x, float) ** p
+    return out
