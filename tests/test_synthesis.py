@@ -102,3 +102,13 @@ def test_library_and_words():
     assert "temp^2" not in lib and "heating^2" not in lib and "ay*az" not in lib
     assert describe("temp*az").endswith("a g-sensitivity that changes with temperature")
     assert "first-order lag" in describe("lag(heater)")
+
+
+def test_grammar_terms_are_candidates_when_named(catalogue):
+    """``--candidates term(temp*az),term(temp*ax)``: scored like built-in terms, beside a
+    grammar term the model already holds."""
+    (rec0, _), _ = catalogue["tempg"]
+    d = diagnose("bias_poly(1)+g_sens+term(ay*az)", Batch.from_recordings([rec0]),
+                 ["term(temp*az)", "term(temp*ax)"], synthesis=False).devices[0]
+    assert d.verdict == "missing_effect"
+    assert d.best.spec == "bias_poly(1)+g_sens+term(ay*az)+term(temp*az)"

@@ -100,8 +100,8 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
             continue  # one noise component per model
         if column_field(cls):
             old, terms = None, _column_terms(cls, model, columns, explicit)
-        else:
-            old = present.get(name)
+        else:  # a grammar term (term(EXPR)) is added beside those of the model, never raised
+            old = None if getattr(cls, "grammar", False) else present.get(name)
             terms = explicit if explicit is not None else _new_terms(cls, old)
         for term in terms:
             if old is not None and (term == old or not cls.order_arg or term.order <= old.order):
