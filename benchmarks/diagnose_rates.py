@@ -54,7 +54,8 @@ SYNTHESISED = {"heater_lag": ("lag(heater)",), "temp_x_vdd": ("temp", "vdd")}
 
 
 def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2.0,
-        hours: float | None = None, colour: float = 1.0, lowpass: float = 0.0):
+        hours: float | None = None, colour: float = 1.0, lowpass: float = 0.0,
+        synthesis: bool = True):
     import diffgyro
 
     diffgyro.enable_x64()
@@ -90,7 +91,7 @@ def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2
                   if i % 8 == 0 or sorted(recs[i].aux) != sorted(recs[i - 1].aux)]
         for start, stop in zip(starts, starts[1:] + [len(recs)]):
             batch = Batch.from_recordings(recs[start:stop])
-            dg = diagnose(base, batch)
+            dg = diagnose(base, batch, synthesis=synthesis)
             for i, d in enumerate(dg.devices):
                 m = dict(meta[start + i])
                 m["raw"] = {k: (v[i] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == batch.n_devices
@@ -173,6 +174,8 @@ if __name__ == "__main__":
     ap.add_argument("--lowpass", type=float, default=0.0, help="lag-1 correlation of the white noise")
     ap.add_argument("--sizes", type=float, nargs=2, default=(0.5, 3.0),
                     help="range of hidden-effect sizes (unabsorbed RMS / white σ), log-uniform")
+    ap.add_argument("--no-synthesis", action="store_true",
+                    help="diagnose without term synthesis (to compare the rates)")
     a = ap.parse_args()
     if a.load:
         rows = []
@@ -180,7 +183,7 @@ if __name__ == "__main__":
             rows += pickle.load(open(f, "rb"))
     else:
         rows = run(a.devices, a.seed, a.plans, sizes=tuple(a.sizes), fs=a.fs, hours=a.hours,
-                   colour=a.colour, lowpass=a.lowpass)
+                   colour=a.colour, lowpass=a.lowpass, synthesis=not a.no_synthesis)
         if a.out:
             pickle.dump(rows, open(a.out, "wb"))
     stats = summary(rows)
