@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..effects.grammar import RATES, STANDARD, Term, parse_factors
+from ..effects.grammar import RATES, STANDARD, Term, parse_factors, signal_value
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
 from .results import Candidate
@@ -143,20 +143,57 @@ def library(model: ErrorModel, names: list[str]) -> list[str]:
 
 
 @eqx.filter_jit
-def _columns(model, terms, thetas, inp, theta_b):
-    """Per device of a chunk: base design (L, 3, p), every library column at its time
-    constant (L, 3, m) and ``gyro − rate`` (L, 3); ``thetas[j]`` (devices, q_j)."""
-    def one(inp, thetas, theta_b):
+def _columns(model, rivals, inp, theta_b):
+    """Per device of a chunk: base design (L, 3, p), the rival built-in terms' columns
+    (L, 3, r), ``gyro − rate`` (L, 3) and the grammar's signals by name (compiled once per
+    model and rivals: the library's products are formed on the host, :func:`_products`)."""
+    def one(inp, theta_b):
         sig = make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
                            temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
                            dtemp_window=inp["window"], dt=inp["dt"], aux=inp["aux"])
         dtype = sig.gyro.dtype
-        x = (model.design(sig, theta_b) if model.n_params
-             else jnp.zeros((sig.t.shape[0], 3, 0), dtype))
-        cols = [term.columns(sig, th) for term, th in zip(terms, thetas)]
-        return x, jnp.concatenate(cols, axis=-1), sig.gyro - sig.rate
+        n = sig.t.shape[0]
+        x = model.design(sig, theta_b) if model.n_params else jnp.zeros((n, 3, 0), dtype)
+        cols = [t.columns(sig, jnp.zeros((0,), dtype)) for t in rivals]
+        r = jnp.concatenate(cols, axis=-1) if cols else jnp.zeros((n, 3, 0), dtype)
+        names = [k for k in STANDARD if k != "w"] + list(sig.aux)
+        have = {k: signal_value(sig, k) for k in names
+                if all(getattr(sig, f) is not None for f in _FIELDS.get(k, ()))}
+        return x, r, sig.gyro - sig.rate, have
 
-    return jax.vmap(one)(inp, thetas, theta_b)
+    return jax.vmap(one)(inp, theta_b)
+
+
+#: The Signals fields each standard grammar signal reads.
+_FIELDS = {"temp": ("temp_s",), "temp_ext": ("temp_ext", "norm"), "dtemp": ("dtemp",),
+           "heating": ("heating",), "ax": ("accel",), "ay": ("accel",), "az": ("accel",),
+           "rx": (), "ry": (), "rz": ()}
+
+
+def _lagged(x: np.ndarray, tau: float, dt: float) -> np.ndarray:
+    """``x`` through a first-order lag τ at a uniform step ``dt``, starting settled (the
+    recursion of :func:`diffgyro.effects.thermal_lag.first_order_lag`, for selection; the
+    fit then uses the exact one on the recording's own times)."""
+    from scipy.signal import lfilter
+
+    a = -np.expm1(-dt / tau)
+    return lfilter([a], [1.0, a - 1.0], x, zi=[(1.0 - a) * x[0]])[0]
+
+
+def _products(terms, taus, sig: dict, rate: np.ndarray, n: int, dt: float) -> np.ndarray:
+    """The grammar terms' columns (n, 3, m) from the signals on the host; ``taus[j]`` the
+    time constant of term j's lagged factor (None: none)."""
+    cols = np.empty((n, 3, len(terms)))
+    for j, (term, tau) in enumerate(zip(terms, taus)):
+        out = np.ones((n, 3))
+        for name, lagged, p in term.factors:
+            x = rate[:n] if name == "w" else sig[name][:n]
+            if lagged:
+                x = _lagged(x, tau, dt)
+            x = x**p
+            out *= x if x.ndim == 2 else x[:, None]
+        cols[:, :, j] = out
+    return cols
 
 
 def _block_sums(z: np.ndarray, y: np.ndarray, n_blocks: int):
@@ -310,24 +347,31 @@ def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorMo
         k += term.n_params
     out = {}
     order = list(idx)
+    grammar = [t for t in terms if isinstance(t, Term)]
     for start in range(0, len(order), CHUNK):
         part = order[start:start + CHUNK]
         pad = np.asarray(part + [part[-1]] * (CHUNK - len(part)) if len(order) > CHUNK else part)
-        dur = np.asarray([float(batch.t[i, int(batch.n_valid[i]) - 1] - batch.t[i, 0]) for i in pad])
-        thetas = tuple(jnp.asarray(np.log(np.maximum(f * dur, 1.0))[:, None]) if f is not None
-                       else jnp.zeros((len(pad), 0)) for f in fracs)
         theta_b = jnp.asarray(np.asarray(res.params.theta)[pad])
-        xs, cs, ys = (np.asarray(v) for v in _columns(model, tuple(terms), thetas,
-                                                       _inputs(batch, res, pad, aux), theta_b))
+        xs, rs, ys, sigs = jax.device_get(_columns(model, tuple(rivals),
+                                                    _inputs(batch, res, pad, aux), theta_b))
         for r, i in enumerate(part):
+            n = int(batch.n_valid[i])
+            t = np.asarray(batch.t[i, :n], np.float64)
+            dt = float(np.median(np.diff(t))) if n > 1 else 1.0
+            taus = [None if f is None else max(f * float(t[-1] - t[0]), 1.0)
+                    for f in fracs[:n_grammar]]
+            rate = np.zeros((n, 3)) if batch.rate is None else np.asarray(batch.rate[i, :n], float)
+            cols = np.concatenate([_products(grammar, taus, {k: np.asarray(v[r]) for k, v in
+                                                              sigs.items()}, rate, n, dt),
+                                   np.asarray(rs[r])[:n]], axis=-1)
             fl = floors[idx.index(i)]
             allowed = set(names[i])
             mine = {c.spec for c in builtins[idx.index(i)]}
             usable = [j for j, t in enumerate(terms)
                       if (isinstance(t, Term) and {n for n, _, _ in t.factors} <= allowed)
                       or (not isinstance(t, Term) and labels[j] in mine)]
-            prop = _select_device(xs[r], cs[r], ys[r], int(batch.n_valid[i]), fl, p, terms, labels,
-                                  groups, usable, rivals, model, th)
+            prop = _select_device(np.asarray(xs[r])[:n], cols, np.asarray(ys[r])[:n], n, fl, p,
+                                  terms, labels, groups, usable, rivals, model, th)
             if prop is not None:
                 out[i] = prop
     return out
