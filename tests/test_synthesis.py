@@ -112,3 +112,12 @@ def test_grammar_terms_are_candidates_when_named(catalogue):
                  ["term(temp*az)", "term(temp*ax)"], synthesis=False).devices[0]
     assert d.verdict == "missing_effect"
     assert d.best.spec == "bias_poly(1)+g_sens+term(ay*az)+term(temp*az)"
+
+
+def test_a_significant_built_in_term_competes_in_the_selection(catalogue):
+    """The heater's lag against ``aux(heater)``, which is significant but follows the duty
+    without its thermal path: the lag wins the selection, the column alone is not kept."""
+    (rec0, _), _ = catalogue["heater"]
+    d = diagnose("bias_poly(1)", Batch.from_recordings([rec0]), ["random_walk", "aux"]).devices[0]
+    assert any(c.spec == "bias_poly(1)+aux(heater)" and c.significant for c in d.candidates)
+    assert d.best.effect == "term" and d.best.spec == "bias_poly(1)+term(lag(heater))"

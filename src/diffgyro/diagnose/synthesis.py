@@ -352,7 +352,7 @@ def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorMo
         part = order[start:start + CHUNK]
         pad = np.asarray(part + [part[-1]] * (CHUNK - len(part)) if len(order) > CHUNK else part)
         theta_b = jnp.asarray(np.asarray(res.params.theta)[pad])
-        xs, rs, ys, sigs = jax.device_get(_columns(model, tuple(rivals),
+        xs, rs, ys, sigs = jax.device_get(_columns(model, tuple(c.term for c in rivals),
                                                     _inputs(batch, res, pad, aux), theta_b))
         for r, i in enumerate(part):
             n = int(batch.n_valid[i])
