@@ -201,3 +201,10 @@ def test_report_draws_the_residual_against_the_product(heater):
     e1 = np.asarray(res.residuals(batch))[0, :n]
     fig = residual_drop_figure(base.model, res.model.spec, batch.recording(0), e0, e1)
     assert fig.axes[1].get_xlabel() == "lag(heater)"
+
+
+def test_the_effects_command_lists_the_grammar(capsys):
+    from diffgyro.cli import main
+
+    assert main(["effects"]) == 0
+    assert "term(EXPR)" in capsys.readouterr().out
