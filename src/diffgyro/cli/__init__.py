@@ -41,16 +41,57 @@ def load_commands() -> typer.Typer:
     return app
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point: float64 and the compilation cache on, clean errors out."""
-    import diffgyro
+#: Options that name a file the command reads (besides its positional arguments).
+INPUT_OPTIONS = ("cal", "limits", "sections")
+
+
+def _check_inputs(command, values: dict) -> None:
+    """A missing input file is one line before the engine starts (the same line as
+    :func:`diffgyro.io.load` gives)."""
+    from pathlib import Path
+
     from diffgyro.errors import DataError
 
-    diffgyro.enable_x64()
-    diffgyro.enable_compilation_cache()
+    for param in command.params:
+        if param.param_type_name != "argument" and param.name not in INPUT_OPTIONS:
+            continue
+        given = values.get(param.name)
+        for path in given if isinstance(given, (list, tuple)) else [given]:
+            if isinstance(path, Path) and not path.exists():
+                raise DataError("file not found", file=str(path))
+
+
+def _engine_first(command):
+    """``command``'s callback with its input files checked, then float64 and the
+    compilation cache turned on: JAX starts only when a command runs, after its
+    options parsed (``--help`` and usage errors answer without it)."""
+    import functools
+
+    callback = command.callback
+
+    @functools.wraps(callback)
+    def run_command(*args, **kwargs):
+        import diffgyro
+
+        _check_inputs(command, kwargs)
+        diffgyro.enable_x64()
+        diffgyro.enable_compilation_cache()
+        return callback(*args, **kwargs)
+
+    return run_command
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: float64 and the compilation cache on, clean errors out."""
+    from diffgyro.errors import DataError
+
     load_commands()
+    root = typer.main.get_command(app)
+    for cmd in getattr(root, "commands", {}).values():
+        if cmd.callback is not None:
+            cmd.callback = _engine_first(cmd)
     try:
-        app(args=argv, standalone_mode=False)
+        root.main(args=argv, prog_name="diffgyro", standalone_mode=False)
     except DataError as err:
         print(f"diffgyro: error: {err}", file=sys.stderr)
         return 2
