@@ -63,3 +63,20 @@ def test_public_names_still_load_on_use(tmp_path):
                          cwd=tmp_path, timeout=120, check=False)
     assert run.returncode == 0, run.stderr
     assert run.stdout.split() == ["Params", "True"]
+
+
+def test_help_reads_cleanly_at_80_columns(tmp_path):
+    import os
+
+    env = {**os.environ, "COLUMNS": "80"}
+    outs = {}
+    for argv in (["--help"], ["fit", "--help"], ["compensate", "--help"], ["recipe", "--help"]):
+        out = subprocess.run([sys.executable, "-m", "diffgyro", *argv], capture_output=True,
+                             text=True, cwd=tmp_path, env=env, timeout=60, check=True).stdout
+        assert "<bool>" not in out and "…" not in out, out  # no type on a flag, nothing cut
+        assert max(map(len, out.splitlines())) <= 80, out
+        outs[argv[0]] = out
+    assert "..." not in outs["--help"].split("Commands:")[1]  # each command's first sentence is whole
+    # a docstring's paragraph wraps to the terminal, its source line breaks gone
+    assert "Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside\n" \
+        "  the calibrated range" in outs["compensate"]
