@@ -68,3 +68,9 @@ def compensate_command(
         typer.echo(dumps({"out": str(out), "model": calib.model, "devices": [
             {"device": d, "n_samples": n, "clamped": int(clamped.get(d, 0))}
             for d, n in zip(corrected.devices, counts, strict=True)]}))
+    else:
+        n_clamped = sum(int(v) for v in clamped.values())
+        typer.echo(f"wrote {out}: {len(corrected.devices)} device(s), "
+                   f"{int(corrected.mask.sum())} samples corrected by {calib.model} (rad/s)"
+                   + (f", {n_clamped} clamped to the calibrated temperature range"
+                      if n_clamped else ""))

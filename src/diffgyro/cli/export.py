@@ -74,7 +74,7 @@ def export_command(
             text = ekf_noise.write_ardupilot(ekf_noise.ardupilot_parameters(n, k, dt), name, dt)
         for line in report:
             print(f"diffgyro: {line}", file=sys.stderr)
-        _emit(text, out, source)
+        _emit(text, out, source, f"{fmt} noise parameters of device {name}")
         return
     if fmt == "kalibr":
         from diffgyro.export import kalibr
@@ -88,15 +88,26 @@ def export_command(
         if accel_random_walk is not None:
             noise = replace(noise, accel_random_walk=accel_random_walk)
         text = kalibr.write(noise, topic)
+        what = f"kalibr IMU noise of device {noise.name}"
     else:
         from diffgyro import calibration
 
         cal = calibration.load(source)
         ids = None if device_id is None else _ids(device_id)
         text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids)
+        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}"
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
-    _emit(text, out, source)
+    _emit(text, out, source, what)
+
+
+def _devices_of(cal, fmt: str, device: str | None) -> str:
+    """'device NAME' or 'N devices (A, B)': what an autopilot file holds."""
+    from diffgyro.export import ardupilot, px4, select_devices
+
+    names = select_devices(cal, device, fmt, {"px4": len(px4.SLOTS),
+                                              "ardupilot": len(ardupilot.SLOTS)}.get(fmt, 1))
+    return f"device {names[0]}" if len(names) == 1 else f"{len(names)} devices ({', '.join(names)})"
 
 
 def _ids(text: str) -> list[int]:
@@ -161,7 +172,8 @@ def _kalibr_noise(source: Path, device, rate, load_opts):
     return kalibr.from_allan(gyro_doc, device, rate, acc_doc)
 
 
-def _emit(text: str, out: str | None, source: Path) -> None:
+def _emit(text: str, out: str | None, source: Path, what: str) -> None:
+    """``text`` to stdout, or to ``out`` with one line saying what was written."""
     from diffgyro.errors import DataError
     from diffgyro.jsonio import atomic_write_text
 
@@ -171,3 +183,4 @@ def _emit(text: str, out: str | None, source: Path) -> None:
     if Path(out).resolve() == Path(source).resolve():
         raise DataError("refusing to overwrite the input file", file=out, hint="choose another --out")
     atomic_write_text(out, text)
+    typer.echo(f"wrote {out}: {what}, {len(text.splitlines())} lines")
