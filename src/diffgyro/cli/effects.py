@@ -28,7 +28,24 @@ def effects_command() -> None:
             shown = f"{name}(NAME)" + (f" or {name}(NAME,k)" if len(args) > 1 else "")
         elif args and cls.default_order is None:
             shown = f"{name}(k)"
+        elif args:  # an order with a default, e.g. thermal_lag = thermal_lag(1)
+            shown = f"{name} or {name}(k)"
         needs = ", ".join(sorted(term.requires())) or "—"
         coeffs = term.coefficient_summary()
+        if any(kind == "int" for _, kind in args):
+            coeffs = _of_order_k(cls, args)
         table.add_row(shown, cls.description, needs, coeffs)
     Console(width=160).print(table)
+
+
+def _of_order_k(cls, args) -> str:
+    """Every coefficient of a term of order k: ``c0, c1, …, ck`` (``a1, …, ak``)."""
+    import re
+
+    def names(k: int) -> list[str]:
+        term = cls(**{f: ("NAME" if kind == "column" else k) for f, kind in args})
+        return term.coefficient_summary().split(", ")
+
+    low = max(cls.min_order, 1)
+    first, last = names(low), names(low + 1)[-1]
+    return ", ".join([*first, "…", re.sub(r"[0-9]+$", "k", last)])
