@@ -138,12 +138,22 @@ def _is_noise_doc(doc) -> bool:
         return False
 
 
+def _is_json_object(path: Path) -> bool:
+    """Whether the file holds a JSON object (by its content: a name need not end in .json)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")
+    except OSError:
+        return path.suffix.lower() == ".json"  # let the reader name the problem
+    return head.startswith(b"{")
+
+
 def _kalibr_noise(source: Path, device, rate, load_opts):
     """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
     from diffgyro.errors import DataError
     from diffgyro.export import kalibr
 
-    if source.suffix.lower() == ".json":
+    if _is_json_object(source):
         try:
             doc = json.loads(source.read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, ValueError) as err:

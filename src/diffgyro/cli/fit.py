@@ -121,7 +121,7 @@ def fit_command(
     table = Table(title=f"fit {em.spec}  (rates in rad/s)")
     for col in ("device", "status", "rms", "held-out rms", "noise floor", "samples",
                 *(("limits",) if summary else ())):
-        table.add_column(col)
+        table.add_column(col, overflow="fold")  # a long name wraps whole, never cut to "name/…"
     for r in records:
         table.add_row(r["device"], r["status_detail"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
                       _fmt(r["noise_floor"]), str(r["n_samples"]),
