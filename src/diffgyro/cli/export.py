@@ -88,7 +88,7 @@ def export_command(
         if accel_random_walk is not None:
             noise = replace(noise, accel_random_walk=accel_random_walk)
         text = kalibr.write(noise, topic)
-        what = f"kalibr IMU noise of device {noise.name}"
+        what = f"kalibr IMU noise of device {noise.device}"
     else:
         from diffgyro import calibration
 
