@@ -246,12 +246,14 @@ UNITS = {
 def _accepted_reasons(d: dict) -> str:
     """binned-thermal's verdict per axis with its reason (|r| against r_min)."""
     parts = []
+    r_min = f"{d['r_min']!r}"  # as given: 0.9999999, not rounded to 1
+    digits = max(6, len(r_min.lstrip("0.").replace(".", "")) + 1)
     for axis, ok, r in zip("xyz", d["accepted"], d["r"], strict=True):
         if r is None:
             parts.append(f"{axis} no (r undefined: the bin means or temperatures do not vary)")
         else:
-            parts.append(f"{axis} {'yes' if ok else 'no'} (|r| {abs(r):.6g} "
-                         f"{'>' if ok else '≤'} r_min {d['r_min']:.6g})")
+            parts.append(f"{axis} {'yes' if ok else 'no'} (|r| {abs(r):.{digits}g} "
+                         f"{'>' if ok else '≤'} r_min {r_min})")
     return "; ".join(parts) + ("" if all(d["accepted"]) else
                                ": a rejected axis' bias does not follow a straight line in "
                                "temperature closely enough (--r-min to relax)")
