@@ -268,8 +268,8 @@ def test_a_500_device_summary_reads(batch_500_fit):
 
 
 def test_summary_text_has_units_links_and_no_backticks():
-    from diffgyro.report import _text, coefficient_unit
     from diffgyro.model import ErrorModel
+    from diffgyro.report import _text, coefficient_unit
 
     assert _text("add `gradient` & <x>") == "add <code>gradient</code> &amp; &lt;x&gt;"
     m = ErrorModel.from_spec("bias_poly(3)+thermal_lag")
