@@ -623,11 +623,13 @@ def summary_page(diagnosis, ladder=None, limits=None) -> str:
         + ("" if limits is None else f"<td class='l {limits[0][k]['limits']['result']}'>"
                                      f"{limits[0][k]['limits']['result']}</td>")
         + "</tr>" for k, d in enumerate(devs))
-    body.append("<h2>Devices</h2><table><tr><th class=l>device</th><th class=l>verdict</th>"
-                "<th class=l>fit status</th>"
-                "<th>held-out RMS (rad/s)</th><th>noise floor (rad/s)</th><th class=l>add</th>"
-                "<th class=l>close alternatives</th>"
-                + ("" if limits is None else "<th class=l>limits</th>") + f"</tr>{rows}</table>")
+    table = ("<h2>Devices</h2>" + ("<div style='max-height:36em;overflow:auto'>" if len(devs) > 40
+                                   else "<div>")
+             + "<table><tr><th class=l>device</th><th class=l>verdict</th>"
+             "<th class=l>fit status</th>"
+             "<th>held-out RMS (rad/s)</th><th>noise floor (rad/s)</th><th class=l>add</th>"
+             "<th class=l>close alternatives</th>"
+             + ("" if limits is None else "<th class=l>limits</th>") + f"</tr>{rows}</table></div>")
 
     fit = ladder.final.fit if ladder is not None else diagnosis.fit
     if fit.n_devices > 1 and _coefficients(fit):
@@ -646,6 +648,7 @@ def summary_page(diagnosis, ladder=None, limits=None) -> str:
         "<ul>" + "".join(f"<li><a href='{_slug(a)}.html'>{html.escape(a)}</a>: {html.escape(b)}</li>"
                          for a, b in out) + "</ul>"
         if out else "<p>None (robust z ≤ 5 on held-out/floor and on every coefficient).</p>"))
+    body.append(table)  # after the batch's picture: at hundreds of devices it is long
     if ladder is not None and len(ladder.steps) > 1:
         body.append("<h2>Model ladder</h2>" + ladder.html_table()
                     + f"<img src='data:image/png;base64,{ladder_png(ladder)}'>")
