@@ -558,13 +558,20 @@ def coefficients_figure(fit, devices: list[str], z: float = OUTLIER_Z):
             ax.hist(inner, bins=min(40, max(10, int(np.sqrt(inner.size)))), color="tab:blue")
             ax.set_ylabel("devices")
             order = np.flatnonzero(far)[np.argsort(-np.abs(v[far] - med))]
+            lo, hi = (inner.min(), inner.max()) if inner.size else (med, med)
+            pad = 0.08 * (hi - lo or abs(med) or 1.0)
+            ax.set_xlim(lo - pad, hi + pad)  # the batch's spread, outliers at the edges
             top = ax.get_ylim()[1]
             for rank, k in enumerate(order):
-                ax.axvline(v[k], color="tab:red", lw=1)
+                right = v[k] > med
+                edge = hi + pad if right else lo - pad
+                ax.plot([edge], [top * (0.9 - 0.13 * min(rank, 4))], ">" if right else "<",
+                        color="tab:red", ms=6, clip_on=False)
                 if rank < 4:  # name the farthest; the page lists every one
-                    ax.annotate(devices[k], (v[k], top * (0.92 - 0.14 * rank)), fontsize=7,
-                                color="tab:red", ha="right" if v[k] > med else "left",
-                                xytext=(-3 if v[k] > med else 3, 0), textcoords="offset points")
+                    ax.annotate(f"{devices[k]} = {v[k]:.3g}",
+                                (edge, top * (0.9 - 0.13 * rank)), fontsize=7, color="tab:red",
+                                ha="right" if right else "left", va="center",
+                                xytext=(-6 if right else 6, 0), textcoords="offset points")
             if order.size > 4:
                 ax.text(0.99, 0.02, f"+{order.size - 4} more outliers", transform=ax.transAxes,
                         ha="right", fontsize=7, color="tab:red")
@@ -638,8 +645,9 @@ def summary_page(diagnosis, ladder=None, limits=None) -> str:
                           for n in dict.fromkeys(n for ns in named.values() for n in ns))
         body.append(f"<h2>Coefficients across devices (<code>{html.escape(fit.model.spec)}</code>)</h2>"
                     "<p>One panel per coefficient and axis: its value (unit under the panel) "
-                    "against the number of devices with it; red: devices farther than "
-                    f"{OUTLIER_Z:g} robust standard deviations from the batch median, named."
+                    "against the number of devices with it; red, at the panel's edge with their value: "
+                    f"devices farther than {OUTLIER_Z:g} robust standard deviations from the batch "
+                    "median."
                     + (f" Their pages: {links}." if links else "") + "</p>"
                     f"<img alt='coefficients across devices' src='data:image/png;base64,"
                     f"{figure_png(fig)}'>")
