@@ -51,6 +51,8 @@ def test_missing_file_and_bad_option_answer_without_jax(tmp_path):
     assert seen["code"] == 2 and not seen["jax"] and "file data.csv: file not found" in err
     seen, _, err = _probe(["fit", "--no-such-option"], tmp_path)
     assert seen["code"] == 2 and not seen["jax"] and "--no-such-option" in err
+    seen, _, err = _probe(["fit", "x.csv", "--modle", "bias_poly(1)"], tmp_path)  # did you mean
+    assert seen["code"] == 2 and not seen["jax"] and "--modle" in err and "--model" in err
 
 
 def test_public_names_still_load_on_use(tmp_path):
