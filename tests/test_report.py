@@ -260,6 +260,12 @@ def test_a_500_device_summary_reads(batch_500_fit):
     c0 = next(ax for ax in axes if ax.get_title() == "x: bias_poly(1).c0")
     assert {t.get_text().split(" = ")[0] for t in c0.texts} >= {"dev007", "dev321"}
     assert set(named["x: bias_poly(1).c0"]) >= {"dev007", "dev321"}
+    fig.canvas.draw()  # no y label runs into a neighbouring panel
+    renderer = fig.canvas.get_renderer()
+    for ax in axes:
+        box = ax.yaxis.label.get_window_extent(renderer)
+        assert not any(box.overlaps(other.get_window_extent(renderer)) for other in axes
+                       if other is not ax)
     assert coefficient_unit(result.model, "gradient.g") == "rad/s per °C/s"
     assert coefficient_unit(result.model, "bias_poly(1).c0") == "rad/s"
     import matplotlib.pyplot as plt
