@@ -60,6 +60,8 @@ def test_pages_are_self_contained(rate_table, rate_ladder, tmp_path):
     assert "scale_asym" in page and "missing_effect" in page
     index = (tmp_path / "r" / "index.html").read_text()
     assert "rt3.html" in index and "Model ladder" in index and "Outlier devices" in index
+    assert "held-out RMS (rad/s)" in index and "value (rad/s" not in index  # units in the table
+    assert "`" not in re.sub(r"data:image[^'\"]+", "", index + page)  # term names set as code
     assert not [p for p in (tmp_path / "r").iterdir() if p.name.startswith(".")]  # no temp files
     assert oct(os.stat(tmp_path / "r" / "index.html").st_mode & 0o444) == oct(0o444)
 
@@ -223,3 +225,59 @@ def test_an_aux_term_is_drawn_against_its_column():
     # the base residual, drawn against the column, follows it: the term's signal
     x, y = (np.asarray(a, float) for a in _labelled(fig.axes[1])["bias_poly(1)"].get_data())
     assert abs(np.corrcoef(x, y)[0, 1]) > 0.8
+
+
+@pytest.fixture(scope="module")
+def batch_500_fit():
+    """500 devices (bias_poly(1)+gradient fitted) with two x biases far from the others."""
+    import dataclasses
+
+    from diffgyro.fit import fit
+    from diffgyro.simulate import simulate
+
+    batch, _ = simulate("thermal", 500, effects="bias_poly(1)+gradient", seed=0, duration=1800.0,
+                        sample_rate=0.5)
+    recs = batch.recordings()
+    for k, offset in ((7, 0.2), (321, -0.15)):
+        recs[k] = dataclasses.replace(recs[k], gyro=recs[k].gyro + np.array([offset, 0.0, 0.0]))
+    batch = Batch.from_recordings(recs)
+    return batch, fit("bias_poly(1)+gradient", batch, noise_floor=False)
+
+
+def test_a_500_device_summary_reads(batch_500_fit):
+    """Histograms with units on the axes, the y axis in devices, the outliers named."""
+    from diffgyro.report import coefficient_unit, coefficients_figure
+
+    batch, result = batch_500_fit
+    fig, named = coefficients_figure(result, list(batch.devices))
+    axes = [ax for ax in fig.axes if ax.get_title()]
+    assert len(axes) == 9  # 3 axes x (c0, c1, g)
+    for ax in axes:
+        assert ax.get_ylabel() == "devices"
+        assert re.fullmatch(r"value \(rad/s( per (T_s|°C/s))?\)", ax.get_xlabel()), ax.get_xlabel()
+        assert len(ax.patches) >= 10  # a histogram, not a strip of 500 dots
+        assert all(t.get_fontsize() >= 7 for t in ax.get_xticklabels())
+    c0 = next(ax for ax in axes if ax.get_title() == "x: bias_poly(1).c0")
+    assert {t.get_text().split(" = ")[0] for t in c0.texts} >= {"dev007", "dev321"}
+    assert set(named["x: bias_poly(1).c0"]) >= {"dev007", "dev321"}
+    fig.canvas.draw()  # no y label runs into a neighbouring panel
+    renderer = fig.canvas.get_renderer()
+    for ax in axes:
+        box = ax.yaxis.label.get_window_extent(renderer)
+        assert not any(box.overlaps(other.get_window_extent(renderer)) for other in axes
+                       if other is not ax)
+    assert coefficient_unit(result.model, "gradient.g") == "rad/s per °C/s"
+    assert coefficient_unit(result.model, "bias_poly(1).c0") == "rad/s"
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+
+
+def test_summary_text_has_units_links_and_no_backticks():
+    from diffgyro.model import ErrorModel
+    from diffgyro.report import _text, coefficient_unit
+
+    assert _text("add `gradient` & <x>") == "add <code>gradient</code> &amp; &lt;x&gt;"
+    m = ErrorModel.from_spec("bias_poly(3)+thermal_lag")
+    assert coefficient_unit(m, "bias_poly(3).c2") == "rad/s per T_s^2"
+    assert coefficient_unit(m, "thermal_lag.tau") == "s"

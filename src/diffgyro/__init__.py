@@ -65,11 +65,25 @@ def use_cpu_cores(n: int | None = None) -> int:
     return len(jax.devices("cpu"))
 
 
-# kalman registers the random_walk fit with diffgyro.core (fit() dispatches through it)
-from . import effects, kalman  # noqa: E402,F401
-from .data import Batch, Recording  # noqa: E402
-from .errors import DataError, SpecError  # noqa: E402
-from .model import ErrorModel, Params  # noqa: E402
+from .errors import DataError, SpecError  # noqa: E402  (no JAX: the CLI's errors)
+
+#: Public names loaded on first use, so that ``import diffgyro`` (and the command
+#: line's ``--help``) does not start JAX; the fit of a noise component finds
+#: :mod:`diffgyro.kalman` through :func:`diffgyro.core.noise_fit`.
+_LAZY = {"Batch": "data", "Recording": "data", "ErrorModel": "model", "Params": "model",
+         "effects": None, "kalman": None}
+
+
+def __getattr__(name: str):
+    if name not in _LAZY:
+        raise AttributeError(f"module 'diffgyro' has no attribute {name!r}")
+    import importlib
+
+    module = importlib.import_module(f".{_LAZY[name] or name}", __name__)
+    value = module if _LAZY[name] is None else getattr(module, name)
+    globals()[name] = value
+    return value
+
 
 __all__ = ["Batch", "DataError", "ErrorModel", "Params", "Recording", "SpecError",
            "__version__", "effects", "enable_compilation_cache", "enable_x64", "use_cpu_cores"]

@@ -152,6 +152,8 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
 
 def noise_fit(noise: AbstractNoise) -> Callable:
     """The fit registered for the class of ``noise`` (or the nearest base class)."""
+    from . import kalman  # noqa: F401  (registers RandomWalk's fit on first use)
+
     for cls in type(noise).__mro__:
         if cls in _NOISE_FITS:
             return _NOISE_FITS[cls]

@@ -470,10 +470,10 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits
     body = [
         f"<h1>{html.escape(d.device)} — <span class={d.verdict}>{d.verdict}</span></h1>",
         f"<p>Model <code>{html.escape(diagnosis.spec)}</code>; fit status "
-        f"{html.escape(d.status_detail or d.status)}. "
+        f"{_text(d.status_detail or d.status)}. "
         f"RMS {_fmt(d.rms)}, held-out RMS {_fmt(d.heldout_rms)}, noise floor {_fmt(d.noise_floor)} "
         f"rad/s (short-τ Allan {_fmt(d.floor_allan)}).</p>",
-        f"<p class=expl>{html.escape(d.explanation)}</p>",
+        f"<p class=expl>{_text(d.explanation)}</p>",
         _limits_html(limits),
         _motion_line(diagnosis, i),
         "<h2>Candidates (best first)</h2><table><tr><th class=l>effect</th><th class=l>model</th>"
@@ -517,6 +517,102 @@ def outliers(diagnosis, z: float = 5.0) -> list[tuple[str, str]]:
     return out
 
 
+#: Robust z (median/MAD) past which a device is an outlier of the batch.
+OUTLIER_Z = 5.0
+#: Panels of the coefficient figure with more devices than this are histograms.
+STRIP_MAX = 20
+
+
+def _text(text: str) -> str:
+    """Message text as HTML: escaped, and its `term` quotes set as code."""
+    import re
+
+    return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(text))
+
+
+def coefficient_unit(model, label: str) -> str:
+    """The unit of a coefficient label (``bias_poly(2).c1`` -> ``rad/s per T_s``;
+    a shared time constant ``thermal_lag.tau`` -> ``s``). ``T_s``: the scaled temperature
+    (dimensionless, about [-1, 1] over the calibrated range)."""
+    import re
+
+    spec, _, name = label.rpartition(".")
+    if name == "tau" or name.startswith("tau"):
+        return "s"
+    term = next((t for t in model.parts if t.spec == spec), None)
+    unit = getattr(term, "unit", "") or ""
+    j = re.search(r"([0-9]+)$", name)
+    if "^j" in unit:
+        k = int(j.group(1)) if j else 1
+        base, _, per = unit.partition(" per ")
+        var = per.split("^j")[0]
+        tail = per.split("^j", 1)[1]
+        unit = base + tail if k == 0 else f"{base} per {var}" + ("" if k == 1 else f"^{k}") + tail
+    return unit
+
+
+def coefficients_figure(fit, devices: list[str], z: float = OUTLIER_Z):
+    """Each coefficient across the devices: a strip of named dots for a few devices, a
+    histogram for many; devices farther than ``z`` robust standard deviations from the
+    median are drawn red and named. Returns (figure, {panel: outlier device names})."""
+    plt = _plt()
+    coefs = _coefficients(fit)
+    names = list(coefs)
+    ncol = min(3, len(names))
+    nrow = math.ceil(len(names) / ncol)
+    fig, axs = plt.subplots(nrow, ncol, figsize=(4.2 * ncol, 2.9 * nrow), squeeze=False,
+                            layout="constrained")
+    named: dict[str, list[str]] = {}
+    for ax, name in zip(axs.flat, names):
+        v = coefs[name]
+        ok = np.isfinite(v)
+        med = np.median(v[ok]) if ok.any() else np.nan
+        mad = 1.4826 * np.median(np.abs(v[ok] - med)) if ok.any() else np.nan
+        far = ok & (np.abs(v - med) > z * mad) if np.isfinite(mad) and mad > 0 else np.zeros_like(ok)
+        if ok.sum() > STRIP_MAX:
+            inner = v[ok & ~far]
+            ax.hist(inner, bins=min(40, max(10, int(np.sqrt(inner.size)))), color="tab:blue")
+            ax.set_ylabel("devices")
+            order = np.flatnonzero(far)[np.argsort(-np.abs(v[far] - med))]
+            lo, hi = (inner.min(), inner.max()) if inner.size else (med, med)
+            pad = 0.08 * (hi - lo or abs(med) or 1.0)
+            ax.set_xlim(lo - pad, hi + pad)  # the batch's spread, outliers at the edges
+            top = ax.get_ylim()[1]
+            for rank, k in enumerate(order):
+                right = v[k] > med
+                edge = hi + pad if right else lo - pad
+                ax.plot([edge], [top * (0.9 - 0.13 * min(rank, 4))], ">" if right else "<",
+                        color="tab:red", ms=6, clip_on=False)
+                if rank < 4:  # name the farthest; the page lists every one
+                    ax.annotate(f"{devices[k]} = {v[k]:.3g}",
+                                (edge, top * (0.9 - 0.13 * rank)), fontsize=7, color="tab:red",
+                                ha="right" if right else "left", va="center",
+                                xytext=(-6 if right else 6, 0), textcoords="offset points")
+            if order.size > 4:
+                ax.text(0.99, 0.02, f"+{order.size - 4} more outliers", transform=ax.transAxes,
+                        ha="right", fontsize=7, color="tab:red")
+        else:  # a few devices: each a named dot
+            idx = np.flatnonzero(ok)
+            y = np.linspace(-0.8, 0.8, idx.size) if idx.size > 1 else np.zeros(1)
+            ax.scatter(v[idx], y, s=16, color=np.where(far[idx], "tab:red", "tab:blue"))
+            for yy, k in zip(y, idx):
+                ax.annotate(devices[k], (v[k], yy), fontsize=6, xytext=(3, 0),
+                            textcoords="offset points", va="center")
+            ax.set_ylim(-1, 1)
+            ax.set_yticks([])
+            ax.set_ylabel("devices")
+        unit = coefficient_unit(fit.model, name.split(": ")[-1])
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel(f"value ({unit})" if unit else "value", fontsize=8)
+        ax.tick_params(labelsize=8)
+        ax.ticklabel_format(axis="x", style="sci", scilimits=(-4, 5))
+        ax.locator_params(axis="x", nbins=5)
+        named[name] = [devices[k] for k in np.flatnonzero(far)]
+    for ax in list(axs.flat)[len(names):]:
+        ax.set_axis_off()
+    return fig, named
+
+
 def summary_page(diagnosis, ladder=None, limits=None) -> str:
     """The batch page; ``limits``: (records, summary) of --limits."""
     plt = _plt()
@@ -530,9 +626,11 @@ def summary_page(diagnosis, ladder=None, limits=None) -> str:
     for d in devs:
         if d.best is not None:
             best[d.best.effect] = best.get(d.best.effect, 0) + 1
-    fig, axs = plt.subplots(1, 2, figsize=(10, 3))
+    fig, axs = plt.subplots(1, 2, figsize=(10, 3), layout="constrained")
     axs[0].bar(list(counts), list(counts.values()), color=["tab:green", "tab:red", "tab:olive"])
     axs[0].set_title("verdicts", fontsize=9)
+    for ax in axs:
+        ax.set_ylabel("devices")
     if best:
         axs[1].bar(list(best), list(best.values()), color="tab:red")
         axs[1].tick_params(axis="x", rotation=20, labelsize=8)
@@ -542,47 +640,39 @@ def summary_page(diagnosis, ladder=None, limits=None) -> str:
     rows = "".join(
         f"<tr><td class=l><a href='{_slug(d.device)}.html'>{html.escape(d.device)}</a></td>"
         f"<td class='l {d.verdict}'>{d.verdict}</td>"
-        f"<td class=l>{html.escape(d.status_detail or d.status)}</td><td>{_fmt(d.heldout_rms)}</td>"
+        f"<td class=l>{_text(d.status_detail or d.status)}</td><td>{_fmt(d.heldout_rms)}</td>"
         f"<td>{_fmt(d.noise_floor)}</td><td class=l>{html.escape(d.best.effect if d.best else '')}</td>"
         f"<td class=l>{html.escape(', '.join(c.effect for c in d.alternatives))}</td>"
         + ("" if limits is None else f"<td class='l {limits[0][k]['limits']['result']}'>"
                                      f"{limits[0][k]['limits']['result']}</td>")
         + "</tr>" for k, d in enumerate(devs))
-    body.append("<h2>Devices</h2><table><tr><th class=l>device</th><th class=l>verdict</th>"
-                "<th class=l>fit status</th>"
-                "<th>held-out RMS</th><th>noise floor</th><th class=l>add</th>"
-                "<th class=l>close alternatives</th>"
-                + ("" if limits is None else "<th class=l>limits</th>") + f"</tr>{rows}</table>")
+    table = ("<h2>Devices</h2>" + ("<div style='max-height:36em;overflow:auto'>" if len(devs) > 40
+                                   else "<div>")
+             + "<table><tr><th class=l>device</th><th class=l>verdict</th>"
+             "<th class=l>fit status</th>"
+             "<th>held-out RMS (rad/s)</th><th>noise floor (rad/s)</th><th class=l>add</th>"
+             "<th class=l>close alternatives</th>"
+             + ("" if limits is None else "<th class=l>limits</th>") + f"</tr>{rows}</table></div>")
 
     fit = ladder.final.fit if ladder is not None else diagnosis.fit
-    coefs = _coefficients(fit)
-    if coefs and len(devs) > 1:
-        names = list(coefs)
-        ncol = 4
-        nrow = math.ceil(len(names) / ncol)
-        fig, axs = plt.subplots(nrow, ncol, figsize=(12, 2.2 * nrow), squeeze=False)
-        for ax, name in zip(axs.flat, names):
-            v = coefs[name]
-            v = v[np.isfinite(v)]
-            if len(v) >= 20:
-                ax.hist(v, bins=min(30, len(v) // 3), color="tab:blue")
-            else:  # a strip of dots reads better than a histogram of a few devices
-                jitter = np.random.default_rng(0).uniform(-0.3, 0.3, len(v))
-                ax.plot(v, jitter, "o", ms=4, color="tab:blue", alpha=0.7)
-                ax.set_ylim(-1, 1)
-                ax.set_yticks([])
-            ax.set_title(name, fontsize=7)
-            ax.tick_params(labelsize=6)
-            ax.locator_params(axis="x", nbins=4)
-        for ax in list(axs.flat)[len(names):]:
-            ax.set_axis_off()
-        fig.tight_layout()
+    if fit.n_devices > 1 and _coefficients(fit):
+        fig, named = coefficients_figure(fit, [d.device for d in devs])
+        links = ", ".join(f"<a href='{_slug(n)}.html'>{html.escape(n)}</a>"
+                          for n in dict.fromkeys(n for ns in named.values() for n in ns))
         body.append(f"<h2>Coefficients across devices (<code>{html.escape(fit.model.spec)}</code>)</h2>"
-                    f"<img src='data:image/png;base64,{figure_png(fig)}'>")
+                    "<p>One panel per coefficient and axis: its value (unit under the panel) "
+                    "against the number of devices with it; red, at the panel's edge with their value: "
+                    f"devices farther than {OUTLIER_Z:g} robust standard deviations from the batch "
+                    "median."
+                    + (f" Their pages: {links}." if links else "") + "</p>"
+                    f"<img alt='coefficients across devices' src='data:image/png;base64,"
+                    f"{figure_png(fig)}'>")
     out = outliers(diagnosis)
     body.append("<h2>Outlier devices</h2>" + (
-        "<ul>" + "".join(f"<li>{html.escape(a)}: {html.escape(b)}</li>" for a, b in out) + "</ul>"
+        "<ul>" + "".join(f"<li><a href='{_slug(a)}.html'>{html.escape(a)}</a>: {html.escape(b)}</li>"
+                         for a, b in out) + "</ul>"
         if out else "<p>None (robust z ≤ 5 on held-out/floor and on every coefficient).</p>"))
+    body.append(table)  # after the batch's picture: at hundreds of devices it is long
     if ladder is not None and len(ladder.steps) > 1:
         body.append("<h2>Model ladder</h2>" + ladder.html_table()
                     + f"<img src='data:image/png;base64,{ladder_png(ladder)}'>")
@@ -619,6 +709,6 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     return paths
 
 
-__all__ = ["device_figures", "device_page", "figure_png", "followed_signal", "ladder_png",
+__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page", "figure_png", "followed_signal", "ladder_png",
            "named_term_residuals", "outliers", "residual_drop_figure", "summary_page", "write_atomic",
            "write_report"]

@@ -20,6 +20,7 @@ app = typer.Typer(
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
+    rich_markup_mode=None,
 )
 
 _loaded = False
@@ -41,16 +42,88 @@ def load_commands() -> typer.Typer:
     return app
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point: float64 and the compilation cache on, clean errors out."""
-    import diffgyro
+#: Options that name a file the command reads (besides its positional arguments).
+INPUT_OPTIONS = ("cal", "limits", "sections")
+
+
+def _check_inputs(command, values: dict) -> None:
+    """A missing input file is one line before the engine starts (the same line as
+    :func:`diffgyro.io.load` gives)."""
+    from pathlib import Path
+
     from diffgyro.errors import DataError
 
-    diffgyro.enable_x64()
-    diffgyro.enable_compilation_cache()
+    for param in command.params:
+        if param.param_type_name != "argument" and param.name not in INPUT_OPTIONS:
+            continue
+        given = values.get(param.name)
+        for path in given if isinstance(given, (list, tuple)) else [given]:
+            if isinstance(path, Path) and not path.exists():
+                raise DataError("file not found", file=str(path))
+
+
+def _engine_first(command):
+    """``command``'s callback with its input files checked, then float64 and the
+    compilation cache turned on: JAX starts only when a command runs, after its
+    options parsed (``--help`` and usage errors answer without it)."""
+    import functools
+
+    callback = command.callback
+
+    @functools.wraps(callback)
+    def run_command(*args, **kwargs):
+        import diffgyro
+
+        _check_inputs(command, kwargs)
+        diffgyro.enable_x64()
+        diffgyro.enable_compilation_cache()
+        return callback(*args, **kwargs)
+
+    return run_command
+
+
+def _reflow(text: str) -> str:
+    """Docstring paragraphs as single lines (the help panel wraps them to the terminal);
+    an indented or bulleted paragraph keeps its lines."""
+    import inspect
+
+    paragraphs = inspect.cleandoc(text).split("\n\n")
+    return "\n\n".join(
+        p if any(line[:1].isspace() or line.lstrip()[:2] in ("- ", "* ") or line.startswith("\b")
+                 for line in p.splitlines()) else " ".join(line.strip() for line in p.splitlines())
+        for p in paragraphs)
+
+
+def tidy_help(command) -> None:
+    """Help as a reader wants it, for ``command`` and its subcommands: paragraphs not
+    broken mid-sentence, arguments named as the text names them (``DATA``), and no
+    type shown for a flag (``--json``, ``--help``)."""
+    if command.help:
+        command.help = _reflow(command.help)
+        if command.short_help is None:  # the list of commands shows its first sentence whole
+            command.short_help = command.help.split("\n\n")[0].split(". ")[0].rstrip(".") + "."
+    ctx = command.context_class(command, info_name=command.name)
+    for param in [*command.params, command.get_help_option(ctx)]:
+        if param is not None and getattr(param, "is_flag", False) and param.metavar is None:
+            param.metavar = ""
+        elif getattr(param, "param_type_name", "") == "argument" and param.metavar is None:
+            param.metavar = param.name.upper()  # DATA, as the help text names it
+    for sub in getattr(command, "commands", {}).values():
+        tidy_help(sub)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point: float64 and the compilation cache on, clean errors out."""
+    from diffgyro.errors import DataError
+
     load_commands()
+    root = typer.main.get_command(app)
+    tidy_help(root)
+    for cmd in getattr(root, "commands", {}).values():
+        if cmd.callback is not None:
+            cmd.callback = _engine_first(cmd)
     try:
-        app(args=argv, standalone_mode=False)
+        root.main(args=argv, prog_name="diffgyro", standalone_mode=False)
     except DataError as err:
         print(f"diffgyro: error: {err}", file=sys.stderr)
         return 2

@@ -38,6 +38,8 @@ def allan_command(
     data: DataFiles,
     json_out: Annotated[bool, typer.Option("--json", help="Print the curves and read-outs as JSON.")] = False,
     report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
+    out: Annotated[Path | None, typer.Option("--out", "-o", help="Also write the --json object to "
+                                             "this file (what 'export --format kalibr' reads).")] = None,
     per_decade: Annotated[int, typer.Option("--per-decade", min=1, max=100,
                                             help="Cluster sizes per decade of τ.")] = 10,
     taus: Annotated[str | None, typer.Option(
@@ -91,10 +93,16 @@ def allan_command(
         _warn_missing_taus(doc, wanted)
     if report is not None:
         _write_report(parts, batch, doc, report)
+    if out is not None:
+        from diffgyro.jsonio import atomic_write_text
+
+        atomic_write_text(out, dumps(doc))
     if json_out:
         typer.echo(dumps(doc))
     else:
-        _print_table(doc, report)
+        _print_table(doc, report, wanted, batch)
+        if out is not None:
+            typer.echo(f"wrote {out}: Allan curves and read-outs of {batch.n_devices} device(s)")
 
 
 def _add_motion(doc: dict, motion, batch, recorded, static_only: bool) -> None:
@@ -150,6 +158,8 @@ def _merged_json(parts, batch) -> dict:
     by_index = {}
     for idx, result in parts:
         for i, entry in zip(idx, to_json(result, [batch.devices[i] for i in idx], AXES)["devices"]):
+            for ax in entry["axes"].values():  # τ = m·dt to the digits dt holds: 0.02, not 0.0199…96
+                ax["tau"] = [float(f"{t:.10g}") for t in ax["tau"]]
             by_index[int(i)] = entry
     return {"devices": [by_index[i] for i in range(batch.n_devices)]}
 
@@ -181,9 +191,25 @@ def _fmt(x) -> str:
     return "—" if x is None or not math.isfinite(x) else f"{x:.4g}"
 
 
-def _print_table(doc: dict, report: Path | None) -> None:
+def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = None,
+                 batch=None) -> None:
+    """The read-outs (and with --taus σ at each τ asked for); each dash is numbered and
+    its reason printed under the table."""
     from rich.console import Console
     from rich.table import Table
+
+    notes: list[str] = []
+
+    def dash(reason: str) -> str:
+        if reason not in notes:
+            notes.append(reason)
+        return f"— [{notes.index(reason) + 1}]"
+
+    def cell(ax: dict, key: str) -> str:
+        x = ax[key]
+        if x is not None and math.isfinite(x):
+            return f"{x:.4g}"
+        return dash((ax.get("missing") or {}).get(key) or "not defined by this curve")
 
     table = Table(title="Allan deviation read-outs")
     for col in ("device", "axis", "ARW (rad/s/√Hz)", "bias instability (rad/s)",
@@ -192,9 +218,14 @@ def _print_table(doc: dict, report: Path | None) -> None:
     for dev in doc["devices"]:
         for name, ax in dev["axes"].items():
             span = f"{ax['tau'][0]:.3g} – {ax['tau'][-1]:.3g}" if ax["tau"] else "—"
-            table.add_row(str(dev["device"]), name, _fmt(ax["arw"]), _fmt(ax["bias_instability"]),
-                          _fmt(ax["rrw"]), span)
-    Console(width=120).print(table)
+            table.add_row(str(dev["device"]), name, cell(ax, "arw"), cell(ax, "bias_instability"),
+                          cell(ax, "rrw"), span)
+    con = Console(width=120)
+    con.print(table)
+    if wanted:
+        con.print(_tau_table(doc, wanted, batch, dash))
+    for i, reason in enumerate(notes, 1):
+        con.print(f"[{i}] {reason}", markup=False, highlight=False, soft_wrap=True)
     for dev in doc["devices"]:
         if dev.get("status", "ok") != "ok":
             print(f"{dev['device']}: {dev['status_detail']}")
@@ -203,7 +234,36 @@ def _print_table(doc: dict, report: Path | None) -> None:
                   f"(the longest static interval, t = {dev['segment'][0]:.6g} to "
                   f"{dev['segment'][1]:.6g} s)")
     if report is not None:
-        Console(width=120).print(f"report: {report / 'index.html'}")
+        con.print(f"report: {report / 'index.html'}")
+
+
+def _tau_table(doc: dict, wanted: list[float], batch, dash):
+    """σ(τ) at exactly the τ asked for, per device and axis."""
+    from rich.table import Table
+
+    table = Table(title="Allan deviation σ(τ) at the τ asked for (rad/s)")
+    table.add_column("device")
+    table.add_column("axis")
+    for t in wanted:
+        table.add_column(f"τ = {t:g} s", justify="right")
+    for i, dev in enumerate(doc["devices"]):
+        span = None
+        if batch is not None:
+            n = int(batch.n_valid[i])
+            span = float(batch.t[i, n - 1] - batch.t[i, 0])
+        for name, ax in dev["axes"].items():
+            row = []
+            for t in wanted:
+                hit = [a for g, a in zip(ax["tau"], ax["adev"], strict=True)
+                       if math.isclose(t, g, rel_tol=1e-6)]
+                if hit:
+                    row.append(f"{hit[0]:.4g}")
+                else:
+                    row.append(dash("τ longer than a quarter of the recording"
+                                    + (f" ({span:.4g} s)" if span is not None else "")
+                                    + ": too few clusters to average"))
+            table.add_row(str(dev["device"]), name, *row)
+    return table
 
 
 def _write_report(parts, batch, doc: dict, out: Path) -> None:

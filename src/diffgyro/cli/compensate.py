@@ -73,3 +73,9 @@ def compensate_command(
             {"device": d, "n_samples": n, "clamped": int(clamped.get(d, 0)),
              **{k: v for k, v in r.items() if k != "device"}}
             for d, n, r in zip(corrected.devices, counts, carried, strict=True)]}))
+    else:
+        n_clamped = sum(int(v) for v in clamped.values())
+        typer.echo(f"wrote {out}: {len(corrected.devices)} device(s), "
+                   f"{int(corrected.mask.sum())} samples corrected by {calib.model} (rad/s)"
+                   + (f", {n_clamped} clamped to the calibrated temperature range"
+                      if n_clamped else ""))

@@ -30,8 +30,25 @@ def effects_command() -> None:
             shown = f"{name}(EXPR)"
         elif args and cls.default_order is None:
             shown = f"{name}(k)"
+        elif args:  # an order with a default, e.g. thermal_lag = thermal_lag(1)
+            shown = f"{name} or {name}(k)"
         needs = ("the signals EXPR names" if shown.endswith("(EXPR)")
                  else ", ".join(sorted(term.requires())) or "—")
         coeffs = term.coefficient_summary()
+        if any(kind == "int" for _, kind in args):
+            coeffs = _of_order_k(cls, args)
         table.add_row(shown, cls.description, needs, coeffs)
     Console(width=160).print(table)
+
+
+def _of_order_k(cls, args) -> str:
+    """Every coefficient of a term of order k: ``c0, c1, …, ck`` (``a1, …, ak``)."""
+    import re
+
+    def names(k: int) -> list[str]:
+        term = cls(**{f: ("NAME" if kind == "column" else k) for f, kind in args})
+        return term.coefficient_summary().split(", ")
+
+    low = max(cls.min_order, 1)
+    first, last = names(low), names(low + 1)[-1]
+    return ", ".join([*first, "…", re.sub(r"[0-9]+$", "k", last)])

@@ -79,7 +79,7 @@ def export_command(
             text = ekf_noise.write_ardupilot(ekf_noise.ardupilot_parameters(n, k, dt), name, dt)
         for line in report:
             print(f"diffgyro: {line}", file=sys.stderr)
-        _emit(text, out, source)
+        _emit(text, out, source, f"{fmt} noise parameters of device {name}")
         return
     if fmt == "kalibr":
         from diffgyro.export import kalibr
@@ -93,6 +93,7 @@ def export_command(
         if accel_random_walk is not None:
             noise = replace(noise, accel_random_walk=accel_random_walk)
         text = kalibr.write(noise, topic, [ln for ln in report if ln.startswith("WARNING: written")])
+        what = f"kalibr IMU noise of device {noise.device}"
     else:
         from diffgyro import calibration
 
@@ -100,9 +101,19 @@ def export_command(
         ids = None if device_id is None else _ids(device_id)
         text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
                               force=force)
+        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}"
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
-    _emit(text, out, source)
+    _emit(text, out, source, what)
+
+
+def _devices_of(cal, fmt: str, device: str | None) -> str:
+    """'device NAME' or 'N devices (A, B)': what an autopilot file holds."""
+    from diffgyro.export import ardupilot, px4, select_devices
+
+    names = select_devices(cal, device, fmt, {"px4": len(px4.SLOTS),
+                                              "ardupilot": len(ardupilot.SLOTS)}.get(fmt, 1))
+    return f"device {names[0]}" if len(names) == 1 else f"{len(names)} devices ({', '.join(names)})"
 
 
 def _ids(text: str) -> list[int]:
@@ -133,12 +144,22 @@ def _is_noise_doc(doc) -> bool:
         return False
 
 
+def _is_json_object(path: Path) -> bool:
+    """Whether the file holds a JSON object (by its content: a name need not end in .json)."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")
+    except OSError:
+        return path.suffix.lower() == ".json"  # let the reader name the problem
+    return head.startswith(b"{")
+
+
 def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
     """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
     from diffgyro.errors import DataError
     from diffgyro.export import kalibr
 
-    if source.suffix.lower() == ".json":
+    if _is_json_object(source):
         try:
             doc = json.loads(source.read_text(encoding="utf-8"))
         except (OSError, UnicodeDecodeError, ValueError) as err:
@@ -169,7 +190,8 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
     return kalibr.from_allan(gyro_doc, device, rate, acc_doc, force=force)
 
 
-def _emit(text: str, out: str | None, source: Path) -> None:
+def _emit(text: str, out: str | None, source: Path, what: str) -> None:
+    """``text`` to stdout, or to ``out`` with one line saying what was written."""
     from diffgyro.errors import DataError
     from diffgyro.jsonio import atomic_write_text
 
@@ -179,3 +201,4 @@ def _emit(text: str, out: str | None, source: Path) -> None:
     if Path(out).resolve() == Path(source).resolve():
         raise DataError("refusing to overwrite the input file", file=out, hint="choose another --out")
     atomic_write_text(out, text)
+    typer.echo(f"wrote {out}: {what}, {len(text.splitlines())} lines")

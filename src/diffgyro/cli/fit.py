@@ -129,7 +129,7 @@ def fit_command(
     table = Table(title=f"fit {em.spec}  (rates in rad/s)")
     for col in ("device", "status", "rms", "held-out rms", "noise floor", "moving", "samples",
                 *(("limits",) if summary else ())):
-        table.add_column(col)
+        table.add_column(col, overflow="fold")  # a long name wraps whole, never cut to "name/…"
     for r in records:
         mo = (r.get("motion") or {}).get("moving_fraction")
         n = str(r["n_samples"]) + (f" of {r['n_recorded']} (static only)" if r.get("static_only") else "")

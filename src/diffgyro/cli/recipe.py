@@ -44,7 +44,9 @@ def recipe_command(
     name: Annotated[str, typer.Argument(help="Recipe: binned-thermal, static-kalman, fog-one-run, "
                                              "attitude-reference, cube-bias, six-position, "
                                              "multi-position.", show_default=False)],
-    data: Annotated[Path, typer.Argument(help="Data file (CSV, TSV, Parquet, NPZ).",
+    data: Annotated[Path, typer.Argument(help="Data file (CSV, TSV, Parquet, NPZ) or log (PX4 "
+                                              ".ulg, ROS .bag / .mcap / rosbag2 folder, "
+                                              "ArduPilot .bin / .log).",
                                          show_default=False)],
     as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
     out: Annotated[Path | None, _opt("--out", "Also write the JSON result to this file.")] = None,
@@ -148,7 +150,7 @@ def recipe_command(
     for dev, extra in (rest or {}).items():
         if extra["status"] != "ok":
             typer.echo(f"diffgyro: warning: device {dev}: {extra['status_detail']}", err=True)
-    _print_human(name, recipe, results)
+    _print_human(name, recipe, results, gyro_unit or "rad/s", acc_unit or "m/s²")
 
 
 #: Recipes whose method assumes the device at rest throughout.
@@ -267,25 +269,71 @@ def _naming_file(err, file: str, device: str):
                      row=err.row, hint=err.hint)
 
 
-def _print_human(name, recipe, results) -> None:
-    """Short, readable summary: scalars and small arrays of each result."""
+#: Units of the numbers each recipe prints (the recording is in SI: rad/s, m/s², °C, s;
+#: six-position answers in DATA's own units). A field not listed has none.
+UNITS = {
+    "binned-thermal": {"offset": "rad/s", "slope": "rad/s per °C", "bin_width": "°C",
+                       "per_bin": "samples"},
+    "static-kalman": {"thresholds": "m/s² (ax, ay, az), rad/s (gx, gy, gz)",
+                      "initial_offset": "rad/s", "window": "samples", "q": "(rad/s)²",
+                      "n_static_windows": "windows", "duration": "s", "yaw_end": "rad",
+                      "heading_error": "rad"},
+    "fog-one-run": {"k0": "output per rad/s", "n_avg": "samples", "m": "samples",
+                    "rms": "output units", "n_kept": "samples", "n_removed": "samples"},
+    "attitude-reference": {"scale": "gyro / reference", "bias": "rad/s",
+                           "joint_scale": "gyro / reference", "joint_bias": "rad/s",
+                           "n_gated": "samples", "n_pairs": "samples"},
+    "cube-bias": {"gyro_bias": "rad/s", "accel_bias": "m/s²", "face_gyro": "rad/s",
+                  "face_accel": "m/s²"},
+    "six-position": {"gyro_bias": "{gyro}", "g_sens": "{gyro} per {acc}",
+                     "accel_bias": "{acc}"},
+    "multi-position": {"gyro_bias": "rad/s", "accel_bias": "m/s²", "pose_norm_error": "m/s²",
+                       "pose_norm_error_first": "m/s²", "pose_rms": "m/s²",
+                       "motion_residual": "rad", "gravity": "m/s²",
+                       "gyro_scale_counts": "raw units per rad/s"},
+}
+
+
+def _accepted_reasons(d: dict) -> str:
+    """binned-thermal's verdict per axis with its reason (|r| against r_min)."""
+    parts = []
+    r_min = f"{d['r_min']!r}"  # as given: 0.9999999, not rounded to 1
+    digits = max(6, len(r_min.lstrip("0.").replace(".", "")) + 1)
+    for axis, ok, r in zip("xyz", d["accepted"], d["r"], strict=True):
+        if r is None:
+            parts.append(f"{axis} no (r undefined: the bin means or temperatures do not vary)")
+        else:
+            parts.append(f"{axis} {'yes' if ok else 'no'} (|r| {abs(r):.{digits}g} "
+                         f"{'>' if ok else '≤'} r_min {r_min})")
+    return "; ".join(parts) + ("" if all(d["accepted"]) else
+                               ": a rejected axis' bias does not follow a straight line in "
+                               "temperature closely enough (--r-min to relax)")
+
+
+def _print_human(name, recipe, results, gyro_unit: str = "rad/s", acc_unit: str = "m/s²") -> None:
+    """Short, readable summary: scalars and small arrays of each result, with units."""
     import numpy as np
     from rich.console import Console
 
     from diffgyro.jsonio import dumps, to_json_safe
 
+    units = {k: u.format(gyro=gyro_unit, acc=acc_unit) for k, u in UNITS.get(name, {}).items()}
     con = Console(width=120)
     con.print(f"[bold]{name}[/bold] — {recipe.source}")
     for dev, res in results:
         con.print("device ", end="")
         con.print(dev, style="bold", markup=False)
-        for key, val in to_json_safe(res.to_dict()).items():
+        d = to_json_safe(res.to_dict())
+        for key, val in d.items():
             arr = np.asarray(val, dtype=object) if isinstance(val, list) else None
             if arr is not None and arr.size > 12:
                 continue
             if isinstance(val, dict) and len(dumps(val)) > 200:
                 continue
-            con.print(f"  {key}: {_fmt(val)}", markup=False, highlight=False)
+            text = f"  {key}: {_fmt(val)}" + (f" {units[key]}" if key in units else "")
+            if name == "binned-thermal" and key == "accepted":
+                text = f"  accepted: {_accepted_reasons(d)}"
+            con.print(text, markup=False, highlight=False, soft_wrap=True)
 
 
 def _fmt(v) -> str:

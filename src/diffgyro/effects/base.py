@@ -229,6 +229,14 @@ def is_column_name(text: str) -> bool:
     return bool(_COLUMN.fullmatch(text))
 
 
+def _did_you_mean(name: str) -> str:
+    """``"did you mean 'gradient'? "`` for a misspelt effect name, else ``""``."""
+    import difflib
+
+    close = difflib.get_close_matches(name, list(_REGISTRY), n=2, cutoff=0.6)
+    return f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
+
+
 def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
     """The (field, kind) arguments a term's spec takes, in order."""
     if cls.arguments:
@@ -271,7 +279,7 @@ def parse_term(text: str) -> AbstractTerm:
     name, arg = m.group(1), m.group(2)
     cls = _REGISTRY.get(name)
     if cls is None:
-        raise SpecError(f"unknown effect {name!r}", hint=f"valid names: {valid}")
+        raise SpecError(f"unknown effect {name!r}", hint=_did_you_mean(name) + f"valid names: {valid}")
     kinds = spec_arguments(cls)
     given = [] if arg is None else [a.strip() for a in arg.split(",")]
     if given and not kinds:

@@ -125,10 +125,15 @@ def allan_of(batch, which: str = "gyro", motion=None) -> dict:
 def write(noise: ImuNoise, topic: str = "/imu0", notes: list[str] = ()) -> str:
     """The imu.yaml text (continuous-time values, SI units, comments name them)."""
     if noise.accel_noise_density is None or noise.accel_random_walk is None:
-        raise DataError("Kalibr's imu.yaml needs accelerometer_noise_density and "
-                        "accelerometer_random_walk, and these read-outs hold the gyro only",
-                        device=noise.device, hint="export from a static recording with ax, ay, az "
-                        "columns, or pass --accel-noise-density and --accel-random-walk")
+        missing = [k for k, v in (("accelerometer_noise_density", noise.accel_noise_density),
+                                  ("accelerometer_random_walk", noise.accel_random_walk))
+                   if v is None]
+        raise DataError(f"Kalibr's imu.yaml needs {' and '.join(missing)}, which these read-outs "
+                        "do not give", device=noise.device, hint="an 'allan --json' file holds the "
+                        "gyro only: export from a static recording with ax, ay, az columns long "
+                        "enough to show the accelerometer's random walk, or pass "
+                        "--accel-noise-density and --accel-random-walk (m/s²/√Hz, m/s³/√Hz, "
+                        "e.g. from the datasheet)")
     f = noise.update_rate
     lines = [
         f"# IMU noise of device {noise.device} written by diffgyro export --format kalibr",

@@ -1,0 +1,84 @@
+"""The command line answers ``--help``, usage errors and a missing file without JAX:
+the engine is imported inside the command bodies, and float64 is turned on only once
+a command's options have parsed (benchmarks/cli_help.py times it)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+PROBE = """
+import json, sys
+from diffgyro.cli import main
+sys.argv = ["diffgyro"]
+code = {argv!r} and main({argv!r})
+print(json.dumps({{"code": code, "jax": "jax" in sys.modules,
+                   "equinox": "equinox" in sys.modules}}), file=sys.stderr)
+"""
+
+
+def _probe(argv: list[str], tmp_path) -> tuple[dict, str, str]:
+    run = subprocess.run([sys.executable, "-c", PROBE.format(argv=argv)], capture_output=True,
+                         text=True, cwd=tmp_path, timeout=60, check=False)
+    *err, last = run.stderr.strip().splitlines()
+    return json.loads(last), run.stdout, "\n".join(err)
+
+
+def test_import_cli_and_its_commands_does_not_import_jax(tmp_path):
+    code = ("import sys, diffgyro, diffgyro.cli as cli; cli.load_commands(); "
+            "print(sorted(m for m in ('jax', 'equinox', 'jaxlib', 'optimistix') if m in sys.modules))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=60, check=True)
+    assert run.stdout.strip() == "[]", run.stdout
+
+
+@pytest.mark.parametrize("argv", [["--help"], ["fit", "--help"], ["export", "--help"]])
+def test_help_answers_without_jax(argv, tmp_path):
+    seen, out, _ = _probe(argv, tmp_path)
+    assert seen == {"code": 0, "jax": False, "equinox": False}
+    assert "Usage" in out
+
+
+def test_missing_file_and_bad_option_answer_without_jax(tmp_path):
+    seen, _, err = _probe(["fit", "missing.csv", "--model", "bias_poly(1)"], tmp_path)
+    assert seen["code"] == 2 and not seen["jax"]
+    assert err == "diffgyro: error: file missing.csv: file not found"
+    seen, _, err = _probe(["compensate", "data.csv", "--cal", "nope.json", "--out", "o.csv"],
+                          tmp_path)
+    assert seen["code"] == 2 and not seen["jax"] and "file data.csv: file not found" in err
+    seen, _, err = _probe(["fit", "--no-such-option"], tmp_path)
+    assert seen["code"] == 2 and not seen["jax"] and "--no-such-option" in err
+    seen, _, err = _probe(["fit", "x.csv", "--modle", "bias_poly(1)"], tmp_path)  # did you mean
+    assert seen["code"] == 2 and not seen["jax"] and "--modle" in err and "--model" in err
+
+
+def test_public_names_still_load_on_use(tmp_path):
+    code = ("import sys, diffgyro; assert 'jax' not in sys.modules; "
+            "from diffgyro import Batch, ErrorModel; import diffgyro.core as core; "
+            "from diffgyro.effects import RandomWalk; "
+            "print(diffgyro.Params.__name__, callable(core.noise_fit(ErrorModel.from_spec("
+            "'bias_poly(0)+random_walk').noise)))")
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=120, check=False)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.split() == ["Params", "True"]
+
+
+def test_help_reads_cleanly_at_80_columns(tmp_path):
+    import os
+
+    env = {**os.environ, "COLUMNS": "80"}
+    outs = {}
+    for argv in (["--help"], ["fit", "--help"], ["compensate", "--help"], ["recipe", "--help"]):
+        out = subprocess.run([sys.executable, "-m", "diffgyro", *argv], capture_output=True,
+                             text=True, cwd=tmp_path, env=env, timeout=60, check=True).stdout
+        assert "<bool>" not in out and "…" not in out, out  # no type on a flag, nothing cut
+        assert max(map(len, out.splitlines())) <= 80, out
+        outs[argv[0]] = out
+    assert "..." not in outs["--help"].split("Commands:")[1]  # each command's first sentence is whole
+    # a docstring's paragraph wraps to the terminal, its source line breaks gone
+    assert "Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside\n" \
+        "  the calibrated range" in outs["compensate"]
