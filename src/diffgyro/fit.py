@@ -571,6 +571,21 @@ def fit(
     if static_only:
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
     result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+    if not hasattr(result, "status"):  # a user's noise-component fit: its own result
+        return result
+    return judge_motion(result, batch, motion, recorded, static_only)
+
+
+def judge_motion(result, batch: Batch, motion: Motion | None = None, recorded=None,
+                 static_only: bool = False):
+    """``result`` (a :class:`FitResult` or the state-space path's fit) with the motion check
+    of ``batch`` (computed here unless given) and status ``in_motion`` for a device that
+    moved where the model has no rate reference; ``recorded``: samples per device before
+    ``static_only`` masked the moving ones. Every path that fits a batch ends here."""
+    if motion is None:
+        motion = motion_check(batch)
+    if recorded is None:
+        recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
     status = result.status
     if not static_only and batch.rate is None:  # a fit with a rate reference subtracts it
         moved = motion.moved_all()

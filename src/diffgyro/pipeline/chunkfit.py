@@ -34,7 +34,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..data import Batch
 from ..errors import SpecError
-from ..fit import FitOptions, FitResult, sampling_intervals, solve_device
+from ..fit import FitOptions, FitResult, judge_motion, sampling_intervals, solve_device
 from ..jit import parallel_devices
 from ..model import ErrorModel, Params
 from ..signals import TempNorm, make_signals
@@ -188,11 +188,11 @@ class ChunkFitter:
         if batch.temp is not None:
             tmask = np.where(batch.mask, batch.temp, np.nan)
             temp_range = np.stack([np.nanmin(tmask, axis=1), np.nanmax(tmask, axis=1)], axis=1)
-        return FitResult(
+        return judge_motion(FitResult(
             model=self.model, devices=batch.devices,
             params=Params(beta=out["beta"], theta=out["theta"]), norm=norm,
             temp_range=temp_range, cov=out["cov"], rms=out["rms"],
             heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"],
             noise_floor=out["noise_floor"], noise_axes=out["noise_axes"], sigma=out["sigma"],
             steps=out["steps"], status=out["status"], range_flags=out["range_flags"],
-            collinear=out["collinear"], n_samples=out["n_samples"], options=self.opts)
+            collinear=out["collinear"], n_samples=out["n_samples"], options=self.opts), batch)
