@@ -29,6 +29,7 @@ from .decision import allan_slope, decide, not_judged
 from .evidence import evidence
 from .floor import suggest_dtemp_window, white_noise_rms
 from .greedy import pairs as greedy_pairs
+from .noise_model import attach_noise
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
 from .scoring import (
@@ -389,6 +390,7 @@ def diagnose(
     thresholds: Thresholds | None = None,
     base_fit=None,
     greedy: bool = True,
+    noise="auto",
     **fit_options,
 ) -> Diagnosis:
     """Diagnose every device of ``batch`` against ``model``.
@@ -399,6 +401,8 @@ def diagnose(
     keywords are fit options (``n_folds``, ``n_blocks``, ``dtemp_window``...).
     ``greedy``: before a random walk is named, try the best term followed by the
     best second term (:mod:`.greedy`).
+    ``noise``: identify the residual's stochastic model ("auto": where no term explains a
+    residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
@@ -454,6 +458,7 @@ def diagnose(
             devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
+    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
