@@ -382,6 +382,11 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
             problems, dead, unscored, unnamed)
 
 
+def _nested(*args, **kwargs) -> Diagnosis:
+    """The greedy pair's nested diagnosis: its residual's noise is not reported."""
+    return diagnose(*args, noise=False, **kwargs)
+
+
 def diagnose(
     model: ErrorModel | str,
     batch: Batch | Recording | list[Recording],
@@ -454,7 +459,8 @@ def diagnose(
     if greedy:
         nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                        "dtemp_window": opts.dtemp_window, **fit_options}
-        for i, pair in greedy_pairs(devices, batch, candidates, th, nested_opts, diagnose).items():
+        pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
+        for i, pair in pairs.items():
             devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
