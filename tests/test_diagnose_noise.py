@@ -68,3 +68,29 @@ def test_white_residual_not_identified():
     assert d.verdict == "adequate"
     assert d.noise["status"] == "not_identified" and d.noise["axes"] is None
     assert d.noise_process is None
+
+
+def test_kalman_bias_uses_the_identified_model(diag):
+    """kalman.identified_bias runs the identified model; a random walk alone is exactly
+    kalman's own walk filter, and a Gauss–Markov bias's variance stays below its σ²."""
+    import jax.numpy as jnp
+
+    from diffgyro.kalman import identified_bias, rw_filter
+
+    y = np.asarray(diag.residuals[0, :N])
+    axes = diag.devices[0].noise["axes"]
+    b, pb = identified_bias(y, axes, DT)
+    for k, ax in enumerate("xyz"):
+        gm = [c for c in axes[ax]["components"] if c["kind"] == "gauss_markov"]
+        sig2 = sum(c["params"]["sigma"]["value"] ** 2 for c in gm)
+        assert np.all(np.asarray(pb[:, k]) <= sig2 * (1 + 1e-9))
+    arw, rrw = 3e-4, 1e-5
+    walk = {ax: {"components": [{"kind": "white", "params": {"arw": {"value": arw}}},
+                                {"kind": "random_walk", "params": {"rrw": {"value": rrw}}}]}
+            for ax in "xyz"}
+    b, pb = identified_bias(y, walk, DT, p0_walk=1e-4)
+    t = jnp.arange(N) * DT
+    fp = rw_filter(jnp.asarray(y[:, 0]), jnp.zeros((N, 0)), jnp.ones(N, bool), t,
+                   jnp.asarray(rrw**2), jnp.asarray(arw**2 / DT), jnp.asarray(1e-4))
+    np.testing.assert_allclose(np.asarray(b[:, 0]), np.asarray(fp.a_y), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(pb[:, 0]), np.asarray(fp.p), rtol=1e-9)
