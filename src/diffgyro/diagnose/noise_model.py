@@ -17,8 +17,9 @@ explain: no deterministic term named (the random walk best, or nothing).
 A device whose residual holds a Gauss–Markov process, with no deterministic
 term significant and the correlation time well inside the record (at most
 :data:`TAU_SHARE` of it, where a slow deterministic drift cannot pass for it),
-reads ``adequate``: the deterministic model is right, and what is left is
-noise the filter must carry. A random walk alone keeps today's verdict (the
+and no logged signal that the residual follows closely (an effect outside the
+vocabulary, :mod:`.evidence`) reads ``adequate``: the deterministic model is
+right, and what is left is noise the filter must carry. A random walk alone keeps today's verdict (the
 walk is best, ``missing_effect``): its smoother is scored on held-out folds.
 """
 
@@ -33,6 +34,9 @@ from .results import DeviceDiagnosis
 #: Longest Gauss–Markov correlation time, as a share of the record, that counts as noise:
 #: longer, a slow deterministic drift fits the wavelet variance as well.
 TAU_SHARE = 0.05
+#: A logged signal the residual follows this closely (|r|, or η for a column) is an effect
+#: outside the vocabulary, not noise: the decision stands.
+FOLLOWED = 0.6
 #: The values of ``noise_process``.
 PROCESSES = ("white", "gauss_markov", "random_walk", "gauss_markov+random_walk")
 
@@ -40,6 +44,18 @@ PROCESSES = ("white", "gauss_markov", "random_walk", "gauss_markov+random_walk")
 def _unexplained(d: DeviceDiagnosis) -> bool:
     """No deterministic term named and the residual not white (the auto rule)."""
     return d.verdict == "missing_effect" and (d.best is None or d.best.stochastic)
+
+
+def _follows_a_signal(d: DeviceDiagnosis) -> bool:
+    """The residual follows a logged signal closely (:data:`FOLLOWED`) or one explains most
+    of its excess (the evidence, :mod:`.evidence`)."""
+    from .evidence import followed_most
+
+    top = followed_most(d.evidence or {})
+    if top is None:
+        return False
+    v = top[1]
+    return max(abs(v["r"]), v.get("eta", 0.0)) >= FOLLOWED or v.get("explains", 0.0) >= 0.5
 
 
 def _process(entry: dict) -> tuple[str, float | None, float | None]:
@@ -116,7 +132,7 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
         det_sig = any(c.significant and not c.stochastic for c in d.candidates)
         inside = tau is not None and tau_hi is not None and math.isfinite(tau_hi) \
             and tau <= TAU_SHARE * total
-        if process == "gauss_markov" and inside and not det_sig:
+        if process == "gauss_markov" and inside and not det_sig and not _follows_a_signal(d):
             if d.random_walk is not None:
                 d.random_walk.significant = False
             d.best, d.alternatives, d.verdict = None, [], "adequate"
