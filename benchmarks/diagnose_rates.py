@@ -15,7 +15,10 @@ Besides one hidden effect at a time, the thermal plan has a two-effect class
 thermal look-alike, is named first, not the walk), an extra-column class
 (``vdd``: a bias that follows a logged supply voltage, right when ``aux(vdd)``
 is named first) and an effect outside the vocabulary (``temp_x_dtemp``, bias ∝
-T·dT/dt: right when ``missing_effect`` names no term).
+T·dT/dt: right when ``missing_effect`` names no built-in term; named first when the
+synthesis proposes a product of the logged signals), and two more the term synthesis
+must name with the right signals (``heater_lag``: a logged heater column through a
+300 s lag, ``temp_x_vdd``: die temperature × supply voltage).
 """
 
 from __future__ import annotations
@@ -36,7 +39,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 CATALOGUE = [
     ("thermal", "bias_poly(2)", ["gradient", "temp_diff", "thermal_lag", "hysteresis", "warmup",
                                  "random_walk", "bias_poly", None, None, "gradient+bias_poly",
-                                 "vdd", "temp_x_dtemp"]),
+                                 "vdd", "temp_x_dtemp", "heater_lag", "temp_x_vdd"]),
     ("rate_table", "bias_poly(1)+scale_poly(0)+misalignment",
      ["scale_asym", "scale_nonlin", "g_sens", None]),
     ("rate_table", "bias_poly(1)+scale_poly(0)", ["misalignment", None]),
@@ -45,8 +48,14 @@ CATALOGUE = [
 ]
 
 
+#: Outside-the-vocabulary classes the term synthesis should name, and the signals its
+#: proposed term must read.
+SYNTHESISED = {"heater_lag": ("lag(heater)",), "temp_x_vdd": ("temp", "vdd")}
+
+
 def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2.0,
-        hours: float | None = None, colour: float = 1.0, lowpass: float = 0.0):
+        hours: float | None = None, colour: float = 1.0, lowpass: float = 0.0,
+        synthesis: bool = True):
     import diffgyro
 
     diffgyro.enable_x64()
@@ -82,7 +91,7 @@ def run(devices: int, seed0: int, problems=None, sizes=(0.5, 3.0), fs: float = 2
                   if i % 8 == 0 or sorted(recs[i].aux) != sorted(recs[i - 1].aux)]
         for start, stop in zip(starts, starts[1:] + [len(recs)]):
             batch = Batch.from_recordings(recs[start:stop])
-            dg = diagnose(base, batch)
+            dg = diagnose(base, batch, synthesis=synthesis)
             for i, d in enumerate(dg.devices):
                 m = dict(meta[start + i])
                 m["raw"] = {k: (v[i] if isinstance(v, np.ndarray) and v.ndim and v.shape[0] == batch.n_devices
@@ -102,8 +111,13 @@ def _right(d: dict, effect: str | None, look: dict) -> tuple[bool, bool]:
     missing = d["verdict"] == "missing_effect"
     if effect is None:
         return d["verdict"] == "adequate", False
-    if effect == "temp_x_dtemp":  # outside the vocabulary: missing, no term named
-        return missing and d["best"] is None, False
+    if effect == "temp_x_dtemp":  # outside the vocabulary: missing, no built-in term named
+        synthesised = d.get("best_effect") == "term"  # a product of the signals proposed
+        return missing and (d["best"] is None or synthesised), synthesised
+    if effect in SYNTHESISED:  # outside the vocabulary: a term of the right signals proposed
+        hit = d.get("best_effect") == "term" and all(
+            f in (d.get("best_term") or "") for f in SYNTHESISED[effect])
+        return missing and hit, hit
     if effect == "vdd":
         hit = d.get("best_term") == "aux(vdd)"
         return missing and hit, hit
@@ -160,6 +174,8 @@ if __name__ == "__main__":
     ap.add_argument("--lowpass", type=float, default=0.0, help="lag-1 correlation of the white noise")
     ap.add_argument("--sizes", type=float, nargs=2, default=(0.5, 3.0),
                     help="range of hidden-effect sizes (unabsorbed RMS / white σ), log-uniform")
+    ap.add_argument("--no-synthesis", action="store_true",
+                    help="diagnose without term synthesis (to compare the rates)")
     a = ap.parse_args()
     if a.load:
         rows = []
@@ -167,7 +183,7 @@ if __name__ == "__main__":
             rows += pickle.load(open(f, "rb"))
     else:
         rows = run(a.devices, a.seed, a.plans, sizes=tuple(a.sizes), fs=a.fs, hours=a.hours,
-                   colour=a.colour, lowpass=a.lowpass)
+                   colour=a.colour, lowpass=a.lowpass, synthesis=not a.no_synthesis)
         if a.out:
             pickle.dump(rows, open(a.out, "wb"))
     stats = summary(rows)

@@ -252,6 +252,10 @@ def effect_signal(name: str, rng: np.random.Generator, env: dict) -> np.ndarray:
         return np.outer((env["vdd"] - 5.0) / 0.05, c)
     if name == "temp_x_dtemp":       # outside the vocabulary: a gradient sensitivity ∝ T
         return np.outer((env["die"] - env["die"].mean()) / 20.0 * env["ddie"] * 60.0, c)
+    if name == "heater_lag":         # outside the vocabulary: a logged heater through its own lag
+        return np.outer(_lag(env["heater"], 300.0, env["dt"]), c)
+    if name == "temp_x_vdd":         # outside the vocabulary: supply sensitivity ∝ temperature
+        return np.outer((env["die"] - env["die"].mean()) / 20.0 * (env["vdd"] - 5.0) / 0.05, c)
     if name == "sin_duty":           # outside the vocabulary: a periodic function of a column
         return np.outer(np.sin(2.0 * math.pi * 2.5 * env["duty"]), c)
     if name == "random_walk":
@@ -324,8 +328,10 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     RMS ``size × noise.white``. Effect ``"vdd"`` is a bias that follows a logged
     supply voltage, recorded as the extra column ``vdd``. Several effects joined
     by ``+`` (``"gradient+bias_poly"``) are hidden together, each scaled so on its
-    own; ``"temp_x_dtemp"`` (bias ∝ T·dT/dt of the die) and ``"sin_duty"`` (bias ∝
-    sin(5π·duty) of a logged duty column ``duty``) are outside every built-in term.
+    own; ``"temp_x_dtemp"`` (bias ∝ T·dT/dt of the die), ``"sin_duty"`` (bias ∝
+    sin(5π·duty) of a logged duty column ``duty``), ``"heater_lag"`` (a logged heater
+    column ``heater`` through a 300 s first-order lag) and ``"temp_x_vdd"`` (bias ∝ die
+    temperature × the logged supply ``vdd``) are outside every built-in term.
     """
     from diffgyro.data import Batch
     from diffgyro.fit import batch_signals
@@ -352,8 +358,11 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     env = {"t": p.t, "dt": dt, "die": die, "ddie": ddie, "air": air, "rate": true_rate,
            "force": force}
     aux = {}
-    if "vdd" in (effect or "").split("+"):
+    if {"vdd", "temp_x_vdd"} & set((effect or "").split("+")):
         env["vdd"] = aux["vdd"] = supply_voltage(p.t, seed)
+    if "heater_lag" in (effect or "").split("+"):  # heater levels held about 10 min
+        held = duty_cycle(p.t[::30], seed)
+        env["heater"] = aux["heater"] = np.repeat(held, 30)[: p.t.shape[0]]
     if "sin_duty" in (effect or "").split("+"):
         env["duty"] = aux["duty"] = duty_cycle(p.t, seed)
 

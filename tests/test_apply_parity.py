@@ -24,12 +24,12 @@ ALONE = {
     "gradient": "gradient", "hysteresis": "hysteresis", "misalignment": "misalignment",
     "random_walk": "bias_poly(1)+random_walk", "scale_asym": "scale_asym",
     "scale_nonlin": "scale_nonlin", "scale_poly": "scale_poly(2)", "temp_diff": "temp_diff",
-    "thermal_lag": "thermal_lag(2)", "warmup": "warmup",
+    "thermal_lag": "thermal_lag(2)", "warmup": "warmup", "term": "term(temp*az*lag(vdd))",
 }
 ALL = ("bias_poly(2)+scale_poly(1)+scale_asym+scale_nonlin+misalignment+g_sens+gradient+"
-       "temp_diff+hysteresis+thermal_lag(2)+warmup+aux(vdd,2)")
+       "temp_diff+hysteresis+thermal_lag(2)+warmup+aux(vdd,2)+term(temp*az*lag(vdd))+term(w^2*ax)")
 #: log τ of the time constants in spec order (thermal lag 300 s, warm-up 600 s)
-THETA = {"thermal_lag": math.log(300.0), "warmup": math.log(600.0)}
+THETA = {"thermal_lag": math.log(300.0), "warmup": math.log(600.0), "term": math.log(200.0)}
 
 
 def test_every_built_in_effect_is_covered():

@@ -62,15 +62,26 @@ def test_two_rounds_of_auto_reach_the_noise(two_effects):
 
 def test_an_effect_outside_the_vocabulary_names_the_signal_not_a_term():
     """Bias ∝ T·dT/dt: no term closes a material part of the gap and the walk, which would,
-    is not named; the explanation names the product and points to ``@register``."""
+    is not named; without synthesis the explanation names the product and points to
+    ``@register``; with it (the default) a thermal product of the logged signals is
+    proposed that reaches the floor."""
     h = _thermal("temp_x_dtemp", 700, 2.0)
-    d = diagnose(BASE, Batch.from_recordings([h.recording]), greedy=False).devices[0]
+    batch = Batch.from_recordings([h.recording])
+    d = diagnose(BASE, batch, greedy=False, synthesis=False).devices[0]
     assert d.verdict == "missing_effect" and d.best is None, d.explanation
     assert not any(c.significant for c in d.candidates)
     assert d.random_walk is not None and d.random_walk.closure > 0.85
     assert d.evidence["temp_dtemp"]["explains"] >= 0.5
     assert "T·dT/dt" in d.explanation and "@register" in d.explanation, d.explanation
     assert d.record()["best"] is None and d.record()["next"] is None
+    from diffgyro.diagnose.synthesis import apply as synthesise
+
+    dg = diagnose(BASE, batch, greedy=False, synthesis=False)
+    synthesise(dg.devices, batch, dg.fit, dg.model, dg.raw["candidates"], dg.raw["ok"],
+               dg.thresholds)
+    s = dg.devices[0]
+    assert s.best is not None and s.best.effect == "term" and not s.random_walk.significant
+    assert "temp" in s.best.term and s.best.heldout_rms <= 1.1 * h.noise_rms, s.explanation
 
 
 def test_a_function_of_a_logged_column_names_the_column():

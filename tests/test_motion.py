@@ -1,6 +1,6 @@
 """Motion awareness: simulated devices with known truth (at rest with thermal drift or
 engine vibration: not flagged; turning: flagged; --static-only recovers the true bias), and
-real public logs (flights, hand rotations, six- and multi-position sessions flagged; logs of
+real public logs (a flight, a board turned by hand, hand rotations, six- and multi-position sessions flagged; logs of
 vehicles on the ground not flagged), the fit's bias checked against pyulog's mean of the
 static samples."""
 
@@ -179,7 +179,7 @@ def _pyulog_gyro(path):
     return np.column_stack([d[f"gyro_rad[{k}]"] for k in range(3)]).astype(np.float64)
 
 
-def test_px4_flight_is_flagged_and_static_only_fits_the_static_mean(tmp_path, capsys):
+def test_px4_log_turned_by_hand_is_flagged_and_static_only_fits_the_static_mean(tmp_path, capsys):
     doc = _json(capsys, ["fit", str(FLIGHT), "--model", "bias_poly(0)", "--json"])
     dev = doc["devices"][0]
     assert dev["status"] == "in_motion"
@@ -282,3 +282,38 @@ def test_a_random_walk_does_not_absorb_the_turns():
     static = fit("bias_poly(0)+random_walk", rec, static_only=True).records()[0]
     assert static["status"] == "ok" and static["static_only"] is True
     assert abs(static["params"]["z"]["bias_poly(0).c0"] - BIAS[2]) < 1e-4
+
+
+ARDUPILOT = DATA / "ardupilot"
+
+
+def _pymavlink_gyro(path: Path) -> dict[int, np.ndarray]:
+    """Gyro samples of every IMU instance as pymavlink reads them (``I``, else IMU/IMU2)."""
+    from pymavlink import DFReader
+
+    reader = DFReader.DFReader_text if path.suffix.lower() == ".log" else DFReader.DFReader_binary
+    log = reader(str(path), zero_time_base=False)
+    out: dict[int, list] = {}
+    while (m := log.recv_match(type=["IMU", "IMU2"])) is not None:
+        k = int(m.I) if "I" in m.get_fieldnames() else (1 if m.get_type() == "IMU2" else 0)
+        out.setdefault(k, []).append([m.GyrX, m.GyrY, m.GyrZ])
+    return {k: np.asarray(v, float) for k, v in out.items()}
+
+
+def test_ardupilot_flight_is_flagged_and_bench_log_is_not(capsys):
+    """DataFlash logs from other projects: an ArduCopter 3.1 flight (both IMUs turned) is
+    in_motion; a 4.6 board on the bench is ok on every device, its IMU biases pymavlink's
+    means of the samples."""
+    flight = _json(capsys, ["fit", str(ARDUPILOT / "nan.log"), "--model", "bias_poly(0)",
+                            "--json"])["devices"]
+    assert [d["status"] for d in flight] == ["in_motion", "in_motion"]
+    assert all(d["motion"]["moving_fraction"] > 0.3 for d in flight)
+    bench = ARDUPILOT / "backend_log_80k.bin"
+    devices = _json(capsys, ["fit", str(bench), "--model", "bias_poly(0)", "--json"])["devices"]
+    assert all(d["status"] == "ok" for d in devices), [d["status_detail"] for d in devices]
+    ref = _pymavlink_gyro(bench)
+    for d in devices:
+        if "/imu" in d["device"]:
+            k = int(d["device"].rsplit("imu", 1)[1])
+            got = [d["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
+            np.testing.assert_allclose(got, ref[k].mean(axis=0), rtol=0, atol=1e-9)

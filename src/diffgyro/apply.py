@@ -28,6 +28,12 @@ For one device with calibration record ``dev`` (an entry of the file's
    ``aux(NAME,k)``         ``x_s**1 .. x_s**k`` (k = 1 if left out), x = extra column NAME
                            clamped to ``dev["aux"][NAME]["range"]``, ``x_s = (x − centre) /
                            scale`` with that entry's ``centre`` and ``scale``
+   ``term(EXPR)``          one column: the product of EXPR's factors ``s``, ``s^k`` and
+                           ``lag(s)`` (s through a first-order lag τ), signals ``temp`` (Ts),
+                           ``temp_ext`` ((T_ext − temp_centre) / temp_scale), ``dtemp``
+                           (dT/dt in °C/min), ``heating``, ``ax ay az`` (m/s² / 9.80665),
+                           ``rx ry rz`` (rad/s), ``w`` (Ω_i of axis i), or an extra
+                           column's ``x_s`` as for ``aux``
    ``random_walk``         none: the walk is tracked while fitting, not stored
    ======================  ===============================================
 
@@ -45,12 +51,19 @@ HEATING_THRESHOLD = 0.05 / 60.0
 _OTHERS = ((1, 2), (0, 2), (0, 1))
 _TERM = re.compile(r"^([a-z][a-z0-9_]*)(?:\((\d+)\))?$")
 _AUX = re.compile(r"^aux\(([A-Za-z_][A-Za-z0-9_.]*)(?:,(\d+))?\)$")
+_GRAMMAR = re.compile(r"^term\((.+)\)$")
+_FACTOR = re.compile(r"^(?:lag\(([A-Za-z_][A-Za-z0-9_.]*)\)|([A-Za-z_][A-Za-z0-9_.]*))(?:\^(\d+))?$")
+G = 9.80665
 
 
 def _terms(spec: str):
     """(name, order) per term; an aux term gives ("aux", (column, order))."""
     out = []
     for part in spec.replace(" ", "").split("+"):
+        g = _GRAMMAR.match(part)
+        if g is not None:
+            out.append(("term", _factors(g.group(1))))
+            continue
         a = _AUX.match(part)
         if a is not None:
             out.append(("aux", (a.group(1), int(a.group(2) or 1))))
@@ -60,6 +73,36 @@ def _terms(spec: str):
             raise ValueError(f"bad term {part!r}")
         out.append((m.group(1), None if m.group(2) is None else int(m.group(2))))
     return out
+
+
+def _factors(expr: str):
+    """(signal, lagged, power) of every factor of a ``term(EXPR)``."""
+    out = []
+    for f in expr.split("*"):
+        m = _FACTOR.match(f)
+        if m is None:
+            raise ValueError(f"bad factor {f!r} of term({expr})")
+        out.append((m.group(1) or m.group(2), m.group(1) is not None, int(m.group(3) or 1)))
+    return out
+
+
+def _signal(name: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
+    """A grammar signal: (n,), or (n, 3) for ``w``."""
+    if name == "temp":
+        return env["temp_s"]
+    if name == "temp_ext":
+        return (env["temp_ext"] - dev["temp_centre"]) / dev["temp_scale"]
+    if name == "dtemp":
+        return 60.0 * env["dtemp"]
+    if name == "heating":
+        return env["heating"]
+    if name in ("ax", "ay", "az"):
+        return env["accel"][:, "xyz".index(name[1])] / G
+    if name in ("rx", "ry", "rz"):
+        return rate[:, "xyz".index(name[1])]
+    if name == "w":
+        return rate
+    return env["aux_s"][name]
 
 
 def local_slope(t: np.ndarray, y: np.ndarray, half: int) -> np.ndarray:
@@ -143,6 +186,17 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
             xs = env["aux_s"][column]
             c = np.stack([xs**j for j in range(1, order + 1)], -1)
             cols.append(np.repeat(c[:, None, :], 3, axis=1))
+        elif name == "term":
+            prod = np.ones((n, 3))
+            for sname, lagged, power in k:
+                x = _signal(sname, dev, rate, env)
+                if lagged:
+                    tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
+                    q += 1
+                    x = first_order_lag(env["t"], x, tau)
+                x = x**power
+                prod = prod * (x if x.ndim == 2 else x[:, None])
+            cols.append(prod[:, :, None])
         elif name == "random_walk":
             continue
         elif name == "warmup":

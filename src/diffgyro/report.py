@@ -304,6 +304,11 @@ def followed_signal(name: str | None, rec, dtemp, k: int, delta: np.ndarray):
     if name == "accel" and acc is not None:
         j = _most_correlated(acc, delta)
         return acc[:, j], f"specific force a{AXES[j]} (m/s²)"
+    if name is not None and name.startswith("term:"):  # a grammar term: its product
+        from .effects.grammar import product_of
+
+        x = product_of(name[5:], rec, dtemp, k)
+        return None if x is None else (x, name[5:])
     if name is not None and name.startswith("aux:"):
         x = getattr(rec, "aux", {}).get(name[4:])
         return None if x is None else (np.asarray(x), name[4:])

@@ -32,8 +32,10 @@ def compensate_command(
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False, topic: Topic = None, temp_topic: TempTopic = None,
     as_json: Annotated[bool, typer.Option("--json", help="Print what was written as JSON: the "
-                                          "file, and per device its samples and how many were "
-                                          "clamped to the calibrated range.")] = False,
+                                          "file, and per device its samples, how many were "
+                                          "clamped to the calibrated range, and the residual "
+                                          "(corrected − reference rate, or − 0 without one) "
+                                          "against the recording's noise floor.")] = False,
 ) -> None:
     """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
     calibrated range are clamped to it, with a warning."""
@@ -62,9 +64,12 @@ def compensate_command(
                         hint="choose another --out")
     io.save(corrected, out)
     if as_json:
+        from diffgyro.carry import residuals
         from diffgyro.jsonio import dumps
 
         counts = [int(v) for v in corrected.mask.sum(axis=1)]
+        carried = residuals(corrected, batch)
         typer.echo(dumps({"out": str(out), "model": calib.model, "devices": [
-            {"device": d, "n_samples": n, "clamped": int(clamped.get(d, 0))}
-            for d, n in zip(corrected.devices, counts, strict=True)]}))
+            {"device": d, "n_samples": n, "clamped": int(clamped.get(d, 0)),
+             **{k: v for k, v in r.items() if k != "device"}}
+            for d, n, r in zip(corrected.devices, counts, carried, strict=True)]}))

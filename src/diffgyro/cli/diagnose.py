@@ -119,6 +119,10 @@ def diagnose_command(
     auto: Annotated[bool, typer.Option(
         "--auto", help="Add the best significant candidate until every device is adequate; "
                        "print the ladder.")] = False,
+    synthesis: Annotated[bool, typer.Option(
+        "--synthesis/--no-synthesis",
+        help="When no built-in term closes the gap, propose terms built from the recording's "
+             "signals (term(...), see docs/effects.md).")] = True,
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to try (default: every registered effect "
                              "the data supports).")] = None,
@@ -160,6 +164,9 @@ def diagnose_command(
         raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
                                  "files, --chunk-devices, --dask); diagnose the files directly",
                                  param_hint="--static-only")
+    if not synthesis and streamed:
+        raise typer.BadParameter("is not available for streamed runs; diagnose the files "
+                                 "directly", param_hint="--no-synthesis")
     if streamed:
         from ._stream import stream_diagnose
 
@@ -186,7 +193,8 @@ def diagnose_command(
                                                 acc_unit, temp_unit, time_unit, sampling_rate,
                                                 drop_invalid, topic, temp_topic)
     batch, static = _static_only(batch) if static_only else (batch, None)
-    opts = {} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}
+    opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
+        | ({} if synthesis else {"synthesis": False})
     err = Console(stderr=True)
     ladder = None
     if auto:

@@ -20,15 +20,18 @@ def effects_command() -> None:
     table.add_column("coefficients (per axis)")
     for name, cls in registry().items():
         args = spec_arguments(cls)
-        example = {f: ("NAME" if kind == "column" else max(cls.default_order or 1, cls.min_order))
-                   for f, kind in args}
+        example = {f: {"column": "NAME", "expr": "temp*az"}.get(
+                   kind, max(cls.default_order or 1, cls.min_order)) for f, kind in args}
         term = cls(**example)
         shown = name
         if any(kind == "column" for _, kind in args):  # e.g. aux(NAME) or aux(NAME,k)
             shown = f"{name}(NAME)" + (f" or {name}(NAME,k)" if len(args) > 1 else "")
+        elif any(kind == "expr" for _, kind in args):  # the term grammar: term(temp*az)
+            shown = f"{name}(EXPR)"
         elif args and cls.default_order is None:
             shown = f"{name}(k)"
-        needs = ", ".join(sorted(term.requires())) or "—"
+        needs = ("the signals EXPR names" if shown.endswith("(EXPR)")
+                 else ", ".join(sorted(term.requires())) or "—")
         coeffs = term.coefficient_summary()
         table.add_row(shown, cls.description, needs, coeffs)
     Console(width=160).print(table)

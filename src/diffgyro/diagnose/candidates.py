@@ -111,12 +111,14 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     out = []
     for name, explicit in wanted.items():
         cls = registry()[name]
+        if getattr(cls, "grammar", False) and explicit is None:
+            continue  # grammar terms are synthesised (diagnose/synthesis.py), not enumerated
         if issubclass(cls, AbstractNoise) and model.noise is not None:
             continue  # one noise component per model
         if column_field(cls):
             old, terms = None, _column_terms(cls, model, columns, explicit)
-        else:
-            old = present.get(name)
+        else:  # a grammar term (term(EXPR)) is added beside those of the model, never raised
+            old = None if getattr(cls, "grammar", False) else present.get(name)
             terms = explicit if explicit is not None else _new_terms(cls, old)
         for term in terms:
             if old is not None and (term == old or not cls.order_arg or term.order <= old.order):

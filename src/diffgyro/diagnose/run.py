@@ -395,6 +395,7 @@ def diagnose(
     thresholds: Thresholds | None = None,
     base_fit=None,
     greedy: bool = True,
+    synthesis: bool = True,
     noise="auto",
     **fit_options,
 ) -> Diagnosis:
@@ -405,7 +406,8 @@ def diagnose(
     :class:`~diffgyro.fit.FitResult` of ``model`` on this batch. Other
     keywords are fit options (``n_folds``, ``n_blocks``, ``dtemp_window``...).
     ``greedy``: before a random walk is named, try the best term followed by the
-    best second term (:mod:`.greedy`).
+    best second term (:mod:`.greedy`). ``synthesis``: where no built-in term closes the
+    gap, propose a term built from the recording's signals (:mod:`.synthesis`).
     ``noise``: identify the residual's stochastic model ("auto": where no term explains a
     residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
@@ -458,12 +460,16 @@ def diagnose(
     opts = res.options
     if greedy:
         nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
-                       "dtemp_window": opts.dtemp_window, **fit_options}
+                       "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
         pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
         for i, pair in pairs.items():
             devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
+    if synthesis:
+        from .synthesis import apply as synthesise
+
+        synthesise(devices, batch, res, model, cands, ranges <= 0, th)
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,

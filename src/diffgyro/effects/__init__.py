@@ -6,6 +6,7 @@ from . import (  # noqa: F401  (importing registers the built-in terms)
     bias_poly,
     g_sens,
     gradient,
+    grammar,
     hysteresis,
     misalignment,
     random_walk,
@@ -32,6 +33,7 @@ from .base import (
 from .bias_poly import BiasPoly
 from .g_sens import GSens
 from .gradient import Gradient
+from .grammar import Term
 from .hysteresis import Hysteresis
 from .misalignment import Misalignment
 from .random_walk import RandomWalk
@@ -45,7 +47,7 @@ from .warmup import Warmup
 __all__ = [
     "AXES", "AbstractEffect", "AbstractNoise", "AbstractTerm", "Aux", "BiasPoly", "GSens",
     "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
-    "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "ThermalLag", "Warmup",
+    "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "Term", "ThermalLag", "Warmup",
     "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
     "spec_arguments",
 ]

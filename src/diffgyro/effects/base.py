@@ -237,11 +237,13 @@ def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
 
 
 def _usage(name: str, args) -> str:
-    shown = [("NAME" if kind == "column" else "k") for _, kind in args]
+    shown = [{"column": "NAME", "expr": "EXPR"}.get(kind, "k") for _, kind in args]
     return f"{name}({','.join(shown)})" if shown else name
 
 
 def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
+    if kind == "expr":  # the term grammar (effects/grammar.py) reads its own argument
+        return cls.parse_argument(text)
     if kind == "column":
         if not _COLUMN.fullmatch(text):
             raise SpecError(f"{text!r} is not a column name (argument {field} of {name!r})",
@@ -284,10 +286,10 @@ def parse_term(text: str) -> AbstractTerm:
         elif field == "order" and cls.default_order is not None:
             values[field] = cls.default_order
         else:
-            what = "an order" if kind == "int" else "a column name"
+            what = {"int": "an order", "expr": "a product of signals"}.get(kind, "a column name")
             raise SpecError(f"effect {name!r} needs {what}",
                             hint=f"write {_usage(name, kinds)}, e.g. "
-                                 f"{name}({'vdd' if kind == 'column' else 2})")
+                                 f"{name}({ {'column': 'vdd', 'expr': 'temp*az'}.get(kind, 2)})")
     return cls(**values)
 
 
