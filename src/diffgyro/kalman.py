@@ -226,6 +226,31 @@ def causal_bias(y, obs, t, q, r, m0, p0):
     return pred, fp.p_pred
 
 
+def identified_bias(y: Float[Array, "n 3"], axes: dict, dt: float, p0_walk: float = WIDE_PRIOR):
+    """Filtered bias (mean, variance) (n, 3) of each axis under its identified noise model.
+
+    ``axes``: ``{"x": {"components": [...]}, ...}`` as ``noise --json`` and
+    ``diagnose --json``'s ``noise`` give them (SI units). Gauss–Markov and random-walk
+    states replace the one walk of :func:`rw_filter`
+    (:mod:`diffgyro.stochastic.bias_filter`); a random walk alone is that filter. An
+    axis with no bias process (white only) has bias 0 and variance 0. ``y``: the rate
+    at rest, or the residual of a deterministic model, sampled every ``dt`` s."""
+    from .stochastic.bias_filter import bias_filter, state_space
+
+    y = jnp.asarray(y, jnp.float64)
+    mean, var = [], []
+    for k, ax in enumerate("xyz"):
+        comps = axes[ax]["components"]
+        if not any(c["kind"] in ("gauss_markov", "random_walk") for c in comps):
+            mean.append(jnp.zeros_like(y[:, k]))
+            var.append(jnp.zeros_like(y[:, k]))
+            continue
+        b, pb, _, _ = bias_filter(y[:, k], *state_space(comps, dt, p0_walk=p0_walk))
+        mean.append(b)
+        var.append(pb)
+    return jnp.stack(mean, 1), jnp.stack(var, 1)
+
+
 # --------------------------------------------------------------------------- learning
 
 

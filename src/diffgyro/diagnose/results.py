@@ -82,6 +82,10 @@ class DeviceDiagnosis:
     #: The base fit's status in words (:func:`diffgyro.status.explain`): why a device is not
     #: ``ok`` and, then, why its verdict is ``not_judged``.
     status_detail: str = ""
+    #: The residual's stochastic model, the ``noise --json`` entry (:mod:`.noise_model`).
+    noise: dict | None = None
+    #: The process that entry holds: white, gauss_markov, random_walk or both; None unknown.
+    noise_process: str | None = None
 
     @property
     def excess(self) -> float:
@@ -120,6 +124,8 @@ class DeviceDiagnosis:
             "evidence": self.evidence,
             "skipped": self.skipped,
             "explanation": self.explanation,
+            "noise": self.noise,
+            "noise_process": self.noise_process,
         }
 
 

@@ -29,6 +29,7 @@ from .decision import allan_slope, decide, not_judged
 from .evidence import evidence
 from .floor import suggest_dtemp_window, white_noise_rms
 from .greedy import pairs as greedy_pairs
+from .noise_model import attach_noise
 from .random_walk import random_walk_scores, segment_length
 from .results import AllanCurves, Diagnosis
 from .scoring import (
@@ -381,6 +382,11 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
             problems, dead, unscored, unnamed)
 
 
+def _nested(*args, **kwargs) -> Diagnosis:
+    """The greedy pair's nested diagnosis: its residual's noise is not reported."""
+    return diagnose(*args, noise=False, **kwargs)
+
+
 def diagnose(
     model: ErrorModel | str,
     batch: Batch | Recording | list[Recording],
@@ -390,6 +396,7 @@ def diagnose(
     base_fit=None,
     greedy: bool = True,
     synthesis: bool = True,
+    noise="auto",
     **fit_options,
 ) -> Diagnosis:
     """Diagnose every device of ``batch`` against ``model``.
@@ -401,6 +408,8 @@ def diagnose(
     ``greedy``: before a random walk is named, try the best term followed by the
     best second term (:mod:`.greedy`). ``synthesis``: where no built-in term closes the
     gap, propose a term built from the recording's signals (:mod:`.synthesis`).
+    ``noise``: identify the residual's stochastic model ("auto": where no term explains a
+    residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
@@ -452,7 +461,8 @@ def diagnose(
     if greedy:
         nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                        "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
-        for i, pair in greedy_pairs(devices, batch, candidates, th, nested_opts, diagnose).items():
+        pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
+        for i, pair in pairs.items():
             devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
@@ -460,6 +470,7 @@ def diagnose(
         from .synthesis import apply as synthesise
 
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
+    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,

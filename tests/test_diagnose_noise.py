@@ -1,0 +1,96 @@
+"""diagnose names the noise the residual holds: a Gauss–Markov bias under a correct thermal
+model reads as Gauss–Markov with its correlation time, not as a random walk or a missing
+effect; its ``noise`` object has the ``noise --json`` form."""
+
+from __future__ import annotations
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from diffgyro.data import Recording
+from diffgyro.diagnose import diagnose
+from diffgyro.stochastic.simulate import simulate_noise
+
+N, DT = 8192, 0.1
+SIGMA, TAU, ARW = 3e-3, 20.0, 3e-4  # rad/s, s, rad/s/√Hz
+
+
+def _recording(seed: int) -> Recording:
+    """A thermal run whose bias is exactly linear in temperature, plus white + GM noise."""
+    t = np.arange(N) * DT
+    temp = 20.0 + 15.0 * np.sin(2 * np.pi * t / (N * DT))
+    keys = jax.random.split(jax.random.PRNGKey(seed), 3)
+    g = np.stack([np.asarray(simulate_noise(k, N, DT, arw=ARW, gm=((SIGMA, TAU),))) for k in keys], 1)
+    g = g + 1e-3 + 2e-4 * (temp - 20.0)[:, None]
+    return Recording(t=t, gyro=g, temp=temp, device=f"gm{seed}")
+
+
+@pytest.fixture(scope="module")
+def diag():
+    return diagnose("bias_poly(1)", [_recording(11)])
+
+
+def test_gauss_markov_named_not_a_walk(diag):
+    d = diag.devices[0]
+    assert d.noise_process == "gauss_markov", d.noise
+    assert d.verdict == "adequate" and d.best is None, d.explanation
+    assert not any(c.significant for c in d.candidates)  # no deterministic effect proposed
+    assert d.random_walk is None or not d.random_walk.significant
+    assert "Gauss–Markov" in d.explanation
+    for axis in d.noise["axes"].values():
+        gm = [c for c in axis["components"] if c["kind"] == "gauss_markov"]
+        lo, hi = gm[-1]["params"]["tau"]["ci"]
+        assert lo <= TAU <= hi, gm
+
+
+def test_noise_object_in_json(diag):
+    rec = json.loads(json.dumps(diag.to_json(), allow_nan=False))["devices"][0]
+    noise = rec["noise"]
+    assert noise["device"] == rec["device"] == "gm11"
+    assert noise["status"] == "ok" and set(noise["axes"]) == {"x", "y", "z"}
+    for axis in noise["axes"].values():
+        kinds = [c["kind"] for c in axis["components"]]
+        assert kinds[0] == "white" and "gauss_markov" in kinds
+        arw = axis["components"][0]["params"]["arw"]
+        assert arw["unit"] == "rad/s/√Hz" and arw["ci"][0] <= ARW * 1.05 and arw["ci"][1] >= ARW * 0.95
+    assert rec["noise_process"] == "gauss_markov"
+
+
+def test_white_residual_not_identified():
+    """An ordinary run (white residual, model right) does not pay for the identification."""
+    t = np.arange(N) * DT  # the length of the fixture's: the same compiled programs
+    temp = 20.0 + 15.0 * np.sin(2 * np.pi * t / (N * DT))
+    g = np.random.default_rng(3).normal(0.0, ARW / np.sqrt(DT), (N, 3)) + 2e-4 * (temp - 20.0)[:, None]
+    d = diagnose("bias_poly(1)", [Recording(t=t, gyro=g, temp=temp, device="w")]).devices[0]
+    assert d.verdict == "adequate"
+    assert d.noise["status"] == "not_identified" and d.noise["axes"] is None
+    assert d.noise_process is None
+
+
+def test_kalman_bias_uses_the_identified_model(diag):
+    """kalman.identified_bias runs the identified model; a random walk alone is exactly
+    kalman's own walk filter, and a Gauss–Markov bias's variance stays below its σ²."""
+    import jax.numpy as jnp
+
+    from diffgyro.kalman import identified_bias, rw_filter
+
+    y = np.asarray(diag.residuals[0, :N])
+    axes = diag.devices[0].noise["axes"]
+    b, pb = identified_bias(y, axes, DT)
+    for k, ax in enumerate("xyz"):
+        gm = [c for c in axes[ax]["components"] if c["kind"] == "gauss_markov"]
+        sig2 = sum(c["params"]["sigma"]["value"] ** 2 for c in gm)
+        assert np.all(np.asarray(pb[:, k]) <= sig2 * (1 + 1e-9))
+    arw, rrw = 3e-4, 1e-5
+    walk = {ax: {"components": [{"kind": "white", "params": {"arw": {"value": arw}}},
+                                {"kind": "random_walk", "params": {"rrw": {"value": rrw}}}]}
+            for ax in "xyz"}
+    b, pb = identified_bias(y, walk, DT, p0_walk=1e-4)
+    t = jnp.arange(N) * DT
+    fp = rw_filter(jnp.asarray(y[:, 0]), jnp.zeros((N, 0)), jnp.ones(N, bool), t,
+                   jnp.asarray(rrw**2), jnp.asarray(arw**2 / DT), jnp.asarray(1e-4))
+    np.testing.assert_allclose(np.asarray(b[:, 0]), np.asarray(fp.a_y), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(np.asarray(pb[:, 0]), np.asarray(fp.p), rtol=1e-9)
