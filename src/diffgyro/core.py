@@ -10,6 +10,7 @@ their held-out numbers, statuses and options mean the same thing.
 from __future__ import annotations
 
 import collections
+import importlib
 from collections.abc import Callable
 
 import equinox as eqx
@@ -152,8 +153,9 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
 
 def noise_fit(noise: AbstractNoise) -> Callable:
     """The fit registered for the class of ``noise`` (or the nearest base class)."""
-    from . import kalman  # noqa: F401  (registers RandomWalk's fit on first use)
-
+    for cls in type(noise).__mro__:  # a class names the module that registers its fit
+        if getattr(cls, "fit_module", None):
+            importlib.import_module(cls.fit_module)
     for cls in type(noise).__mro__:
         if cls in _NOISE_FITS:
             return _NOISE_FITS[cls]

@@ -153,20 +153,9 @@ def diagnose_command(
     A device that moved (no rate reference in MODEL) gets status in_motion and no
     verdict; --static-only diagnoses each device's longest static interval.
     """
-    if limits is not None and auto:
-        from diffgyro.errors import DataError
-
-        raise DataError("--limits judges the model given with --model; with --auto the model "
-                        "shipped is known only at the end",
-                        hint="run diagnose or fit --limits with the final model of the ladder")
     streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
-    if static_only and streamed:
-        raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
-                                 "files, --chunk-devices, --dask); diagnose the files directly",
-                                 param_hint="--static-only")
-    if not synthesis and streamed:
-        raise typer.BadParameter("is not available for streamed runs; diagnose the files "
-                                 "directly", param_hint="--no-synthesis")
+    _refuse_combinations(limits is not None and auto, streamed and static_only,
+                         streamed and not synthesis)
     if streamed:
         from ._stream import stream_diagnose
 
@@ -183,7 +172,6 @@ def diagnose_command(
         return
     from rich.console import Console
 
-    from diffgyro.diagnose import diagnose, diagnose_auto
     from diffgyro.model import ErrorModel
 
     from ._limits import load_limits
@@ -196,19 +184,42 @@ def diagnose_command(
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
         | ({} if synthesis else {"synthesis": False})
     err = Console(stderr=True)
-    ladder = None
-    if auto:
-        with err.status("diagnosing") as status:
-            ladder = diagnose_auto(spec, batch, names, max_steps=max_steps,
-                                   progress=lambda text: status.update(text), **opts)
-        diag = ladder.first
-    else:
-        with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
-            diag = diagnose(spec, batch, names, **opts)
+    diag, ladder = _diagnosis(spec, batch, names, auto, max_steps, opts, err)
     if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
         for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
             d.skipped.update(partial)
     _outputs(diag, ladder, batch, lim, report, out, as_json, err, static)
+
+
+def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
+                         streamed_without_synthesis: bool) -> None:
+    """One line (exit 2) for options that do not go together."""
+    if limits_with_auto:
+        from diffgyro.errors import DataError
+
+        raise DataError("--limits judges the model given with --model; with --auto the model "
+                        "shipped is known only at the end",
+                        hint="run diagnose or fit --limits with the final model of the ladder")
+    if streamed_static_only:
+        raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
+                                 "files, --chunk-devices, --dask); diagnose the files directly",
+                                 param_hint="--static-only")
+    if streamed_without_synthesis:
+        raise typer.BadParameter("is not available for streamed runs; diagnose the files "
+                                 "directly", param_hint="--no-synthesis")
+
+
+def _diagnosis(spec, batch, names, auto: bool, max_steps: int, opts: dict, err):
+    """The diagnosis of ``spec`` (the first rung of the ladder with --auto) and the ladder."""
+    from diffgyro.diagnose import diagnose, diagnose_auto
+
+    if auto:
+        with err.status("diagnosing") as status:
+            ladder = diagnose_auto(spec, batch, names, max_steps=max_steps,
+                                   progress=lambda text: status.update(text), **opts)
+        return ladder.first, ladder
+    with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
+        return diagnose(spec, batch, names, **opts), None
 
 
 def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
