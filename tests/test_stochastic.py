@@ -314,18 +314,26 @@ def test_bias_filter_with_the_identified_model_is_calibrated():
     assert np.sqrt(np.mean(err**2)) < 0.98 * np.sqrt(np.mean(np.asarray(b_rw - bias)[100:] ** 2))
 
 
-def test_motion_hook_marks_a_moving_device(tmp_path, capsys, monkeypatch):
-    """The motion check (``cli.noise.MOTION_CHECK``) takes a device out: status in_motion, no axes."""
+def test_a_moving_device_is_not_identified(tmp_path, capsys):
+    """The motion check takes a device that turned out: status in_motion, no axes, and the
+    detail says how it moved; the device at rest beside it is identified."""
     import pandas as pd
 
-    from diffgyro.cli import main, noise
+    from diffgyro.cli import main
 
-    n = 256
-    pd.DataFrame({"device": "m", "t": np.arange(n) * 0.01, "gx": np.sin(np.arange(n) / 9.0),
-                  "gy": np.cos(np.arange(n) / 7.0), "gz": np.arange(n) * 1e-3}).to_csv(
-        tmp_path / "moved.csv", index=False)
-    monkeypatch.setattr(noise, "MOTION_CHECK", lambda batch: ["rotated 90° at 1.2 s"] * batch.n_devices)
-    assert main(["noise", str(tmp_path / "moved.csv"), "--json"]) == 0
-    (dev,) = json.loads(capsys.readouterr().out)["devices"]
-    assert dev["status"] == "in_motion" and dev["axes"] is None
-    assert dev["status_detail"] == "rotated 90° at 1.2 s"
+    rng = np.random.default_rng(4)
+    n, dt = 8192, 0.01  # the length the other identification tests compile for
+    rest = 1e-3 * rng.standard_normal((n, 3))
+    turned = rest.copy()
+    turned[2000:2300, 2] += 1.0  # a 3 s turn at 1 rad/s, then back
+    turned[5000:5300, 2] -= 1.0
+    frames = [pd.DataFrame({"device": name, "t": np.arange(n) * dt, "gx": g[:, 0],
+                            "gy": g[:, 1], "gz": g[:, 2]})
+              for name, g in (("moved", turned), ("rest", rest))]
+    pd.concat(frames).to_csv(tmp_path / "two.csv", index=False)
+    assert main(["noise", str(tmp_path / "two.csv"), "--json", "--gyro-unit", "rad/s"]) == 0
+    moved, still = json.loads(capsys.readouterr().out)["devices"]
+    assert moved["status"] == "in_motion" and moved["axes"] is None
+    assert moved["status_detail"].startswith("in_motion: ") and "record at rest" in \
+        moved["status_detail"]
+    assert still["status"] == "ok" and still["axes"] is not None

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import html
 import math
-from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated
 
@@ -33,9 +32,6 @@ from ._options import (
 )
 
 AXES = ("x", "y", "z")
-#: The motion check: ``MOTION_CHECK(batch)`` returns, per device, None when it stood still or
-#: a one-line reason (the device's status becomes ``in_motion``, its axes null). None: no check.
-MOTION_CHECK: Callable | None = None
 #: Display units: (factor from SI, unit) per parameter.
 _DEG = 180.0 / math.pi
 DISPLAY = {
@@ -97,10 +93,21 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
     """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
     from diffgyro.stochastic.devices import identify_devices
 
-    motion = MOTION_CHECK(batch) if MOTION_CHECK is not None else None
+    motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
                                        motion=motion, max_gm=max_gm, penalty=penalty)
     return {"devices": entries}, models
+
+
+def moved_reasons(batch) -> list[str | None]:
+    """Per device, None when the motion check (:func:`diffgyro.motion.motion_check`) found
+    it at rest, else why not (its status becomes ``in_motion``, its axes null)."""
+    from diffgyro.motion import describe, motion_check
+
+    motion = motion_check(batch)
+    return [f"in_motion: {describe(motion.record(i))}; a noise model of this recording would "
+            "measure the motion, not the sensor: record at rest" if motion.moved(i) else None
+            for i in range(batch.n_devices)]
 
 
 def _warn_uneven(batch) -> None:
