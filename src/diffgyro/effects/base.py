@@ -20,6 +20,7 @@ It shares the registry and the spec grammar (``bias_poly(2)+random_walk``).
 from __future__ import annotations
 
 import abc
+import difflib
 import re
 from typing import ClassVar
 
@@ -231,8 +232,6 @@ def is_column_name(text: str) -> bool:
 
 def _did_you_mean(name: str) -> str:
     """``"did you mean 'gradient'? "`` for a misspelt effect name, else ``""``."""
-    import difflib
-
     close = difflib.get_close_matches(name, list(_REGISTRY), n=2, cutoff=0.6)
     return f"did you mean {' or '.join(repr(c) for c in close)}? " if close else ""
 
@@ -253,7 +252,7 @@ def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
     if kind == "expr":  # the term grammar (effects/grammar.py) reads its own argument
         return cls.parse_argument(text)
     if kind == "column":
-        if not _COLUMN.fullmatch(text):
+        if not is_column_name(text):
             raise SpecError(f"{text!r} is not a column name (argument {field} of {name!r})",
                             hint="letters, digits, _ and ., starting with a letter or _; "
                                  "rename a column with --columns new=old")
