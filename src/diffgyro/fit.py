@@ -13,6 +13,7 @@ device never sinks the batch.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 
 import equinox as eqx
@@ -604,10 +605,8 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
     devices whose recording moved; the others keep ``motion``. A fast thermal transient the
     model follows is not motion; a turn no model without a rate reference can follow
     stays in the residual."""
-    resid = np.asarray(result.residuals(batch))
-    accel = None if batch.rate is not None else batch.accel  # as motion_check reads them
-    again = motion_check(eqx.tree_at(lambda b: (b.gyro, b.rate, b.accel), batch,
-                                     (resid, None, accel), is_leaf=lambda x: x is None))
+    resid = np.asarray(result.residuals(batch))  # (only called where batch.rate is None)
+    again = motion_check(eqx.tree_at(lambda b: b.gyro, batch, resid))
 
     def pick(a, b):
         m = np.asarray(moved).reshape((-1,) + (1,) * (np.ndim(a) - 1))
@@ -621,8 +620,6 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
 def _replace(result, **changes):
     """``result`` (a FitResult, or the state-space path's fit) with some fields changed
     (static ones included)."""
-    import dataclasses
-
     return dataclasses.replace(result, **changes)
 
 
