@@ -98,7 +98,7 @@ def test_graph_reads_known_edges():
     """The reader sees relative, absolute, function-level and submodule imports."""
     modules = _modules()
     edges = {(a, b) for a, b, _ in _imports(modules)}
-    assert ("diffgyro.fit", "diffgyro.core") in edges  # from .core import (...)
+    assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
     assert ("diffgyro.kalman", "diffgyro.fit") in edges  # inside a function
     assert ("diffgyro.effects.bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError

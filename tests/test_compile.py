@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 
 from diffgyro import Batch, Recording
-from diffgyro import fit as fit_module
-from diffgyro.fit import device_bucket, fit
+from diffgyro import jit as jit_module
+from diffgyro.data import device_bucket
+from diffgyro.fit import fit
 
 
 def _recordings(n_devices, length, seed):
@@ -28,12 +29,12 @@ def test_new_batch_size_in_bucket_traces_once(path):
     second = _recordings(7, 960, seed=2)  # lengths 882..960: the same 1024 bucket
     assert first.length == second.length == 1024
     key = path
-    before = fit_module.TRACE_COUNTS[key]
+    before = jit_module.TRACE_COUNTS[key]
     r1 = fit("bias_poly(1)", first, path=path)
-    after_first = fit_module.TRACE_COUNTS[key]
+    after_first = jit_module.TRACE_COUNTS[key]
     r2 = fit("bias_poly(1)", second, path=path)
     assert after_first - before <= 1  # at most one compile (none if an earlier test made it)
-    assert fit_module.TRACE_COUNTS[key] == after_first, "fit compiled again for a new batch size"
+    assert jit_module.TRACE_COUNTS[key] == after_first, "fit compiled again for a new batch size"
     assert r1.n_devices == 5 and r2.n_devices == 7
     assert set(np.asarray(r2.status)) == {0}
     # the result of the padded run is the device's own fit

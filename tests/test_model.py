@@ -8,10 +8,16 @@ import pytest
 from conftest import registered
 
 from diffgyro import ErrorModel
-from diffgyro.core import noise_fit, register_noise_fit
 from diffgyro.data import Recording
 from diffgyro.diagnose.candidates import candidate_specs
-from diffgyro.effects import AbstractNoise, BiasPoly, Gradient, RandomWalk
+from diffgyro.effects import (
+    AbstractNoise,
+    BiasPoly,
+    Gradient,
+    RandomWalk,
+    noise_fit,
+    register_noise_fit,
+)
 from diffgyro.errors import SpecError
 from diffgyro.fit import fit
 from diffgyro.kalman import fit_random_walk
@@ -67,11 +73,11 @@ class SlowWalk(RandomWalk):
 
 @pytest.fixture
 def user_noise():
-    from diffgyro import core
+    from diffgyro.effects import base
 
     with registered(Flicker, SlowWalk):
         yield
-    core._NOISE_FITS.pop(Flicker, None)
+    base._NOISE_FITS.pop(Flicker, None)
 
 
 def test_a_registered_user_noise_process(user_noise):

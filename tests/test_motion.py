@@ -15,10 +15,10 @@ import scipy.io
 
 from diffgyro import calibration
 from diffgyro.cli import main
-from diffgyro.core import STATUS_NAMES
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
 from diffgyro.motion import MAX_MOVING_FRACTION, motion_check
+from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
 FLIGHT = DATA / "px4" / "sample.ulg"

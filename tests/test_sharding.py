@@ -86,7 +86,7 @@ from diffgyro.data import Batch
 batch = Batch.from_recordings(load(DATA + "/part-00.parquet")[:CHUNK])
 full = batch.select(np.minimum(np.arange(fitter.padded), batch.n_devices - 1))
 f = lambda x: None if x is None else jax.numpy.asarray(x)
-from diffgyro.fit import sampling_intervals
+from diffgyro.data import sampling_intervals
 sig = chunkfit._signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
                         f(full.temp_ext), f(full.accel), f(sampling_intervals(full)), 60.0)
 sig = jax.device_put(sig, jax.sharding.NamedSharding(fitter.mesh,

@@ -69,7 +69,7 @@ from .errors import DataError, SpecError  # noqa: E402  (no JAX: the CLI's error
 
 #: Public names loaded on first use, so that ``import diffgyro`` (and the command
 #: line's ``--help``) does not start JAX; the fit of a noise component finds
-#: :mod:`diffgyro.kalman` through :func:`diffgyro.core.noise_fit`.
+#: :mod:`diffgyro.kalman` through :func:`diffgyro.effects.noise_fit`.
 _LAZY = {"Batch": "data", "Recording": "data", "ErrorModel": "model", "Params": "model",
          "effects": None, "kalman": None}
 

@@ -33,10 +33,11 @@ import numpy as np
 
 from .data import Batch, Recording
 from .errors import SpecError
-from .fit import STATUS_NAMES, FitResult, batch_signals
+from .fit import FitResult, batch_signals
 from .jsonio import atomic_write_text, dumps, to_json_safe
 from .model import ErrorModel, Params
 from .signals import TempNorm
+from .status import STATUS_NAMES
 
 FORMAT = "diffgyro-calibration"
 FORMAT_VERSION = 1

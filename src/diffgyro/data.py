@@ -4,7 +4,7 @@ A :class:`Recording` holds one device's samples in the standard schema
 (docs/formats.md; SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
 recordings along a leading device axis, padded to a bucket length with a
 sample mask, so that batches of slightly different lengths reuse one compiled
-function. Arrays are host numpy arrays here; fits move them to JAX.
+function; fits pad the device axis the same way (:func:`pad_devices`). Arrays are host numpy arrays here; fits move them to JAX.
 
 Extra numeric columns of a file (supply voltage, a second board temperature,
 heater duty, ...) travel beside the standard signals in ``aux``, a dict from
@@ -117,6 +117,15 @@ def bucket_length(n: int, minimum: int = 64) -> int:
             if m * 2**k >= n:
                 return m * 2**k
         k += 1
+
+
+def device_bucket(n: int) -> int:
+    """Padded device count of a direct-path batch: powers of two up to 64 (at least 8),
+    then multiples of 64, so that a few more or fewer devices reuse the compiled fit."""
+    n = max(int(n), 1)
+    if n <= 64:
+        return max(8, 1 << (n - 1).bit_length())
+    return -(-n // 64) * 64
 
 
 def _pad_into(out: np.ndarray, arr: np.ndarray, mode: str) -> None:
@@ -290,3 +299,31 @@ class Batch(eqx.Module):
         import pandas as pd
 
         return pd.concat([r.to_frame() for r in self.recordings()], ignore_index=True)
+
+
+def as_batch(data: Batch | Recording | list[Recording]) -> Batch:
+    """A Batch of ``data`` (a Batch, one Recording or a list of them)."""
+    if isinstance(data, Batch):
+        return data
+    if isinstance(data, Recording):
+        return Batch.from_recordings([data])
+    return Batch.from_recordings(list(data))
+
+
+def pad_devices(batch: Batch) -> Batch:
+    """The batch with its last device repeated up to :func:`device_bucket` devices."""
+    n = batch.n_devices
+    m = device_bucket(n)
+    if m == n:
+        return batch
+    return batch.select(np.minimum(np.arange(m), n - 1))
+
+
+def sampling_intervals(batch: Batch) -> np.ndarray:
+    """Median sampling interval of each device's valid samples (s)."""
+    out = np.ones(batch.n_devices)
+    for i in range(batch.n_devices):
+        n = int(batch.n_valid[i])
+        if n >= 2:
+            out[i] = float(np.median(np.diff(np.asarray(batch.t[i, :n]))))
+    return out

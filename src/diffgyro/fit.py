@@ -25,29 +25,11 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import aux as aux_cols
 from . import noise
-from .core import (  # noqa: F401  (also part of diffgyro.fit's interface)
-    FAILED,
-    IN_MOTION,
-    INSUFFICIENT_DATA,
-    INSUFFICIENT_RANGE,
-    NOT_CONVERGED,
-    OK,
-    RANK_DEFICIENT,
-    STATUS_NAMES,
-    TRACE_COUNTS,
-    FitOptions,
-    as_batch,
-    device_bucket,
-    fit_status,
-    fold_ids,
-    min_samples,
-    noise_fit,
-    pad_devices,
-    sampling_intervals,
-)
-from .data import Batch, Recording
+from .data import Batch, Recording, as_batch, pad_devices, sampling_intervals
+from .effects import noise_fit
 from .errors import DataError, SpecError
-from .jit import release_compiled_if_crowded
+from .folds import fold_ids
+from .jit import TRACE_COUNTS, release_compiled_if_crowded
 from .jsonio import number
 from .linalg import (  # noqa: F401  (re-exported)
     normal_equations,
@@ -57,8 +39,9 @@ from .linalg import (  # noqa: F401  (re-exported)
 )
 from .model import ErrorModel, Params
 from .motion import Motion, motion_check
+from .options import FitOptions
 from .signals import Signals, TempNorm, make_signals
-from .status import collinear_terms, explain
+from .status import IN_MOTION, OK, STATUS_NAMES, collinear_terms, explain, fit_status, min_samples
 
 # --------------------------------------------------------------------------- signals
 

@@ -16,6 +16,7 @@ runs out of memory mappings (XLA's CPU JIT maps every kernel separately).
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import functools
 import gc
@@ -137,6 +138,9 @@ def available_cores() -> int:
     return max(1, len(cores) if cores else (os.cpu_count() or 1))
 
 
+#: How often each compiled batch function was traced (tests check that a new batch
+#: size within a bucket does not compile again).
+TRACE_COUNTS: collections.Counter = collections.Counter()
 MAP_HEADROOM = 0.5  # share of vm.max_map_count past which compiled programs are dropped
 
 

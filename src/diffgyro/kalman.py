@@ -40,22 +40,14 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .core import (
-    FAILED,
-    INSUFFICIENT_DATA,
-    NOT_CONVERGED,
-    OK,
-    STATUS_NAMES,
-    FitOptions,
-    as_batch,
-    fold_ids,
-    register_noise_fit,
-)
-from .effects import RandomWalk
+from .data import as_batch
+from .effects import RandomWalk, register_noise_fit
+from .folds import fold_ids
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .model import ErrorModel, Params
-from .status import explain
+from .options import FitOptions
+from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, STATUS_NAMES, explain
 
 LOG_2PI = math.log(2.0 * math.pi)
 #: Prior variance of the walk's start when no constant bias is modelled, (rad/s)².

@@ -323,7 +323,7 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-    from .core import sampling_intervals
+    from .data import sampling_intervals
 
     if dt is None:
         dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01

@@ -1,7 +1,7 @@
 """A device's fit status in plain words: why a device is not ``ok``.
 
 Every fitting path (closed form, the sums path, the state-space path) sets a
-device's status with :func:`diffgyro.core.fit_status`, most basic problem first,
+device's status with :func:`fit_status`, most basic problem first,
 and every record says why a device is not ``ok`` with :func:`explain` (its
 ``status_detail``): which term the data cannot support and what it needs, which
 terms the data do not tell apart (the rank check: never a silent truncation),
@@ -16,7 +16,27 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
-from .core import STATUS_NAMES, min_samples  # noqa: F401  (status names, the sample rule)
+STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
+                "insufficient_data", "failed", "in_motion")
+OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED, IN_MOTION = range(7)
+
+
+def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, rank_ok=None):
+    """Status code of a fit, the most basic problem first: too few samples, a term
+    whose signal does not vary (``range_flags``), collinear columns (``rank_ok``
+    false on an axis), no convergence, non-finite results."""
+    status = jnp.where(finite, OK, FAILED)
+    status = jnp.where(~converged, NOT_CONVERGED, status)
+    if rank_ok is not None:
+        status = jnp.where(~jnp.all(rank_ok), RANK_DEFICIENT, status)
+    if range_flags is not None:
+        status = jnp.where(jnp.any(range_flags), INSUFFICIENT_RANGE, status)
+    return jnp.where(n_valid < min_samples, INSUFFICIENT_DATA, status)
+
+
+def min_samples(n_unknowns: int) -> int:
+    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis."""
+    return max(2 * n_unknowns, n_unknowns + 4)
 
 
 def collinear_terms(model, direction, rank_ok):

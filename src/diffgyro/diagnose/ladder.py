@@ -108,7 +108,7 @@ def diagnose_auto(
     ladder (its rung reports the smoother's held-out numbers). ``progress``
     is called with a line of text before each diagnosis.
     """
-    from ..core import as_batch
+    from ..data import as_batch
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)

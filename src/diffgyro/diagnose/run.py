@@ -78,7 +78,7 @@ def _put(x: np.ndarray) -> jax.Array:
 def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     """One chunk's samples, the fit's temperature normalisation and sampling intervals and
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
-    from ..core import sampling_intervals
+    from ..data import sampling_intervals
 
     take = as_slice(idx)  # devices in order: views of the batch, not copies
 
@@ -414,7 +414,7 @@ def diagnose(
     object.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
-    from ..core import as_batch
+    from ..data import as_batch
     from ..fit import fit as fit_fn
 
     if isinstance(model, str):

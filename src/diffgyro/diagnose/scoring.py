@@ -3,7 +3,7 @@
 Every number the decision reads is a sum over samples of products of the base
 design ``X``, a candidate's columns ``Z`` and the base residual ``e``. The
 valid samples of each time block of the folds (the blocks of
-:func:`diffgyro.core.fold_ids`) are gathered once into a window of
+:func:`diffgyro.folds.fold_ids`) are gathered once into a window of
 ``ceil(length / B)`` samples (``B × w``, the rest masked), so the sums of a
 column set over every block are a few batched contractions over the window
 axis, and no column set of every sample outlives its own sums:

@@ -279,7 +279,7 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
 
 def _inputs(batch, res, idx: np.ndarray, aux: dict) -> dict:
     """The devices ``idx`` as the compiled columns take them (padded rows, masked)."""
-    from ..core import sampling_intervals
+    from ..data import sampling_intervals
 
     def arr(x):
         return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])

@@ -24,9 +24,11 @@ from .base import (
     AbstractNoise,
     AbstractTerm,
     format_spec,
+    noise_fit,
     parse_spec,
     parse_term,
     register,
+    register_noise_fit,
     registry,
     spec_arguments,
 )
@@ -48,6 +50,6 @@ __all__ = [
     "AXES", "AbstractEffect", "AbstractNoise", "AbstractTerm", "Aux", "BiasPoly", "GSens",
     "Gradient", "Hysteresis", "Misalignment", "RandomWalk",
     "ScaleAsym", "ScaleNonlin", "ScalePoly", "TempDiff", "Term", "ThermalLag", "Warmup",
-    "first_order_lag", "format_spec", "parse_spec", "parse_term", "register", "registry",
-    "spec_arguments",
+    "first_order_lag", "format_spec", "noise_fit", "parse_spec", "parse_term", "register",
+    "register_noise_fit", "registry", "spec_arguments",
 ]

@@ -14,14 +14,18 @@ closed-form least squares and variable projection.
 
 A noise process (the bias random walk) is not a sum of columns: it is the
 model's noise component, estimated by a state-space smoother while fitting.
-It shares the registry and the spec grammar (``bias_poly(2)+random_walk``).
+It shares the registry and the spec grammar (``bias_poly(2)+random_walk``); its
+fit is registered by class (:func:`register_noise_fit`), so the regression paths
+never import the state-space path.
 """
 
 from __future__ import annotations
 
 import abc
 import difflib
+import importlib
 import re
+from collections.abc import Callable
 from typing import ClassVar
 
 import equinox as eqx
@@ -101,10 +105,38 @@ class AbstractTerm(eqx.Module):
 class AbstractNoise(AbstractTerm):
     """A noise process: the model's noise component (at most one), estimated by a
     state-space smoother while fitting instead of by regression, so it has no columns.
-    Its fit is found through :func:`diffgyro.core.register_noise_fit`."""
+    Its fit is found through :func:`register_noise_fit`."""
 
     def coefficient_summary(self) -> str:
         return "variance (learned)"
+
+
+#: Fit functions of models with a noise component, by the component's class.
+_NOISE_FITS: dict[type, Callable] = {}
+
+
+def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callable]:
+    """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models whose
+    noise component is a ``cls`` (:func:`diffgyro.kalman.fit_random_walk` registers
+    ``RandomWalk``). :func:`diffgyro.fit.fit` dispatches through this table, so the
+    direct and sums paths never import the state-space path."""
+    def add(fn: Callable) -> Callable:
+        _NOISE_FITS[cls] = fn
+        return fn
+
+    return add
+
+
+def noise_fit(noise: AbstractNoise) -> Callable:
+    """The fit registered for the class of ``noise`` (or the nearest base class)."""
+    for cls in type(noise).__mro__:  # a class names the module that registers its fit
+        if getattr(cls, "fit_module", None):
+            importlib.import_module(cls.fit_module)
+    for cls in type(noise).__mro__:
+        if cls in _NOISE_FITS:
+            return _NOISE_FITS[cls]
+    raise SpecError(f"no fit is registered for the noise component {noise.spec!r}",
+                    hint="register one with diffgyro.effects.register_noise_fit")
 
 
 class AbstractEffect(AbstractTerm):

@@ -5,10 +5,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from ..core import fit_status, min_samples
 from ..linalg import rank_check
 from ..model import ErrorModel
-from ..status import collinear_terms
+from ..status import collinear_terms, fit_status, min_samples
 from .layout import Layout, covariance_pairs, moving_columns
 from .normal_equations import cho_inverse, cho_solve, cholesky, residual_ss, unpack_sums
 from .types import DeviceSums

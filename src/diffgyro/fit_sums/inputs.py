@@ -8,8 +8,7 @@ import dataclasses
 import equinox as eqx
 import numpy as np
 
-from ..core import sampling_intervals
-from ..data import Batch, aux_key
+from ..data import Batch, aux_key, sampling_intervals
 from ..model import ErrorModel
 from .groups import chunk_size
 from .layout import INPUTS

@@ -7,8 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core import TRACE_COUNTS
-from ..jit import filter_jit
+from ..jit import TRACE_COUNTS, filter_jit
 from ..model import ErrorModel
 from .compile_options import FAST_COMPILE, ONCE, REASSOCIATE
 from .device import device

@@ -16,7 +16,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..core import fold_ids
+from ..folds import fold_ids
 from ..model import ErrorModel
 from .layout import Layout, covariance_pairs, sample_products, varying_products
 from .newton import newton

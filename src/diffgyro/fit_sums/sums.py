@@ -33,7 +33,7 @@ def _block_positions(mask, nv, n_blocks: int):
     """First sample index of every time block of the folds (n_blocks + 1 values).
 
     Block b holds the valid samples of rank ceil(b·n/B) .. ceil((b+1)·n/B) − 1,
-    the blocks of :func:`diffgyro.core.fold_ids`; ranks come from a cumulative count
+    the blocks of :func:`diffgyro.folds.fold_ids`; ranks come from a cumulative count
     (devices whose valid samples come first get the starts from the host instead).
     """
     b = jnp.arange(n_blocks + 1, dtype=jnp.int32)

@@ -32,11 +32,12 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from ..data import Batch
+from ..data import Batch, sampling_intervals
 from ..errors import SpecError
-from ..fit import FitOptions, FitResult, judge_motion, sampling_intervals, solve_device
+from ..fit import FitResult, judge_motion, solve_device
 from ..jit import parallel_devices
 from ..model import ErrorModel, Params
+from ..options import FitOptions
 from ..signals import TempNorm, make_signals
 
 AXIS = "devices"

@@ -116,7 +116,7 @@ def calibration_entries(result) -> list[dict]:
     import numpy as np
 
     from ..calibration import aux_entries, entry_json
-    from ..fit import STATUS_NAMES
+    from ..status import STATUS_NAMES
 
     model = result.model
     labels = model.param_labels()
