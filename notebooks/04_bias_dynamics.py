@@ -38,7 +38,8 @@ import numpy as np
 import diffgyro
 from diffgyro.allan import allan, plot_allan
 from diffgyro.data import Batch, Recording
-from diffgyro.kalman import fit_random_walk, heading_errors
+from diffgyro.kalman import fit_random_walk
+from diffgyro.recipes.static_kalman import heading_errors
 
 diffgyro.enable_x64()
 diffgyro.enable_compilation_cache()
@@ -113,7 +114,7 @@ print("learned RRW √q (z) / truth:", np.round(np.sqrt(np.asarray(fit_runs.q[:,
 
 # %%
 at = int(3600 * fs2)
-methods = ("none", "fixed", "s1", "learned", "smoothed")
+methods = ("none", "fixed", "static_kalman", "learned", "smoothed")
 drift = {k: [] for k in methods}
 tracks = None
 for i, (t2, g2, rate2, _, st2) in enumerate(runs):
@@ -124,20 +125,20 @@ for i, (t2, g2, rate2, _, st2) in enumerate(runs):
     for k in methods:
         drift[k].append(float(h[k][at]))
 rms = {k: math.degrees(math.sqrt(np.mean(np.square(v)))) for k, v in drift.items()}
-labels = {"none": "no compensation", "fixed": "factory offset E(0) only", "s1": "static-kalman (Q = 1e-4)",
+labels = {"none": "no compensation", "fixed": "factory offset E(0) only", "static_kalman": "static-kalman (Q = 1e-4)",
           "learned": "learned q, r (causal filter)", "smoothed": "learned q, r (smoother, offline)"}
 for k in methods:
     print(f"{labels[k]:36s} heading error after 1 h, RMS over {n_dev} runs: {rms[k]:8.1f} deg")
-print(f"learned / static-kalman = {rms['learned'] / rms['s1']:.2f}")
+print(f"learned / static-kalman = {rms['learned'] / rms['static_kalman']:.2f}")
 
 # %%
 fig, ax = plt.subplots(figsize=(8, 4))
 tt = runs[0][0] / 60.0
-for k in ("s1", "learned", "smoothed", "fixed"):
+for k in ("static_kalman", "learned", "smoothed", "fixed"):
     ax.plot(tt, tracks[k], label=labels[k])
 ax.set_xlabel("time (min)")
 ax.set_ylabel("heading error (deg)")
-ax.set_ylim(-3 * max(abs(tracks["s1"]).max(), 1), 3 * max(abs(tracks["s1"]).max(), 1))
+ax.set_ylim(-3 * max(abs(tracks["static_kalman"]).max(), 1), 3 * max(abs(tracks["static_kalman"]).max(), 1))
 ax.legend(fontsize=8)
 ax.set_title("run 0: heading error with each bias treatment")
 plt.show()
@@ -151,19 +152,19 @@ plt.show()
 
 # %%
 sweep = [1e-4, 1e-5, 1e-6, 1e-7, 1e-8]
-s1_rms = []
-for q_s1 in sweep:
+static_rms = []
+for q_static in sweep:
     v = [float(heading_errors(r[0], r[1][:, 2], r[2][:, 2], r[4], float(fit_runs.q[i, 2]),
-                              float(fit_runs.r[i, 2]), window=4, init=100, q_s1=q_s1)["s1"][at])
+                              float(fit_runs.r[i, 2]), window=4, init=100, q_static=q_static)["static_kalman"][at])
          for i, r in enumerate(runs)]
-    s1_rms.append(math.degrees(math.sqrt(np.mean(np.square(v)))))
+    static_rms.append(math.degrees(math.sqrt(np.mean(np.square(v)))))
 fig, ax = plt.subplots(figsize=(6, 3.5))
-ax.semilogx(sweep, s1_rms, "o-", label="static-kalman with fixed Q")
+ax.semilogx(sweep, static_rms, "o-", label="static-kalman with fixed Q")
 ax.axhline(rms["learned"], color="tab:green", label="learned q, r (causal)")
 ax.axhline(rms["smoothed"], color="tab:red", ls="--", label="learned q, r (smoother)")
 ax.set_xlabel("static-kalman's Q ((rad/s)² per window)")
 ax.set_ylabel("RMS heading error at 1 h (deg)")
 ax.legend(fontsize=8)
 plt.show()
-for q_s1, v in zip(sweep, s1_rms):
-    print(f"Q = {q_s1:.0e}: {v:.1f} deg")
+for q_static, v in zip(sweep, static_rms):
+    print(f"Q = {q_static:.0e}: {v:.1f} deg")

@@ -18,15 +18,14 @@ from diffgyro.fit import batch_signals, fit
 from diffgyro.kalman import (
     RandomWalkFit,
     fit_random_walk,
-    heading_errors,
     learn_noise,
     loglik,
     rts_smoother,
     rw_filter,
-    s1_offset_filter,
     smooth_bias,
 )
 from diffgyro.model import ErrorModel
+from diffgyro.recipes.static_kalman import heading_errors
 
 
 def _small_problem(seed=0, n=60):
@@ -204,32 +203,6 @@ def test_fit_dispatches_random_walk_models():
     assert dev.params["y"]["random_walk.q"] == pytest.approx(float(res.q[1, 1]))
 
 
-def _s1_reference(rz, static, window, init, q):
-    """static-kalman written out literally, one window at a time."""
-    x, p = rz[:init].mean(), rz[:init].var()
-    xs = []
-    for j, ok in enumerate(static):
-        w = rz[init + j * window: init + (j + 1) * window]
-        if ok:
-            pp = p + q
-            kg = pp / (pp + w.var())
-            x, p = x + kg * (w.mean() - x), (1 - kg) * pp
-        xs.append(x)
-    return np.array(xs)
-
-
-def test_s1_offset_filter_is_the_patent_recursion():
-    rng = np.random.default_rng(9)
-    rz = 0.02 + 0.003 * rng.normal(size=5000) + np.linspace(0, 0.01, 5000)
-    window, init = 100, 1000
-    static = rng.uniform(size=40) > 0.3
-    out = s1_offset_filter(jnp.asarray(rz), jnp.asarray(static), window, init, 1e-4)
-    np.testing.assert_allclose(np.asarray(out.x), _s1_reference(rz, static, window, init, 1e-4), rtol=1e-12)
-    off = np.asarray(out.offset)
-    assert np.all(off[:init + window] == pytest.approx(rz[:init].mean()))  # causal: first window uses E(0)
-    assert off[init + 3 * window] == pytest.approx(float(out.x[2]))
-
-
 def simulate_pause_run(seed, hours=1.05, fs=5.0, arw=1.5e-3, rrw=3e-5, first=60.0, move=100.0,
                        pause=20.0):
     """A long run: static 60 s, then 100 s of yaw motion and a 20 s pause, repeated; the bias of
@@ -249,7 +222,7 @@ def simulate_pause_run(seed, hours=1.05, fs=5.0, arw=1.5e-3, rrw=3e-5, first=60.
     return t, gyro, rate, static
 
 
-def test_learned_model_beats_s1_on_heading_drift():
+def test_learned_model_beats_static_kalman_on_heading_drift():
     """24 simulated one-hour runs (2 Hz) with pauses; the same true static windows for every
     method; static-kalman reads 2-s windows.
 
@@ -271,8 +244,8 @@ def test_learned_model_beats_s1_on_heading_drift():
     res = fit_random_walk("bias_poly(0)+random_walk", batch, static=static)
     assert np.all(np.asarray(res.status) == 0)
     at = int(3600 * fs)
-    methods = ("none", "fixed", "s1", "learned", "smoothed")
-    drift = {k: [] for k in (*methods, "s1_deg")}
+    methods = ("none", "fixed", "static_kalman", "learned", "smoothed")
+    drift = {k: [] for k in (*methods, "static_kalman_deg")}
     for i, (t, g, rate, s) in enumerate(runs):
         h = heading_errors(t, g[:, 2], rate[:, 2], s, float(res.q[i, 2]), float(res.r[i, 2]),
                            window=4, init=100)
@@ -280,16 +253,16 @@ def test_learned_model_beats_s1_on_heading_drift():
             drift[k].append(float(h[k][at]))
         # static-kalman publishes Q = 1e-4 without a unit: read it also as (°/s)², as the recipe does
         h = heading_errors(t, g[:, 2], rate[:, 2], s, float(res.q[i, 2]), float(res.r[i, 2]),
-                           window=4, init=100, q_s1=1e-4 * (math.pi / 180) ** 2)
-        drift["s1_deg"].append(float(h["s1"][at]))
+                           window=4, init=100, q_static=1e-4 * (math.pi / 180) ** 2)
+        drift["static_kalman_deg"].append(float(h["static_kalman"][at]))
     rms = {k: math.degrees(math.sqrt(np.mean(np.square(v)))) for k, v in drift.items()}
     print("heading error after 1 h, RMS over devices (deg): "
           + ", ".join(f"{k} {v:.1f}" for k, v in rms.items())
-          + f"; learned/static-kalman = {rms['learned'] / rms['s1']:.2f} (Q in (rad/s)²), "
-          + f"{rms['learned'] / rms['s1_deg']:.2f} (Q in (°/s)²)")
-    assert rms["learned"] < 0.85 * rms["s1"]
-    assert rms["learned"] < 0.85 * rms["s1_deg"]
-    assert rms["s1"] < rms["fixed"] < rms["none"]
+          + f"; learned/static-kalman = {rms['learned'] / rms['static_kalman']:.2f} (Q in (rad/s)²), "
+          + f"{rms['learned'] / rms['static_kalman_deg']:.2f} (Q in (°/s)²)")
+    assert rms["learned"] < 0.85 * rms["static_kalman"]
+    assert rms["learned"] < 0.85 * rms["static_kalman_deg"]
+    assert rms["static_kalman"] < rms["fixed"] < rms["none"]
     assert rms["smoothed"] < rms["learned"]
 
 

@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from diffgyro.data import Recording
 from diffgyro.errors import DataError
 from diffgyro.recipes._common import toolkit_compensate
-from diffgyro.recipes.static_kalman import static_kalman
+from diffgyro.recipes.static_kalman import offset_filter, static_kalman
 
 FS = 200.0          # 1000 samples = the published 5 s factory rest
 DEG = np.pi / 180.0
@@ -138,3 +139,29 @@ def test_temperature_drift_during_motion_and_the_toolkit_bias_model():
     # the toolkit's bias(T) 0.14°
     assert e_recipe > 5.0 * DEG
     assert e_toolkit < 0.05 * e_recipe
+
+
+def _literal_offset_track(rz, static, window, init, q):
+    """static-kalman written out literally, one window at a time."""
+    x, p = rz[:init].mean(), rz[:init].var()
+    xs = []
+    for j, ok in enumerate(static):
+        w = rz[init + j * window: init + (j + 1) * window]
+        if ok:
+            pp = p + q
+            kg = pp / (pp + w.var())
+            x, p = x + kg * (w.mean() - x), (1 - kg) * pp
+        xs.append(x)
+    return np.array(xs)
+
+
+def test_offset_filter_is_the_patent_recursion():
+    rng = np.random.default_rng(9)
+    rz = 0.02 + 0.003 * rng.normal(size=5000) + np.linspace(0, 0.01, 5000)
+    window, init = 100, 1000
+    static = rng.uniform(size=40) > 0.3
+    out = offset_filter(jnp.asarray(rz), jnp.asarray(static), window, init, 1e-4)
+    np.testing.assert_allclose(np.asarray(out.x), _literal_offset_track(rz, static, window, init, 1e-4), rtol=1e-12)
+    off = np.asarray(out.offset)
+    assert np.all(off[:init + window] == pytest.approx(rz[:init].mean()))  # causal: first window uses E(0)
+    assert off[init + 3 * window] == pytest.approx(float(out.x[2]))

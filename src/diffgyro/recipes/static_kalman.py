@@ -19,7 +19,8 @@ The published procedure, on all three axes (the patent writes it for z):
 ``Q`` is published without a unit; here it is in ``(q_unit)²`` (default
 (°/s)², the unit such sensors report) and converted to (rad/s)². ``R(k)``
 is the variance of the window's samples, not of its mean, exactly as
-published. The filter itself is :func:`diffgyro.kalman.s1_offset_filter`.
+published. The filter itself is :func:`offset_filter`; :func:`heading_errors`
+compares it with the learned random walk (:mod:`diffgyro.kalman`).
 
 Heading: ``yaw_*`` integrate the corrected z rate (the published level-
 vehicle heading). With a reference attitude (``quat``), ``heading_error_*``
@@ -32,11 +33,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Bool, Float
 
 from ..errors import DataError
-from ..kalman import s1_offset_filter
+from ..kalman import causal_bias, profile, rts_smoother, rw_filter
 from ..reference import heading_error, integrate_gyro
 from ._common import RecipeResult
 
@@ -132,7 +136,7 @@ def static_kalman(
     q_si = float(q) * UNITS[q_unit] ** 2
     thresholds = window_thresholds(accel, gyro, init, margin)
     static = static_windows(accel, gyro, thresholds, init, window)
-    tracks = [s1_offset_filter(jnp.asarray(gyro[:, i]), jnp.asarray(static), window, init, q_si)
+    tracks = [offset_filter(jnp.asarray(gyro[:, i]), jnp.asarray(static), window, init, q_si)
               for i in range(3)]
     x = np.stack([np.asarray(tr.x) for tr in tracks], axis=1)
     p = np.stack([np.asarray(tr.p) for tr in tracks], axis=1)
@@ -157,3 +161,116 @@ def static_kalman(
         yaw_tracked=_integrate(t, gyro[:, 2] - offset[:, 2]),
         heading_error_raw=he[0], heading_error_fixed=he[1], heading_error_tracked=he[2],
         margin=float(margin), window=int(window), q=q_si)
+
+
+# --------------------------------------------------------------------------- the offset filter
+
+
+class OffsetTrack(eqx.Module):
+    """static-kalman's offset track: per window ``x`` (offset after the update) and ``p``; per sample
+    ``offset`` (the offset in force while that sample is read: the last update before it)."""
+
+    x: Float[Array, " k"]
+    p: Float[Array, " k"]
+    offset: Float[Array, " n"]
+
+
+def offset_filter(
+    rz: Float[Array, " n"],
+    static: Bool[Array, " k"],
+    window: int,
+    init: int = 1000,
+    q: float = 1e-4,
+) -> OffsetTrack:
+    """static-kalman's scalar Kalman filter of the z-rate offset (faithful to the patent).
+
+    Initial window (the first ``init`` samples, 5 s static at the factory):
+    ``X(0|0) = E(0) = mean``, ``P(0|0) = COV(0) = var``. After it, windows of
+    ``window`` samples; window j (``static[j]``, e.g. from
+    :func:`diffgyro.detect.s1_range_detector`) updates with ``E = mean``,
+    ``R = COV = var`` of its samples, ``P ← P + Q``, ``Kg = P/(P+R)``;
+    a non-static window leaves the filter unchanged. ``q`` is the patent's fixed
+    ``Q = 1e-4`` in the units of ``rz``. The per-sample offset is causal:
+    the samples of window j are corrected with the offset after window j−1.
+    """
+    rz = jnp.asarray(rz)
+    n = rz.shape[0]
+    k = (n - init) // window
+    win = rz[init:init + k * window].reshape(k, window)
+    e = jnp.mean(win, axis=1)
+    cov = jnp.var(win, axis=1)
+    x0 = jnp.mean(rz[:init])
+    p0 = jnp.var(rz[:init])
+    st = jnp.asarray(static)[:k]
+
+    def step(carry, inp):
+        x, p = carry
+        ek, rk, ok = inp
+        pp = p + q
+        kg = pp / (pp + rk)
+        xn = jnp.where(ok, x + kg * (ek - x), x)
+        pn = jnp.where(ok, (1.0 - kg) * pp, p)
+        return (xn, pn), (xn, pn)
+
+    _, (xs, ps) = jax.lax.scan(step, (x0, p0), (e, cov, st))
+    before = jnp.concatenate([x0[None], xs[:-1]]) if k > 0 else jnp.zeros((0,), rz.dtype)
+    per_window = jnp.repeat(before, window)
+    tail = jnp.full((n - init - k * window,), xs[-1] if k > 0 else x0, rz.dtype)
+    offset = jnp.concatenate([jnp.full((init,), x0, rz.dtype), per_window, tail])
+    return OffsetTrack(x=xs, p=ps, offset=offset)
+
+
+# --------------------------------------------------------------------------- compared with the learned random walk
+
+
+def heading_errors(
+    t: Float[Array, " n"],
+    gz: Float[Array, " n"],
+    rz: Float[Array, " n"],
+    static: Bool[Array, " n"],
+    q: float,
+    r: float,
+    *,
+    window: int,
+    init: int = 1000,
+    q_static: float = 1e-4,
+) -> dict[str, Float[Array, " n"]]:
+    """Heading (yaw) error over time of one z gyro under five bias treatments.
+
+    ``none``: raw rate integrated; ``fixed``: the factory offset E(0) of the
+    first ``init`` samples held for ever; ``static_kalman``: the recipe's tracked offset with
+    its fixed ``Q = q_static`` (windows of ``window`` samples, static where every sample of
+    the window is); ``learned``: the causal Kalman filter with the learned
+    ``q``, ``r`` (what a device could run live); ``smoothed``: the RTS
+    smoother with the same q, r (post-processing, uses the future too).
+    Heading error = ∫ (corrected rate − true rate) dt, trapezoidal, rad.
+    """
+    gz = jnp.asarray(gz)
+    return _heading_errors(jnp.asarray(t, gz.dtype), gz, jnp.asarray(rz, gz.dtype),
+                           jnp.asarray(static, bool), jnp.asarray(q, gz.dtype),
+                           jnp.asarray(r, gz.dtype), jnp.asarray(q_static, gz.dtype), window, init)
+
+
+@eqx.filter_jit
+def _heading_errors(t, gz, rz, static, q, r, q_static, window, init):
+    n = gz.shape[0]
+    k = (n - init) // window
+    win_static = jnp.all(static[init:init + k * window].reshape(k, window), axis=1)
+    tracked = offset_filter(gz, win_static, window, init, q_static)
+    e0 = jnp.mean(gz[:init])
+    pred, _ = causal_bias(gz, static, t, q, r, e0, jnp.var(gz[:init]) / init)
+    fp = rw_filter(gz, jnp.ones((n, 1), gz.dtype), static, t, q, r, 0.0)
+    _, beta, _ = profile(fp, static)
+    walk, _ = rts_smoother(fp, beta)
+
+    def integrate(err):
+        inc = 0.5 * (err[1:] + err[:-1]) * jnp.diff(t)
+        return jnp.concatenate([jnp.zeros((1,), err.dtype), jnp.cumsum(inc)])
+
+    return {
+        "none": integrate(gz - rz),
+        "fixed": integrate(gz - e0 - rz),
+        "static_kalman": integrate(gz - tracked.offset - rz),
+        "learned": integrate(gz - pred - rz),
+        "smoothed": integrate(gz - beta[0] - walk - rz),
+    }
