@@ -29,12 +29,11 @@ from diffgyro.diagnose import (
     candidate_specs,
     diagnose,
     families,
-    suggest_dtemp_window,
-    temperature_quantum,
     white_noise_rms,
 )
 from diffgyro.fit import fit
 from diffgyro.model import ErrorModel
+from diffgyro.temperature import suggest_dtemp_window, temperature_quantum
 
 LOOK_ALIKE = {n: set(v) for v in families().values() for n in v}
 

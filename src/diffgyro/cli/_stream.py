@@ -12,7 +12,7 @@ from typing import Annotated
 
 import typer
 
-from ._options import units_from_cli
+from ._load import units_from_cli
 
 ChunkDevices = Annotated[
     int | None,

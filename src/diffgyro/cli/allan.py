@@ -11,11 +11,13 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._load import MIN_SAMPLES, load_from_cli, longest_static, units_json
 from ._options import (
     AccUnit,
     Columns,
     DataFiles,
     DropInvalid,
+    FigureReport,
     GyroUnit,
     SamplingRate,
     StaticOnly,
@@ -23,21 +25,16 @@ from ._options import (
     TempUnit,
     TimeUnit,
     Topic,
-    load_from_cli,
-    longest_static,
-    units_json,
 )
 
 AXES = ("gx", "gy", "gz")
-#: Fewest samples per device for a curve with a few τ (m = 1 needs 4 samples per cluster ratio).
-MIN_SAMPLES = 16
 
 
 @app.command("allan")
 def allan_command(
     data: DataFiles,
     json_out: Annotated[bool, typer.Option("--json", help="Print the curves and read-outs as JSON.")] = False,
-    report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
+    report: FigureReport = None,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Also write the --json object to "
                                              "this file (what 'export --format kalibr' reads).")] = None,
     per_decade: Annotated[int, typer.Option("--per-decade", min=1, max=100,

@@ -9,6 +9,7 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._load import load_from_cli
 from ._options import (
     AccUnit,
     Columns,
@@ -19,7 +20,6 @@ from ._options import (
     TempUnit,
     TimeUnit,
     Topic,
-    load_from_cli,
 )
 
 

@@ -10,19 +10,20 @@ import typer
 
 from . import app
 from ._limits import LimitsOpt
+from ._load import streamed_dir
 from ._options import (
     AccUnit,
     Columns,
     DataFiles,
     DropInvalid,
     GyroUnit,
+    JsonOut,
     SamplingRate,
     StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
-    streamed_dir,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -113,7 +114,7 @@ def _write_calibration(diag, batch, path: Path, err, judged=None) -> None:
 def diagnose_command(
     data: DataFiles,
     model: Model,
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    as_json: JsonOut = False,
     report: Annotated[Path | None, typer.Option(
         "--report", help="Write a self-contained HTML report (one page per device + summary) here.")] = None,
     auto: Annotated[bool, typer.Option(
@@ -246,8 +247,7 @@ def _static_only(batch):
     recording and the samples kept (extra keys of its --json record)."""
     from diffgyro.motion import motion_check
 
-    from ._options import longest_static
-    from .allan import MIN_SAMPLES
+    from ._load import MIN_SAMPLES, longest_static
 
     motion = motion_check(batch)
     recorded = [int(n) for n in batch.n_valid]
@@ -265,7 +265,7 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
     from diffgyro.data import Batch
     from diffgyro.model import ErrorModel
 
-    from .fit import load_for_model
+    from ._load import load_for_model
 
     spec = ErrorModel.from_spec(model)
     recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,

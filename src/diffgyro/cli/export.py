@@ -10,6 +10,7 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._load import load_from_cli
 from ._options import (
     AccUnit,
     Columns,
@@ -18,7 +19,6 @@ from ._options import (
     SamplingRate,
     TempUnit,
     TimeUnit,
-    load_from_cli,
 )
 
 
@@ -182,7 +182,7 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
                             hint=err.hint) from None
     from diffgyro.motion import motion_check
 
-    from .allan import MIN_SAMPLES
+    from ._load import MIN_SAMPLES
 
     batch = load_from_cli([source], *load_opts, min_samples=MIN_SAMPLES)
     gyro_doc = kalibr.allan_of(batch, "gyro", motion_check(batch))

@@ -10,22 +10,21 @@ import typer
 
 from . import app
 from ._limits import LimitsOpt
+from ._load import load_for_model, streamed_dir, units_json
 from ._options import (
     AccUnit,
     Columns,
     DataFiles,
     DropInvalid,
     GyroUnit,
+    JsonOut,
     SamplingRate,
     StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
-    load_from_cli,
     motion_notes,
-    streamed_dir,
-    units_json,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
 
@@ -37,33 +36,12 @@ DtempWindow = Annotated[float | None, typer.Option(
                            "'diffgyro diagnose' chooses; streamed runs: 60 s).")]
 
 
-def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                   sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True,
-                   report=None):
-    """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
-    the recordings, not padded into a batch). Unit notes go to ``report`` if given."""
-    from diffgyro.io import check_min_samples
-    from diffgyro.status import min_samples
-
-    recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                         sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                         batch=False, report=report)
-    need = min_samples(model.n_params + model.n_nonlinear)
-    if all(r.n < need for r in recs):
-        check_min_samples(recs[0], need, f"model {model.spec!r}")
-    if not batch:
-        return recs
-    from diffgyro.data import Batch
-
-    return Batch.from_recordings(recs)
-
-
 @app.command("fit")
 def fit_command(
     data: DataFiles,
     model: Model,
     out: Annotated[Path | None, typer.Option("--out", "-o", help="Calibration file to write (JSON).")] = None,
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    as_json: JsonOut = False,
     dtemp_window: DtempWindow = None,
     columns: Columns = None, gyro_unit: GyroUnit = None, acc_unit: AccUnit = None,
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
@@ -108,7 +86,7 @@ def fit_command(
                            sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
                            report=report)
     if dtemp_window is None:
-        from diffgyro.diagnose import suggest_dtemp_window
+        from diffgyro.temperature import suggest_dtemp_window
 
         dtemp_window = suggest_dtemp_window(batch)
     result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)

@@ -17,18 +17,19 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._load import load_from_cli
 from ._options import (
     AccUnit,
     Columns,
     DataFiles,
     DropInvalid,
+    FigureReport,
     GyroUnit,
     SamplingRate,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
-    load_from_cli,
 )
 
 AXES = ("x", "y", "z")
@@ -50,7 +51,7 @@ _NAMES = {"arw": "ARW", "q": "quantization Q", "sigma": "GM σ (bias instability
 def noise_command(
     data: DataFiles,
     json_out: Annotated[bool, typer.Option("--json", help="Print the models as JSON (SI units).")] = False,
-    report: Annotated[Path | None, typer.Option("--report", help="Write PNG figures and an HTML page here.")] = None,
+    report: FigureReport = None,
     max_gm: Annotated[int, typer.Option("--max-gauss-markov", min=0, max=2,
                                         help="Most Gauss–Markov processes per model.")] = 2,
     penalty: Annotated[float | None, typer.Option(

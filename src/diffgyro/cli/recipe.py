@@ -14,18 +14,19 @@ from typing import Annotated
 import typer
 
 from . import app
+from ._load import load_from_cli
 from ._options import (
     AccUnit,
     Columns,
     DropInvalid,
     GyroUnit,
+    JsonOut,
     SamplingRate,
     StaticOnly,
     TempTopic,
     TempUnit,
     TimeUnit,
     Topic,
-    load_from_cli,
 )
 
 
@@ -48,7 +49,7 @@ def recipe_command(
                                               ".ulg, ROS .bag / .mcap / rosbag2 folder, "
                                               "ArduPilot .bin / .log).",
                                          show_default=False)],
-    as_json: Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")] = False,
+    as_json: JsonOut = False,
     out: Annotated[Path | None, _opt("--out", "Also write the JSON result to this file.")] = None,
     device: Annotated[str | None, _opt("--device", "Run on this device only (files with "
                                                    "several devices).")] = None,

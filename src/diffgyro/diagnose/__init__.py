@@ -56,7 +56,7 @@ from __future__ import annotations
 from .candidates import CandidateSpec, candidate_specs
 from .decision import redecide
 from .evidence import evidence, explain
-from .floor import suggest_dtemp_window, temperature_quantum, white_noise_rms
+from .floor import white_noise_rms
 from .ladder import Ladder, LadderStep, choose_effect, diagnose_auto
 from .results import AllanCurves, Candidate, DeviceDiagnosis, Diagnosis
 from .run import device_bucket, diagnose
@@ -65,5 +65,4 @@ from .thresholds import GRID_POINTS, RW_GRID, Thresholds, families, family_of
 __all__ = ["GRID_POINTS", "RW_GRID", "AllanCurves", "Candidate",
            "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Ladder", "LadderStep", "Thresholds",
            "candidate_specs", "choose_effect", "device_bucket", "diagnose", "diagnose_auto",
-           "evidence", "explain", "families", "family_of", "redecide", "suggest_dtemp_window",
-           "temperature_quantum", "white_noise_rms"]
+           "evidence", "explain", "families", "family_of", "redecide", "white_noise_rms"]

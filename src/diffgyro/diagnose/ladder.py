@@ -9,9 +9,9 @@ import numpy as np
 from ..data import Batch, Recording
 from ..jsonio import number
 from ..model import ErrorModel
+from ..temperature import suggest_dtemp_window
 from .candidates import added_term
 from .decision import NOT_JUDGED
-from .floor import suggest_dtemp_window
 from .results import Diagnosis
 from .run import diagnose
 from .thresholds import Thresholds

@@ -24,10 +24,11 @@ from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signals import TempNorm, make_signals
+from ..temperature import suggest_dtemp_window
 from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from .decision import allan_slope, decide, not_judged
 from .evidence import evidence
-from .floor import suggest_dtemp_window, white_noise_rms
+from .floor import white_noise_rms
 from .greedy import pairs as greedy_pairs
 from .noise_model import attach_noise
 from .random_walk import random_walk_scores, segment_length
