@@ -14,8 +14,7 @@ import json
 import numpy as np
 import pytest
 
-from diffgyro.allan import cluster_sizes, oadev
-from diffgyro.deviations import adev_nonoverlapping, mdev
+from diffgyro.allan import adev_nonoverlapping, cluster_sizes, mdev, oadev
 
 TAUS = (1, 10, 100)
 #: SP 1065 Table 31, rows "Allan Dev, Normal", "Overlapping", "Modified" (τ = 1, 10, 100 s).

@@ -46,3 +46,5 @@ def test_new_batch_size_in_bucket_traces_once(path):
 def test_device_buckets():
     assert [device_bucket(n) for n in (1, 5, 7, 8, 9, 64, 65, 100, 128, 129)] == \
         [8, 8, 8, 8, 16, 64, 128, 128, 128, 192]
+    # diagnose's rule: powers of two from one device
+    assert [device_bucket(n, minimum=1) for n in (1, 2, 3, 5, 64, 65)] == [1, 2, 4, 8, 64, 128]

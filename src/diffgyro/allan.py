@@ -13,6 +13,11 @@ counting are those of ``allantools.oadev(y, rate=1/dt, data_type="freq")``
 Everything is vmapped: a Batch's gyro (devices, samples, 3) gives one curve
 per device and axis, padded samples excluded through ``n_valid``.
 
+Its companions, for comparison with published tables and other tools, work
+on the same phase in numpy, one vectorised pass per τ: the non-overlapping
+deviation (:func:`adev_nonoverlapping`, SP 1065 eq. 7) and the modified one
+(:func:`mdev`, SP 1065 eq. 14). A τ with fewer than one term is NaN.
+
 Confidence intervals are chi-square intervals (SP 1065 eq. 45) with the
 equivalent degrees of freedom of SP 1065 Table 5 ("simple" EDF) for the noise
 type the curve shows at that τ: the local log-log slope picks white FM /
@@ -182,6 +187,58 @@ def oadev(
     return adev.reshape(*lead, -1), count.reshape(*lead, -1)
 
 
+# --- non-overlapping and modified deviations (NIST SP 1065 §5.2.2, §5.2.5) ------------
+
+
+def _phase(y: np.ndarray, dt: float) -> np.ndarray:
+    """The phase (angle) ``x = dt·[0, cumsum(y − mean y)]`` of a rate series (n + 1 points)."""
+    y = np.asarray(y, dtype=np.float64)
+    yc = y - y.mean(axis=-1, keepdims=True)  # the deviations ignore the mean; x stays small
+    zero = np.zeros(y.shape[:-1] + (1,))
+    return np.concatenate([zero, np.cumsum(yc, axis=-1) * dt], axis=-1)
+
+
+def adev_nonoverlapping(y: Float[np.ndarray, "... n"], dt: float,
+                        m: Int[np.ndarray, " k"]) -> Float[np.ndarray, "... k"]:
+    """Non-overlapping Allan deviation of ``y`` (..., n) at τ = m·dt; NaN where K < 1::
+
+        σ²(τ) = 1 / (2 τ² K) · Σ_j (x[(j+2)m] − 2 x[(j+1)m] + x[jm])²,  K = ⌊n/m⌋ − 1
+    """
+    x = _phase(y, dt)
+    n = x.shape[-1] - 1
+    out = np.full(x.shape[:-1] + (len(m),), np.nan)
+    for j, mj in enumerate(np.asarray(m, dtype=np.int64)):
+        k = n // mj - 1
+        if mj < 1 or k < 1:
+            continue
+        xd = x[..., : (k + 2) * mj : mj]  # x[0], x[m], ..., x[(K+1)m]
+        d = xd[..., 2:] - 2.0 * xd[..., 1:-1] + xd[..., :-2]
+        out[..., j] = np.sqrt(np.sum(d * d, axis=-1) / (2.0 * k)) / (mj * dt)
+    return out
+
+
+def mdev(y: Float[np.ndarray, "... n"], dt: float,
+         m: Int[np.ndarray, " k"]) -> Float[np.ndarray, "... k"]:
+    """Modified Allan deviation of ``y`` (..., n) at τ = m·dt; NaN where N − 3m + 1 < 1::
+
+        Mod σ²(τ) = 1 / (2 m² τ² (N − 3m + 1)) · Σ_j (Σ_{i=j}^{j+m−1} x[i+2m] − 2 x[i+m] + x[i])²
+
+    with N = n + 1 phase points.
+    """
+    x = _phase(y, dt)
+    big_n = x.shape[-1]
+    out = np.full(x.shape[:-1] + (len(m),), np.nan)
+    for j, mj in enumerate(np.asarray(m, dtype=np.int64)):
+        count = big_n - 3 * mj + 1
+        if mj < 1 or count < 1:
+            continue
+        d = x[..., 2 * mj:] - 2.0 * x[..., mj:-mj] + x[..., : big_n - 2 * mj]
+        c = np.concatenate([np.zeros(d.shape[:-1] + (1,)), np.cumsum(d, axis=-1)], axis=-1)
+        s = c[..., mj:] - c[..., :-mj]  # the m-term window sums, N − 3m + 1 of them
+        out[..., j] = np.sqrt(np.sum(s * s, axis=-1) / (2.0 * count)) / (mj * mj * dt)
+    return out
+
+
 # --- equivalent degrees of freedom and chi-square intervals -----------------------------
 
 
@@ -234,10 +291,10 @@ def chi2_ppf(p, nu):
     return jnp.exp(lx)
 
 
-# --- local slope, regions and read-outs ---------------------------------------------------
+# --- log-log slope, regions and read-outs ------------------------------------------------
 
 
-def local_slope(log_tau, log_adev, weight, half: int = 3):
+def log_slope(log_tau, log_adev, weight, half: int = 3):
     """Slope of log σ against log τ by weighted least squares over ±``half`` points."""
     k = log_tau.shape[-1]
     i = jnp.arange(k)
@@ -415,7 +472,7 @@ def _allan_core(y, n_valid, dt, m, ci, tol, tol_flat, tol_rrw, dominance, eviden
     lt = jnp.log(tau)
     # First pass: slope with white-FM weights, to choose each τ's noise type for the EDF.
     edf0 = jnp.where(ok, edf_simple(n_phase, m, 0.0), 0.0)
-    slope0 = jax.vmap(lambda a, b, c: local_slope(a, b, c, half))(
+    slope0 = jax.vmap(lambda a, b, c: log_slope(a, b, c, half))(
         lt.reshape(-1, lt.shape[-1]), la.reshape(-1, la.shape[-1]), edf0.reshape(-1, edf0.shape[-1])
     ).reshape(adev.shape)
     alpha = alpha_from_slope(jnp.where(jnp.isfinite(slope0), slope0, -0.5))
@@ -429,7 +486,7 @@ def _allan_core(y, n_valid, dt, m, ci, tol, tol_flat, tol_rrw, dominance, eviden
     k = adev.shape[-1]
     flat = lambda a: a.reshape(-1, k)  # noqa: E731
     weight = jnp.where(ok, edf, 0.0)
-    slope = jax.vmap(lambda a, b, c: local_slope(a, b, c, half))(flat(lt), flat(la), flat(weight))
+    slope = jax.vmap(lambda a, b, c: log_slope(a, b, c, half))(flat(lt), flat(la), flat(weight))
     if method == "lines":
         ro = jax.vmap(lambda t, a, e, s: _readouts_lines(t, a, e, s, tol, tol_flat, tol_rrw))(
             flat(tau), flat(adev), flat(weight), slope)

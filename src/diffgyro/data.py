@@ -119,12 +119,17 @@ def bucket_length(n: int, minimum: int = 64) -> int:
         k += 1
 
 
-def device_bucket(n: int) -> int:
-    """Padded device count of a direct-path batch: powers of two up to 64 (at least 8),
-    then multiples of 64, so that a few more or fewer devices reuse the compiled fit."""
+def device_bucket(n: int, minimum: int = 8) -> int:
+    """Padded device count of ``n`` devices: powers of two from ``minimum`` up to 64, then
+    multiples of 64, so that a few more or fewer devices reuse a compiled program.
+
+    The direct-path fit pads to at least 8 (few compiled sizes for small batches);
+    diagnose's chunks and Allan curves pass ``minimum=1``, so that one device is not
+    computed eight times over in its larger per-device work.
+    """
     n = max(int(n), 1)
     if n <= 64:
-        return max(8, 1 << (n - 1).bit_length())
+        return max(minimum, 1 << (n - 1).bit_length())
     return -(-n // 64) * 64
 
 

@@ -59,10 +59,10 @@ from .evidence import evidence, explain
 from .floor import white_noise_rms
 from .ladder import Ladder, LadderStep, choose_effect, diagnose_auto
 from .results import AllanCurves, Candidate, DeviceDiagnosis, Diagnosis
-from .run import device_bucket, diagnose
+from .run import diagnose
 from .thresholds import GRID_POINTS, RW_GRID, Thresholds, families, family_of
 
 __all__ = ["GRID_POINTS", "RW_GRID", "AllanCurves", "Candidate",
            "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Ladder", "LadderStep", "Thresholds",
-           "candidate_specs", "choose_effect", "device_bucket", "diagnose", "diagnose_auto",
+           "candidate_specs", "choose_effect", "diagnose", "diagnose_auto",
            "evidence", "explain", "families", "family_of", "redecide", "white_noise_rms"]

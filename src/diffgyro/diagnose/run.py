@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .. import aux as aux_cols
-from ..data import Batch, Recording, as_slice, aux_key
+from ..data import Batch, Recording, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
@@ -52,16 +52,10 @@ UNSUPPORTED = "the data cannot support it (range: e.g. no rate, no temperature s
 NOISE_UNSCORED = "diagnose scores one noise process, the random walk; fit this one directly"
 
 
-def device_bucket(n: int) -> int:
-    """Padded device count of the compiled diagnosis: 1, 2, 4, ... 64, then multiples of 64."""
-    n = max(int(n), 1)
-    return 1 << (n - 1).bit_length() if n <= 64 else -(-n // 64) * 64
-
-
 def chunk_size(n_devices: int, length: int) -> int:
     """Devices per compiled call: a power of two, about :data:`CHUNK_SAMPLES` samples."""
     g = 1 << max((CHUNK_SAMPLES // max(length, 1)).bit_length() - 1, 0)
-    return max(1, min(device_bucket(n_devices), g))
+    return max(1, min(device_bucket(n_devices, minimum=1), g))
 
 
 def _chunks(n_devices: int, size: int):
@@ -289,7 +283,7 @@ def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
     from .. import allan as allan_mod
 
     n_dev = batch.n_devices
-    pick = np.minimum(np.arange(device_bucket(n_dev)), n_dev - 1)  # few compiled shapes
+    pick = np.minimum(np.arange(device_bucket(n_dev, minimum=1)), n_dev - 1)  # few compiled shapes
     dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
     m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
     nv = np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1)
