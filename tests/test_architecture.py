@@ -150,6 +150,16 @@ def test_every_module_imports_first():
     assert proc.returncode == 0, proc.stderr[-3000:]
 
 
+def test_cli_commands_load_through_one_helper():
+    """A command module never imports another command (loading is ``cli/_load``, shared
+    options ``cli/_options``); only ``demo`` prints through ``diagnose``'s tables."""
+    modules = _modules()
+    commands = {m for m in modules if m.startswith("diffgyro.cli.")
+                and not _is_private(m.rsplit(".", 1)[-1])}
+    edges = {(a, b) for a, b, _ in _imports(modules) if a in commands and b in commands and a != b}
+    assert edges == {("diffgyro.cli.demo", "diffgyro.cli.diagnose")}
+
+
 #: A function longer than this many lines (its docstring left out) says why in a comment
 #: starting "Over 80 lines".
 MAX_FUNCTION_LINES = 80
