@@ -23,7 +23,8 @@ from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
-from ..signals import TempNorm, make_signals
+from ..signal_builder import device_signals
+from ..signals import TempNorm
 from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from .decision import allan_slope, decide, not_judged
 from .evidence import evidence
@@ -132,19 +133,12 @@ def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict
     return skips
 
 
-def _signals(inp: dict, dtemp_window: float):
-    """The fit's derived signals of one device (its TempNorm and dT/dt window)."""
-    return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
-                        temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
-                        dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
-
-
 @filter_jit(persistent=True)
 def _ranges(cands, inputs, dtemp_window):
     """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
     an array: traced, one program for every window)."""
     def one(inp):
-        s = _signals(inp, dtemp_window)
+        s = device_signals(inp, dtemp_window)
         return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
 
     return jax.lax.map(one, inputs)
@@ -167,7 +161,7 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
     ``search_m``: samples per segment of the random-walk check and the time-constant
     search; ``dt0``: the median sample interval, :func:`_median_steps`)."""
-    sig = _signals(inp, dtemp_window)
+    sig = device_signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
     w = sig.mask.astype(dtype)

@@ -1,0 +1,70 @@
+"""The one step from loaded data to the signals effect terms read.
+
+:func:`batch_signals` turns a :class:`~diffgyro.data.Batch` into the stacked
+:class:`~diffgyro.signals.Signals` of its devices (JAX arrays, temperature normalised);
+:func:`stacked_signals` does the same from arrays already on the device (the streamed
+fit's chunks), and :func:`device_signals` builds one device's signals from the input
+dictionary of the compiled diagnose programs. Every one goes through
+:func:`~diffgyro.signals.make_signals`, where each derived signal is computed; the signals
+themselves are described in :mod:`diffgyro.signal_catalogue`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .core import sampling_intervals
+from .data import Batch
+from .signals import Signals, TempNorm, make_signals
+
+
+def batch_signals(
+    batch: Batch,
+    norm: TempNorm | None = None,
+    dtemp_window: float = 60.0,
+    dtype=jnp.float64,
+    aux: dict | None = None,
+) -> Signals:
+    """Derived signals of every device, stacked on the device axis (JAX arrays).
+
+    ``norm`` fixes the temperature centring (scalars, or one per device, as a
+    calibration stores them); by default each device uses its own range.
+    ``aux`` holds the extra columns the model reads, centred and scaled
+    (:func:`diffgyro.aux.scaled`, (devices, n) each).
+    """
+
+    def arr(x):
+        return None if x is None else jnp.asarray(x, dtype)
+
+    dt = jnp.asarray(sampling_intervals(batch), dtype)
+    if norm is not None:
+        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
+                        scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
+
+    return stacked_signals(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
+                           arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
+                           {k: arr(v) for k, v in (aux or {}).items()}, dtemp_window)
+
+
+@eqx.filter_jit
+def stacked_signals(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux, dtemp_window):
+    """:func:`make_signals` vmapped over devices, compiled once per shape (eager, every
+    primitive would be dispatched and compiled on its own)."""
+
+    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux):
+        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
+                            norm=norm, dtemp_window=dtemp_window, dt=dt, aux=aux)
+
+    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux)
+
+
+def device_signals(inp: Mapping, dtemp_window) -> Signals:
+    """One device's signals from its inputs (``t gyro mask rate temp temp_ext accel norm dt
+    aux``, as :func:`batch_signals` reads them from a batch) and the dT/dt window (s)."""
+    return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
+                        temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
+                        dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
