@@ -3,19 +3,20 @@
 :func:`batch_signals` turns a :class:`~diffgyro.data.Batch` into the stacked
 :class:`~diffgyro.signals.Signals` of its devices (JAX arrays, temperature normalised);
 :func:`stacked_signals` does the same from arrays already on the device (the streamed
-fit's chunks), and :func:`device_signals` builds one device's signals from the input
-dictionary of the compiled diagnose programs. Every one goes through
+fit's chunks), and :func:`device_signals` builds one device's signals inside the compiled
+diagnose programs from the inputs :func:`batch_inputs` takes from a batch. Every one goes through
 :func:`~diffgyro.signals.make_signals`, where each derived signal is computed; the signals
 themselves are described in :mod:`diffgyro.signal_catalogue`.
 """
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from .core import sampling_intervals
 from .data import Batch
@@ -68,3 +69,24 @@ def device_signals(inp: Mapping, dtemp_window) -> Signals:
     return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
                         temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
                         dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
+
+
+def batch_inputs(batch: Batch, take, norm: TempNorm | None, aux: Mapping[str, np.ndarray],
+                 put: Callable = jnp.asarray) -> dict:
+    """Devices ``take`` (indices or a slice) of ``batch`` as :func:`device_signals` reads
+    them, each array float64 and placed by ``put``: the samples, the temperature norm
+    ``norm`` (one for the batch or one per device; None: each device centres its own), the
+    median sampling intervals and the extra columns ``aux`` ((devices, n) each, centred and
+    scaled, :func:`diffgyro.aux.scaled`)."""
+
+    def arr(x):
+        return None if x is None else put(np.asarray(x, np.float64)[take])
+
+    if norm is not None:
+        n = batch.n_devices
+        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(norm.centre), (n,))),
+                        scale=arr(np.broadcast_to(np.asarray(norm.scale), (n,))))
+    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=put(np.asarray(batch.mask)[take]),
+                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
+                accel=arr(batch.accel), norm=norm, dt=put(sampling_intervals(batch)[take]),
+                aux={k: arr(v) for k, v in aux.items()})

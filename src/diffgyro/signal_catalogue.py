@@ -9,9 +9,10 @@ derivations themselves live in :func:`diffgyro.signals.make_signals`, and
 :mod:`diffgyro.apply` (numpy only, the firmware reference) is the one other place that
 computes them (its parity test holds the two together).
 
-Adding a derived signal touches three files: :mod:`diffgyro.signals` (its field of
-``Signals`` and its derivation in ``make_signals``), this catalogue (one entry), and
-:mod:`diffgyro.apply` (its numpy derivation in ``environment`` and ``_signal``).
+A derived signal is a function of the fields of ``Signals``: adding one takes an entry
+here (its ``value`` derives it), its numpy derivation in :mod:`diffgyro.apply`
+(``environment`` and ``_signal``), and :mod:`diffgyro.signals` only for a helper of its
+own or a field computed once in ``make_signals`` (docs/architecture.md).
 """
 
 from __future__ import annotations

@@ -23,7 +23,7 @@ from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
-from ..signal_builder import device_signals
+from ..signal_builder import batch_inputs, device_signals
 from ..signals import TempNorm
 from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from .decision import allan_slope, decide, not_judged
@@ -79,22 +79,9 @@ def _put(x: np.ndarray) -> jax.Array:
 def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     """One chunk's samples, the fit's temperature normalisation and sampling intervals and
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
-    from ..core import sampling_intervals
-
     take = as_slice(idx)  # devices in order: views of the batch, not copies
-
-    def arr(x):
-        return None if x is None else _put(np.asarray(x, np.float64)[take])
-
-    norm = None
-    if res.model.requires() & {"temp"}:
-        n = batch.n_devices
-        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (n,))),
-                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (n,))))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=_put(np.asarray(batch.mask)[take]),
-                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=_put(sampling_intervals(batch)[take]),
-                aux={k: _put(v[take]) for k, v in aux.items()})
+    norm = res.norm if res.model.requires() & {"temp"} else None
+    return batch_inputs(batch, take, norm, aux, put=_put)
 
 
 def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..effects.grammar import RATES, STANDARD, Term, parse_factors, signal_value
 from ..model import ErrorModel
-from ..signal_builder import device_signals
+from ..signal_builder import batch_inputs, device_signals
 from ..signal_catalogue import CATALOGUE, present
 from ..signals import TempNorm
 from .results import Candidate
@@ -272,21 +272,9 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
 
 def _inputs(batch, res, idx: np.ndarray, aux: dict) -> dict:
     """The devices ``idx`` as the compiled columns take them (padded rows, masked)."""
-    from ..core import sampling_intervals
-
-    def arr(x):
-        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
-
-    norm = None
-    if batch.temp is not None:
-        d = batch.n_devices
-        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (d,))),
-                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (d,))))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
-                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=arr(sampling_intervals(batch)),
-                window=jnp.full(len(idx), float(res.options.dtemp_window)),
-                aux={k: arr(v) for k, v in aux.items()})
+    norm = res.norm if batch.temp is not None else None
+    return dict(batch_inputs(batch, idx, norm, aux),
+                window=jnp.full(len(idx), float(res.options.dtemp_window)))
 
 
 #: Devices per compiled call of the library's columns.
