@@ -4,6 +4,8 @@ a derived signal added in the catalogue alone usable in ``term(...)`` and fitted
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import jax
 import numpy as np
 import pytest
@@ -44,6 +46,12 @@ def test_every_signal_is_described_and_names_the_effects_that_follow_it():
     for name, cls in registry().items():
         if cls.follows in CATALOGUE:
             assert name in CATALOGUE[cls.follows].effects, (name, cls.follows)
+
+
+def test_the_docs_list_every_catalogue_signal():
+    text = (Path(__file__).parents[1] / "docs" / "effects.md").read_text()
+    for name in CATALOGUE:
+        assert f"`{name}`" in text, name
 
 
 def test_apply_derives_every_catalogue_signal_as_the_builder(recording):
