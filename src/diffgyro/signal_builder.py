@@ -3,7 +3,7 @@
 :func:`batch_signals` turns a :class:`~diffgyro.data.Batch` into the stacked
 :class:`~diffgyro.signals.Signals` of its devices (JAX arrays, temperature normalised);
 :func:`stacked_signals` does the same from arrays already on the device (the streamed
-fit's chunks), and :func:`device_signals` builds one device's signals inside the compiled
+fit's chunks), and :func:`input_signals` builds one device's signals inside the compiled
 diagnose programs from the inputs :func:`batch_inputs` takes from a batch. Every one goes through
 :func:`~diffgyro.signals.make_signals`, where each derived signal is computed; the signals
 themselves are described in :mod:`diffgyro.signal_catalogue`.
@@ -63,7 +63,7 @@ def stacked_signals(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux, d
     return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux)
 
 
-def device_signals(inp: Mapping, dtemp_window) -> Signals:
+def input_signals(inp: Mapping, dtemp_window) -> Signals:
     """One device's signals from its inputs (``t gyro mask rate temp temp_ext accel norm dt
     aux``, as :func:`batch_signals` reads them from a batch) and the dT/dt window (s)."""
     return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
@@ -73,7 +73,7 @@ def device_signals(inp: Mapping, dtemp_window) -> Signals:
 
 def batch_inputs(batch: Batch, take, norm: TempNorm | None, aux: Mapping[str, np.ndarray],
                  put: Callable = jnp.asarray) -> dict:
-    """Devices ``take`` (indices or a slice) of ``batch`` as :func:`device_signals` reads
+    """Devices ``take`` (indices or a slice) of ``batch`` as :func:`input_signals` reads
     them, each array float64 and placed by ``put``: the samples, the temperature norm
     ``norm`` (one for the batch or one per device; None: each device centres its own), the
     median sampling intervals and the extra columns ``aux`` ((devices, n) each, centred and

@@ -23,7 +23,7 @@ from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
-from ..signal_builder import batch_inputs, device_signals
+from ..signal_builder import batch_inputs, input_signals
 from ..signals import TempNorm
 from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from .decision import allan_slope, decide, not_judged
@@ -125,7 +125,7 @@ def _ranges(cands, inputs, dtemp_window):
     """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
     an array: traced, one program for every window)."""
     def one(inp):
-        s = device_signals(inp, dtemp_window)
+        s = input_signals(inp, dtemp_window)
         return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
 
     return jax.lax.map(one, inputs)
@@ -148,7 +148,7 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
     ``search_m``: samples per segment of the random-walk check and the time-constant
     search; ``dt0``: the median sample interval, :func:`_median_steps`)."""
-    sig = device_signals(inp, dtemp_window)
+    sig = input_signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
     w = sig.mask.astype(dtype)

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..effects.grammar import RATES, STANDARD, Term, parse_factors, signal_value
 from ..model import ErrorModel
-from ..signal_builder import batch_inputs, device_signals
+from ..signal_builder import batch_inputs, input_signals
 from ..signal_catalogue import CATALOGUE, present
 from ..signals import TempNorm
 from .results import Candidate
@@ -150,7 +150,7 @@ def _columns(model, rivals, inp, theta_b):
     (L, 3, r), ``gyro − rate`` (L, 3) and the grammar's signals by name (compiled once per
     model and rivals: the library's products are formed on the host, :func:`_products`)."""
     def one(inp, theta_b):
-        sig = device_signals(inp, inp["window"])
+        sig = input_signals(inp, inp["window"])
         dtype = sig.gyro.dtype
         n = sig.t.shape[0]
         x = model.design(sig, theta_b) if model.n_params else jnp.zeros((n, 3, 0), dtype)
