@@ -2,6 +2,8 @@
 
 This file depends on numpy and the standard library only, so it can be
 copied next to a data pipeline or read as the specification of the formula.
+It derives the signals of ``diffgyro.signal_catalogue`` itself, in numpy (the
+one place besides ``diffgyro.signals``; parity tests hold the two together).
 For one device with calibration record ``dev`` (an entry of the file's
 ``devices`` list) and model spec ``spec``:
 

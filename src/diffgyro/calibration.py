@@ -33,9 +33,10 @@ import numpy as np
 
 from .data import Batch, Recording
 from .errors import SpecError
-from .fit import FitResult, batch_signals
+from .fit import FitResult
 from .jsonio import atomic_write_text, dumps, to_json_safe
 from .model import ErrorModel, Params
+from .signal_builder import batch_signals
 from .signals import TempNorm
 from .status import STATUS_NAMES
 

@@ -25,7 +25,7 @@ from jaxtyping import Array, Bool, Float, Int
 
 from . import aux as aux_cols
 from . import noise
-from .data import Batch, Recording, as_batch, pad_devices, sampling_intervals
+from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
 from .folds import fold_ids
@@ -40,51 +40,9 @@ from .linalg import (  # noqa: F401  (re-exported)
 from .model import ErrorModel, Params
 from .motion import Motion, motion_check
 from .options import FitOptions
-from .signals import Signals, TempNorm, make_signals
+from .signal_builder import batch_signals  # noqa: F401  (re-exported)
+from .signals import Signals, TempNorm
 from .status import IN_MOTION, OK, STATUS_NAMES, collinear_terms, explain, fit_status, min_samples
-
-# --------------------------------------------------------------------------- signals
-
-
-def batch_signals(
-    batch: Batch,
-    norm: TempNorm | None = None,
-    dtemp_window: float = 60.0,
-    dtype=jnp.float64,
-    aux: dict | None = None,
-) -> Signals:
-    """Derived signals of every device, stacked on the device axis (JAX arrays).
-
-    ``norm`` fixes the temperature centring (scalars, or one per device, as a
-    calibration stores them); by default each device uses its own range.
-    ``aux`` holds the extra columns the model reads, centred and scaled
-    (:func:`diffgyro.aux.scaled`, (devices, n) each).
-    """
-
-    def arr(x):
-        return None if x is None else jnp.asarray(x, dtype)
-
-    dt = jnp.asarray(sampling_intervals(batch), dtype)
-    if norm is not None:
-        norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
-                        scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
-
-    return _stacked_signals(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
-                            arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
-                            {k: arr(v) for k, v in (aux or {}).items()}, dtemp_window)
-
-
-@eqx.filter_jit
-def _stacked_signals(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux, dtemp_window):
-    """:func:`make_signals` vmapped over devices, compiled once per shape (eager, every
-    primitive would be dispatched and compiled on its own)."""
-
-    def one(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux):
-        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
-                            norm=norm, dtemp_window=dtemp_window, dt=dt, aux=aux)
-
-    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, norm, dt, aux)
-
 
 # --------------------------------------------------------------------------- one device
 

@@ -23,7 +23,8 @@ from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
-from ..signals import TempNorm, make_signals
+from ..signal_builder import batch_inputs, input_signals
+from ..signals import TempNorm
 from ..temperature import suggest_dtemp_window
 from .candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from .decision import allan_slope, decide, not_judged
@@ -73,22 +74,9 @@ def _put(x: np.ndarray) -> jax.Array:
 def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
     """One chunk's samples, the fit's temperature normalisation and sampling intervals and
     the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
-    from ..data import sampling_intervals
-
     take = as_slice(idx)  # devices in order: views of the batch, not copies
-
-    def arr(x):
-        return None if x is None else _put(np.asarray(x, np.float64)[take])
-
-    norm = None
-    if res.model.requires() & {"temp"}:
-        n = batch.n_devices
-        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (n,))),
-                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (n,))))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=_put(np.asarray(batch.mask)[take]),
-                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=_put(sampling_intervals(batch)[take]),
-                aux={k: _put(v[take]) for k, v in aux.items()})
+    norm = res.norm if res.model.requires() & {"temp"} else None
+    return batch_inputs(batch, take, norm, aux, put=_put)
 
 
 def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
@@ -127,19 +115,12 @@ def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict
     return skips
 
 
-def _signals(inp: dict, dtemp_window: float):
-    """The fit's derived signals of one device (its TempNorm and dT/dt window)."""
-    return make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
-                        temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
-                        dtemp_window=dtemp_window, dt=inp["dt"], aux=inp["aux"])
-
-
 @filter_jit(persistent=True)
 def _ranges(cands, inputs, dtemp_window):
     """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
     an array: traced, one program for every window)."""
     def one(inp):
-        s = _signals(inp, dtemp_window)
+        s = input_signals(inp, dtemp_window)
         return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
 
     return jax.lax.map(one, inputs)
@@ -162,7 +143,7 @@ def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks:
     (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
     ``search_m``: samples per segment of the random-walk check and the time-constant
     search; ``dt0``: the median sample interval, :func:`_median_steps`)."""
-    sig = _signals(inp, dtemp_window)
+    sig = input_signals(inp, dtemp_window)
     dtype = sig.gyro.dtype
     y = sig.gyro - sig.rate
     w = sig.mask.astype(dtype)

@@ -38,7 +38,9 @@ import numpy as np
 
 from ..effects.grammar import RATES, STANDARD, Term, parse_factors, signal_value
 from ..model import ErrorModel
-from ..signals import TempNorm, make_signals
+from ..signal_builder import batch_inputs, input_signals
+from ..signal_catalogue import CATALOGUE, present
+from ..signals import TempNorm
 from .results import Candidate
 from .thresholds import Thresholds
 
@@ -100,7 +102,7 @@ def signal_names(rec, aux_names) -> list[str]:
     """The grammar's signals this recording holds and that vary on it."""
     out = []
     if rec.temp is not None and float(np.ptp(rec.temp)) >= 1.0:
-        out += ["temp", "dtemp", "heating"]
+        out += [k for k, s in CATALOGUE.items() if s.reads == {"temp"}]
     if rec.temp_ext is not None and rec.temp is not None and _varies(rec.temp_ext):
         out.append("temp_ext")
     if rec.accel is not None:
@@ -148,26 +150,17 @@ def _columns(model, rivals, inp, theta_b):
     (L, 3, r), ``gyro − rate`` (L, 3) and the grammar's signals by name (compiled once per
     model and rivals: the library's products are formed on the host, :func:`_products`)."""
     def one(inp, theta_b):
-        sig = make_signals(inp["t"], inp["gyro"], inp["mask"], rate=inp["rate"], temp=inp["temp"],
-                           temp_ext=inp["temp_ext"], accel=inp["accel"], norm=inp["norm"],
-                           dtemp_window=inp["window"], dt=inp["dt"], aux=inp["aux"])
+        sig = input_signals(inp, inp["window"])
         dtype = sig.gyro.dtype
         n = sig.t.shape[0]
         x = model.design(sig, theta_b) if model.n_params else jnp.zeros((n, 3, 0), dtype)
         cols = [t.columns(sig, jnp.zeros((0,), dtype)) for t in rivals]
         r = jnp.concatenate(cols, axis=-1) if cols else jnp.zeros((n, 3, 0), dtype)
-        names = [k for k in STANDARD if k != "w"] + list(sig.aux)
-        have = {k: signal_value(sig, k) for k in names
-                if all(getattr(sig, f) is not None for f in _FIELDS.get(k, ()))}
+        std = [k for k, s in CATALOGUE.items() if not s.per_axis and present(sig, k)]
+        have = {k: signal_value(sig, k) for k in std + list(sig.aux)}
         return x, r, sig.gyro - sig.rate, have
 
     return jax.vmap(one)(inp, theta_b)
-
-
-#: The Signals fields each standard grammar signal reads.
-_FIELDS = {"temp": ("temp_s",), "temp_ext": ("temp_ext", "norm"), "dtemp": ("dtemp",),
-           "heating": ("heating",), "ax": ("accel",), "ay": ("accel",), "az": ("accel",),
-           "rx": (), "ry": (), "rz": ()}
 
 
 def _lagged(x: np.ndarray, tau: float, dt: float) -> np.ndarray:
@@ -279,21 +272,9 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
 
 def _inputs(batch, res, idx: np.ndarray, aux: dict) -> dict:
     """The devices ``idx`` as the compiled columns take them (padded rows, masked)."""
-    from ..data import sampling_intervals
-
-    def arr(x):
-        return None if x is None else jnp.asarray(np.asarray(x, np.float64)[idx])
-
-    norm = None
-    if batch.temp is not None:
-        d = batch.n_devices
-        norm = TempNorm(centre=arr(np.broadcast_to(np.asarray(res.norm.centre), (d,))),
-                        scale=arr(np.broadcast_to(np.asarray(res.norm.scale), (d,))))
-    return dict(t=arr(batch.t), gyro=arr(batch.gyro), mask=jnp.asarray(np.asarray(batch.mask)[idx]),
-                rate=arr(batch.rate), temp=arr(batch.temp), temp_ext=arr(batch.temp_ext),
-                accel=arr(batch.accel), norm=norm, dt=arr(sampling_intervals(batch)),
-                window=jnp.full(len(idx), float(res.options.dtemp_window)),
-                aux={k: arr(v) for k, v in aux.items()})
+    norm = res.norm if batch.temp is not None else None
+    return dict(batch_inputs(batch, idx, norm, aux),
+                window=jnp.full(len(idx), float(res.options.dtemp_window)))
 
 
 #: Devices per compiled call of the library's columns.

@@ -11,7 +11,7 @@ fits its own) and may carry an integer power ``^k``::
 
 Every term has one coefficient per gyro axis (unit: rad/s per unit of the product).
 The signals, centred and scaled as the built-in terms read them (float64, so that a
-product of signals stays well conditioned):
+product of signals stays well conditioned), as :mod:`diffgyro.signal_catalogue` lists them:
 
 ========== ======================================================== ==============
 name       value                                                    reads
@@ -42,6 +42,7 @@ import jax.numpy as jnp
 
 from ..data import aux_key
 from ..errors import SpecError
+from ..signal_catalogue import CATALOGUE, G
 from ..signals import masked_range
 from ._common import (
     MIN_SPAN_PER_ORDER,
@@ -54,24 +55,10 @@ from ._common import (
 from .base import MAX_ORDER, AbstractEffect, register
 from .thermal_lag import first_order_lag
 
-#: Standard gravity (m/s²): specific force enters a grammar term in g.
-G = 9.80665
-#: The standard signals in canonical order, with the data signals each reads.
-STANDARD: dict[str, frozenset[str]] = {
-    "temp": frozenset({"temp"}), "temp_ext": frozenset({"temp", "temp_ext"}),
-    "dtemp": frozenset({"temp"}), "heating": frozenset({"temp"}),
-    "ax": frozenset({"accel"}), "ay": frozenset({"accel"}), "az": frozenset({"accel"}),
-    "rx": frozenset({"rate"}), "ry": frozenset({"rate"}), "rz": frozenset({"rate"}),
-    "w": frozenset({"rate"}),
-}
+#: The standard signals in canonical order (the signal catalogue: unit, derivation, needs).
+STANDARD = CATALOGUE
 #: Signals that depend on the true rate (compensation inverts them; no lag of them).
-RATES = frozenset({"rx", "ry", "rz", "w"})
-#: In words, for explanations.
-WORDS = {
-    "temp": "temperature", "temp_ext": "external temperature", "dtemp": "dT/dt",
-    "heating": "the heating/cooling state", "ax": "a_x", "ay": "a_y", "az": "a_z",
-    "rx": "the x rate", "ry": "the y rate", "rz": "the z rate", "w": "the axis' own rate",
-}
+RATES = frozenset(k for k, s in CATALOGUE.items() if s.rate)
 #: Most factors in one term.
 MAX_FACTORS = 4
 #: Span of a term's column below which the data cannot support it.
@@ -127,7 +114,7 @@ def parse_factors(text: str) -> tuple[tuple[str, bool, int], ...]:
             _, name, pos = expect("name")
             expect("op", ")")
             lagged = True
-            if name in RATES:
+            if name in CATALOGUE and CATALOGUE[name].rate:
                 _fail(text, pos, f"lag({name}): a rate cannot be lagged")
         power = 1
         if k < len(toks) and toks[k][1] == "^":
@@ -171,21 +158,10 @@ def format_factors(factors) -> str:
 
 
 def signal_value(sig, name: str):
-    """Signal ``name`` of the grammar as (n,) or, for ``w``, (n, 3)."""
-    if name == "temp":
-        return sig.temp_s
-    if name == "temp_ext":
-        return (sig.temp_ext - sig.norm.centre) / sig.norm.scale
-    if name == "dtemp":
-        return 60.0 * sig.dtemp
-    if name == "heating":
-        return sig.heating
-    if name in ("ax", "ay", "az"):
-        return sig.accel[:, "xyz".index(name[1])] / G
-    if name in ("rx", "ry", "rz"):
-        return sig.rate[:, "xyz".index(name[1])]
-    if name == "w":
-        return sig.rate
+    """Signal ``name`` of the grammar as (n,) or, for ``w``, (n, 3): a catalogue signal
+    (:data:`diffgyro.signal_catalogue.CATALOGUE`), else an extra column."""
+    if name in CATALOGUE:
+        return CATALOGUE[name].value(sig)
     return sig.aux[name]
 
 
@@ -227,7 +203,7 @@ class Term(AbstractEffect):
 
     @property
     def rate_dependent(self) -> bool:
-        return any(n in RATES for n, _, _ in self.factors)
+        return any(n in CATALOGUE and CATALOGUE[n].rate for n, _, _ in self.factors)
 
     @property
     def lagged(self) -> str | None:
@@ -237,7 +213,7 @@ class Term(AbstractEffect):
     def requires(self):
         out: set[str] = set()
         for n, _, _ in self.factors:
-            out |= STANDARD.get(n, {aux_key(n)})
+            out |= CATALOGUE[n].reads if n in CATALOGUE else {aux_key(n)}
         return frozenset(out)
 
     def followed_signal(self):
@@ -298,7 +274,7 @@ class Term(AbstractEffect):
         """The product in words ("temperature × a_z")."""
         parts = []
         for n, lg, p in self.factors:
-            w = WORDS.get(n, f"column {n}")
+            w = CATALOGUE[n].words if n in CATALOGUE else f"column {n}"
             w = f"{w} through a first-order lag" if lg else w
             parts.append(w if p == 1 else f"({w})^{p}")
         return " × ".join(parts)

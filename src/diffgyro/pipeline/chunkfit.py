@@ -38,21 +38,10 @@ from ..fit import FitResult, judge_motion, solve_device
 from ..jit import parallel_devices
 from ..model import ErrorModel, Params
 from ..options import FitOptions
-from ..signals import TempNorm, make_signals
+from ..signal_builder import stacked_signals
+from ..signals import TempNorm
 
 AXIS = "devices"
-
-
-@eqx.filter_jit
-def _signals(t, gyro, mask, rate, temp, temp_ext, accel, dt, dtemp_window: float):
-    """Derived signals of every device, as :func:`diffgyro.fit.batch_signals` makes them
-    (each device centres its own temperature), compiled once per shape."""
-
-    def one(t, gyro, mask, rate, temp, temp_ext, accel, dt):
-        return make_signals(t, gyro, mask, rate=rate, temp=temp, temp_ext=temp_ext, accel=accel,
-                            norm=None, dtemp_window=dtemp_window, dt=dt)
-
-    return jax.vmap(one)(t, gyro, mask, rate, temp, temp_ext, accel, dt)
 
 
 def _solve_one(model: ErrorModel, opts: FitOptions):
@@ -173,9 +162,10 @@ class ChunkFitter:
         def arr(x):
             return None if x is None else jnp.asarray(x, dtype)
 
-        sig = _signals(arr(full.t), arr(full.gyro), jnp.asarray(full.mask), arr(full.rate),
-                       arr(full.temp), arr(full.temp_ext), arr(full.accel),
-                       jnp.asarray(sampling_intervals(full), dtype), self.opts.dtemp_window)
+        sig = stacked_signals(arr(full.t), arr(full.gyro), jnp.asarray(full.mask), arr(full.rate),
+                              arr(full.temp), arr(full.temp_ext), arr(full.accel), None,
+                              jnp.asarray(sampling_intervals(full), dtype), {},
+                              self.opts.dtemp_window)
         if self.mesh is not None:
             sig = jax.device_put(sig, NamedSharding(self.mesh, PartitionSpec(AXIS)))
         out = _solve(self.model, sig, self.opts, self.block, self.mesh)
