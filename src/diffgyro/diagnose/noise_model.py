@@ -21,6 +21,18 @@ and no logged signal that the residual follows closely (an effect outside the
 vocabulary, :mod:`.evidence`) reads ``adequate``: the deterministic model is
 right, and what is left is noise the filter must carry. A random walk alone keeps today's verdict (the
 walk is best, ``missing_effect``): its smoother is scored on held-out folds.
+
+The deterministic candidates are then scored against the identified noise, not the
+white floor alone: no deterministic term predicts a Gauss–Markov bias whose
+correlation time is far shorter than a fold block, so the held-out error of the right
+model is the white floor plus the process' stationary variance σ². The decision is
+re-run with that floor (per axis, white² + Σσ² of the Gauss–Markov processes inside
+:data:`TAU_SHARE` of the record): a term must close the gap above the noise the
+residual really holds. Where that decision names a deterministic term, it replaces
+the white-floor one: a missing effect smaller than the bias' variance, which closes
+too little of the gap above the white floor to count there, is named. Where it names
+none, the rules above give the verdict (a slow effect that the identified process
+partly absorbs is then not declared adequate by the raised floor alone).
 """
 
 from __future__ import annotations
@@ -90,15 +102,30 @@ def _words(entry: dict) -> str:
     return "; ".join(out)
 
 
+def gauss_markov_power(entry: dict, total: float) -> np.ndarray:
+    """Per axis (x, y, z): Σσ² (rad²/s²) of the entry's Gauss–Markov processes whose correlation
+    time is at most :data:`TAU_SHARE` of the record ``total`` (s); longer ones are drift."""
+    out = np.zeros(3)
+    for k, ax in enumerate("xyz"):
+        for c in ((entry.get("axes") or {}).get(ax) or {}).get("components", []):
+            if c["kind"] == "gauss_markov":
+                s, tau = c["params"]["sigma"]["value"], c["params"]["tau"]["value"]
+                if s is not None and tau is not None and tau <= TAU_SHARE * total:
+                    out[k] += s * s
+    return out
+
+
 def not_identified(device: str, why: str) -> dict:
     """The ``noise`` object of a device whose residual was not identified."""
     return {"device": device, "status": "not_identified", "status_detail": why, "axes": None}
 
 
-def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="auto") -> None:
+def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="auto",
+                 rescore=None) -> None:
     """Identify the residual noise of the devices ``mode`` selects and set each device's
     ``noise`` (the ``noise --json`` entry), ``noise_process`` and, where a Gauss–Markov
-    process explains what no term closes, the verdict (module docstring)."""
+    process explains what no term closes, the verdict (module docstring). ``rescore(i,
+    floor_axes)``: device i's decision with the per-axis floor given (None: not re-run)."""
     from ..stochastic.devices import identify_devices
 
     if mode is False or mode is None:
@@ -126,9 +153,15 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
         if entry["status"] != "ok":
             continue
         process, tau, tau_hi = _process(entry)
-        d.noise_process = process
         n = int(nv[k])
         total = float(tt[k, n - 1] - tt[k, 0])
+        gm = gauss_markov_power(entry, total)
+        if rescore is not None and gm.any() and not _follows_a_signal(d):
+            alt = rescore(i, np.sqrt(np.square(d.white_noise_axes) + gm))
+            if alt.best is not None and not alt.best.stochastic:
+                devices[i] = d = _against_noise(d, alt)
+                d.noise = entry
+        d.noise_process = process
         det_sig = any(c.significant and not c.stochastic for c in d.candidates)
         inside = tau is not None and tau_hi is not None and math.isfinite(tau_hi) \
             and tau <= TAU_SHARE * total
@@ -144,3 +177,14 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
         elif process != "white":
             d.explanation += f" The residual's noise model: {process.replace('+', ' + ')}" + (
                 f" ({_words(entry)})." if "gauss_markov" in process else ".")
+
+
+def _against_noise(white: DeviceDiagnosis, d: DeviceDiagnosis) -> DeviceDiagnosis:
+    """The decision re-run against the identified noise (``d``, which names a deterministic
+    term), keeping what the white-floor decision reported of the device: its white level and
+    model-free floor (the greedy pair is not re-scored)."""
+    d.white_noise_rms, d.white_noise_axes = white.white_noise_rms, white.white_noise_axes
+    d.noise_floor, d.noise_axes = white.noise_floor, white.noise_axes
+    d.explanation += (" Scored against the residual's identified noise (white + Gauss–Markov), "
+                      "not the white floor alone.")
+    return d

@@ -446,7 +446,13 @@ def diagnose(
         from .synthesis import apply as synthesise
 
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
-    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise)
+    def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
+        fl = np.array(floors, copy=True)
+        fl[i] = floor_axes
+        return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
+                       unsupported, skips[i])[0]
+
+    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
