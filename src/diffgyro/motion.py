@@ -41,6 +41,7 @@ per shape and window sizes.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -141,30 +142,49 @@ def window_sizes(dt: float) -> tuple[int, int]:
 
 def _window_stats(x, mask, w: int):
     """Per window: means, local noise from successive differences inside it (per axis), the
-    difference of the means of its two halves, valid-sample counts, and validity.
+    difference of the means of its two halves, valid-sample counts, and validity; and the
+    quantum per axis (the smallest nonzero change between neighbouring valid samples).
 
-    Axes first ((c, k, w) blocks), so every reduction runs along contiguous samples."""
+    One pass over the samples: every statistic is a sum (or min) over ``(k, w, c)`` blocks of
+    the samples as stored (no transposed or padded copy; a last partial window on its own),
+    and the input is read in its own precision and reduced in float32."""
     n = x.shape[0]
-    k = -(-n // w)
-    if k * w != n:  # pad to whole windows (invalid)
-        x = jnp.concatenate([x, jnp.zeros((k * w - n, x.shape[1]), x.dtype)])
-        mask = jnp.concatenate([mask, jnp.zeros((k * w - n,), bool)])
-    ms = mask.reshape(k, w)
-    xs = jnp.where(ms[None], x.T.reshape(-1, k, w), 0.0)
-    h = w // 2
-    c1 = jnp.sum(ms[:, :h], axis=1).astype(x.dtype)
-    c = c1 + jnp.sum(ms[:, h:], axis=1)
-    s1 = jnp.sum(xs[..., :h], axis=-1).T
-    total = s1 + jnp.sum(xs[..., h:], axis=-1).T
+    k0 = n // w
+    parts = [_block_sums(x[: k0 * w].reshape(k0, w, -1), mask[: k0 * w].reshape(k0, w))] if k0 else []
+    if k0 * w != n:  # the last partial window, padded (invalid) to a whole one
+        tail = jnp.zeros((w, x.shape[1]), x.dtype).at[: n - k0 * w].set(x[k0 * w:])
+        tmask = jnp.zeros((w,), bool).at[: n - k0 * w].set(mask[k0 * w:])
+        parts.append(_block_sums(tail[None], tmask[None]))
+    s1, total, s2, c1, c, cp, step = (
+        p[0] if len(parts) == 1 else
+        (jnp.minimum(*p) if i == 6 else jnp.concatenate(p)) for i, p in enumerate(zip(*parts)))
     mean = total / jnp.maximum(c, 1.0)[:, None]
     half = s1 / jnp.maximum(c1, 1.0)[:, None] - (total - s1) / jnp.maximum(c - c1, 1.0)[:, None]
-    pair = ms[:, 1:] & ms[:, :-1]
-    cp = jnp.sum(pair, axis=1).astype(x.dtype)
-    d = jnp.where(pair[None], xs[..., 1:] - xs[..., :-1], 0.0)
-    s2 = jnp.sum(d * d, axis=-1).T / jnp.maximum(cp, 1.0)[:, None] / 2.0
-    step = jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(1, 2))  # per axis
+    s2 = s2 / jnp.maximum(cp, 1.0)[:, None] / 2.0
     valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
+    valid = valid & jnp.all(jnp.isfinite(mean) & jnp.isfinite(s2), axis=1)  # no NaN or inf sample
     return mean, jnp.sqrt(s2), half, c, valid, jnp.where(jnp.isfinite(step), step, 0.0)
+
+
+def _block_sums(xs, ms):
+    """Sums over the windows ``(k, w, c)`` of samples ``xs`` (mask ``ms``, ``(k, w)``): of
+    the first half, of all, of squared successive differences; the counts of the first
+    half's, all and successive valid pairs; and the smallest nonzero change per axis.
+
+    Written sample by sample across the window (``w`` is small) and stacked into one array,
+    so that XLA computes all of them in one loop over the samples."""
+    k, w, nc = xs.shape
+    h = w // 2
+    x = [jnp.where(ms[:, j, None], xs[:, j].astype(jnp.float32), 0.0) for j in range(w)]
+    m = [jnp.broadcast_to(ms[:, j, None], (k, nc)).astype(jnp.float32) for j in range(w)]
+    pair = [m[j] * m[j + 1] for j in range(w - 1)]
+    d = [pair[j] * (x[j + 1] - x[j]) for j in range(w - 1)]
+    big = jnp.float32(jnp.inf)
+    out = jnp.stack([sum(x[:h]), sum(x[h:]), sum(dj * dj for dj in d), sum(m[:h]), sum(m[h:]),
+                     sum(pair), functools.reduce(jnp.minimum, (jnp.where(dj != 0.0, jnp.abs(dj), big)
+                                                               for dj in d))])
+    s1, s2_, sq, c1, c2, cp, step = out
+    return s1, s1 + s2_, sq, c1[:, 0], c1[:, 0] + c2[:, 0], cp[:, 0], jnp.min(step, axis=0)
 
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
@@ -225,8 +245,7 @@ def _baseline(mean, use, b: int):
     idx = jnp.arange(kb)
     last = jax.lax.cummax(jnp.where(has, idx, -1))
     first = jnp.argmax(has)
-    med = med[jnp.where(last >= 0, last, first)]
-    med = jnp.where(jnp.isnan(med), _masked_quantile(vals, ok, 0.5)[None, :], med)
+    med = med[jnp.where(last >= 0, last, first)]  # NaN only where no window is in use
     if kb == 1:
         return jnp.broadcast_to(med, mean.shape)
     # linear between block centres, and extrapolated from the nearest two at the ends
