@@ -189,22 +189,59 @@ def _block_sums(xs, ms):
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
     """The ``q`` quantile (linear between order statistics) of the ``valid`` entries of ``x``
-    along ``axis``, NaN where none; one integer sort (XLA on CPU sorts integers several
-    times faster than floats, whose comparator must also order NaN)."""
-    itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
-    top = jnp.iinfo(itype).max
-    i = jax.lax.bitcast_convert_type(x, itype)
-    key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
-    key = jnp.sort(jnp.where(valid, key, top), axis=axis)
-    key = jnp.where(key < 0, key ^ top, key)
-    s = jax.lax.bitcast_convert_type(key, x.dtype)
+    along ``axis``, NaN where none. On a CPU the two order statistics come from numpy's
+    selection (linear time; XLA's CPU sort costs more than the whole pass over the samples),
+    elsewhere from one integer sort (an accelerator sorts fast)."""
     n = jnp.sum(valid, axis=axis, keepdims=True)
     h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
     lo = jnp.floor(h).astype(jnp.int32)
-    a = jnp.take_along_axis(s, lo, axis=axis)
-    b = jnp.take_along_axis(s, jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)), axis=axis)
+    hi = jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    if x.shape[axis] <= 16:  # a few values (a baseline block): a sorting network
+        col = list(jnp.moveaxis(jnp.where(valid, x, jnp.inf), axis, 0))
+        for r in range(len(col)):  # odd-even transposition: len(col) rounds sort
+            for j in range(r % 2, len(col) - 1, 2):
+                col[j], col[j + 1] = jnp.minimum(col[j], col[j + 1]), jnp.maximum(col[j], col[j + 1])
+        a = sum(jnp.where(lo == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
+        b = sum(jnp.where(hi == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
+    elif jax.default_backend() == "cpu":
+        xl = jnp.moveaxis(jnp.where(valid, x, jnp.inf), axis, -1)
+        a, b = jax.pure_callback(
+            _select, (jax.ShapeDtypeStruct(xl.shape[:-1], x.dtype),) * 2, xl,
+            jnp.moveaxis(lo, axis, -1)[..., 0], jnp.moveaxis(hi, axis, -1)[..., 0],
+            vmap_method="broadcast_all")
+        a, b = jnp.expand_dims(a, axis), jnp.expand_dims(b, axis)
+    else:
+        itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
+        top = jnp.iinfo(itype).max
+        i = jax.lax.bitcast_convert_type(x, itype)
+        key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
+        key = jnp.sort(jnp.where(valid, key, top), axis=axis)
+        key = jnp.where(key < 0, key ^ top, key)
+        s = jax.lax.bitcast_convert_type(key, x.dtype)
+        a = jnp.take_along_axis(s, lo, axis=axis)
+        b = jnp.take_along_axis(s, hi, axis=axis)
     out = jnp.where(n > 0, a + (b - a) * (h - lo), jnp.nan)
     return jnp.squeeze(out, axis)
+
+
+def _select(x, lo, hi):
+    """The ``lo``-th and ``hi``-th smallest of each row of ``x`` (numpy's introselect, one
+    call per distinct pair of ranks)."""
+    x = np.asarray(x)
+    m = x.shape[-1]
+    rows = x.reshape(-1, m)
+    ranks = np.stack([np.asarray(lo).reshape(-1), np.asarray(hi).reshape(-1)], axis=1)
+    a = np.empty(len(rows), x.dtype)
+    b = np.empty(len(rows), x.dtype)
+    code = ranks[:, 0].astype(np.int64) * (m + 1) + ranks[:, 1]
+    pairs, which = ([ranks[0]], None) if np.all(code == code[0]) else np.unique(
+        code, return_inverse=True)
+    for j, c in enumerate(pairs):
+        r0, r1 = (c[0], c[1]) if which is None else divmod(int(c), m + 1)
+        sel = slice(None) if which is None else which == j
+        part = np.partition(rows[sel], sorted({int(r0), int(r1)}), axis=-1)
+        a[sel], b[sel] = part[:, r0], part[:, r1]
+    return a.reshape(x.shape[:-1]), b.reshape(x.shape[:-1])
 
 
 def _rest_noise(local, half, valid, w: int, quantum=0.0):
@@ -249,11 +286,24 @@ def _baseline(mean, use, b: int):
     if kb == 1:
         return jnp.broadcast_to(med, mean.shape)
     # linear between block centres, and extrapolated from the nearest two at the ends
-    # (a warm-up's drift is fastest in the first half block)
-    pos = (jnp.arange(k).astype(mean.dtype) + 0.5) / b - 0.5
-    j = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, kb - 2)
-    frac = (pos - j)[:, None]
-    return med[j] + frac * (med[j + 1] - med[j])
+    # (a warm-up's drift is fastest in the first half block): window i of block B lies
+    # between the centres of blocks j = B − 1 (first half) or B (second half), clipped;
+    # the block values are spread over the windows by broadcasting, not gathered
+    dtype = np.dtype(mean.dtype.name)
+    pos = (np.arange(k).astype(dtype) + dtype.type(0.5)) / dtype.type(b) - dtype.type(0.5)
+    j = np.clip(np.floor(pos).astype(np.int32), 0, kb - 2)
+    frac = jnp.asarray((pos - j.astype(dtype))[:, None])
+    blocks = np.arange(kb)
+    second = (np.arange(b) >= b // 2)[None, :, None]
+
+    def spread(jb_first, jb_second):  # med[j] per window, j per block and half
+        v = jnp.where(second, med[jb_second][:, None, :], med[jb_first][:, None, :])
+        return v.reshape(kb * b, -1)[:k]
+
+    first_j, second_j = np.clip(blocks - 1, 0, kb - 2), np.clip(blocks, 0, kb - 2)
+    assert np.array_equal(np.where(second[0], second_j[:, None], first_j[:, None]).reshape(-1)[:k], j)
+    lo, hi = spread(first_j, second_j), spread(first_j + 1, second_j + 1)
+    return lo + frac * (hi - lo)
 
 
 def _runs_with(flag, mark):
