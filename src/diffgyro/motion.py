@@ -301,7 +301,7 @@ def _baseline(mean, use, b: int):
         return v.reshape(kb * b, -1)[:k]
 
     first_j, second_j = np.clip(blocks - 1, 0, kb - 2), np.clip(blocks, 0, kb - 2)
-    assert np.array_equal(np.where(second[0], second_j[:, None], first_j[:, None]).reshape(-1)[:k], j)
+    assert np.array_equal(np.where(second[0, :, 0], second_j[:, None], first_j[:, None]).reshape(-1)[:k], j)
     lo, hi = spread(first_j, second_j), spread(first_j + 1, second_j + 1)
     return lo + frac * (hi - lo)
 
