@@ -35,8 +35,11 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
-Everything is pure JAX per device, vmapped over the batch and compiled once
-per shape and window sizes.
+Everything is JAX per device, vmapped over the batch and compiled once per shape
+and window sizes: one fused pass over the samples gives every window statistic, the
+rest works on the windows. On a CPU the two quantiles over all windows are taken by
+numpy's selection (linear time) through a callback, since XLA's CPU sort costs more
+than the pass over the samples.
 """
 
 from __future__ import annotations
