@@ -35,11 +35,9 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
-Everything is JAX per device, vmapped over the batch and compiled once per shape
-and window sizes: one fused pass over the samples gives every window statistic, the
-rest works on the windows. On a CPU the two quantiles over all windows are taken by
-numpy's selection (linear time) through a callback, since XLA's CPU sort costs more
-than the pass over the samples.
+Everything is pure JAX per device, vmapped over the batch and compiled once per
+shape and window sizes: one fused pass over the samples gives every window statistic,
+the rest works on the windows.
 """
 
 from __future__ import annotations
@@ -192,9 +190,9 @@ def _block_sums(xs, ms):
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
     """The ``q`` quantile (linear between order statistics) of the ``valid`` entries of ``x``
-    along ``axis``, NaN where none. On a CPU the two order statistics come from numpy's
-    selection (linear time; XLA's CPU sort costs more than the whole pass over the samples),
-    elsewhere from one integer sort (an accelerator sorts fast)."""
+    along ``axis``, NaN where none: for a few values (up to 16) a sorting network of
+    elementwise min/max, else one integer sort (XLA on CPU sorts integers several times
+    faster than floats, whose comparator must also order NaN)."""
     n = jnp.sum(valid, axis=axis, keepdims=True)
     h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
     lo = jnp.floor(h).astype(jnp.int32)
@@ -206,13 +204,6 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
                 col[j], col[j + 1] = jnp.minimum(col[j], col[j + 1]), jnp.maximum(col[j], col[j + 1])
         a = sum(jnp.where(lo == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
         b = sum(jnp.where(hi == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
-    elif jax.default_backend() == "cpu":
-        xl = jnp.moveaxis(jnp.where(valid, x, jnp.inf), axis, -1)
-        a, b = jax.pure_callback(
-            _select, (jax.ShapeDtypeStruct(xl.shape[:-1], x.dtype),) * 2, xl,
-            jnp.moveaxis(lo, axis, -1)[..., 0], jnp.moveaxis(hi, axis, -1)[..., 0],
-            vmap_method="broadcast_all")
-        a, b = jnp.expand_dims(a, axis), jnp.expand_dims(b, axis)
     else:
         itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
         top = jnp.iinfo(itype).max
@@ -225,26 +216,6 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
         b = jnp.take_along_axis(s, hi, axis=axis)
     out = jnp.where(n > 0, a + (b - a) * (h - lo), jnp.nan)
     return jnp.squeeze(out, axis)
-
-
-def _select(x, lo, hi):
-    """The ``lo``-th and ``hi``-th smallest of each row of ``x`` (numpy's introselect, one
-    call per distinct pair of ranks)."""
-    x = np.asarray(x)
-    m = x.shape[-1]
-    rows = x.reshape(-1, m)
-    ranks = np.stack([np.asarray(lo).reshape(-1), np.asarray(hi).reshape(-1)], axis=1)
-    a = np.empty(len(rows), x.dtype)
-    b = np.empty(len(rows), x.dtype)
-    code = ranks[:, 0].astype(np.int64) * (m + 1) + ranks[:, 1]
-    pairs, which = ([ranks[0]], None) if np.all(code == code[0]) else np.unique(
-        code, return_inverse=True)
-    for j, c in enumerate(pairs):
-        r0, r1 = (c[0], c[1]) if which is None else divmod(int(c), m + 1)
-        sel = slice(None) if which is None else which == j
-        part = np.partition(rows[sel], sorted({int(r0), int(r1)}), axis=-1)
-        a[sel], b[sel] = part[:, r0], part[:, r1]
-    return a.reshape(x.shape[:-1]), b.reshape(x.shape[:-1])
 
 
 def _rest_noise(local, half, valid, w: int, quantum=0.0):
