@@ -36,8 +36,8 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
 Everything is pure JAX per device, vmapped over the batch and compiled once per
-shape and window sizes: one fused pass over the samples gives every window statistic,
-the rest works on the windows.
+shape and window sizes: the window statistics are elementwise sums over the samples
+as stored, the rest works on the windows.
 """
 
 from __future__ import annotations
@@ -146,9 +146,9 @@ def _window_stats(x, mask, w: int):
     difference of the means of its two halves, valid-sample counts, and validity; and the
     quantum per axis (the smallest nonzero change between neighbouring valid samples).
 
-    One pass over the samples: every statistic is a sum (or min) over ``(k, w, c)`` blocks of
-    the samples as stored (no transposed or padded copy; a last partial window on its own),
-    and the input is read in its own precision and reduced in float32."""
+    Every statistic is a sum (or min) over ``(k, w, c)`` blocks of the samples as stored (no
+    transposed or padded copy; a last partial window on its own), read in the input's
+    precision and reduced in float32."""
     n = x.shape[0]
     k0 = n // w
     parts = [_block_sums(x[: k0 * w].reshape(k0, w, -1), mask[: k0 * w].reshape(k0, w))] if k0 else []
@@ -172,8 +172,8 @@ def _block_sums(xs, ms):
     the first half, of all, of squared successive differences; the counts of the first
     half's, all and successive valid pairs; and the smallest nonzero change per axis.
 
-    Written sample by sample across the window (``w`` is small) and stacked into one array,
-    so that XLA computes all of them in one loop over the samples."""
+    Written sample by sample across the window (``w`` is small), so that XLA fuses each into
+    an elementwise loop over the samples without intermediate arrays."""
     k, w, nc = xs.shape
     h = w // 2
     x = [jnp.where(ms[:, j, None], xs[:, j].astype(jnp.float32), 0.0) for j in range(w)]
