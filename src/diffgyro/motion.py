@@ -172,10 +172,19 @@ def _block_sums(xs, ms):
     the first half, of all, of squared successive differences; the counts of the first
     half's, all and successive valid pairs; and the smallest nonzero change per axis.
 
-    Written sample by sample across the window (``w`` is small), so that XLA fuses each into
-    an elementwise loop over the samples without intermediate arrays."""
+    Short windows are written sample by sample across the window, so that XLA fuses each
+    statistic into an elementwise loop over the samples without intermediate arrays."""
     k, w, nc = xs.shape
     h = w // 2
+    if w > 16:  # long windows: reductions along the window axis (an unrolled loop compiles slowly)
+        xs = jnp.where(ms[..., None], xs.astype(jnp.float32), 0.0)
+        c1 = jnp.sum(ms[:, :h], axis=1).astype(jnp.float32)
+        s1 = jnp.sum(xs[:, :h], axis=1)
+        pair = ms[:, 1:] & ms[:, :-1]
+        d = jnp.where(pair[..., None], xs[:, 1:] - xs[:, :-1], 0.0)
+        return (s1, s1 + jnp.sum(xs[:, h:], axis=1), jnp.sum(d * d, axis=1), c1,
+                c1 + jnp.sum(ms[:, h:], axis=1), jnp.sum(pair, axis=1).astype(jnp.float32),
+                jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(0, 1)))
     x = [jnp.where(ms[:, j, None], xs[:, j].astype(jnp.float32), 0.0) for j in range(w)]
     m = [jnp.broadcast_to(ms[:, j, None], (k, nc)).astype(jnp.float32) for j in range(w)]
     pair = [m[j] * m[j + 1] for j in range(w - 1)]
