@@ -35,12 +35,14 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
-Everything is pure JAX per device, vmapped over the batch and compiled once
-per shape and window sizes.
+Everything is pure JAX per device, vmapped over the batch and compiled once per
+shape and window sizes: the window statistics are elementwise sums over the samples
+as stored, the rest works on the windows.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import equinox as eqx
@@ -141,48 +143,86 @@ def window_sizes(dt: float) -> tuple[int, int]:
 
 def _window_stats(x, mask, w: int):
     """Per window: means, local noise from successive differences inside it (per axis), the
-    difference of the means of its two halves, valid-sample counts, and validity.
+    difference of the means of its two halves, valid-sample counts, and validity; and the
+    quantum per axis (the smallest nonzero change between neighbouring valid samples).
 
-    Axes first ((c, k, w) blocks), so every reduction runs along contiguous samples."""
+    Every statistic is a sum (or min) over ``(k, w, c)`` blocks of the samples as stored (no
+    transposed or padded copy; a last partial window on its own), read in the input's
+    precision and reduced in float32."""
     n = x.shape[0]
-    k = -(-n // w)
-    if k * w != n:  # pad to whole windows (invalid)
-        x = jnp.concatenate([x, jnp.zeros((k * w - n, x.shape[1]), x.dtype)])
-        mask = jnp.concatenate([mask, jnp.zeros((k * w - n,), bool)])
-    ms = mask.reshape(k, w)
-    xs = jnp.where(ms[None], x.T.reshape(-1, k, w), 0.0)
-    h = w // 2
-    c1 = jnp.sum(ms[:, :h], axis=1).astype(x.dtype)
-    c = c1 + jnp.sum(ms[:, h:], axis=1)
-    s1 = jnp.sum(xs[..., :h], axis=-1).T
-    total = s1 + jnp.sum(xs[..., h:], axis=-1).T
+    k0 = n // w
+    parts = [_block_sums(x[: k0 * w].reshape(k0, w, -1), mask[: k0 * w].reshape(k0, w))] if k0 else []
+    if k0 * w != n:  # the last partial window, padded (invalid) to a whole one
+        tail = jnp.zeros((w, x.shape[1]), x.dtype).at[: n - k0 * w].set(x[k0 * w:])
+        tmask = jnp.zeros((w,), bool).at[: n - k0 * w].set(mask[k0 * w:])
+        parts.append(_block_sums(tail[None], tmask[None]))
+    s1, total, s2, c1, c, cp, step = (
+        p[0] if len(parts) == 1 else
+        (jnp.minimum(*p) if i == 6 else jnp.concatenate(p)) for i, p in enumerate(zip(*parts)))
     mean = total / jnp.maximum(c, 1.0)[:, None]
     half = s1 / jnp.maximum(c1, 1.0)[:, None] - (total - s1) / jnp.maximum(c - c1, 1.0)[:, None]
-    pair = ms[:, 1:] & ms[:, :-1]
-    cp = jnp.sum(pair, axis=1).astype(x.dtype)
-    d = jnp.where(pair[None], xs[..., 1:] - xs[..., :-1], 0.0)
-    s2 = jnp.sum(d * d, axis=-1).T / jnp.maximum(cp, 1.0)[:, None] / 2.0
-    step = jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(1, 2))  # per axis
+    s2 = s2 / jnp.maximum(cp, 1.0)[:, None] / 2.0
     valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
+    valid = valid & jnp.all(jnp.isfinite(mean) & jnp.isfinite(s2), axis=1)  # no NaN or inf sample
     return mean, jnp.sqrt(s2), half, c, valid, jnp.where(jnp.isfinite(step), step, 0.0)
+
+
+def _block_sums(xs, ms):
+    """Sums over the windows ``(k, w, c)`` of samples ``xs`` (mask ``ms``, ``(k, w)``): of
+    the first half, of all, of squared successive differences; the counts of the first
+    half's, all and successive valid pairs; and the smallest nonzero change per axis.
+
+    Short windows are written sample by sample across the window, so that XLA fuses each
+    statistic into an elementwise loop over the samples without intermediate arrays."""
+    k, w, nc = xs.shape
+    h = w // 2
+    if w > 16:  # long windows: reductions along the window axis (an unrolled loop compiles slowly)
+        xs = jnp.where(ms[..., None], xs.astype(jnp.float32), 0.0)
+        c1 = jnp.sum(ms[:, :h], axis=1).astype(jnp.float32)
+        s1 = jnp.sum(xs[:, :h], axis=1)
+        pair = ms[:, 1:] & ms[:, :-1]
+        d = jnp.where(pair[..., None], xs[:, 1:] - xs[:, :-1], 0.0)
+        return (s1, s1 + jnp.sum(xs[:, h:], axis=1), jnp.sum(d * d, axis=1), c1,
+                c1 + jnp.sum(ms[:, h:], axis=1), jnp.sum(pair, axis=1).astype(jnp.float32),
+                jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(0, 1)))
+    x = [jnp.where(ms[:, j, None], xs[:, j].astype(jnp.float32), 0.0) for j in range(w)]
+    m = [jnp.broadcast_to(ms[:, j, None], (k, nc)).astype(jnp.float32) for j in range(w)]
+    pair = [m[j] * m[j + 1] for j in range(w - 1)]
+    d = [pair[j] * (x[j + 1] - x[j]) for j in range(w - 1)]
+    big = jnp.float32(jnp.inf)
+    out = jnp.stack([sum(x[:h]), sum(x[h:]), sum(dj * dj for dj in d), sum(m[:h]), sum(m[h:]),
+                     sum(pair), functools.reduce(jnp.minimum, (jnp.where(dj != 0.0, jnp.abs(dj), big)
+                                                               for dj in d))])
+    s1, s2_, sq, c1, c2, cp, step = out
+    return s1, s1 + s2_, sq, c1[:, 0], c1[:, 0] + c2[:, 0], cp[:, 0], jnp.min(step, axis=0)
 
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
     """The ``q`` quantile (linear between order statistics) of the ``valid`` entries of ``x``
-    along ``axis``, NaN where none; one integer sort (XLA on CPU sorts integers several
-    times faster than floats, whose comparator must also order NaN)."""
-    itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
-    top = jnp.iinfo(itype).max
-    i = jax.lax.bitcast_convert_type(x, itype)
-    key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
-    key = jnp.sort(jnp.where(valid, key, top), axis=axis)
-    key = jnp.where(key < 0, key ^ top, key)
-    s = jax.lax.bitcast_convert_type(key, x.dtype)
+    along ``axis``, NaN where none: for a few values (up to 16) a sorting network of
+    elementwise min/max, else one integer sort (XLA on CPU sorts integers several times
+    faster than floats, whose comparator must also order NaN)."""
     n = jnp.sum(valid, axis=axis, keepdims=True)
     h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
     lo = jnp.floor(h).astype(jnp.int32)
-    a = jnp.take_along_axis(s, lo, axis=axis)
-    b = jnp.take_along_axis(s, jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)), axis=axis)
+    hi = jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)).astype(jnp.int32)
+    if x.shape[axis] <= 16:  # a few values (a baseline block): a sorting network
+        col = list(jnp.moveaxis(jnp.where(valid, x, jnp.inf), axis, 0))
+        for r in range(len(col)):  # odd-even transposition: len(col) rounds sort
+            for j in range(r % 2, len(col) - 1, 2):
+                col[j], col[j + 1] = jnp.minimum(col[j], col[j + 1]), jnp.maximum(col[j], col[j + 1])
+        a = sum(jnp.where(lo == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
+        b = sum(jnp.where(hi == j, jnp.expand_dims(v, axis), 0.0) for j, v in enumerate(col))
+    else:
+        itype = jnp.int32 if x.dtype == jnp.float32 else jnp.int64
+        top = jnp.iinfo(itype).max
+        i = jax.lax.bitcast_convert_type(x, itype)
+        key = jnp.where(i < 0, i ^ top, i)  # the float order as integers
+        key = jnp.sort(jnp.where(valid, key, top), axis=axis)
+        key = jnp.where(key < 0, key ^ top, key)
+        s = jax.lax.bitcast_convert_type(key, x.dtype)
+        a = jnp.take_along_axis(s, lo, axis=axis)
+        b = jnp.take_along_axis(s, hi, axis=axis)
     out = jnp.where(n > 0, a + (b - a) * (h - lo), jnp.nan)
     return jnp.squeeze(out, axis)
 
@@ -225,16 +265,28 @@ def _baseline(mean, use, b: int):
     idx = jnp.arange(kb)
     last = jax.lax.cummax(jnp.where(has, idx, -1))
     first = jnp.argmax(has)
-    med = med[jnp.where(last >= 0, last, first)]
-    med = jnp.where(jnp.isnan(med), _masked_quantile(vals, ok, 0.5)[None, :], med)
+    med = med[jnp.where(last >= 0, last, first)]  # NaN only where no window is in use
     if kb == 1:
         return jnp.broadcast_to(med, mean.shape)
     # linear between block centres, and extrapolated from the nearest two at the ends
-    # (a warm-up's drift is fastest in the first half block)
-    pos = (jnp.arange(k).astype(mean.dtype) + 0.5) / b - 0.5
-    j = jnp.clip(jnp.floor(pos).astype(jnp.int32), 0, kb - 2)
-    frac = (pos - j)[:, None]
-    return med[j] + frac * (med[j + 1] - med[j])
+    # (a warm-up's drift is fastest in the first half block): window i of block B lies
+    # between the centres of blocks j = B − 1 (first half) or B (second half), clipped;
+    # the block values are spread over the windows by broadcasting, not gathered
+    dtype = np.dtype(mean.dtype.name)
+    pos = (np.arange(k).astype(dtype) + dtype.type(0.5)) / dtype.type(b) - dtype.type(0.5)
+    j = np.clip(np.floor(pos).astype(np.int32), 0, kb - 2)
+    frac = jnp.asarray((pos - j.astype(dtype))[:, None])
+    blocks = np.arange(kb)
+    second = (np.arange(b) >= b // 2)[None, :, None]
+
+    def spread(jb_first, jb_second):  # med[j] per window, j per block and half
+        v = jnp.where(second, med[jb_second][:, None, :], med[jb_first][:, None, :])
+        return v.reshape(kb * b, -1)[:k]
+
+    first_j, second_j = np.clip(blocks - 1, 0, kb - 2), np.clip(blocks, 0, kb - 2)
+    assert np.array_equal(np.where(second[0, :, 0], second_j[:, None], first_j[:, None]).reshape(-1)[:k], j)
+    lo, hi = spread(first_j, second_j), spread(first_j + 1, second_j + 1)
+    return lo + frac * (hi - lo)
 
 
 def _runs_with(flag, mark):
