@@ -375,19 +375,44 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-    from .data import sampling_intervals
+    from .data import device_bucket, sampling_intervals
 
     if dt is None:
         dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
     w, b = window_sizes(dt)
-    f64 = jnp.float64 if np.asarray(batch.gyro).dtype == np.float64 else jnp.float32
-    gyro = jnp.asarray(batch.gyro, f64)
-    accel = None if batch.accel is None else jnp.asarray(batch.accel, f64)
+    f64 = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
+    gyro = np.asarray(batch.gyro, f64)
+    accel = None if batch.accel is None else np.asarray(batch.accel, f64)
     if batch.rate is not None:  # what the rate reference does not explain; the turns it
-        gyro = gyro - jnp.asarray(batch.rate, f64)  # gives tilt gravity, and that is no news
+        gyro = gyro - np.asarray(batch.rate, f64)  # gives tilt gravity, and that is no news
         accel = None
-    out = _check(gyro, accel, jnp.asarray(batch.mask), w, b)
+    mask = np.asarray(batch.mask)
+    d, n = mask.shape
+    if d * n <= PAD_SAMPLES:  # small batches share a compiled check (see _padded)
+        gyro, accel, mask = (_padded(x, device_bucket(d, minimum=1), -(-n // (w * b)) * w * b)
+                             for x in (gyro, accel, mask))
+    out = _check(jnp.asarray(gyro), None if accel is None else jnp.asarray(accel),
+                 jnp.asarray(mask), w, b)
+    out = {k: v[:d] for k, v in out.items()}
+    out["static"] = out["static"][:, :n]
     return Motion(**out, window=w)
+
+
+#: Batches of at most this many samples (devices × samples) are padded to a bucketed
+#: shape before the check, so that batches of nearby sizes share one compiled program.
+PAD_SAMPLES = 1 << 21
+
+
+def _padded(x, devices: int, samples: int):
+    """``x`` (devices first, samples second, or None) padded with zeros (False for the
+    mask) to ``devices`` × ``samples``. Padded samples are invalid and fill whole baseline
+    blocks only up to the block the recording ends in, so every device's windows, blocks
+    and baseline are the ones it has unpadded; padded devices hold no valid sample."""
+    if x is None or x.shape[:2] == (devices, samples):
+        return x
+    out = np.zeros((devices, samples) + x.shape[2:], x.dtype)
+    out[:x.shape[0], :x.shape[1]] = x
+    return out
 
 
 __all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "describe",
