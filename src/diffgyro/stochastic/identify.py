@@ -219,9 +219,12 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
     flat = lambda a: jnp.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
     args = [np.asarray(flat(a)) for a in (wv, count, nv.astype(np.float64), dtb)]
     total = args[0].shape[0]
-    step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK, total)
+    # fixed-size chunks, a power of two under it for fewer series: a few compiled programs
+    # for any batch
+    step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
+               1 << (max(total, 1) - 1).bit_length())
     parts = []
-    for lo in range(0, total, step):  # fixed-size chunks: one compiled program for any batch
+    for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
         short = step - chunk[0].shape[0]
         if short:  # pad the last chunk with copies of its first series
