@@ -99,7 +99,8 @@ def test_graph_reads_known_edges():
     modules = _modules()
     edges = {(a, b) for a, b, _ in _imports(modules)}
     assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
-    assert ("diffgyro.kalman", "diffgyro.fit") in edges  # inside a function
+    assert ("diffgyro.kalman", "diffgyro.fit") in edges
+    assert ("diffgyro.noise", "diffgyro.noise_passes") in edges  # inside a function
     assert ("diffgyro.effects.bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
@@ -182,3 +183,65 @@ def test_no_long_function_without_a_reason():
             if length > MAX_FUNCTION_LINES and "# Over 80 lines" not in body:
                 long.append(f"{path.relative_to(SRC)}:{node.lineno} {node.name} ({length} lines)")
     assert long == []
+
+
+#: The imports a function may make late instead of at its module's top, each for a named
+#: reason: an optional dependency (the extras ``logs`` and ``dask``, a POSIX-only module),
+#: a library only figures need (matplotlib), numba's compile on first use, and
+#: ``import diffgyro`` staying free of JAX. The command line's deferred loading of the
+#: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
+DEFERRED = {
+    "diffgyro": {"jax", "diffgyro.jit"},  # import diffgyro without JAX
+    "diffgyro.allan": {"matplotlib", "matplotlib.pyplot"},  # figures only
+    "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
+    "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
+    "diffgyro.noise": {"diffgyro.noise_passes"},  # numba
+    "diffgyro.logs": {"diffgyro.logs.ulog", "diffgyro.logs.rosbag",  # extra 'logs'
+                      "diffgyro.logs.dataflash"},
+    "diffgyro.pipeline.cluster": {"distributed"},  # extra 'dask'
+    "diffgyro.pipeline.workdir": {"fcntl"},  # POSIX only
+}
+
+
+def _function_imports(modules) -> list[tuple[str, str, int]]:
+    """(module, imported module, line) of every import inside a function."""
+    out = []
+    for mod, (path, is_pkg) in modules.items():
+        for fn in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Import):
+                    out += [(mod, a.name, node.lineno) for a in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    if node.level:
+                        base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+                        base = base[:len(base) - node.level + 1]
+                        target = ".".join(base + ([node.module] if node.module else []))
+                    else:
+                        target = node.module
+                    for a in node.names:
+                        sub = f"{target}.{a.name}"
+                        out.append((mod, sub if sub in modules else target, node.lineno))
+    return out
+
+
+def test_imports_at_module_top():
+    """Outside the command line, a function imports only what :data:`DEFERRED` names."""
+    found = [f"{m}:{line} imports {t}" for m, t, line in _function_imports(_modules())
+             if not m.startswith("diffgyro.cli") and t not in DEFERRED.get(m, ())]
+    assert found == []
+
+
+def test_cli_defers_only_the_engine():
+    """A command module imports late only what ``--help`` does not load (the engine:
+    JAX, NumPy, the fit); what the command line has loaded anyway sits at its top."""
+    code = ("import json, sys, diffgyro.cli as cli; cli.load_commands(); "
+            "print(json.dumps(sorted(sys.modules)))")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(SRC)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    loaded = set(json.loads(subprocess.run([sys.executable, "-c", code], env=env, check=True,
+                                           capture_output=True, text=True).stdout))
+    late = [(m, t, line) for m, t, line in _function_imports(_modules()) if m.startswith("diffgyro.cli")]
+    assert late, "the command line defers the engine"
+    assert [f"{m}:{line} imports {t}" for m, t, line in late if t in loaded] == []

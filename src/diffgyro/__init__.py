@@ -7,6 +7,8 @@ import; call :func:`enable_x64` once (the command line does) or set
 
 from __future__ import annotations
 
+import importlib
+import os
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -24,7 +26,6 @@ def enable_x64() -> None:
 
 def enable_compilation_cache(path: str | None = None) -> None:
     """Keep compiled functions on disk between processes (on for the CLI and tests)."""
-    import os
 
     import jax
 
@@ -48,7 +49,6 @@ def use_cpu_cores(n: int | None = None) -> int:
     JAX's first operation; a device count the user set (``XLA_FLAGS`` or
     ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
     """
-    import os
 
     import jax
 
@@ -77,7 +77,6 @@ _LAZY = {"Batch": "data", "Recording": "data", "ErrorModel": "model", "Params": 
 def __getattr__(name: str):
     if name not in _LAZY:
         raise AttributeError(f"module 'diffgyro' has no attribute {name!r}")
-    import importlib
 
     module = importlib.import_module(f".{_LAZY[name] or name}", __name__)
     value = module if _LAZY[name] is None else getattr(module, name)

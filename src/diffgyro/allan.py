@@ -59,6 +59,7 @@ reading by eye would).
 from __future__ import annotations
 
 import math
+import sys
 
 import equinox as eqx
 import jax
@@ -67,6 +68,7 @@ import numpy as np
 from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
+from .errors import DataError
 from .jit import release_compiled_if_crowded
 from .jsonio import number
 from .signals import prefix_sums
@@ -598,7 +600,6 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
     not a whole number of its sample intervals; a τ longer than
     ``n / stop_ratio`` is NaN as usual.
     """
-    from .errors import DataError
 
     dt = sample_intervals(batch)
     ms = []
@@ -658,7 +659,6 @@ def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax
     import matplotlib
 
     if ax is None:
-        import sys
 
         if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
             matplotlib.use("Agg")

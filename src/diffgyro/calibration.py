@@ -31,6 +31,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import __version__
+from . import aux as aux_cols
+from .aux import aux_names
 from .data import Batch, Recording
 from .errors import SpecError
 from .fit import FitResult
@@ -143,7 +146,6 @@ def aux_entries(result: FitResult, i: int) -> dict:
 
 def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
     """A calibration file's content from a fit (``batch`` adds the input hash)."""
-    from . import __version__
 
     devices = []
     for i in range(result.n_devices):
@@ -365,7 +367,6 @@ def _limits_entry(val, where: str) -> dict:
 
 def _aux_entries(val, model: ErrorModel, where: str) -> dict:
     """The extra columns' centring and calibrated range: exactly those the model reads."""
-    from .aux import aux_names
 
     names = aux_names(model.requires())
     if not isinstance(val, dict) or sorted(val) != list(names):
@@ -476,7 +477,6 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
 def _aux_scaled(batch: Batch, model: ErrorModel, devs) -> dict:
     """The extra columns the model reads, clamped to the calibrated range and centred as
     calibrated; DataError naming the column when the data lack one."""
-    from . import aux as aux_cols
 
     names = aux_cols.aux_names(model.requires())
     aux_cols.check_columns(batch, names, vary=False)

@@ -15,6 +15,7 @@ import math
 
 import numpy as np
 
+from . import noise
 from .data import Batch
 from .jsonio import number
 
@@ -23,7 +24,6 @@ def residuals(corrected: Batch, original: Batch) -> list[dict]:
     """Per device of ``corrected`` (``calibration.compensate``'s output for ``original``):
     ``residual_rms`` and per axis, ``noise_floor`` and per axis (rad/s), their ``ratio`` and
     ``against`` (``"rate"`` or ``"zero"``); strict-JSON numbers (None when not given)."""
-    from . import noise
 
     gyro = np.asarray(original.gyro, np.float64)
     rate = None if original.rate is None else np.asarray(original.rate, np.float64)

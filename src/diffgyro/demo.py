@@ -14,6 +14,10 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from .diagnose import diagnose_auto
+from .report import write_report
+from .simulate import demo_batch
+
 #: The hidden truth and the model the demo starts from.
 TRUTH = "bias_poly(2)+gradient"
 BASE = "bias_poly(2)"
@@ -40,8 +44,6 @@ def run_demo(out_dir: str | Path | None = "diffgyro-demo", n_devices: int = 4, s
     batch and truth, the report path (``None`` when ``out_dir`` is None) and
     the seconds each stage took.
     """
-    from .diagnose import diagnose_auto
-    from .simulate import demo_batch
 
     say = progress or (lambda _t: None)
     secs: dict[str, float] = {}
@@ -56,7 +58,6 @@ def run_demo(out_dir: str | Path | None = "diffgyro-demo", n_devices: int = 4, s
 
     path = None
     if out_dir is not None:
-        from .report import write_report
 
         t0 = time.perf_counter()
         say(f"writing the report to {out_dir}/")

@@ -28,6 +28,7 @@ from . import noise
 from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
+from .fit_sums import solve_sums
 from .folds import fold_ids
 from .jit import TRACE_COUNTS, release_compiled_if_crowded
 from .jsonio import number
@@ -636,7 +637,6 @@ def _aux_fields(extra) -> dict:
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
               theta0=None, extra=({}, {})) -> FitResult:
     """The sums path (:mod:`diffgyro.fit_sums`): one blocked pass per trial of the time constants."""
-    from .fit_sums import solve_sums
 
     out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]))
     d = batch.n_devices

@@ -30,6 +30,8 @@ from typing import Any
 import equinox as eqx
 import jax
 
+from .program_cache import program
+
 
 def filter_jit(fun: Callable[..., Any] | None = None, *,
                compiler_options: dict[str, Any] | None = None,
@@ -60,7 +62,6 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     def call(*args, **kwargs):
         treedef, static, dynamic = _split(args, kwargs)
         if persistent:
-            from .program_cache import program
 
             stored = program(fun, treedef, static, dynamic,
                              functools.partial(_unsplit, fun, treedef, static))

@@ -49,6 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .data import sampling_intervals
 from .jsonio import number
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
@@ -323,7 +324,6 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-    from .data import sampling_intervals
 
     if dt is None:
         dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01

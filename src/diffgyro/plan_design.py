@@ -42,8 +42,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+from scipy.signal import lfilter
 
+from .data import Batch
 from .effects.thermal_lag import first_order_lag
+from .fit import FitOptions, fit, solve_device
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 
@@ -419,7 +422,6 @@ def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
 
 
 def _fit_noiseless(plan, config, model, truth_model, truth, norm, fit_options):
-    from .fit import FitOptions, solve_device
 
     env = plan_environment(plan, config)
     true_sig = env_signals(env, norm, reference=False, dtemp_window=config.dtemp_window)
@@ -661,9 +663,7 @@ def simulate_devices(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
     and correlation time ``gm_tau`` s. The fit sees the plan's reference
     rate and the sensor temperature.
     """
-    from scipy.signal import lfilter
 
-    from .data import Batch
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
@@ -738,7 +738,6 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
     ``fit_kw`` goes to ``fit`` (e.g. ``path="direct"`` for the
     :func:`~diffgyro.fit.solve_device` path that the sensitivities differentiate).
     """
-    from .fit import fit
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)

@@ -29,9 +29,13 @@ import io
 import logging
 import pickle
 from collections.abc import Callable
+from importlib.metadata import PackageNotFoundError, version
 from pathlib import Path
 
+import equinox
 import jax
+import jaxlib
+import numpy
 
 from .jsonio import atomic_write_bytes
 
@@ -63,7 +67,6 @@ class _KeyPickler(pickle.Pickler):
 def _source_digest() -> str | None:
     """sha256 of diffgyro's version and source files (names and contents); None where the
     sources can not be read (an install without them: nothing is kept)."""
-    from importlib.metadata import PackageNotFoundError, version
 
     try:
         release = version("diffgyro")
@@ -97,9 +100,6 @@ def _key(fun: Callable, treedef, static, dynamic) -> str | None:
         return None
     shapes = [None if d is None else (tuple(d.shape), str(d.dtype), bool(getattr(d, "weak_type", False)))
               for d in dynamic]
-    import equinox
-    import jaxlib
-    import numpy
 
     env = (jax.__version__, jaxlib.__version__, equinox.__version__, numpy.__version__,
            jax.default_backend(),

@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+from statistics import NormalDist
 
 import equinox as eqx
 import jax
@@ -387,7 +389,6 @@ def _bootstrap_batch(model, sig, params, keys, n_boot, block, opts, chunk):
 
 def z_value(level: float) -> float:
     """Two-sided normal quantile for a confidence ``level`` (0.95 → 1.96)."""
-    from statistics import NormalDist
 
     return NormalDist().inv_cdf(0.5 + level / 2)
 
@@ -493,7 +494,6 @@ def plot_uncertainty_band(bands: Band | list[Band], unit: str = "deg/h", fig=Non
     Several bands (e.g. plain and autocorrelation-consistent covariance)
     overlay; returns the matplotlib Figure.
     """
-    import sys
 
     import matplotlib
 

@@ -12,6 +12,7 @@ import math
 import numpy as np
 
 from .data import Batch
+from .signals import HEATING_THRESHOLD
 
 
 def temperature_quantum(temp: np.ndarray) -> float:
@@ -40,7 +41,6 @@ def suggest_dtemp_window(batch: Batch, default: float = 60.0) -> float:
     never below ``default``, then rounded up to 60, 90, 120, 180, 240, 360,
     480 or 600 s (few distinct values: each compiles once).
     """
-    from .signals import HEATING_THRESHOLD
 
     if batch.temp is None:
         return default

@@ -9,6 +9,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from . import app
 from ._load import MIN_SAMPLES, load_from_cli, longest_static, units_json
@@ -192,8 +194,6 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
                  batch=None) -> None:
     """The read-outs (and with --taus σ at each τ asked for); each dash is numbered and
     its reason printed under the table."""
-    from rich.console import Console
-    from rich.table import Table
 
     notes: list[str] = []
 
@@ -236,7 +236,6 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
 
 def _tau_table(doc: dict, wanted: list[float], batch, dash):
     """σ(τ) at exactly the τ asked for, per device and axis."""
-    from rich.table import Table
 
     table = Table(title="Allan deviation σ(τ) at the τ asked for (rad/s)")
     table.add_column("device")

@@ -8,7 +8,10 @@ from typing import Annotated
 
 import typer
 
+from diffgyro.errors import DataError
+
 from . import app
+from .diagnose import print_diagnosis, print_ladder, wide_console
 
 
 @app.command("demo")
@@ -22,9 +25,7 @@ def demo_command(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from diffgyro.demo import BASE, TRUTH, run_demo
-    from diffgyro.errors import DataError
 
-    from .diagnose import print_diagnosis, print_ladder, wide_console
 
     if devices < 1:
         raise DataError(f"--devices must be at least 1, not {devices}")

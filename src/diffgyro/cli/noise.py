@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import html
 import math
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -113,7 +114,6 @@ def moved_reasons(batch) -> list[str | None]:
 
 def _warn_uneven(batch) -> None:
     """A warning per device whose sampling is uneven: the wavelet variance assumes even steps."""
-    import sys
 
     import numpy as np
 
@@ -142,24 +142,23 @@ def display_line(name: str, p: dict) -> str:
 
 
 def _print_text(doc: dict, report: Path | None) -> None:
-    import typer as _t
 
     from diffgyro.stochastic.selection import label
 
     for dev in doc["devices"]:
         if dev["status"] != "ok":
-            _t.echo(f"{dev['device']}: {dev['status']}: {dev['status_detail']}")
+            typer.echo(f"{dev['device']}: {dev['status']}: {dev['status_detail']}")
             continue
         for ax, a in dev["axes"].items():
-            _t.echo(f"{dev['device']} {ax}: {label(tuple(a['structure']))}")
+            typer.echo(f"{dev['device']} {ax}: {label(tuple(a['structure']))}")
             for c in a["components"]:
                 for name, p in c["params"].items():
-                    _t.echo(f"    {display_line(name, p)}")
+                    typer.echo(f"    {display_line(name, p)}")
             alts = [f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3]]
-            _t.echo(f"    next best: {'; '.join(alts)}")
-    _t.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
+            typer.echo(f"    next best: {'; '.join(alts)}")
+    typer.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
     if report is not None:
-        _t.echo(f"report: {report / 'index.html'}")
+        typer.echo(f"report: {report / 'index.html'}")
 
 
 def plot_noise(res, j: int, title: str | None = None):

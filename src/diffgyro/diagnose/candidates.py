@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from ..effects import AbstractNoise, AbstractTerm, registry
+from ..effects import AbstractNoise, AbstractTerm, parse_term, registry
 from ..effects.base import MAX_ORDER, is_column_name, spec_arguments
 from ..model import ErrorModel
 
@@ -92,7 +92,6 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     (``random_walk``) is offered as the model plus that noise component when the model
     has none.
     """
-    from ..effects import parse_term
 
     present = {t.name: t for t in model.terms}
     wanted: dict[str, list[AbstractTerm] | None] = {}

@@ -7,7 +7,8 @@ import math
 import numpy as np
 
 from ..data import Recording, aux_key
-from ..effects import registry
+from ..effects import parse_term, registry
+from .candidates import term_column
 from .results import DeviceDiagnosis
 from .thresholds import family_of
 
@@ -139,8 +140,6 @@ def _eta(e: np.ndarray, s: np.ndarray, bins: int = 32) -> np.ndarray:
 
 def _term_column(c) -> str | None:
     """The extra column a candidate's term reads (``aux(vdd)``: vdd), or None."""
-    from ..effects import parse_term
-    from .candidates import term_column
 
     try:
         return term_column(parse_term(c.term)) if c.term and "(" in c.term else None

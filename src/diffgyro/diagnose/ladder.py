@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import html as _html
 from dataclasses import dataclass
 
 import numpy as np
 
-from ..data import Batch, Recording
+from ..data import Batch, Recording, as_batch
 from ..jsonio import number
 from ..model import ErrorModel
 from ..temperature import suggest_dtemp_window
@@ -59,7 +60,6 @@ class Ladder:
                 for s in self.steps]
 
     def html_table(self) -> str:
-        import html as _html
 
         rows = "".join(
             f"<tr><td class=l>{_html.escape(a)}</td><td class=l><code>{_html.escape(sp)}</code></td>"
@@ -108,7 +108,6 @@ def diagnose_auto(
     ladder (its rung reports the smoother's held-out numbers). ``progress``
     is called with a line of text before each diagnosis.
     """
-    from ..data import as_batch
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)

@@ -29,6 +29,8 @@ import math
 
 import numpy as np
 
+from ..stochastic.devices import identify_devices
+from .evidence import followed_most
 from .results import DeviceDiagnosis
 
 #: Longest Gauss–Markov correlation time, as a share of the record, that counts as noise:
@@ -49,7 +51,6 @@ def _unexplained(d: DeviceDiagnosis) -> bool:
 def _follows_a_signal(d: DeviceDiagnosis) -> bool:
     """The residual follows a logged signal closely (:data:`FOLLOWED`) or one explains most
     of its excess (the evidence, :mod:`.evidence`)."""
-    from .evidence import followed_most
 
     top = followed_most(d.evidence or {})
     if top is None:
@@ -99,7 +100,6 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
     """Identify the residual noise of the devices ``mode`` selects and set each device's
     ``noise`` (the ``noise --json`` entry), ``noise_process`` and, where a Gauss–Markov
     process explains what no term closes, the verdict (module docstring)."""
-    from ..stochastic.devices import identify_devices
 
     if mode is False or mode is None:
         pick = []

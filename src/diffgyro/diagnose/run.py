@@ -17,10 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .. import allan as allan_mod
 from .. import aux as aux_cols
-from ..data import Batch, Recording, as_slice, aux_key, device_bucket
+from .. import noise
+from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk
 from ..effects.base import is_column_name
+from ..errors import SpecError
+from ..fit import fit as fit_fn
 from ..jit import filter_jit, release_compiled_if_crowded
 from ..model import ErrorModel
 from ..signal_builder import batch_inputs, input_signals
@@ -44,6 +48,7 @@ from .scoring import (
     window,
 )
 from .scoring import segment_length as search_length
+from .synthesis import apply as synthesise
 from .thresholds import Thresholds
 
 #: About this many samples (devices × padded length) go through one compiled call.
@@ -261,7 +266,6 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
 
 def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
     """Overlapping Allan deviation of every device's residual (devices, 3, k)."""
-    from .. import allan as allan_mod
 
     n_dev = batch.n_devices
     pick = np.minimum(np.arange(device_bucket(n_dev, minimum=1)), n_dev - 1)  # few compiled shapes
@@ -290,7 +294,6 @@ def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
     """(noise floor, per axis) of every device: the base fit's (:mod:`diffgyro.noise`),
     computed here when that fit was run without it, so ``diagnose`` and ``fit`` report
     the same floor for the same device."""
-    from .. import noise
 
     if res.options.noise_floor:
         axes = np.asarray(res.noise_axes, float)
@@ -390,13 +393,10 @@ def diagnose(
     object.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
-    from ..data import as_batch
-    from ..fit import fit as fit_fn
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
     if model.noise is not None:
-        from ..errors import SpecError
 
         raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
                         hint=f"drop {model.noise.spec} from --model: it is tried as a candidate")
@@ -443,7 +443,6 @@ def diagnose(
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
     if synthesis:
-        from .synthesis import apply as synthesise
 
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise)

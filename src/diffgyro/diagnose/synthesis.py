@@ -35,12 +35,16 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from scipy.signal import lfilter
 
+from .. import aux as aux_cols
 from ..effects.grammar import RATES, STANDARD, Term, parse_factors, signal_value
+from ..fit import fit as fit_fn
 from ..model import ErrorModel
 from ..signal_builder import batch_inputs, input_signals
 from ..signal_catalogue import CATALOGUE, present
 from ..signals import TempNorm
+from .floor import white_noise_rms
 from .results import Candidate
 from .thresholds import Thresholds
 
@@ -167,7 +171,6 @@ def _lagged(x: np.ndarray, tau: float, dt: float) -> np.ndarray:
     """``x`` through a first-order lag τ at a uniform step ``dt``, starting settled (the
     recursion of :func:`diffgyro.effects.thermal_lag.first_order_lag`, for selection; the
     fit then uses the exact one on the recording's own times)."""
-    from scipy.signal import lfilter
 
     a = -np.expm1(-dt / tau)
     return lfilter([a], [1.0, a - 1.0], x, zi=[(1.0 - a) * x[0]])[0]
@@ -418,7 +421,6 @@ def describe(expr: str) -> str:
 def extra_columns(batch, model: ErrorModel, res) -> dict[str, np.ndarray]:
     """Every extra column of ``batch``, centred and scaled ((devices, n), zero where not
     finite): those the model reads as the fit did, the others over each device's range."""
-    from .. import aux as aux_cols
 
     used = aux_cols.aux_names(model.requires())
     fresh = [k for k in batch.aux if k not in used]
@@ -477,8 +479,6 @@ def propose_all(model: ErrorModel | str, batch, res=None, th: Thresholds | None 
     """The synthesis on every device of ``batch``, as if no built-in term closed its gap:
     fits ``model`` (unless ``res`` is its fit), scales the extra columns as diagnose does
     and returns the proposals by device index (a device without one is left out)."""
-    from ..fit import fit as fit_fn
-    from .floor import white_noise_rms
 
     model = ErrorModel.from_spec(model) if isinstance(model, str) else model
     res = res if res is not None else fit_fn(model, batch, **fit_options)

@@ -39,6 +39,7 @@ from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 
 from ..data import aux_key
 from ..errors import SpecError
@@ -284,7 +285,6 @@ def product_of(expr: str, rec, dtemp=None, axis: int = 0):
     """The product ``expr`` of a recording's signals in plain units (°C, g, rad/s, the
     column's own; a lagged factor unlagged: its τ is the fit's), for figures; None when the
     recording lacks one of them."""
-    import numpy as np
 
     out = np.ones(rec.n)
     for name, _, p in parse_factors(expr):

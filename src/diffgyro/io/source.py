@@ -13,9 +13,11 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import pyarrow as pa
+import pyarrow.parquet as pq
 
 from ..errors import DataError
-from ..logs import LOG_SUFFIXES, log_format
+from ..logs import LOG_SUFFIXES, log_format, read_log
 
 _CSV_SUFFIXES = {".csv": None, ".tsv": "\t", ".txt": None}
 COMPRESSION = {".gz": "gzip", ".bz2": "bz2", ".xz": "xz"}
@@ -69,7 +71,6 @@ class Source:
         self.raw_names: list[str] = []
         self.log = None
         if self.format in ("ulog", "rosbag", "dataflash"):  # read whole, as a frame
-            from ..logs import read_log
 
             self.log = read_log(path, self.format, file=file, **dict(log_options or {}))
             self.raw_names = list(self.log.frame.columns)
@@ -163,7 +164,6 @@ class Source:
 
     # -- Parquet
     def _open_parquet(self) -> None:
-        import pyarrow.parquet as pq
 
         try:
             self._schema = pq.read_schema(self.path)  # the stored types, read once
@@ -191,7 +191,6 @@ class Source:
             return set()
         raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
         if self.format == "parquet":
-            import pyarrow as pa
 
             kinds = {n: self._schema.field(raw[n]).type for n in names}
             return {n for n, k in kinds.items() if not (pa.types.is_integer(k) or pa.types.is_floating(k))}
@@ -214,7 +213,6 @@ class Source:
         if self.format == "csv":
             return self._read_csv_columns(wanted, text_cols)
         if self.format == "parquet":
-            import pyarrow.parquet as pq
 
             raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
             try:
@@ -254,7 +252,6 @@ def release_read_buffers() -> None:
 
 
 def _is_text(kind) -> bool:
-    import pyarrow as pa
 
     return pa.types.is_string(kind) or pa.types.is_large_string(kind) or \
         pa.types.is_binary(kind) or pa.types.is_large_binary(kind)

@@ -23,6 +23,7 @@ import math
 
 import numpy as np
 
+from ..allan import allan, sample_interval
 from ..jsonio import number
 
 AXES = ("x", "y", "z")
@@ -39,7 +40,6 @@ def _group(per_axis: dict[str, dict | float | None], key: str | None = None) -> 
 def residual_allan(residuals: np.ndarray, t: np.ndarray, n_valid: np.ndarray) -> list[dict]:
     """The ``allan`` group of every device from its fit residual ``(devices, n, 3)`` (padding
     after ``n_valid``), time stamps ``t`` (devices, n) in s."""
-    from ..allan import allan, sample_interval
 
     res = np.asarray(residuals, np.float64)
     n_dev = res.shape[0]

@@ -34,6 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DataError
+from .units import UNIT_HELP, unit_scale
 
 #: The fields a bound may hold.
 BOUND_KEYS = frozenset({"min", "max", "abs", "optional", "unit"})
@@ -207,13 +208,11 @@ def _limit(path: str, val, file: str) -> Limit:
     unit = val.get("unit")
     scale = 1.0
     if unit is not None:
-        from .units import unit_scale
 
         if not isinstance(unit, str):
             raise fail(file, f"{path}.unit", "must be text")
         scale = unit_scale(unit)
         if scale is None:
-            from .units import UNIT_HELP
 
             raise fail(file, f"{path}.unit", f"unknown unit {unit!r}"[:120], UNIT_HELP)
     return Limit(path=path, min=None if "min" not in bounds else bounds["min"] * scale,

@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import math
 
+from ..errors import DataError
+from ..io.units import resolve_units
+
 UNIT_HELP = ("a rate unit (rad/s, deg/s, dps, mdps, deg/h ...), the same per sqrt(Hz) or per "
              "K, or deg/sqrt(h)")
 _SQRT_HZ = ("/sqrt(hz)", "/√hz", "/rthz", "/rt(hz)", "/hz^0.5", "/hz^(1/2)")
@@ -22,8 +25,6 @@ _ARW = {"deg/sqrt(h)": math.pi / 180.0 / 60.0, "deg/√h": math.pi / 180.0 / 60.
 
 
 def _rate(text: str) -> float | None:
-    from ..errors import DataError
-    from ..io.units import resolve_units
 
     try:
         scale, offset = resolve_units({"gyro": text}).get("gyro", (1.0, 0.0))  # SI: none

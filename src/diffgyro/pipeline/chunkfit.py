@@ -24,6 +24,7 @@ natural tool, but lineax rejects the manual-axis avals it creates.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -34,7 +35,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from ..data import Batch, sampling_intervals
 from ..errors import SpecError
-from ..fit import FitResult, judge_motion, solve_device
+from ..fit import FitResult, fit, judge_motion, solve_device
+from ..fit_sums import group_size
 from ..jit import parallel_devices
 from ..model import ErrorModel, Params
 from ..options import FitOptions
@@ -78,7 +80,6 @@ def local_mesh(shard: bool | None = None) -> Mesh | None:
 
 def concat_results(parts: list[FitResult]) -> FitResult:
     """FitResults of consecutive device groups as one (host arrays)."""
-    import dataclasses
 
     first = parts[0]
     kw = {}
@@ -132,7 +133,6 @@ class ChunkFitter:
         On one JAX device: :func:`diffgyro.fit.fit` itself (whichever path it takes),
         one device group at a time. On several: the sharded direct path of this module.
         """
-        from ..fit import fit
 
         if self.mesh is not None:
             return self.fit_direct(batch)
@@ -140,7 +140,6 @@ class ChunkFitter:
         # that deadlocked (XLA on CPU, jax 0.10) from the second call of a process on: hand
         # it one group at a time. Same groups, so the same numbers, one compiled shape.
         try:
-            from ..fit_sums import group_size
 
             g = group_size(batch.n_devices, batch.length)
         except ImportError:

@@ -21,6 +21,10 @@ import logging
 import uuid
 from collections.abc import Callable
 
+import jax
+
+import diffgyro
+
 from ..errors import DataError
 
 try:  # the optional extra: pip install diffgyro[dask]
@@ -38,7 +42,6 @@ class WarmWorker(_PluginBase):
         self.cache_dir = cache_dir
 
     def setup(self, worker=None):
-        import diffgyro
 
         diffgyro.enable_x64()
         diffgyro.enable_compilation_cache(self.cache_dir)
@@ -72,7 +75,6 @@ def run_on_dask(address: str, run_chunk: Callable[[dict, dict], dict], pending: 
     """Run ``run_chunk(job, setup)`` for every ``pending`` job on a Dask cluster;
     ``finished`` gets each result as it arrives. ``run_chunk`` must be importable by
     name on the workers (a module-level function)."""
-    import jax
     from distributed import as_completed
 
     client, cluster = _client(address)

@@ -23,9 +23,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
+import pyarrow as pa
+import pyarrow.compute as pc
+import pyarrow.parquet as pq
 
+from .. import io
 from ..data import OPTIONAL_SIGNALS, SIGNALS, Recording
 from ..errors import DataError
+from ..io import cell_problem, check_cells, resolve_units
+from ..io.plausible import check_plausible
 
 PARQUET_SUFFIXES = (".parquet", ".pq")
 
@@ -85,7 +92,6 @@ class ReadConfig:
 
     @property
     def conv(self) -> dict[str, tuple[float, float]]:
-        from ..io import resolve_units
 
         return resolve_units(self.units)
 
@@ -160,8 +166,6 @@ def _dictionary_ids(arr, file: str, column: str, row0: int) -> tuple[np.ndarray,
 
     Ids are stripped text; integer ids read as ``'7'`` (as :mod:`diffgyro.io` does).
     """
-    import pyarrow as pa
-    import pyarrow.compute as pc
 
     if isinstance(arr, pa.ChunkedArray):
         arr = arr.combine_chunks() if arr.num_chunks != 1 else arr.chunk(0)
@@ -214,8 +218,6 @@ class DatasetIndex:
 
 
 def _parquet_file(path: Path, device_col: str | None):
-    import pyarrow as pa
-    import pyarrow.parquet as pq
 
     try:
         schema = pq.read_schema(path)
@@ -235,7 +237,6 @@ def _column_names(pf) -> list[str]:
 
 
 def _check_numeric(pf, cols: FileColumns, file: str) -> None:
-    import pyarrow as pa
 
     schema = pf.schema_arrow
     for std in cols.numeric:
@@ -253,7 +254,6 @@ def index_dataset(paths: Sequence[Path], cfg: ReadConfig,
     lacking one makes its devices fail (recorded), and no file having it stops
     the run here.
     """
-    from .. import io
 
     files = [str(p) for p in paths]
     devices: list[str] = []
@@ -351,7 +351,6 @@ def read_devices(files: Sequence[str], sources: Sequence[tuple[int, Sequence[int
     ``sources`` lists ``(file index, row groups)`` to read (``None``: the whole
     file through :func:`diffgyro.io.load`).
     """
-    from .. import io
 
     want = set(devices)
     recs: dict[str, Recording] = {}
@@ -394,7 +393,6 @@ def read_devices(files: Sequence[str], sources: Sequence[tuple[int, Sequence[int
                 ids = np.full(n, cols.default_device, dtype=object)
             table = pf.read_row_group(rg, columns=names)
             if not mask.all():
-                import pyarrow as pa
 
                 table = table.filter(pa.array(mask))
             for c, name in zip(numeric, names):
@@ -408,7 +406,6 @@ def read_devices(files: Sequence[str], sources: Sequence[tuple[int, Sequence[int
         rows = np.concatenate(row_parts)
         values = {c: np.concatenate(parts[c]) for c in numeric}
         del parts
-        import pandas as pd
 
         codes, uniques = pd.factorize(ids, sort=False)
         order = np.argsort(codes, kind="stable")
@@ -423,8 +420,6 @@ def read_devices(files: Sequence[str], sources: Sequence[tuple[int, Sequence[int
 
 
 def _as_float(col) -> np.ndarray:
-    import pyarrow as pa
-    import pyarrow.compute as pc
 
     if not pa.types.is_float64(col.type):
         col = pc.cast(col, pa.float64())
@@ -440,7 +435,6 @@ def _only_wanted(rec: Recording, cfg: ReadConfig) -> Recording:
 def _recording(dev: str, file: str, cols: FileColumns, values: dict[str, np.ndarray],
                rows: np.ndarray, cfg: ReadConfig) -> Recording:
     """One device's rows as a validated Recording in SI units (DataError otherwise)."""
-    from ..io import cell_problem, check_cells
 
     numeric = cols.numeric
     k_index = np.arange(rows.shape[0], dtype=np.float64)
@@ -492,7 +486,6 @@ def _check_units(rec: Recording, file: str, cols: FileColumns, cfg: ReadConfig) 
     """Refuse a device whose numbers are only plausible in another unit than the assumed SI
     (:mod:`diffgyro.io.plausible`, per device here: a chunk does not see the whole file;
     the warnings' lines are given where the file is read whole, by :func:`diffgyro.io.load`)."""
-    from ..io.plausible import check_plausible
 
     assumed = {sig for sig in ("t", "gyro", "accel", "temp") if sig not in cfg.units}
     named = {sig: ", ".join(cols.present[c] for c in SIGNALS[sig])

@@ -10,6 +10,16 @@ from __future__ import annotations
 import sys
 import time
 
+from rich.console import Console
+from rich.progress import (
+    BarColumn,
+    MofNCompleteColumn,
+    Progress,
+    TextColumn,
+    TimeElapsedColumn,
+    TimeRemainingColumn,
+)
+
 
 class RunProgress:
     """Counts devices as chunks finish; ``skipped`` devices came from an earlier run."""
@@ -25,15 +35,6 @@ class RunProgress:
         self._last_line = 0.0
         self._bar = None
         if enabled and sys.stderr.isatty():
-            from rich.console import Console
-            from rich.progress import (
-                BarColumn,
-                MofNCompleteColumn,
-                Progress,
-                TextColumn,
-                TimeElapsedColumn,
-                TimeRemainingColumn,
-            )
 
             self._bar = Progress(
                 TextColumn(f"[bold]{label}"), BarColumn(), MofNCompleteColumn(),

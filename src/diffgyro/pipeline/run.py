@@ -26,16 +26,33 @@ import os
 import sys
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO
 
+import jax
 import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
 
+import diffgyro
+
+from .. import __version__
+from ..calibration import aux_entries, entry_json, units_of
 from ..data import Batch, Recording
+from ..diagnose import diagnose
 from ..errors import DataError
+from ..io import parse_columns, resolve_units
 from ..jsonio import AtomicFile, dumps, number
+from ..limits import Limits, add_figures, check_model, load, lookup, residual_allan, summary
+from ..limits import check as check_limits
+from ..model import ErrorModel
+from ..status import STATUS_NAMES
+from .chunkfit import ChunkFitter
+from .cluster import run_on_dask
 from .dataset import ReadConfig, expand_inputs, fingerprint, index_dataset, read_devices
+from .progress import RunProgress
 from .workdir import FORMAT, FORMAT_VERSION, WorkDir
 
 DEFAULT_CHUNK_DEVICES = 256
@@ -67,7 +84,6 @@ _FITTERS: dict[str, object] = {}
 
 def _fitter(setup: dict):
     """The chunk fitter of this process for ``setup`` (kept warm: compiled once per process)."""
-    from .chunkfit import ChunkFitter
 
     key = json.dumps([setup["model"], setup["fit_options"], setup["chunk_devices"],
                       setup.get("shard")], sort_keys=True)
@@ -112,11 +128,7 @@ def calibration_entries(result) -> list[dict]:
     (JSON-cleaned ``DeviceCalibration`` fields), built with the labels computed once per
     model instead of once per device: a 256-device chunk in milliseconds rather than
     seconds (tests/test_pipeline.py checks the two agree)."""
-    import jax
-    import numpy as np
 
-    from ..calibration import aux_entries, entry_json
-    from ..status import STATUS_NAMES
 
     model = result.model
     labels = model.param_labels()
@@ -162,7 +174,6 @@ def _figures(records: list[dict], result, batch: Batch, wanted, residuals=None) 
     """Add the computed figures a limits file asks for (:mod:`diffgyro.limits.figures`) to the
     records of one group, in place: the Allan read-outs of the fit residual need the samples,
     so they are taken here, in the chunk, where the samples are."""
-    from ..limits import add_figures, residual_allan
 
     n = len(records)
     allan = [None] * n
@@ -181,7 +192,6 @@ def _figures(records: list[dict], result, batch: Batch, wanted, residuals=None) 
 
 def _diagnose_group(group: list[Recording], setup: dict) -> dict[str, dict]:
     """``diagnose`` records of one group, padded to the chunk size (one compiled shape)."""
-    from ..diagnose import diagnose
 
     n = len(group)
     pads = [Recording(**{s: getattr(group[-1], s) for s in ("t", "gyro", "temp", "temp_ext",
@@ -250,7 +260,6 @@ def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
 
 def run_chunk(job: dict, setup: dict) -> dict:
     """Read and fit (or diagnose) one chunk: the unit of work a Dask worker runs."""
-    import diffgyro
 
     diffgyro.enable_x64()
     return fit_chunk(job, setup)
@@ -330,8 +339,6 @@ class _ResultsWriter:
             for r in records:
                 self._file.fh.write(dumps(r) + "\n")
             return
-        import pyarrow as pa
-        import pyarrow.parquet as pq
 
         cols = {c: [r.get(c) for r in records] for c in _RESULT_COLUMNS}
         cols["params"] = [None if p is None else dumps(p) for p in cols["params"]]
@@ -393,10 +400,6 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
     ``limits`` (:class:`diffgyro.limits.Limits`): every record and calibration entry gets
     its pass/fail, and the calibration file and JSON object the batch's summary
     (``counts["limits"]``)."""
-    from .. import __version__
-    from ..calibration import units_of
-    from ..limits import check as check_limits
-    from ..model import ErrorModel
 
     spec = manifest["key"]["model"]
     plan = manifest["chunks"]
@@ -471,14 +474,12 @@ def merge(work: WorkDir, manifest: dict, out: Path | None, results: Path | None,
 
 def _found(limits, rec: dict) -> set[str]:
     """The limit paths that name a field of ``rec`` (to warn of those no record holds)."""
-    from ..limits import lookup
 
     return {lim.path for lim in limits.limits if lookup(rec, lim.path)}
 
 
 def _limits_summary(limits, judged: list[dict]) -> dict:
     """The batch's limits summary; a warning for each limit no device record matched."""
-    from ..limits import summary
 
     found = set().union(*(j.pop("found") for j in judged)) if judged else set()
     for lim in limits.limits:
@@ -563,8 +564,6 @@ def _run(
     with other bounds is merged again without fitting)."""
     t_start = time.monotonic()
     if limits is not None:
-        from ..limits import Limits, check_model, load
-        from ..model import ErrorModel
 
         if not isinstance(limits, Limits):
             limits = load(limits)
@@ -614,8 +613,6 @@ def _run_key(command, paths, model, chunk_devices, columns, units, drop_invalid,
              sampling_rate, fit_options, task_options):
     """The checked model, input files and read configuration, and the run's key (what a
     work directory must match to be resumed)."""
-    from ..io import parse_columns, resolve_units
-    from ..model import ErrorModel
 
     em = ErrorModel.from_spec(model)
     if any(r.startswith("aux:") for r in em.requires()):  # the readers keep standard columns
@@ -692,7 +689,6 @@ def _run_pending(work: WorkDir, manifest: dict, pending: list[dict], setup: dict
             on_chunk(res)
 
     if dask:
-        from .cluster import run_on_dask
 
         run_on_dask(dask, run_chunk, pending, setup, finished)
     else:
@@ -720,14 +716,12 @@ def _merge_all(work: WorkDir, manifest: dict, out: Path | None, results: Path,
 
 
 def _progress(enabled: bool, label: str, total: int, skipped: int, skipped_failed: int):
-    from .progress import RunProgress
 
     return RunProgress(total, skipped, skipped_failed, enabled=enabled, label=label)
 
 
 def _run_local(pending: list[dict], setup: dict, finished: Callable[[dict], None]) -> None:
     """Chunks one after another in this process; the next chunk is read while one is fitted."""
-    from concurrent.futures import ThreadPoolExecutor
 
     with ThreadPoolExecutor(max_workers=1, thread_name_prefix="diffgyro-read") as pool:
         nxt = pool.submit(read_chunk, pending[0], setup)

@@ -13,6 +13,7 @@ units.
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -82,7 +83,6 @@ def _cube_bias(rec, sections, *, all_faces=False):
 
 def _six_position(rec, sections, *, sampling_rate=None, rotation_angle=-360.0, gravity=9.81):
     """``rotation_angle`` in degrees; the recording is in SI units (rad/s, m/s²)."""
-    import math
 
     require(rec, "accel", recipe="six-position")
     return six_position(rec.gyro, rec.accel, sections, t=rec.t, sampling_rate=sampling_rate,

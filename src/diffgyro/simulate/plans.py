@@ -27,6 +27,7 @@ import numpy as np
 from ..errors import DataError
 from ..signals import TempNorm
 from .motion import DEG, G0, Timeline, earth_rate_nav, face_quat, qexp, qmul, rotate, to_body
+from .population import stream
 
 FACES = ("+z", "-z", "+y", "-y", "+x", "-x")
 
@@ -393,7 +394,6 @@ class Attitude(Plan):
                 "dip": 60.0, "max_tilt": 10.0, "temp": 25.0}
 
     def build(self, n_devices, seed):
-        from .population import stream
 
         o = self.options
         rng = stream(seed, "attitude")

@@ -13,6 +13,10 @@ import math
 
 import numpy as np
 
+from ..allan import sample_interval
+from .identify import identify
+from .selection import PENALTY, catalogue
+
 AXES = ("x", "y", "z")
 #: Fewest samples for a model: 64 give 5 dyadic scales, enough for two or three parameters.
 MIN_SAMPLES = 64
@@ -24,9 +28,6 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
 
     ``motion``: per device None (static) or a one-line reason it moved (status
     ``in_motion``, no axes). Devices of equal length are identified together."""
-    from ..allan import sample_interval
-    from .identify import identify
-    from .selection import PENALTY, catalogue
 
     pen = PENALTY if penalty is None else penalty
     motion = [None] * len(devices) if motion is None else motion

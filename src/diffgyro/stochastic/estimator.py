@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import digamma, polygamma
 from jaxtyping import Array, Bool, Float
 
 from .components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
@@ -56,7 +58,6 @@ def log_moments(rel_cov: Float[Array, "J J"]) -> tuple[Float[Array, "J J"], Floa
     equivalent degrees of freedom: at the longest scales e is a few); its logarithm is
     nearly symmetric, with mean log ν + ψ(e/2) − log(e/2) and variance ψ′(e/2). The
     correlations of Σ̃ are kept."""
-    from jax.scipy.special import digamma, polygamma
 
     d = jnp.maximum(jnp.diag(rel_cov), 1e-12)
     e = 2.0 / d
@@ -118,7 +119,6 @@ def start_pairs(n_scales: int) -> tuple[jax.Array, jax.Array]:
     compiled program): (a, a) for every a (one Gauss–Markov process, or none: the times are
     then unused) and, for two, every pair of even indices with b ≥ a + 2 (times a factor 4 or
     more apart, on a two-octave grid: the Levenberg–Marquardt steps refine them)."""
-    import numpy as np
 
     k = n_scales + 4
     a, b = np.triu_indices(k, 2)

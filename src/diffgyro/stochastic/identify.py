@@ -21,7 +21,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .components import model_wv
+from .components import component_avar, model_wv, row_mask
 from .covariance import wv_covariance
 from .estimator import (
     diag_rel_cov,
@@ -158,7 +158,6 @@ class NoiseModels:
 
     def model_curve(self, idx, tau) -> tuple[np.ndarray, np.ndarray]:
         """(per-component Allan variance (6, len τ), total) of one series' chosen model."""
-        from .components import component_avar, row_mask
 
         mask = jnp.asarray(self.masks[int(self.choice[idx])])
         rows = np.asarray(component_avar(jnp.asarray(self.theta[idx]), jnp.asarray(tau),
