@@ -1,5 +1,7 @@
 """The module graph of src/diffgyro: no import cycle, no private names across modules,
-every module importable first.
+every module importable first, imports at the module top (but for a named list), and
+the public API listed in one place (``diffgyro.PUBLIC_MODULES`` and each module's
+``__all__``).
 
 The graph is read statically (``ast``) from every ``import`` and ``from ... import``
 in a module, at module level, inside a function or under ``TYPE_CHECKING``: an import
@@ -9,7 +11,7 @@ parent packages is not an edge (a package's ``__init__`` re-exports its children
 design).
 
 A private name is one with a leading underscore (not a dunder). A module may import
-the private module of its own package (``effects._common`` from ``effects.bias_poly``)
+the private module of its own package (``effects._common`` from ``effects._bias_poly``)
 but no private name of another module.
 """
 
@@ -100,8 +102,8 @@ def test_graph_reads_known_edges():
     edges = {(a, b) for a, b, _ in _imports(modules)}
     assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
     assert ("diffgyro.kalman", "diffgyro.fit") in edges
-    assert ("diffgyro.noise", "diffgyro.noise_passes") in edges  # inside a function
-    assert ("diffgyro.effects.bias_poly", "diffgyro.effects._common") in edges
+    assert ("diffgyro._noise", "diffgyro._noise_passes") in edges  # inside a function
+    assert ("diffgyro.effects._bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
@@ -191,15 +193,15 @@ def test_no_long_function_without_a_reason():
 #: ``import diffgyro`` staying free of JAX. The command line's deferred loading of the
 #: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
 DEFERRED = {
-    "diffgyro": {"jax", "diffgyro.jit"},  # import diffgyro without JAX
+    "diffgyro": {"jax", "diffgyro._jit"},  # import diffgyro without JAX
     "diffgyro.allan": {"matplotlib", "matplotlib.pyplot"},  # figures only
     "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
-    "diffgyro.noise": {"diffgyro.noise_passes"},  # numba
-    "diffgyro.logs": {"diffgyro.logs.ulog", "diffgyro.logs.rosbag",  # extra 'logs'
-                      "diffgyro.logs.dataflash"},
-    "diffgyro.pipeline.cluster": {"distributed"},  # extra 'dask'
-    "diffgyro.pipeline.workdir": {"fcntl"},  # POSIX only
+    "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
+    "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
+                      "diffgyro.logs._dataflash"},
+    "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'
+    "diffgyro.pipeline._workdir": {"fcntl"},  # POSIX only
 }
 
 
@@ -245,3 +247,57 @@ def test_cli_defers_only_the_engine():
     late = [(m, t, line) for m, t, line in _function_imports(_modules()) if m.startswith("diffgyro.cli")]
     assert late, "the command line defers the engine"
     assert [f"{m}:{line} imports {t}" for m, t, line in late if t in loaded] == []
+
+
+def _public_on_disk() -> set[str]:
+    return {m for m in _modules() if not any(_is_private(p) for p in m.split("."))
+            and not m.startswith("diffgyro.cli") and m != "diffgyro.__main__"}
+
+
+def test_public_api_listed_in_one_place():
+    """``diffgyro.PUBLIC_MODULES`` is every module without a private part (the command line
+    aside: its commands are its API); each lists its names in ``__all__``, and each name
+    there exists and, if a class or function, says what it is."""
+    import importlib
+
+    import diffgyro
+
+    assert set(diffgyro.PUBLIC_MODULES) == _public_on_disk()
+    missing = []
+    for name in diffgyro.PUBLIC_MODULES:
+        module = importlib.import_module(name)
+        assert module.__doc__, name
+        assert isinstance(getattr(module, "__all__", None), list), f"{name} has no __all__"
+        assert len(set(module.__all__)) == len(module.__all__), name
+        for attr in module.__all__:
+            value = getattr(module, attr, missing)
+            assert value is not missing, f"{name}.{attr} is in __all__ but not defined"
+            if callable(value) and getattr(value, "__module__", "").startswith("diffgyro"):
+                assert (value.__doc__ or "").strip(), f"{name}.{attr} has no docstring"
+
+
+def test_each_public_name_exported_once():
+    """A class or function is public under one module only (``diffgyro`` itself re-exports
+    a few names for convenience); the modules users import re-export what private
+    modules define, never another public module's names."""
+    import importlib
+
+    import diffgyro
+
+    homes: dict[int, list[str]] = {}
+    for name in diffgyro.PUBLIC_MODULES:
+        if name == "diffgyro":
+            continue
+        module = importlib.import_module(name)
+        for attr in module.__all__:
+            value = getattr(module, attr)
+            if isinstance(value, type) or callable(value):
+                homes.setdefault(id(value), []).append(f"{name}.{attr}")
+    twice = sorted(v for v in homes.values() if len(v) > 1)
+    assert twice == []
+    for attr in diffgyro.__all__:
+        value = getattr(diffgyro, attr)
+        if not attr.startswith("__") and (isinstance(value, type) or callable(value)) \
+                and getattr(value, "__module__", "") != "diffgyro":
+            private_home = any(_is_private(p) for p in value.__module__.split("."))
+            assert id(value) in homes or private_home, f"diffgyro.{attr}: where is it public?"

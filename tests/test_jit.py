@@ -1,4 +1,4 @@
-"""diffgyro.jit.filter_jit: arrays traced, everything else static, one trace per
+"""diffgyro._jit.filter_jit: arrays traced, everything else static, one trace per
 static configuration and shape, results equal to the uncompiled function."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.jit import (
+from diffgyro._jit import (
     collector_paused,
     filter_jit,
     map_limit,

@@ -103,7 +103,7 @@ out = {"n_shards": fitter.n_shards, "padded": fitter.padded,
 
 VARPRO = """
 from diffgyro.simulate import simulate
-from diffgyro.pipeline.chunkfit import ChunkFitter
+from diffgyro.pipeline._chunkfit import ChunkFitter
 batch, truth = simulate("warmup", 5, effects="bias_poly(0)+warmup", seed=3,
                         sample_rate=0.5, duration=1800.0)
 out = {}
@@ -118,7 +118,7 @@ for name, shard in (("sharded", True), ("single", False)):
 
 # fit()'s sums path for both specs of test_two_cpu_devices_fit_on_the_first
 FIRST = """
-import diffgyro.fit_sums.groups as fs
+import diffgyro._fit_sums.groups as fs
 from diffgyro.fit import fit
 from diffgyro.simulate import simulate
 old = fs.MAX_GROUP_DEVICES
@@ -143,7 +143,7 @@ finally:
 """
 
 LARGEST = """
-import diffgyro.fit_sums.groups as fs
+import diffgyro._fit_sums.groups as fs
 from diffgyro import Batch
 from diffgyro.fit import fit
 d, n = 3 * fs.MAX_GROUP_DEVICES, 640
@@ -159,7 +159,7 @@ out = {"ok": int(np.sum(np.asarray(r.status) == 0)), "d": d}
 """
 
 DEFAULT = """
-from diffgyro.pipeline.chunkfit import ChunkFitter, local_mesh
+from diffgyro.pipeline._chunkfit import ChunkFitter, local_mesh
 out = {"default": local_mesh() is None,
        "fitter": ChunkFitter("bias_poly(1)", 4).n_shards,
        "forced": ChunkFitter("bias_poly(1)", 4, shard=True).n_shards}
@@ -241,7 +241,7 @@ def test_sharded_variable_projection_does_not_hang(forced):
 def test_one_device_means_no_mesh():
     import jax
 
-    from diffgyro.pipeline.chunkfit import local_mesh
+    from diffgyro.pipeline._chunkfit import local_mesh
 
     if jax.local_device_count() == 1:
         assert local_mesh() is None
@@ -254,7 +254,7 @@ def test_two_cpu_devices_fit_on_the_first(forced, spec):
     on two they deadlocked); results equal to one device's, in order."""
     out = dict(section(forced, "first")[spec])
     assert out.pop("devices") == [0]
-    import diffgyro.fit_sums.groups as fs
+    import diffgyro._fit_sums.groups as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate
 

@@ -68,10 +68,15 @@ import numpy as np
 from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
+from ._jit import release_compiled_if_crowded
+from ._jsonio import number
 from .errors import DataError
-from .jit import release_compiled_if_crowded
-from .jsonio import number
 from .signals import prefix_sums
+
+__all__ = ["allan", "allan_batch", "AllanResult", "Readouts", "noise_terms", "plot_allan",
+           "to_json", "allan_at_taus", "oadev", "adev_nonoverlapping", "mdev", "log_slope",
+           "default_m", "cluster_sizes", "sample_interval", "sample_intervals", "edf_simple",
+           "chi2_ppf", "alpha_from_slope", "FLICKER_FACTOR"]
 
 #: Bias-instability factor: the flicker floor of ADEV is sqrt(2 ln 2 / π)·B.
 FLICKER_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)

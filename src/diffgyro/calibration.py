@@ -32,16 +32,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import __version__
-from . import aux as aux_cols
-from .aux import aux_names
+from . import _aux as aux_cols
+from ._aux import aux_names
+from ._jsonio import atomic_write_text, dumps, to_json_safe
+from ._signal_builder import batch_signals
 from .data import Batch, Recording
 from .errors import SpecError
 from .fit import FitResult
-from .jsonio import atomic_write_text, dumps, to_json_safe
 from .model import ErrorModel, Params
-from .signal_builder import batch_signals
 from .signals import TempNorm
 from .status import STATUS_NAMES
+
+__all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",
+           "from_json", "units_of", "entry_json", "data_hash", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffgyro-calibration"
 FORMAT_VERSION = 1
@@ -133,6 +136,7 @@ def data_hash(batch: Batch) -> str:
 
 
 def units_of(model: ErrorModel) -> dict:
+    """The unit of each term's coefficients, and of tau, rates and temperature."""
     return {t.spec: t.unit for t in model.terms} | {"tau": "s", "rates": "rad/s",
                                                     "temperature": "°C"}
 
@@ -169,6 +173,7 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
 
 
 def save(cal: Calibration, path: str | os.PathLike) -> None:
+    """Write ``cal`` as JSON in one atomic step (a reader never sees half a file)."""
     atomic_write_text(path, dumps(cal.to_json(), indent=1) + "\n")
 
 

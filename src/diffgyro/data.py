@@ -25,6 +25,10 @@ from jaxtyping import Bool, Float, Int
 
 from .errors import DataError
 
+__all__ = ["Batch", "Recording", "as_batch", "pad_devices", "device_bucket", "bucket_length",
+           "sampling_intervals", "as_slice", "aux_key", "STANDARD_COLUMNS", "SIGNALS",
+           "OPTIONAL_SIGNALS", "COLUMN_TO_SIGNAL", "AUX_PREFIX"]
+
 # Signal name -> standard column names (the standard schema, contract).
 SIGNALS: dict[str, tuple[str, ...]] = {
     "gyro": ("gx", "gy", "gz"),

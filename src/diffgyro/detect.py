@@ -71,7 +71,7 @@ def s1_range_detector(
     ``init`` samples at the start are the factory static window that sets the
     thresholds (and count as static); windows of ``window`` samples follow
     from ``start`` (default ``init``, so ``window_static`` lines up with
-    :func:`diffgyro.recipes.static_kalman.offset_filter`). ``margin`` is the patent's ``M``.
+    :func:`diffgyro.recipes._static_kalman.offset_filter`). ``margin`` is the patent's ``M``.
     A window needs at least one valid sample; its range is over valid ones.
     """
     accel = jnp.asarray(accel)

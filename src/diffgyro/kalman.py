@@ -39,17 +39,21 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._folds import fold_ids
+from ._jit import release_compiled_if_crowded
+from ._jsonio import number
+from ._options import FitOptions
 from .data import as_batch, bucket_length
 from .effects import RandomWalk, register_noise_fit
 from .fit import batch_signals, device_noise_floor
-from .folds import fold_ids
-from .jit import release_compiled_if_crowded
-from .jsonio import number
 from .model import ErrorModel, Params
-from .options import FitOptions
 from .signals import TempNorm
 from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, STATUS_NAMES, explain
-from .stochastic.bias_filter import bias_filter, state_space
+from .stochastic import bias_filter, state_space
+
+__all__ = ["fit_random_walk", "RandomWalkFit", "identified_bias", "smooth_bias", "causal_bias",
+           "rw_filter", "rts_smoother", "learn_noise", "loglik", "profile", "FilterPass",
+           "SmoothedBias", "NoiseFit"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 #: Prior variance of the walk's start when no constant bias is modelled, (rad/s)².
@@ -226,7 +230,7 @@ def identified_bias(y: Float[Array, "n 3"], axes: dict, dt: float, p0_walk: floa
     ``axes``: ``{"x": {"components": [...]}, ...}`` as ``noise --json`` and
     ``diagnose --json``'s ``noise`` give them (SI units). Gauss–Markov and random-walk
     states replace the one walk of :func:`rw_filter`
-    (:mod:`diffgyro.stochastic.bias_filter`); a random walk alone is that filter. An
+    (:mod:`diffgyro.stochastic._bias_filter`); a random walk alone is that filter. An
     axis with no bias process (white only) has bias 0 and variance 0. ``y``: the rate
     at rest, or the residual of a deterministic model, sampled every ``dt`` s."""
 

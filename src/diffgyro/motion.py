@@ -49,8 +49,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._jsonio import number
 from .data import sampling_intervals
-from .jsonio import number
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
 EARTH_RATE = 7.292115e-5

@@ -45,10 +45,17 @@ from jaxtyping import Array, Float
 from scipy.signal import lfilter
 
 from .data import Batch
-from .effects.thermal_lag import first_order_lag
+from .effects import first_order_lag
 from .fit import FitOptions, fit, solve_device
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
+
+__all__ = ["predict_plan", "optimise_plan", "plan_sensitivity", "heading_study",
+           "budget_for_accuracy", "simulate_devices", "monte_carlo", "PlanConfig", "ChamberPlan",
+           "s2_plan", "plan_duration", "plan_environment", "OperatingRange", "operating_signals",
+           "compensation_error", "Prediction", "DesignResult", "MonteCarlo", "PlanSpace",
+           "Environment", "default_truth", "flat", "unflat", "output_jacobian", "smooth_max",
+           "DEG", "EARTH_RATE"]
 
 EARTH_RATE = 7.292115e-5  # rad/s
 G0 = 9.80665
@@ -325,6 +332,7 @@ def flat(params: Params) -> Float[Array, " k"]:
 
 
 def unflat(vec: Float[Array, " k"], model: ErrorModel) -> Params:
+    """The :class:`~diffgyro.model.Params` of a :func:`flat` vector."""
     p, q = model.n_params, model.n_nonlinear
     return Params(beta=vec[:3 * p].reshape(3, p), theta=vec[3 * p:3 * p + q])
 

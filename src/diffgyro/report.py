@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ._jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
 from .data import Batch
-from .effects.grammar import product_of
+from .effects import product_of
 from .fit import fit
-from .jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
 from .model import ErrorModel
 from .motion import describe
 
@@ -707,6 +707,6 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     return paths
 
 
-__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page", "figure_png", "followed_signal", "ladder_png",
-           "named_term_residuals", "outliers", "residual_drop_figure", "summary_page", "write_atomic",
-           "write_report"]
+__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page",
+           "figure_png", "followed_signal", "ladder_png", "named_term_residuals", "outliers",
+           "residual_drop_figure", "summary_page", "write_atomic", "write_report"]

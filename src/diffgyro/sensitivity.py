@@ -36,12 +36,17 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._jit import release_compiled_if_crowded
 from .data import Batch
 from .fit import FitOptions, FitResult, normal_equations, project_linear, solve_device, varpro
-from .jit import release_compiled_if_crowded
 from .model import ErrorModel, Params
 from .plan_design import compensation_error, flat, operating_signals, output_jacobian, unflat
 from .signals import Signals, TempNorm
+
+__all__ = ["param_sensitivity", "batch_param_sensitivity", "compensation_sensitivity",
+           "uncertainty_band", "uncertainty_bands", "plot_uncertainty_band", "Band",
+           "fitted_params", "hac_covariance", "block_bootstrap", "coverage", "z_value",
+           "long_run_covariance", "autocovariance", "lag_window", "levinson", "ar_autocovariance"]
 
 KERNELS = ("bartlett", "parzen", "qs")
 # Andrews (1991) optimal-bandwidth constants and the characteristic exponent q.

@@ -18,6 +18,10 @@ import numpy as np
 
 from .motion import describe
 
+__all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK_DEFICIENT",
+           "INSUFFICIENT_RANGE", "INSUFFICIENT_DATA", "FAILED", "IN_MOTION", "min_samples",
+           "collinear_terms"]
+
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
                 "insufficient_data", "failed", "in_motion")
 OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED, IN_MOTION = range(7)

@@ -70,8 +70,8 @@ def allan_command(
     --static-only computes the curve over each device's longest static
     interval (never over static pieces glued across the motion).
     """
+    from diffgyro._jsonio import dumps
     from diffgyro.io import LoadReport
-    from diffgyro.jsonio import dumps
     from diffgyro.motion import motion_check
 
     wanted = _parse_taus(taus)
@@ -93,7 +93,7 @@ def allan_command(
     if report is not None:
         _write_report(parts, batch, doc, report)
     if out is not None:
-        from diffgyro.jsonio import atomic_write_text
+        from diffgyro._jsonio import atomic_write_text
 
         atomic_write_text(out, dumps(doc))
     if json_out:
@@ -268,8 +268,8 @@ def _write_report(parts, batch, doc: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from diffgyro._jsonio import atomic_write_text, dumps
     from diffgyro.allan import plot_allan
-    from diffgyro.jsonio import atomic_write_text, dumps
 
     out.mkdir(parents=True, exist_ok=True)
     rows, figs = [], []

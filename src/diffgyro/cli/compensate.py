@@ -65,8 +65,8 @@ def compensate_command(
                         hint="choose another --out")
     io.save(corrected, out)
     if as_json:
+        from diffgyro._jsonio import dumps
         from diffgyro.carry import residuals
-        from diffgyro.jsonio import dumps
 
         counts = [int(v) for v in corrected.mask.sum(axis=1)]
         carried = residuals(corrected, batch)

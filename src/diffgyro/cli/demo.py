@@ -24,7 +24,7 @@ def demo_command(
     effect, refit, print the ladder and write the report (default ./diffgyro-demo/)."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from diffgyro.demo import BASE, TRUTH, run_demo
+    from diffgyro._demo import BASE, TRUTH, run_demo
 
 
     if devices < 1:

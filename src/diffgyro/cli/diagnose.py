@@ -300,7 +300,7 @@ def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None,
     ``judged``: (records, summary) of --limits; ``static``: per device, the motion of the
     whole recording and the samples --static-only kept."""
     if as_json:
-        from diffgyro.jsonio import dumps
+        from diffgyro._jsonio import dumps
 
         obj = diag.to_json()
         if judged is not None:

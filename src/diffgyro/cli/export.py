@@ -189,7 +189,7 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
 
 def _emit(text: str, out: str | None, source: Path, what: str) -> None:
     """``text`` to stdout, or to ``out`` with one line saying what was written."""
-    from diffgyro.jsonio import atomic_write_text
+    from diffgyro._jsonio import atomic_write_text
 
     if out is None or out == "-":
         sys.stdout.write(text)

@@ -62,9 +62,9 @@ def fit_command(
     chunks of devices with resumable state in --work-dir (see docs/dask.md).
     """
     from diffgyro import calibration
+    from diffgyro._jsonio import dumps
     from diffgyro.fit import fit
     from diffgyro.io import LoadReport
-    from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
@@ -86,7 +86,7 @@ def fit_command(
                            sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
                            report=report)
     if dtemp_window is None:
-        from diffgyro.temperature import suggest_dtemp_window
+        from diffgyro._temperature import suggest_dtemp_window
 
         dtemp_window = suggest_dtemp_window(batch)
     result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)

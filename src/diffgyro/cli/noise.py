@@ -76,7 +76,7 @@ def noise_command(
     its 95 % interval; the rejected structures are listed with their
     criterion values. Record the device static: motion is not noise.
     """
-    from diffgyro.jsonio import dumps
+    from diffgyro._jsonio import dumps
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=2,
@@ -93,7 +93,7 @@ def noise_command(
 
 def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
     """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
-    from diffgyro.stochastic.devices import identify_devices
+    from diffgyro.stochastic import identify_devices
 
     motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
@@ -143,7 +143,7 @@ def display_line(name: str, p: dict) -> str:
 
 def _print_text(doc: dict, report: Path | None) -> None:
 
-    from diffgyro.stochastic.selection import label
+    from diffgyro.stochastic import label
 
     for dev in doc["devices"]:
         if dev["status"] != "ok":
@@ -167,7 +167,7 @@ def plot_noise(res, j: int, title: str | None = None):
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from diffgyro.stochastic.selection import label
+    from diffgyro.stochastic import label
 
     names = ("white", "quantization", "Gauss–Markov 1", "Gauss–Markov 2", "random walk", "rate ramp")
     fig, axs = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
@@ -209,8 +209,8 @@ def _write_report(doc: dict, models: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from diffgyro.jsonio import atomic_write_text, dumps
-    from diffgyro.stochastic.selection import label
+    from diffgyro._jsonio import atomic_write_text, dumps
+    from diffgyro.stochastic import label
 
     out.mkdir(parents=True, exist_ok=True)
     parts = []

@@ -116,8 +116,8 @@ def recipe_command(
     in_motion and a warning; --static-only runs them on the static samples only."""
     # Over 80 lines only through its signature: typer reads each recipe option from a
     # parameter of this function; the work is in the helpers below.
+    from diffgyro._jsonio import atomic_write_text, dumps
     from diffgyro.io import resolve_units
-    from diffgyro.jsonio import atomic_write_text, dumps
     from diffgyro.recipes import get
 
     recipe = get(name)
@@ -247,7 +247,7 @@ def _run_devices(recipe, name: str, recordings, given: dict, conv: dict, file: s
 def _payload(results, failed, rest=None) -> dict:
     """The JSON result: the recipe's own object for one device, else a record per device;
     ``rest``: per device the motion check of a recipe that assumes rest."""
-    from diffgyro.jsonio import to_json_safe
+    from diffgyro._jsonio import to_json_safe
 
     rest = rest or {}
     if len(results) == 1:
@@ -313,7 +313,7 @@ def _print_human(name, recipe, results, gyro_unit: str = "rad/s", acc_unit: str 
     """Short, readable summary: scalars and small arrays of each result, with units."""
     import numpy as np
 
-    from diffgyro.jsonio import dumps, to_json_safe
+    from diffgyro._jsonio import dumps, to_json_safe
 
     units = {k: u.format(gyro=gyro_unit, acc=acc_unit) for k, u in UNITS.get(name, {}).items()}
     con = Console(width=120)

@@ -13,6 +13,8 @@ from ..calibration import Calibration
 from ..errors import DataError
 from . import ardupilot, c_header, px4
 
+__all__ = ["render", "FORMATS", "select_devices", "refuse_not_ok"]
+
 FORMATS = ("px4", "ardupilot", "kalibr", "c-header", "px4-ekf", "ardupilot-ekf")
 
 

@@ -37,6 +37,9 @@ from ..errors import DataError
 from ._thermal import fmt_f32
 from .px4 import TYPE_FLOAT32
 
+__all__ = ["device_densities", "axis_densities", "px4_parameters", "ardupilot_parameters",
+           "write_px4", "write_ardupilot", "PX4_DT", "ARDUPILOT_DT"]
+
 #: PX4 EKF2's default prediction period, s (EKF2_PREDICT_US = 10000).
 PX4_DT = 0.010
 #: ArduPilot EKF3's target step, s (EKF_TARGET_DT).

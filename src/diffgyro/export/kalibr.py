@@ -27,6 +27,8 @@ from ..errors import DataError
 from ..motion import describe
 from . import refuse_not_ok
 
+__all__ = ["from_allan", "write", "ImuNoise", "allan_of", "NAME"]
+
 NAME = "kalibr"
 _KEYS = (("arw", "noise density"), ("rrw", "random walk"))
 

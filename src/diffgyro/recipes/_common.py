@@ -11,10 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jsonio import to_json_safe
 from ..data import Batch, Recording
 from ..errors import DataError
 from ..fit import fit
-from ..jsonio import to_json_safe
 from ..model import ErrorModel
 from ..signals import Signals, make_signals
 

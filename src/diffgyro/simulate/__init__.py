@@ -36,15 +36,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..aux import aux_names
+from .._aux import aux_names
 from ..data import Batch, Recording
 from ..errors import DataError, SpecError
 from ..model import ErrorModel, Params
 from ..signals import HEATING_THRESHOLD, TempNorm, latched_heating, make_signals
-from .motion import to_body
-from .noise import NoiseLevels, gyro_noise, noise_levels, quantise
-from .plans import PLANS, Environment, Plan, get_plan
-from .population import (
+from ._motion import to_body
+from ._noise import NoiseLevels, gyro_noise, noise_levels, quantise
+from ._plans import PLANS, Environment, Plan, get_plan
+from ._population import (
     PRESETS,
     Preset,
     draw_accel_errors,
@@ -53,14 +53,12 @@ from .population import (
     get_preset,
     stream,
 )
-from .supply import supply_voltage
-from .thermal import sensor_temperature
-from .truth import Truth, rebase, truth_path
+from ._supply import supply_voltage
+from ._thermal import sensor_temperature
+from ._truth import Truth, rebase, truth_path
 
-__all__ = [
-    "PLANS", "PRESETS", "Environment", "NoiseLevels", "Plan", "Preset", "Truth", "demo_batch",
-    "get_plan", "model_error", "rebase", "simulate", "truth_path",
-]
+__all__ = ["simulate", "get_plan", "Truth", "Plan", "PLANS", "PRESETS", "Environment",
+           "NoiseLevels", "Preset", "demo_batch", "model_error", "rebase", "truth_path"]
 
 #: Samples × devices evaluated per compiled call of the error model.
 CHUNK_SAMPLES = 4_000_000
