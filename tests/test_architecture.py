@@ -301,3 +301,34 @@ def test_each_public_name_exported_once():
                 and getattr(value, "__module__", "") != "diffgyro":
             private_home = any(_is_private(p) for p in value.__module__.split("."))
             assert id(value) in homes or private_home, f"diffgyro.{attr}: where is it public?"
+
+
+#: The rows of docs/architecture.md, bottom up: a top-level module or package imports
+#: only from its own row and the rows below.
+LAYERS = (
+    ("errors", "data", "_jit", "_program_cache", "_jsonio"),
+    ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
+    ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
+     "_noise_passes"),
+    ("fit", "kalman", "_fit_sums"),
+    ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
+    ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
+    ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__"),
+)
+#: Imports up a row, each for a reason: the random-walk fit runs the stochastic model's
+#: bias filter (a random walk alone is that filter).
+UPWARD = {("kalman", "stochastic")}
+
+
+def test_layers_of_the_architecture_page():
+    row = {name: i for i, names in enumerate(LAYERS) for name in names}
+    tops = {m.split(".")[1] for m in _modules() if m != "diffgyro"}
+    assert tops == set(row), "every top-level module sits in one row"
+    up = set()
+    for a, b, _ in _imports(_modules()):
+        if a == "diffgyro" or b == "diffgyro":
+            continue
+        pa, pb = a.split(".")[1], b.split(".")[1]
+        if pa != pb and row[pb] > row[pa]:
+            up.add((pa, pb))
+    assert up == UPWARD
