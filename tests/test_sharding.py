@@ -75,7 +75,7 @@ def assert_close(a, b, rel=1e-12, path="") -> None:
 
 STREAM = """
 from diffgyro.pipeline import fit_dataset
-from diffgyro.pipeline import chunkfit
+from diffgyro.pipeline import _chunkfit as chunkfit
 fit_dataset([DATA], MODEL, out=ROOT + "/sharded/cal.json", chunk_devices=CHUNK,
             progress=False, shard=True)
 # the sharded direct path (linear models the sums path cannot take): split over both
@@ -87,8 +87,10 @@ batch = Batch.from_recordings(load(DATA + "/part-00.parquet")[:CHUNK])
 full = batch.select(np.minimum(np.arange(fitter.padded), batch.n_devices - 1))
 f = lambda x: None if x is None else jax.numpy.asarray(x)
 from diffgyro.data import sampling_intervals
-sig = chunkfit._signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
-                        f(full.temp_ext), f(full.accel), f(sampling_intervals(full)), 60.0)
+from diffgyro._signal_builder import stacked_signals
+sig = stacked_signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
+                      f(full.temp_ext), f(full.accel), None, f(sampling_intervals(full)), {},
+                      fitter.opts.dtemp_window)
 sig = jax.device_put(sig, jax.sharding.NamedSharding(fitter.mesh,
                                                      jax.sharding.PartitionSpec("devices")))
 compiled = chunkfit._solve.lower(fitter.model, sig, fitter.opts, fitter.block,
