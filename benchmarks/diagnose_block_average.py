@@ -2,9 +2,9 @@
 
 ``diagnose`` works on segment means of a long record in two places (see
 docs/diagnose.md): the random-walk check smooths the base residual's means
-past ``diffgyro.diagnose.random_walk.RW_POINTS`` samples (``--check
+past ``diffgyro.diagnose._random_walk.RW_POINTS`` samples (``--check
 random_walk``), and a time constant's grid is searched on the means past
-``diffgyro.diagnose.scoring.SEARCH_POINTS`` (``--check search``). This script
+``diffgyro.diagnose._scoring.SEARCH_POINTS`` (``--check search``). This script
 diagnoses every problem of the catalogue of ``tests/test_diagnose.py``
 (recordings of ``tests/hidden_effects.py``, 2 Hz, a few thousand to tens of
 thousands of samples) twice, sample by sample (the limit past every record's
@@ -69,8 +69,9 @@ def main(argv=None) -> int:
 
     diffgyro.enable_x64()
     from diffgyro.data import Batch
-    from diffgyro.diagnose import diagnose, scoring
-    from diffgyro.diagnose import random_walk as rw_mod
+    from diffgyro.diagnose import _random_walk as rw_mod
+    from diffgyro.diagnose import _scoring as scoring
+    from diffgyro.diagnose import diagnose
 
     mod, name = (rw_mod, "RW_POINTS") if args.check == "random_walk" else (scoring, "SEARCH_POINTS")
     default = getattr(mod, name)
@@ -110,7 +111,7 @@ def main(argv=None) -> int:
           f"{out['heldout_ratio']}; "
           f"random walk held-out RMS ratio {out['rw_heldout_ratio']}")
     if args.out:
-        from diffgyro.jsonio import atomic_write_text, dumps
+        from diffgyro._jsonio import atomic_write_text, dumps
 
         atomic_write_text(args.out, dumps(out, indent=1))
     return 0 if all(same) else 1

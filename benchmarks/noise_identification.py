@@ -192,7 +192,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
 
     from diffgyro.stochastic import identify, label, simulate_noise
-    from diffgyro.stochastic.selection import PENALTY
+    from diffgyro.stochastic._selection import PENALTY
 
     penalty = PENALTY if args.penalty is None else args.penalty
     names = list(TRUTHS)

@@ -667,7 +667,7 @@ print(json.dumps({{"s": time.perf_counter() - t0, "rss_GB": usage.ru_maxrss / 1e
 
 
 def native_table(npz, path):
-    """The saved record as a Parquet file in the standard schema (``diffgyro.io.save``)."""
+    """The saved record as a Parquet file in the standard schema (``diffgyro.io._save``)."""
     from diffgyro.io import save
 
     z = np.load(npz)

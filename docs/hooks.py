@@ -20,7 +20,7 @@
 
 from __future__ import annotations
 
-import pkgutil
+import ast
 import re
 import sys
 from pathlib import Path
@@ -45,24 +45,43 @@ def _public(name: str) -> bool:
 
 
 def api_modules() -> dict[str, list[str]]:
-    """Top-level public module -> the modules its page documents (itself first)."""
-    pkg = ROOT / "src" / "diffgyro"
+    """Top-level public module -> the modules its page documents (itself first), from
+    ``diffgyro.PUBLIC_MODULES``, the one list of the public API."""
+    _src_on_path()
+    from diffgyro import PUBLIC_MODULES
+
     pages: dict[str, list[str]] = {}
-    for info in pkgutil.iter_modules([str(pkg)], "diffgyro."):
-        if not _public(info.name):
-            continue
-        mods = [info.name]
-        if info.ispkg:
-            sub = pkg / info.name.split(".")[1]
-            mods += [m.name for m in pkgutil.walk_packages([str(sub)], info.name + ".")
-                     if _public(m.name)]
-        pages[info.name.split(".")[1]] = mods
+    for name in PUBLIC_MODULES:
+        if name != "diffgyro" and _public(name):
+            pages.setdefault(name.split(".")[1], []).append(name)
     return dict(sorted(pages.items()))
 
 
+def _exports(module: str) -> list[str] | None:
+    """The module's ``__all__``, read from its source (without importing it)."""
+    path = ROOT / "src" / Path(*module.split("."))
+    path = path / "__init__.py" if path.is_dir() else path.with_suffix(".py")
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if isinstance(node, ast.Assign) and any(getattr(t, "id", None) == "__all__"
+                                                for t in node.targets):
+            return list(ast.literal_eval(node.value))
+    return None
+
+
+def _directive(module: str, root: bool) -> str:
+    """A mkdocstrings block showing the module's public names only, in ``__all__``'s
+    order (the users' entry points first)."""
+    opts = ["show_root_heading: false"] if root else []
+    names = _exports(module)
+    if names is not None:
+        opts.append(f"members: [{', '.join(names)}]")
+    return f"::: {module}\n" + "".join(f"    options:\n      {o}\n" if i == 0 else f"      {o}\n"
+                                       for i, o in enumerate(opts))
+
+
 def _api_page(top: str, mods: list[str]) -> str:
-    out = [f"# diffgyro{'.' if top else ''}{top}\n", f"::: {mods[0]}\n    options:\n      show_root_heading: false\n"]
-    out += [f"::: {m}\n" for m in mods[1:]]  # a package's submodules, each under its heading
+    out = [f"# diffgyro{'.' if top else ''}{top}\n", _directive(mods[0], root=True)]
+    out += [_directive(m, root=False) for m in mods[1:]]  # a package's public submodules
     return "\n".join(out)
 
 

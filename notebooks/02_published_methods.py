@@ -45,10 +45,11 @@ from diffgyro.recipes import (
     cube_bias,
     fog_one_run,
     multi_position,
+    single_axis,
     six_position,
     static_kalman,
+    toolkit_compensate,
 )
-from diffgyro.recipes._common import single_axis, toolkit_compensate
 from diffgyro.signals import TempNorm
 from diffgyro.simulate import simulate
 
@@ -228,7 +229,7 @@ print("accelerometer bias error:     ", np.abs(s4.accel_bias - truth.accel["bias
 # %%
 import pandas as pd  # noqa: E402
 
-from diffgyro.recipes.six_position import read_sections  # noqa: E402
+from diffgyro.recipes import read_sections  # noqa: E402
 
 data = "../tests/data/imucal/"
 df = pd.read_csv(data + "example_ferraris_session.csv", header=0, index_col=0)

@@ -39,7 +39,7 @@ import diffgyro
 from diffgyro.allan import allan, plot_allan
 from diffgyro.data import Batch, Recording
 from diffgyro.kalman import fit_random_walk
-from diffgyro.recipes.static_kalman import heading_errors
+from diffgyro.recipes import heading_errors
 
 diffgyro.enable_x64()
 diffgyro.enable_compilation_cache()

@@ -9,7 +9,7 @@ import os
 
 # The suite builds hundreds of XLA programs and runs most of them once or twice: compile
 # them with XLA's loop emitters instead of its MLIR fusion emitters (as fit() already does
-# for its costlier programs, diffgyro.fit_sums.compile_options.FAST_COMPILE) and without
+# for its costlier programs, diffgyro._fit_sums.compile_options.FAST_COMPILE) and without
 # LLVM's optimisation passes: the same programs, about half the compile time, slower to
 # run, results equal to rounding. Set before JAX starts its CPU client; child processes
 # inherit them; the flags are part of the persistent cache's key. Users and benchmarks/
@@ -24,7 +24,7 @@ from pathlib import Path  # noqa: E402
 import pytest  # noqa: E402
 
 import diffgyro  # noqa: E402
-from diffgyro.jit import release_compiled_if_crowded  # noqa: E402
+from diffgyro._jit import release_compiled_if_crowded  # noqa: E402
 
 pytest_plugins = ["_no_skips"]  # under CI=true an undocumented skip fails the run
 
@@ -40,7 +40,7 @@ ROOT = TESTS.parent
 def registered(*classes):
     """A test's own effect or noise classes in the registry while the block runs; taken out
     afterwards, as other tests expect."""
-    from diffgyro.effects import base
+    from diffgyro.effects import _base as base
 
     for cls in classes:
         base.register(cls)

@@ -55,7 +55,7 @@ def run_notebook(path: Path, monkeypatch) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from diffgyro.effects import base
+    from diffgyro.effects import _base as base
 
     registered = dict(base._REGISTRY)
     monkeypatch.chdir(path.parent)

@@ -1,5 +1,7 @@
 """The module graph of src/diffgyro: no import cycle, no private names across modules,
-every module importable first.
+every module importable first, imports at the module top (but for a named list), and
+the public API listed in one place (``diffgyro.PUBLIC_MODULES`` and each module's
+``__all__``).
 
 The graph is read statically (``ast``) from every ``import`` and ``from ... import``
 in a module, at module level, inside a function or under ``TYPE_CHECKING``: an import
@@ -9,7 +11,7 @@ parent packages is not an edge (a package's ``__init__`` re-exports its children
 design).
 
 A private name is one with a leading underscore (not a dunder). A module may import
-the private module of its own package (``effects._common`` from ``effects.bias_poly``)
+the private module of its own package (``effects._common`` from ``effects._bias_poly``)
 but no private name of another module.
 """
 
@@ -99,8 +101,9 @@ def test_graph_reads_known_edges():
     modules = _modules()
     edges = {(a, b) for a, b, _ in _imports(modules)}
     assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
-    assert ("diffgyro.kalman", "diffgyro.fit") in edges  # inside a function
-    assert ("diffgyro.effects.bias_poly", "diffgyro.effects._common") in edges
+    assert ("diffgyro.kalman", "diffgyro.fit") in edges
+    assert ("diffgyro._noise", "diffgyro._noise_passes") in edges  # inside a function
+    assert ("diffgyro.effects._bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError
     assert _cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
 
@@ -182,3 +185,150 @@ def test_no_long_function_without_a_reason():
             if length > MAX_FUNCTION_LINES and "# Over 80 lines" not in body:
                 long.append(f"{path.relative_to(SRC)}:{node.lineno} {node.name} ({length} lines)")
     assert long == []
+
+
+#: The imports a function may make late instead of at its module's top, each for a named
+#: reason: an optional dependency (the extras ``logs`` and ``dask``, a POSIX-only module),
+#: a library only figures need (matplotlib), numba's compile on first use, and
+#: ``import diffgyro`` staying free of JAX. The command line's deferred loading of the
+#: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
+DEFERRED = {
+    "diffgyro": {"jax", "diffgyro._jit"},  # import diffgyro without JAX
+    "diffgyro.allan": {"matplotlib", "matplotlib.pyplot"},  # figures only
+    "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
+    "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
+    "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
+    "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
+                      "diffgyro.logs._dataflash"},
+    "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'
+    "diffgyro.pipeline._workdir": {"fcntl"},  # POSIX only
+}
+
+
+def _function_imports(modules) -> list[tuple[str, str, int]]:
+    """(module, imported module, line) of every import inside a function."""
+    out = []
+    for mod, (path, is_pkg) in modules.items():
+        for fn in ast.walk(ast.parse(path.read_text(), str(path))):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Import):
+                    out += [(mod, a.name, node.lineno) for a in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    if node.level:
+                        base = mod.split(".") if is_pkg else mod.split(".")[:-1]
+                        base = base[:len(base) - node.level + 1]
+                        target = ".".join(base + ([node.module] if node.module else []))
+                    else:
+                        target = node.module
+                    for a in node.names:
+                        sub = f"{target}.{a.name}"
+                        out.append((mod, sub if sub in modules else target, node.lineno))
+    return out
+
+
+def test_imports_at_module_top():
+    """Outside the command line, a function imports only what :data:`DEFERRED` names."""
+    found = [f"{m}:{line} imports {t}" for m, t, line in _function_imports(_modules())
+             if not m.startswith("diffgyro.cli") and t not in DEFERRED.get(m, ())]
+    assert found == []
+
+
+def test_cli_defers_only_the_engine():
+    """A command module imports late only what ``--help`` does not load (the engine:
+    JAX, NumPy, the fit); what the command line has loaded anyway sits at its top."""
+    code = ("import json, sys, diffgyro.cli as cli; cli.load_commands(); "
+            "print(json.dumps(sorted(sys.modules)))")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(
+        [str(SRC)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])}
+    loaded = set(json.loads(subprocess.run([sys.executable, "-c", code], env=env, check=True,
+                                           capture_output=True, text=True).stdout))
+    late = [(m, t, line) for m, t, line in _function_imports(_modules()) if m.startswith("diffgyro.cli")]
+    assert late, "the command line defers the engine"
+    assert [f"{m}:{line} imports {t}" for m, t, line in late if t in loaded] == []
+
+
+def _public_on_disk() -> set[str]:
+    return {m for m in _modules() if not any(_is_private(p) for p in m.split("."))
+            and not m.startswith("diffgyro.cli") and m != "diffgyro.__main__"}
+
+
+def test_public_api_listed_in_one_place():
+    """``diffgyro.PUBLIC_MODULES`` is every module without a private part (the command line
+    aside: its commands are its API); each lists its names in ``__all__``, and each name
+    there exists and, if a class or function, says what it is."""
+    import importlib
+
+    import diffgyro
+
+    assert set(diffgyro.PUBLIC_MODULES) == _public_on_disk()
+    missing = []
+    for name in diffgyro.PUBLIC_MODULES:
+        module = importlib.import_module(name)
+        assert module.__doc__, name
+        assert isinstance(getattr(module, "__all__", None), list), f"{name} has no __all__"
+        assert len(set(module.__all__)) == len(module.__all__), name
+        for attr in module.__all__:
+            value = getattr(module, attr, missing)
+            assert value is not missing, f"{name}.{attr} is in __all__ but not defined"
+            if callable(value) and getattr(value, "__module__", "").startswith("diffgyro"):
+                assert (value.__doc__ or "").strip(), f"{name}.{attr} has no docstring"
+
+
+def test_each_public_name_exported_once():
+    """A class or function is public under one module only (``diffgyro`` itself re-exports
+    a few names for convenience); the modules users import re-export what private
+    modules define, never another public module's names."""
+    import importlib
+
+    import diffgyro
+
+    homes: dict[int, list[str]] = {}
+    for name in diffgyro.PUBLIC_MODULES:
+        if name == "diffgyro":
+            continue
+        module = importlib.import_module(name)
+        for attr in module.__all__:
+            value = getattr(module, attr)
+            if isinstance(value, type) or callable(value):
+                homes.setdefault(id(value), []).append(f"{name}.{attr}")
+    twice = sorted(v for v in homes.values() if len(v) > 1)
+    assert twice == []
+    for attr in diffgyro.__all__:
+        value = getattr(diffgyro, attr)
+        if not attr.startswith("__") and (isinstance(value, type) or callable(value)) \
+                and getattr(value, "__module__", "") != "diffgyro":
+            private_home = any(_is_private(p) for p in value.__module__.split("."))
+            assert id(value) in homes or private_home, f"diffgyro.{attr}: where is it public?"
+
+
+#: The rows of docs/architecture.md, bottom up: a top-level module or package imports
+#: only from its own row and the rows below.
+LAYERS = (
+    ("errors", "data", "_jit", "_program_cache", "_jsonio"),
+    ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
+    ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
+     "_noise_passes"),
+    ("fit", "kalman", "_fit_sums"),
+    ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
+    ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
+    ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__"),
+)
+#: Imports up a row, each for a reason: the random-walk fit runs the stochastic model's
+#: bias filter (a random walk alone is that filter).
+UPWARD = {("kalman", "stochastic")}
+
+
+def test_layers_of_the_architecture_page():
+    row = {name: i for i, names in enumerate(LAYERS) for name in names}
+    tops = {m.split(".")[1] for m in _modules() if m != "diffgyro"}
+    assert tops == set(row), "every top-level module sits in one row"
+    up = set()
+    for a, b, _ in _imports(_modules()):
+        if a == "diffgyro" or b == "diffgyro":
+            continue
+        pa, pb = a.split(".")[1], b.split(".")[1]
+        if pa != pb and row[pb] > row[pa]:
+            up.add((pa, pb))
+    assert up == UPWARD

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from diffgyro import Batch, Recording
-from diffgyro import jit as jit_module
+from diffgyro import _jit as jit_module
 from diffgyro.data import device_bucket
 from diffgyro.fit import fit
 

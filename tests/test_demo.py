@@ -6,21 +6,21 @@ from __future__ import annotations
 
 import time
 
-import diffgyro.demo
+import diffgyro._demo as demo
+from diffgyro._demo import BASE, TRUTH
 from diffgyro.cli import main
-from diffgyro.demo import BASE, TRUTH
 
 
 def test_demo_command_names_the_hidden_effect_and_reaches_the_floor(tmp_path, capsys,
                                                                     monkeypatch):
     results = []
-    real = diffgyro.demo.run_demo
+    real = demo.run_demo
 
     def recorded(*args, **kwargs):
         results.append(real(*args, **kwargs))
         return results[-1]
 
-    monkeypatch.setattr(diffgyro.demo, "run_demo", recorded)
+    monkeypatch.setattr(demo, "run_demo", recorded)
     start = time.perf_counter()
     code = main(["demo", "--out", str(tmp_path / "demo")])
     elapsed = time.perf_counter() - start

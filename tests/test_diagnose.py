@@ -23,6 +23,7 @@ import numpy as np
 import pytest
 from conftest import registered
 
+from diffgyro._temperature import suggest_dtemp_window, temperature_quantum
 from diffgyro.data import Batch
 from diffgyro.diagnose import (
     Thresholds,
@@ -33,7 +34,6 @@ from diffgyro.diagnose import (
 )
 from diffgyro.fit import fit
 from diffgyro.model import ErrorModel
-from diffgyro.temperature import suggest_dtemp_window, temperature_quantum
 
 LOOK_ALIKE = {n: set(v) for v in families().values() for n in v}
 
@@ -153,7 +153,7 @@ def test_records_follow_the_contract(catalogue):
 
 @pytest.mark.slow
 def test_reported_floor_is_the_exact_statistic_within_one_percent(catalogue):
-    """The floor diagnose reports (fit's, ``diffgyro.noise``) places its window from a
+    """The floor diagnose reports (fit's, ``diffgyro._noise``) places its window from a
     subsample of the differences on these 14 400-21 600-sample recordings (white, flicker
     and random-walk noise, quantisation, rate-table steps, hidden effects): within 1 % of
     the exact statistic on every axis (0.4 % measured), through the subsample on most."""

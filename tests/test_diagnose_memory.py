@@ -1,6 +1,6 @@
 """diagnose's memory grows with the record by a few per-sample arrays, not by its candidates.
 
-Scores come from per-block sums (``diffgyro.diagnose.scoring``); what still grows
+Scores come from per-block sums (``diffgyro.diagnose._scoring``); what still grows
 with the record is a few per-sample arrays of one device (its signals, the base
 design and residual, one candidate's columns). Measured in child processes:
 the peak RSS of a second ``diagnose`` call (the first compiles) on a short and on

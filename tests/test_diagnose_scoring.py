@@ -1,6 +1,6 @@
 """The time-constant search on segment means picks what the search on samples picks.
 
-``diffgyro.diagnose.scoring`` searches a lag or warm-up time constant on segment
+``diffgyro.diagnose._scoring`` searches a lag or warm-up time constant on segment
 means once a record is longer than ``SEARCH_POINTS`` samples, then scores the
 picks on the samples. The test catalogue's records are shorter, so here the
 limit is lowered until each segment holds about 20 samples (10 s at 2 Hz), twice as
@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from diffgyro.data import Batch
-from diffgyro.diagnose import diagnose, scoring
+from diffgyro.diagnose import _scoring as scoring
+from diffgyro.diagnose import diagnose
 
 
 @pytest.mark.parametrize("effect", ["thermal_lag", "warmup"])

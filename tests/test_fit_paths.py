@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import diffgyro.fit_sums as fs
+import diffgyro._fit_sums as fs
 from diffgyro import Batch, Recording
 from diffgyro.effects import AbstractEffect, register
 from diffgyro.effects._common import per_axis
@@ -327,7 +327,7 @@ def test_valid_counts(n):
 
 
 def test_group_results_pack_into_one_array_and_back_exactly():
-    from diffgyro.fit_sums import pack, unpack_results
+    from diffgyro._fit_sums import pack, unpack_results
 
     rng = np.random.default_rng(0)
     out = {"beta": rng.normal(size=(4, 3, 2)), "status": np.array([0, 3, 7, 2**20], np.int32),

@@ -7,7 +7,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.fit_sums import newton as newton_loop
+from diffgyro._fit_sums import newton as newton_loop
 
 CENTRES = np.array([[0.3, -1.2], [2.0, 0.5], [-0.7, 0.1]])  # problem j's minimum
 

@@ -13,7 +13,7 @@ import pytest
 
 from diffgyro.errors import DataError
 from diffgyro.io import LoadReport, load, save
-from diffgyro.io.headers import header_units, merge_units, split_header
+from diffgyro.io._headers import header_units, merge_units, split_header
 from diffgyro.simulate import simulate
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -1,4 +1,4 @@
-"""diffgyro.jit.filter_jit: arrays traced, everything else static, one trace per
+"""diffgyro._jit.filter_jit: arrays traced, everything else static, one trace per
 static configuration and shape, results equal to the uncompiled function."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.jit import (
+from diffgyro._jit import (
     collector_paused,
     filter_jit,
     map_limit,
@@ -196,7 +196,7 @@ def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
 
 
 @pytest.mark.parametrize("module, call", [
-    ("diagnose.run", lambda m, b: m.diagnose("bias_poly(1)", b)),
+    ("diagnose._run", lambda m, b: m.diagnose("bias_poly(1)", b)),
     ("allan", lambda m, b: m.allan_batch(b)),
     ("kalman", lambda m, b: m.fit_random_walk("bias_poly(1)", b)),
     ("sensitivity", lambda m, b: m.hac_covariance(None, b)),

@@ -1,4 +1,4 @@
-"""The one JSON sanitiser and the one atomic write (diffgyro.jsonio)."""
+"""The one JSON sanitiser and the one atomic write (diffgyro._jsonio)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro import jsonio
+from diffgyro import _jsonio as jsonio
 
 
 def strict_loads(text: str):
@@ -82,12 +82,12 @@ def test_one_sanitiser_and_one_atomic_write_in_the_package():
     banned = re.compile(r"allow_nan\s*=\s*False|os\.replace\(|mkstemp\(|NamedTemporaryFile|"
                         r"\.write_text\(|json\.dump\(")
     found = [f"{p.relative_to(src)}:{i}: {line.strip()}"
-             for p in sorted(src.rglob("*.py")) if p.name != "jsonio.py"
+             for p in sorted(src.rglob("*.py")) if p.name != "_jsonio.py"
              for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
              if banned.search(line)]
     assert not found, "\n".join(found)
     printed = [f"{p.relative_to(src)}:{i}: {line.strip()}"
-               for p in sorted(src.rglob("*.py")) if p.name != "jsonio.py"
+               for p in sorted(src.rglob("*.py")) if p.name != "_jsonio.py"
                for i, line in enumerate(p.read_text(encoding="utf-8").splitlines(), 1)
                if re.search(r"json\.dumps\(", line) and "sha256" not in line
                and "key = json.dumps" not in line]

@@ -25,7 +25,7 @@ from diffgyro.kalman import (
     smooth_bias,
 )
 from diffgyro.model import ErrorModel
-from diffgyro.recipes.static_kalman import heading_errors
+from diffgyro.recipes._static_kalman import heading_errors
 
 
 def _small_problem(seed=0, n=60):
@@ -140,7 +140,7 @@ def walk_fit():
     """50 static devices, 3000 s at 1 Hz, noise from the project simulator: ARW 1e-3 rad/s/√Hz
     (σ = 1e-3 rad/s per sample, r = 1e-6) and RRW 1e-4 rad/s²/√Hz (q = 1e-8 (rad/s)²/s),
     on top of a constant bias per device."""
-    from diffgyro.simulate.noise import NoiseLevels, gyro_noise
+    from diffgyro.simulate._noise import NoiseLevels, gyro_noise
 
     d, n, dt = 50, 3000, 1.0
     q, r = 1e-8, 1e-6

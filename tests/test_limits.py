@@ -30,7 +30,7 @@ from diffgyro.limits import (
     split_path,
     summary,
 )
-from diffgyro.limits.units import unit_scale
+from diffgyro.limits._units import unit_scale
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "limits" / "bmi088.toml"

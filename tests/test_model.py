@@ -9,7 +9,7 @@ from conftest import registered
 
 from diffgyro import ErrorModel
 from diffgyro.data import Recording
-from diffgyro.diagnose.candidates import candidate_specs
+from diffgyro.diagnose._candidates import candidate_specs
 from diffgyro.effects import (
     AbstractNoise,
     BiasPoly,
@@ -73,7 +73,7 @@ class SlowWalk(RandomWalk):
 
 @pytest.fixture
 def user_noise():
-    from diffgyro.effects import base
+    from diffgyro.effects import _base as base
 
     with registered(Flicker, SlowWalk):
         yield

@@ -1,4 +1,4 @@
-"""The host noise floor (``diffgyro.noise``): the same numbers as the pure-JAX
+"""The host noise floor (``diffgyro._noise``): the same numbers as the pure-JAX
 ``fit.device_noise_floor`` and as its definition written with numpy's median and quantile,
 chunked on threads, the same numbers from both fit paths, and the simulated σ on
 plain and quantised output."""
@@ -9,7 +9,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro import Batch, Recording, noise
+from diffgyro import Batch, Recording
+from diffgyro import _noise as noise
 from diffgyro.fit import device_noise_floor, fit
 
 
@@ -47,7 +48,7 @@ def subsampled(d):
 
 def definition(y, rate, mask, floor=None):
     """The floor per device and axis (``floor`` of each row's valid differences; by
-    default the statistic :mod:`diffgyro.noise` documents)."""
+    default the statistic :mod:`diffgyro._noise` documents)."""
     y = y if rate is None else y - rate
     out = np.full((y.shape[0], 3), np.nan)
     for i in range(y.shape[0]):

@@ -15,8 +15,8 @@ from diffgyro.errors import DataError
 from diffgyro.fit import fit
 from diffgyro.io import load
 from diffgyro.pipeline import fit_dataset
-from diffgyro.pipeline.dataset import ReadConfig, expand_inputs, index_dataset
-from diffgyro.pipeline.workdir import WorkDir
+from diffgyro.pipeline._dataset import ReadConfig, expand_inputs, index_dataset
+from diffgyro.pipeline._workdir import WorkDir
 
 
 @pytest.fixture(scope="module")
@@ -202,7 +202,7 @@ def test_fast_calibration_entries_equal_from_fit():
     time constants, non-ok statuses and non-finite numbers."""
     from diffgyro.fit import FitOptions, FitResult
     from diffgyro.model import ErrorModel, Params
-    from diffgyro.pipeline.run import calibration_entries
+    from diffgyro.pipeline._run import calibration_entries
     from diffgyro.signals import TempNorm
 
     model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient+aux(vdd)")

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro import program_cache
-from diffgyro.jit import filter_jit
+from diffgyro import _program_cache as program_cache
+from diffgyro._jit import filter_jit
 
 traces: list[str] = []
 

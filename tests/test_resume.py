@@ -20,7 +20,7 @@ from diffgyro.pipeline import fit_dataset
 # lands mid-run (between, or during, chunk fits and atomic writes), never after the end.
 CHILD = """
 import sys, time
-import diffgyro.pipeline.run as run
+import diffgyro.pipeline._run as run
 pause = float(sys.argv[1])
 fit_chunk = run.fit_chunk
 def slow(*args, **kwargs):

@@ -75,7 +75,7 @@ def assert_close(a, b, rel=1e-12, path="") -> None:
 
 STREAM = """
 from diffgyro.pipeline import fit_dataset
-from diffgyro.pipeline import chunkfit
+from diffgyro.pipeline import _chunkfit as chunkfit
 fit_dataset([DATA], MODEL, out=ROOT + "/sharded/cal.json", chunk_devices=CHUNK,
             progress=False, shard=True)
 # the sharded direct path (linear models the sums path cannot take): split over both
@@ -87,8 +87,10 @@ batch = Batch.from_recordings(load(DATA + "/part-00.parquet")[:CHUNK])
 full = batch.select(np.minimum(np.arange(fitter.padded), batch.n_devices - 1))
 f = lambda x: None if x is None else jax.numpy.asarray(x)
 from diffgyro.data import sampling_intervals
-sig = chunkfit._signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
-                        f(full.temp_ext), f(full.accel), f(sampling_intervals(full)), 60.0)
+from diffgyro._signal_builder import stacked_signals
+sig = stacked_signals(f(full.t), f(full.gyro), f(full.mask), f(full.rate), f(full.temp),
+                      f(full.temp_ext), f(full.accel), None, f(sampling_intervals(full)), {},
+                      fitter.opts.dtemp_window)
 sig = jax.device_put(sig, jax.sharding.NamedSharding(fitter.mesh,
                                                      jax.sharding.PartitionSpec("devices")))
 compiled = chunkfit._solve.lower(fitter.model, sig, fitter.opts, fitter.block,
@@ -103,7 +105,7 @@ out = {"n_shards": fitter.n_shards, "padded": fitter.padded,
 
 VARPRO = """
 from diffgyro.simulate import simulate
-from diffgyro.pipeline.chunkfit import ChunkFitter
+from diffgyro.pipeline._chunkfit import ChunkFitter
 batch, truth = simulate("warmup", 5, effects="bias_poly(0)+warmup", seed=3,
                         sample_rate=0.5, duration=1800.0)
 out = {}
@@ -118,7 +120,7 @@ for name, shard in (("sharded", True), ("single", False)):
 
 # fit()'s sums path for both specs of test_two_cpu_devices_fit_on_the_first
 FIRST = """
-import diffgyro.fit_sums.groups as fs
+import diffgyro._fit_sums.groups as fs
 from diffgyro.fit import fit
 from diffgyro.simulate import simulate
 old = fs.MAX_GROUP_DEVICES
@@ -143,7 +145,7 @@ finally:
 """
 
 LARGEST = """
-import diffgyro.fit_sums.groups as fs
+import diffgyro._fit_sums.groups as fs
 from diffgyro import Batch
 from diffgyro.fit import fit
 d, n = 3 * fs.MAX_GROUP_DEVICES, 640
@@ -159,7 +161,7 @@ out = {"ok": int(np.sum(np.asarray(r.status) == 0)), "d": d}
 """
 
 DEFAULT = """
-from diffgyro.pipeline.chunkfit import ChunkFitter, local_mesh
+from diffgyro.pipeline._chunkfit import ChunkFitter, local_mesh
 out = {"default": local_mesh() is None,
        "fitter": ChunkFitter("bias_poly(1)", 4).n_shards,
        "forced": ChunkFitter("bias_poly(1)", 4, shard=True).n_shards}
@@ -241,7 +243,7 @@ def test_sharded_variable_projection_does_not_hang(forced):
 def test_one_device_means_no_mesh():
     import jax
 
-    from diffgyro.pipeline.chunkfit import local_mesh
+    from diffgyro.pipeline._chunkfit import local_mesh
 
     if jax.local_device_count() == 1:
         assert local_mesh() is None
@@ -254,7 +256,7 @@ def test_two_cpu_devices_fit_on_the_first(forced, spec):
     on two they deadlocked); results equal to one device's, in order."""
     out = dict(section(forced, "first")[spec])
     assert out.pop("devices") == [0]
-    import diffgyro.fit_sums.groups as fs
+    import diffgyro._fit_sums.groups as fs
     from diffgyro.fit import fit
     from diffgyro.simulate import simulate
 

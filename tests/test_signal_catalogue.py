@@ -12,11 +12,11 @@ import pytest
 
 import diffgyro
 from diffgyro import apply as A
+from diffgyro._signal_builder import batch_signals
+from diffgyro._signal_catalogue import CATALOGUE, SignalInfo, register_signal
 from diffgyro.data import Batch, Recording
-from diffgyro.effects.base import registry
+from diffgyro.effects._base import registry
 from diffgyro.fit import fit
-from diffgyro.signal_builder import batch_signals
-from diffgyro.signal_catalogue import CATALOGUE, SignalInfo, register_signal
 from diffgyro.signals import TempNorm
 
 

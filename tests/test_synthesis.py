@@ -17,9 +17,9 @@ from diffgyro.carry import residuals
 from diffgyro.cli import main
 from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose
-from diffgyro.diagnose.synthesis import describe, library, propose_all
+from diffgyro.diagnose._synthesis import describe, library, propose_all
 from diffgyro.effects import parse_spec
-from diffgyro.effects.grammar import Term
+from diffgyro.effects._grammar import Term
 from diffgyro.fit import fit
 from diffgyro.model import ErrorModel
 

@@ -7,6 +7,8 @@ import; call :func:`enable_x64` once (the command line does) or set
 
 from __future__ import annotations
 
+import importlib
+import os
 from importlib.metadata import PackageNotFoundError, version
 
 try:
@@ -24,7 +26,6 @@ def enable_x64() -> None:
 
 def enable_compilation_cache(path: str | None = None) -> None:
     """Keep compiled functions on disk between processes (on for the CLI and tests)."""
-    import os
 
     import jax
 
@@ -48,14 +49,13 @@ def use_cpu_cores(n: int | None = None) -> int:
     JAX's first operation; a device count the user set (``XLA_FLAGS`` or
     ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
     """
-    import os
 
     import jax
 
     if "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", "") and \
             getattr(jax.config, "jax_num_cpu_devices", 0) in (-1, None):  # 0: an older JAX
         if n is None:
-            from .jit import available_cores
+            from ._jit import available_cores
 
             n = min(available_cores(), 16)
         try:
@@ -67,17 +67,29 @@ def use_cpu_cores(n: int | None = None) -> int:
 
 from .errors import DataError, SpecError  # noqa: E402  (no JAX: the CLI's errors)
 
+#: The public modules, each listing its names in ``__all__`` (the API reference shows
+#: these names, in that order; tests/test_architecture.py checks the list against the
+#: source tree). Every other module is private: a leading underscore, or inside one.
+PUBLIC_MODULES = (
+    "diffgyro", "diffgyro.allan", "diffgyro.apply", "diffgyro.calibration", "diffgyro.carry",
+    "diffgyro.data", "diffgyro.detect", "diffgyro.diagnose", "diffgyro.effects",
+    "diffgyro.errors", "diffgyro.export", "diffgyro.export.ardupilot", "diffgyro.export.c_header",
+    "diffgyro.export.ekf_noise", "diffgyro.export.kalibr", "diffgyro.export.px4", "diffgyro.fit",
+    "diffgyro.io", "diffgyro.kalman", "diffgyro.limits", "diffgyro.logs", "diffgyro.model",
+    "diffgyro.motion", "diffgyro.pipeline", "diffgyro.plan_design", "diffgyro.recipes",
+    "diffgyro.report", "diffgyro.sensitivity", "diffgyro.signals", "diffgyro.simulate",
+    "diffgyro.status", "diffgyro.stochastic",
+)
+
 #: Public names loaded on first use, so that ``import diffgyro`` (and the command
-#: line's ``--help``) does not start JAX; the fit of a noise component finds
-#: :mod:`diffgyro.kalman` through :func:`diffgyro.effects.noise_fit`.
+#: line's ``--help``) does not start JAX.
 _LAZY = {"Batch": "data", "Recording": "data", "ErrorModel": "model", "Params": "model",
-         "effects": None, "kalman": None}
+         "effects": None, "release_compiled_if_crowded": "_jit"}
 
 
 def __getattr__(name: str):
     if name not in _LAZY:
         raise AttributeError(f"module 'diffgyro' has no attribute {name!r}")
-    import importlib
 
     module = importlib.import_module(f".{_LAZY[name] or name}", __name__)
     value = module if _LAZY[name] is None else getattr(module, name)
@@ -86,4 +98,5 @@ def __getattr__(name: str):
 
 
 __all__ = ["Batch", "DataError", "ErrorModel", "Params", "Recording", "SpecError",
-           "__version__", "effects", "enable_compilation_cache", "enable_x64", "use_cpu_cores"]
+           "__version__", "effects", "enable_compilation_cache", "enable_x64",
+           "release_compiled_if_crowded", "use_cpu_cores"]

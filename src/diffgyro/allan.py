@@ -59,6 +59,7 @@ reading by eye would).
 from __future__ import annotations
 
 import math
+import sys
 
 import equinox as eqx
 import jax
@@ -67,9 +68,15 @@ import numpy as np
 from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
-from .jit import release_compiled_if_crowded
-from .jsonio import number
+from ._jit import release_compiled_if_crowded
+from ._jsonio import number
+from .errors import DataError
 from .signals import prefix_sums
+
+__all__ = ["allan", "allan_batch", "AllanResult", "Readouts", "noise_terms", "plot_allan",
+           "to_json", "allan_at_taus", "oadev", "adev_nonoverlapping", "mdev", "log_slope",
+           "default_m", "cluster_sizes", "sample_interval", "sample_intervals", "edf_simple",
+           "chi2_ppf", "alpha_from_slope", "FLICKER_FACTOR"]
 
 #: Bias-instability factor: the flicker floor of ADEV is sqrt(2 ln 2 / π)·B.
 FLICKER_FACTOR = math.sqrt(2.0 * math.log(2.0) / math.pi)
@@ -598,7 +605,6 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
     not a whole number of its sample intervals; a τ longer than
     ``n / stop_ratio`` is NaN as usual.
     """
-    from .errors import DataError
 
     dt = sample_intervals(batch)
     ms = []
@@ -658,7 +664,6 @@ def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax
     import matplotlib
 
     if ax is None:
-        import sys
 
         if "matplotlib.pyplot" not in sys.modules:  # a notebook keeps its own backend
             matplotlib.use("Agg")

@@ -2,7 +2,7 @@
 
 This file depends on numpy and the standard library only, so it can be
 copied next to a data pipeline or read as the specification of the formula.
-It derives the signals of ``diffgyro.signal_catalogue`` itself, in numpy (the
+It derives the signals of ``diffgyro._signal_catalogue`` itself, in numpy (the
 one place besides ``diffgyro.signals``; parity tests hold the two together).
 For one device with calibration record ``dev`` (an entry of the file's
 ``devices`` list) and model spec ``spec``:
@@ -48,6 +48,9 @@ from __future__ import annotations
 import re
 
 import numpy as np
+
+__all__ = ["compensate", "environment", "columns", "local_slope",
+           "HEATING_THRESHOLD", "G"]
 
 HEATING_THRESHOLD = 0.05 / 60.0
 _OTHERS = ((1, 2), (0, 2), (0, 1))

@@ -31,14 +31,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from . import __version__
+from . import _aux as aux_cols
+from ._aux import aux_names
+from ._jsonio import atomic_write_text, dumps, to_json_safe
+from ._signal_builder import batch_signals
 from .data import Batch, Recording
 from .errors import SpecError
 from .fit import FitResult
-from .jsonio import atomic_write_text, dumps, to_json_safe
 from .model import ErrorModel, Params
-from .signal_builder import batch_signals
 from .signals import TempNorm
 from .status import STATUS_NAMES
+
+__all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",
+           "from_json", "units_of", "entry_json", "data_hash", "FORMAT", "FORMAT_VERSION"]
 
 FORMAT = "diffgyro-calibration"
 FORMAT_VERSION = 1
@@ -130,6 +136,7 @@ def data_hash(batch: Batch) -> str:
 
 
 def units_of(model: ErrorModel) -> dict:
+    """The unit of each term's coefficients, and of tau, rates and temperature."""
     return {t.spec: t.unit for t in model.terms} | {"tau": "s", "rates": "rad/s",
                                                     "temperature": "°C"}
 
@@ -143,7 +150,6 @@ def aux_entries(result: FitResult, i: int) -> dict:
 
 def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
     """A calibration file's content from a fit (``batch`` adds the input hash)."""
-    from . import __version__
 
     devices = []
     for i in range(result.n_devices):
@@ -167,6 +173,7 @@ def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
 
 
 def save(cal: Calibration, path: str | os.PathLike) -> None:
+    """Write ``cal`` as JSON in one atomic step (a reader never sees half a file)."""
     atomic_write_text(path, dumps(cal.to_json(), indent=1) + "\n")
 
 
@@ -365,7 +372,6 @@ def _limits_entry(val, where: str) -> dict:
 
 def _aux_entries(val, model: ErrorModel, where: str) -> dict:
     """The extra columns' centring and calibrated range: exactly those the model reads."""
-    from .aux import aux_names
 
     names = aux_names(model.requires())
     if not isinstance(val, dict) or sorted(val) != list(names):
@@ -476,7 +482,6 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
 def _aux_scaled(batch: Batch, model: ErrorModel, devs) -> dict:
     """The extra columns the model reads, clamped to the calibrated range and centred as
     calibrated; DataError naming the column when the data lack one."""
-    from . import aux as aux_cols
 
     names = aux_cols.aux_names(model.requires())
     aux_cols.check_columns(batch, names, vary=False)

@@ -4,7 +4,7 @@ noise floor, the honest test of a model (a discovered term above all).
 The residual is the compensated rate minus the reference rate (``rx, ry, rz``), or minus
 zero for a recording without one (a static unit, whose Earth rate the bias holds when it
 was calibrated in the same place). The floor is the model-free white-noise σ of the
-recording (:mod:`diffgyro.noise`, the one ``fit`` reports). A ratio near 1 says the
+recording (:mod:`diffgyro._noise`, the one ``fit`` reports). A ratio near 1 says the
 calibration removes every deterministic error of the new recording; well above 1, the
 model fitted noise or a profile-specific effect, or the unit changed.
 """
@@ -15,15 +15,17 @@ import math
 
 import numpy as np
 
+from . import _noise as noise
+from ._jsonio import number
 from .data import Batch
-from .jsonio import number
+
+__all__ = ["residuals"]
 
 
 def residuals(corrected: Batch, original: Batch) -> list[dict]:
     """Per device of ``corrected`` (``calibration.compensate``'s output for ``original``):
     ``residual_rms`` and per axis, ``noise_floor`` and per axis (rad/s), their ``ratio`` and
     ``against`` (``"rate"`` or ``"zero"``); strict-JSON numbers (None when not given)."""
-    from . import noise
 
     gyro = np.asarray(original.gyro, np.float64)
     rate = None if original.rate is None else np.asarray(original.rate, np.float64)

@@ -20,9 +20,14 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import numpy as np
+import pandas as pd
 from jaxtyping import Bool, Float, Int
 
 from .errors import DataError
+
+__all__ = ["Batch", "Recording", "as_batch", "pad_devices", "device_bucket", "bucket_length",
+           "sampling_intervals", "as_slice", "aux_key", "STANDARD_COLUMNS", "SIGNALS",
+           "OPTIONAL_SIGNALS", "COLUMN_TO_SIGNAL", "AUX_PREFIX"]
 
 # Signal name -> standard column names (the standard schema, contract).
 SIGNALS: dict[str, tuple[str, ...]] = {
@@ -82,7 +87,6 @@ class Recording(eqx.Module):
 
     def to_frame(self):
         """This recording as a pandas DataFrame in the standard schema."""
-        import pandas as pd
 
         cols: dict[str, np.ndarray | str] = {"device": self.device, "t": self.t}
         for sig, names in SIGNALS.items():
@@ -301,7 +305,6 @@ class Batch(eqx.Module):
                      aux={k: np.asarray(v)[idx] for k, v in self.aux.items()})
 
     def to_frame(self):
-        import pandas as pd
 
         return pd.concat([r.to_frame() for r in self.recordings()], ignore_index=True)
 

@@ -32,6 +32,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from .errors import DataError
+
 
 class RangeDetection(eqx.Module):
     """Range detector output: per-sample ``static``, per-window ``window_static`` (windows start at
@@ -69,7 +71,7 @@ def s1_range_detector(
     ``init`` samples at the start are the factory static window that sets the
     thresholds (and count as static); windows of ``window`` samples follow
     from ``start`` (default ``init``, so ``window_static`` lines up with
-    :func:`diffgyro.recipes.static_kalman.offset_filter`). ``margin`` is the patent's ``M``.
+    :func:`diffgyro.recipes._static_kalman.offset_filter`). ``margin`` is the patent's ``M``.
     A window needs at least one valid sample; its range is over valid ones.
     """
     accel = jnp.asarray(accel)
@@ -205,7 +207,6 @@ def detect_batch(batch, method: str = "variance", **options) -> Bool[np.ndarray,
     :func:`variance_detector`, windows in samples) or ``"s1"`` (options of
     :func:`s1_range_detector`).
     """
-    from .errors import DataError
 
     if batch.accel is None:
         raise DataError("static detection needs the accelerometer", column="ax, ay, az",

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+__all__ = ["DataError", "SpecError"]
+
 
 class DataError(ValueError):
     """Bad input: names the file, device, column and row where they are known.

@@ -23,26 +23,25 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from . import aux as aux_cols
-from . import noise
+from . import _aux as aux_cols
+from . import _noise as noise
+from ._fit_sums import solve_sums
+from ._folds import fold_ids
+from ._jit import TRACE_COUNTS, release_compiled_if_crowded
+from ._jsonio import number
+from ._linalg import normal_equations, rank_check, solve_normal, solve_normal_inner
+from ._options import FitOptions
+from ._signal_builder import batch_signals
 from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
-from .folds import fold_ids
-from .jit import TRACE_COUNTS, release_compiled_if_crowded
-from .jsonio import number
-from .linalg import (  # noqa: F401  (re-exported)
-    normal_equations,
-    rank_check,
-    solve_normal,
-    solve_normal_inner,
-)
 from .model import ErrorModel, Params
 from .motion import Motion, motion_check
-from .options import FitOptions
-from .signal_builder import batch_signals  # noqa: F401  (re-exported)
 from .signals import Signals, TempNorm
 from .status import IN_MOTION, OK, STATUS_NAMES, collinear_terms, explain, fit_status, min_samples
+
+__all__ = ["fit", "FitResult", "FitOptions", "judge_motion", "solve_device", "batch_signals",
+           "device_noise_floor", "masked_median"]
 
 # --------------------------------------------------------------------------- one device
 
@@ -178,8 +177,8 @@ def _middle_deviations(s, n, med, split, k):
 
 def device_noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float[Array, " 3"]:
     """White-noise σ per axis from successive differences (model-free), over pairs of
-    valid samples: :func:`diffgyro.noise.sigma_from_differences` from one sort (and a
-    sort of the subsample on rows longer than :data:`diffgyro.noise.SUBSAMPLE`)."""
+    valid samples: :func:`diffgyro._noise.sigma_from_differences` from one sort (and a
+    sort of the subsample on rows longer than :data:`diffgyro._noise.SUBSAMPLE`)."""
     if y.shape[0] < 2:
         return jnp.full((3,), jnp.nan, y.dtype)
     dy = jnp.diff(y, axis=0).T  # (3, n-1)
@@ -215,8 +214,8 @@ def device_noise_floor(y: Float[Array, "n 3"], mask: Bool[Array, " n"]) -> Float
 
 def _subsampled_ms(dy: Float[Array, "3 m"], pair: Bool[Array, "3 m"], n: Int[Array, " 3"],
                    exact: Float[Array, " 3"]) -> Float[Array, " 3"]:
-    """Twice the squared floor of rows of more than :data:`diffgyro.noise.SUBSAMPLE` valid
-    differences, as :func:`diffgyro.noise._sigma_subsampled` gives it: the window placed
+    """Twice the squared floor of rows of more than :data:`diffgyro._noise.SUBSAMPLE` valid
+    differences, as :func:`diffgyro._noise._sigma_subsampled` gives it: the window placed
     from the median and MAD of the subsample, the variance of the differences inside it;
     ``exact`` where that function keeps the exact statistic."""
     k = noise.SUBSAMPLE
@@ -635,8 +634,7 @@ def _aux_fields(extra) -> dict:
 
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
               theta0=None, extra=({}, {})) -> FitResult:
-    """The sums path (:mod:`diffgyro.fit_sums`): one blocked pass per trial of the time constants."""
-    from .fit_sums import solve_sums
+    """The sums path (:mod:`diffgyro._fit_sums`): one blocked pass per trial of the time constants."""
 
     out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]))
     d = batch.n_devices

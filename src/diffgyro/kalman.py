@@ -39,14 +39,21 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
-from .data import as_batch
+from ._folds import fold_ids
+from ._jit import release_compiled_if_crowded
+from ._jsonio import number
+from ._options import FitOptions
+from .data import as_batch, bucket_length
 from .effects import RandomWalk, register_noise_fit
-from .folds import fold_ids
-from .jit import release_compiled_if_crowded
-from .jsonio import number
+from .fit import batch_signals, device_noise_floor
 from .model import ErrorModel, Params
-from .options import FitOptions
+from .signals import TempNorm
 from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, STATUS_NAMES, explain
+from .stochastic import bias_filter, state_space
+
+__all__ = ["fit_random_walk", "RandomWalkFit", "identified_bias", "smooth_bias", "causal_bias",
+           "rw_filter", "rts_smoother", "learn_noise", "loglik", "profile", "FilterPass",
+           "SmoothedBias", "NoiseFit"]
 
 LOG_2PI = math.log(2.0 * math.pi)
 #: Prior variance of the walk's start when no constant bias is modelled, (rad/s)².
@@ -223,10 +230,9 @@ def identified_bias(y: Float[Array, "n 3"], axes: dict, dt: float, p0_walk: floa
     ``axes``: ``{"x": {"components": [...]}, ...}`` as ``noise --json`` and
     ``diagnose --json``'s ``noise`` give them (SI units). Gauss–Markov and random-walk
     states replace the one walk of :func:`rw_filter`
-    (:mod:`diffgyro.stochastic.bias_filter`); a random walk alone is that filter. An
+    (:mod:`diffgyro.stochastic._bias_filter`); a random walk alone is that filter. An
     axis with no bias process (white only) has bias 0 and variance 0. ``y``: the rate
     at rest, or the residual of a deterministic model, sampled every ``dt`` s."""
-    from .stochastic.bias_filter import bias_filter, state_space
 
     y = jnp.asarray(y, jnp.float64)
     mean, var = [], []
@@ -351,7 +357,6 @@ def learn_noise(
 def observed_indices(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per device, the indices of the observed samples padded to one bucket length, and
     their validity: the ``keep`` argument of :func:`learn_noise` for a batch (host numpy)."""
-    from .data import bucket_length
 
     obs = np.asarray(obs, bool)
     counts = obs.sum(axis=1)
@@ -418,7 +423,6 @@ class RandomWalkFit(eqx.Module):
 
     def signals(self, batch):
         """Derived signals of ``batch`` with this fit's temperature centring."""
-        from .fit import batch_signals
 
         norm = self.norm if self.model.requires() & {"temp"} else None
         return batch_signals(batch, norm=norm, dtemp_window=self.options.dtemp_window)
@@ -519,7 +523,6 @@ class RandomWalkFit(eqx.Module):
 
 
 def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
-    from .fit import device_noise_floor  # the floor fit() reports
 
     nf = learn_noise(model, sig, obs, p0, keep, reml=reml, max_steps=max_steps)
     obs = obs & sig.mask
@@ -585,8 +588,6 @@ def fit_random_walk(
     ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
-    from .fit import batch_signals
-    from .signals import TempNorm
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)

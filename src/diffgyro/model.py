@@ -24,6 +24,8 @@ from .effects import AbstractEffect, AbstractNoise, AbstractTerm, format_spec, p
 from .errors import SpecError
 from .signals import Signals
 
+__all__ = ["ErrorModel", "Params"]
+
 
 class Params(eqx.Module):
     """Fitted parameters of one device (or a batch, with leading axes).

@@ -51,7 +51,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
-from .jsonio import number
+from ._jsonio import number
+from .data import device_bucket, sampling_intervals
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
 EARTH_RATE = 7.292115e-5
@@ -375,7 +376,6 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-    from .data import device_bucket, sampling_intervals
 
     if dt is None:
         dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01

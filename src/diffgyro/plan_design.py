@@ -42,10 +42,20 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
+from scipy.signal import lfilter
 
-from .effects.thermal_lag import first_order_lag
+from .data import Batch
+from .effects import first_order_lag
+from .fit import FitOptions, fit, solve_device
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
+
+__all__ = ["predict_plan", "optimise_plan", "plan_sensitivity", "heading_study",
+           "budget_for_accuracy", "simulate_devices", "monte_carlo", "PlanConfig", "ChamberPlan",
+           "s2_plan", "plan_duration", "plan_environment", "OperatingRange", "operating_signals",
+           "compensation_error", "Prediction", "DesignResult", "MonteCarlo", "PlanSpace",
+           "Environment", "default_truth", "flat", "unflat", "output_jacobian", "smooth_max",
+           "DEG", "EARTH_RATE"]
 
 EARTH_RATE = 7.292115e-5  # rad/s
 G0 = 9.80665
@@ -322,6 +332,7 @@ def flat(params: Params) -> Float[Array, " k"]:
 
 
 def unflat(vec: Float[Array, " k"], model: ErrorModel) -> Params:
+    """The :class:`~diffgyro.model.Params` of a :func:`flat` vector."""
     p, q = model.n_params, model.n_nonlinear
     return Params(beta=vec[:3 * p].reshape(3, p), theta=vec[3 * p:3 * p + q])
 
@@ -419,7 +430,6 @@ def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
 
 
 def _fit_noiseless(plan, config, model, truth_model, truth, norm, fit_options):
-    from .fit import FitOptions, solve_device
 
     env = plan_environment(plan, config)
     true_sig = env_signals(env, norm, reference=False, dtemp_window=config.dtemp_window)
@@ -661,9 +671,7 @@ def simulate_devices(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
     and correlation time ``gm_tau`` s. The fit sees the plan's reference
     rate and the sensor temperature.
     """
-    from scipy.signal import lfilter
 
-    from .data import Batch
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
@@ -738,7 +746,6 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
     ``fit_kw`` goes to ``fit`` (e.g. ``path="direct"`` for the
     :func:`~diffgyro.fit.solve_device` path that the sensitivities differentiate).
     """
-    from .fit import fit
 
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)

@@ -23,12 +23,18 @@ import html
 import io
 import math
 import os
+import re
+import sys
 from pathlib import Path
 
 import numpy as np
 
+from ._jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
 from .data import Batch
-from .jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
+from .effects import product_of
+from .fit import fit
+from .model import ErrorModel
+from .motion import describe
 
 AXES = ("x", "y", "z")
 COLORS = ("tab:blue", "tab:orange", "tab:green")
@@ -40,7 +46,6 @@ MAX_POINTS = 3000
 
 
 def _plt():
-    import sys
 
     import matplotlib
 
@@ -249,7 +254,6 @@ def named_term_residuals(diagnosis, batch: Batch, ladder=None) -> dict[int, tupl
     distinct model over the devices that name it, with the base fit's options
     (the ladder's last fit is reused when it is that model).
     """
-    from .fit import fit
 
     groups: dict[str, list[int]] = {}
     for i, d in enumerate(diagnosis.devices):
@@ -271,7 +275,6 @@ def named_term_residuals(diagnosis, batch: Batch, ladder=None) -> dict[int, tupl
 
 
 def _added(base_spec: str, new_spec: str) -> str:
-    from .model import ErrorModel
 
     old = {t.spec for t in ErrorModel.from_spec(base_spec).terms}
     return "+".join(t.spec for t in ErrorModel.from_spec(new_spec).terms if t.spec not in old)
@@ -305,7 +308,6 @@ def followed_signal(name: str | None, rec, dtemp, k: int, delta: np.ndarray):
         j = _most_correlated(acc, delta)
         return acc[:, j], f"specific force a{AXES[j]} (m/s²)"
     if name is not None and name.startswith("term:"):  # a grammar term: its product
-        from .effects.grammar import product_of
 
         x = product_of(name[5:], rec, dtemp, k)
         return None if x is None else (x, name[5:])
@@ -318,7 +320,6 @@ def followed_signal(name: str | None, rec, dtemp, k: int, delta: np.ndarray):
 def _signal_of_term(base_spec: str, new_spec: str, rec, dtemp, k: int, delta):
     """The signal the added term follows; for a term that names none (a user effect),
     the one among the data's signals that its contribution follows most."""
-    from .model import ErrorModel
 
     old = {t.spec for t in ErrorModel.from_spec(base_spec).terms}
     added = [t for t in ErrorModel.from_spec(new_spec).terms if t.spec not in old]
@@ -454,7 +455,6 @@ def _motion_line(diagnosis, i: int) -> str:
     motion = getattr(diagnosis.fit, "motion", None)
     if motion is None:
         return ""
-    from .motion import describe
 
     return f"<p class=motion>Motion check: {html.escape(describe(motion.record(i)))}.</p>"
 
@@ -525,7 +525,6 @@ STRIP_MAX = 20
 
 def _text(text: str) -> str:
     """Message text as HTML: escaped, and its `term` quotes set as code."""
-    import re
 
     return re.sub(r"`([^`]+)`", r"<code>\1</code>", html.escape(text))
 
@@ -534,7 +533,6 @@ def coefficient_unit(model, label: str) -> str:
     """The unit of a coefficient label (``bias_poly(2).c1`` -> ``rad/s per T_s``;
     a shared time constant ``thermal_lag.tau`` -> ``s``). ``T_s``: the scaled temperature
     (dimensionless, about [-1, 1] over the calibrated range)."""
-    import re
 
     spec, _, name = label.rpartition(".")
     if name == "tau" or name.startswith("tau"):
@@ -709,6 +707,6 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     return paths
 
 
-__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page", "figure_png", "followed_signal", "ladder_png",
-           "named_term_residuals", "outliers", "residual_drop_figure", "summary_page", "write_atomic",
-           "write_report"]
+__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page",
+           "figure_png", "followed_signal", "ladder_png", "named_term_residuals", "outliers",
+           "residual_drop_figure", "summary_page", "write_atomic", "write_report"]

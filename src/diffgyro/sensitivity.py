@@ -27,6 +27,8 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
+from statistics import NormalDist
 
 import equinox as eqx
 import jax
@@ -34,12 +36,18 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._jit import release_compiled_if_crowded
+from ._linalg import normal_equations
 from .data import Batch
-from .fit import FitOptions, FitResult, normal_equations, project_linear, solve_device, varpro
-from .jit import release_compiled_if_crowded
+from .fit import FitOptions, FitResult, project_linear, solve_device, varpro
 from .model import ErrorModel, Params
 from .plan_design import compensation_error, flat, operating_signals, output_jacobian, unflat
 from .signals import Signals, TempNorm
+
+__all__ = ["param_sensitivity", "batch_param_sensitivity", "compensation_sensitivity",
+           "uncertainty_band", "uncertainty_bands", "plot_uncertainty_band", "Band",
+           "fitted_params", "hac_covariance", "block_bootstrap", "coverage", "z_value",
+           "long_run_covariance", "autocovariance", "lag_window", "levinson", "ar_autocovariance"]
 
 KERNELS = ("bartlett", "parzen", "qs")
 # Andrews (1991) optimal-bandwidth constants and the characteristic exponent q.
@@ -387,7 +395,6 @@ def _bootstrap_batch(model, sig, params, keys, n_boot, block, opts, chunk):
 
 def z_value(level: float) -> float:
     """Two-sided normal quantile for a confidence ``level`` (0.95 → 1.96)."""
-    from statistics import NormalDist
 
     return NormalDist().inv_cdf(0.5 + level / 2)
 
@@ -493,7 +500,6 @@ def plot_uncertainty_band(bands: Band | list[Band], unit: str = "deg/h", fig=Non
     Several bands (e.g. plain and autocorrelation-consistent covariance)
     overlay; returns the matplotlib Figure.
     """
-    import sys
 
     import matplotlib
 

@@ -15,6 +15,10 @@ from jaxtyping import Array, Bool, Float
 
 from .data import aux_key
 
+__all__ = ["make_signals", "Signals", "TempNorm", "temp_norm_from", "local_slope",
+           "latched_heating", "moving_average_difference", "masked_range", "prefix_sums",
+           "HEATING_THRESHOLD"]
+
 # |dT/dt| above which the sensor counts as heating or cooling (0.05 °C/min).
 HEATING_THRESHOLD = 0.05 / 60.0
 
@@ -45,7 +49,7 @@ class Signals(eqx.Module):
     accel: Float[Array, "n 3"] | None
     norm: TempNorm | None
     has_rate: bool = eqx.field(static=True, default=False)
-    #: Extra logged columns by name, centred and scaled (:mod:`diffgyro.aux`).
+    #: Extra logged columns by name, centred and scaled (:mod:`diffgyro._aux`).
     aux: dict[str, Float[Array, " n"]] = eqx.field(default_factory=dict)
 
     @property
@@ -181,7 +185,7 @@ def make_signals(
     ``dt`` is the nominal sampling interval (default: median spacing of the
     valid samples). Without ``slopes`` dT/dt and the heating state are left out
     (None): for a model that reads neither, they are not traced at all. ``aux``
-    holds extra columns already centred and scaled (:func:`diffgyro.aux.scaled`).
+    holds extra columns already centred and scaled (:func:`diffgyro._aux.scaled`).
     """
     t = jnp.asarray(t)
     t = t - t[0]

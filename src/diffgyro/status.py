@@ -16,6 +16,12 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from .motion import describe
+
+__all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK_DEFICIENT",
+           "INSUFFICIENT_RANGE", "INSUFFICIENT_DATA", "FAILED", "IN_MOTION", "min_samples",
+           "collinear_terms"]
+
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
                 "insufficient_data", "failed", "in_motion")
 OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED, IN_MOTION = range(7)
@@ -97,7 +103,6 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
         return (f"{name}: the time-constant solve stopped{after} without converging "
                 f"(or short of the best start point); the coefficients are not trusted")
     if name == "in_motion":
-        from .motion import describe
 
         return (f"{name}: {describe(motion or {})}; record at rest, give a rate reference "
                 f"(rx, ry, rz), or fit the static intervals only with --static-only")

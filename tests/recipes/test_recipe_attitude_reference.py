@@ -6,12 +6,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from diffgyro._reference import attitude_from_accel_mag, quat_conj, quat_mul, rotvec_from_quat
 from diffgyro.data import Recording
 from diffgyro.errors import DataError
 from diffgyro.model import Params
+from diffgyro.recipes._attitude_reference import attitude_reference
 from diffgyro.recipes._common import toolkit_compensate
-from diffgyro.recipes.attitude_reference import attitude_reference
-from diffgyro.reference import attitude_from_accel_mag, quat_conj, quat_mul, rotvec_from_quat
 from diffgyro.simulate import simulate
 
 BIAS = np.array([0.01, -0.02, 0.015])        # rad/s

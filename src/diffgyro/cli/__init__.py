@@ -8,11 +8,17 @@ goes to stderr and the exit code is 2, never a traceback.
 
 from __future__ import annotations
 
+import functools
 import importlib
+import inspect
 import pkgutil
 import sys
+from pathlib import Path
 
 import typer
+
+import diffgyro
+from diffgyro.errors import DataError
 
 app = typer.Typer(
     name="diffgyro",
@@ -49,9 +55,7 @@ INPUT_OPTIONS = ("cal", "limits", "sections")
 def _check_inputs(command, values: dict) -> None:
     """A missing input file is one line before the engine starts (the same line as
     :func:`diffgyro.io.load` gives)."""
-    from pathlib import Path
 
-    from diffgyro.errors import DataError
 
     for param in command.params:
         if param.param_type_name != "argument" and param.name not in INPUT_OPTIONS:
@@ -66,13 +70,11 @@ def _engine_first(command):
     """``command``'s callback with its input files checked, then float64 and the
     compilation cache turned on: JAX starts only when a command runs, after its
     options parsed (``--help`` and usage errors answer without it)."""
-    import functools
 
     callback = command.callback
 
     @functools.wraps(callback)
     def run_command(*args, **kwargs):
-        import diffgyro
 
         _check_inputs(command, kwargs)
         diffgyro.enable_x64()
@@ -85,7 +87,6 @@ def _engine_first(command):
 def _reflow(text: str) -> str:
     """Docstring paragraphs as single lines (the help panel wraps them to the terminal);
     an indented or bulleted paragraph keeps its lines."""
-    import inspect
 
     paragraphs = inspect.cleandoc(text).split("\n\n")
     return "\n\n".join(
@@ -114,7 +115,6 @@ def tidy_help(command) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point: float64 and the compilation cache on, clean errors out."""
-    from diffgyro.errors import DataError
 
     load_commands()
     root = typer.main.get_command(app)

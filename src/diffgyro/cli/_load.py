@@ -13,7 +13,10 @@ JAX at module level, so ``diffgyro --help`` stays fast.
 from __future__ import annotations
 
 import sys
+from dataclasses import asdict
 from pathlib import Path
+
+from diffgyro.errors import DataError
 
 #: Fewest samples per device for an Allan curve with a few τ (m = 1 needs 4 samples per
 #: cluster ratio): the recordings of ``allan`` and ``export --format kalibr``, and the
@@ -74,7 +77,6 @@ def load_from_cli(
 def units_json(report) -> list[dict]:
     """The ``"units"`` field of ``--json`` output: the load's unit lines (read from
     headers, or warned), each ``{"file", "signal", "kind", "text"}``."""
-    from dataclasses import asdict
 
     return [asdict(u) for u in report.units]
 
@@ -106,7 +108,6 @@ def longest_static(batch, motion, min_samples: int):
     import numpy as np
 
     from diffgyro.data import Batch
-    from diffgyro.errors import DataError
 
     recs = []
     for i, rec in enumerate(batch.recordings()):

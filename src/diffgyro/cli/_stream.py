@@ -6,11 +6,14 @@ This module starts with ``_`` so it is not imported as a command.
 
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from diffgyro.errors import DataError
 
 from ._load import units_from_cli
 
@@ -86,9 +89,7 @@ def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window
                     gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
                     chunk_devices, work_dir, resume, dask, results, limits=None) -> None:
     """``diffgyro diagnose`` over a dataset in chunks; same ``--json`` object (model, devices)."""
-    import json
 
-    from diffgyro.errors import DataError
     from diffgyro.io import parse_columns
     from diffgyro.pipeline import DEFAULT_CHUNK_DEVICES, diagnose_dataset
 

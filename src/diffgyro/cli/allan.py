@@ -9,6 +9,8 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from . import app
 from ._load import MIN_SAMPLES, load_from_cli, longest_static, units_json
@@ -68,8 +70,8 @@ def allan_command(
     --static-only computes the curve over each device's longest static
     interval (never over static pieces glued across the motion).
     """
+    from diffgyro._jsonio import dumps
     from diffgyro.io import LoadReport
-    from diffgyro.jsonio import dumps
     from diffgyro.motion import motion_check
 
     wanted = _parse_taus(taus)
@@ -91,7 +93,7 @@ def allan_command(
     if report is not None:
         _write_report(parts, batch, doc, report)
     if out is not None:
-        from diffgyro.jsonio import atomic_write_text
+        from diffgyro._jsonio import atomic_write_text
 
         atomic_write_text(out, dumps(doc))
     if json_out:
@@ -192,8 +194,6 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
                  batch=None) -> None:
     """The read-outs (and with --taus σ at each τ asked for); each dash is numbered and
     its reason printed under the table."""
-    from rich.console import Console
-    from rich.table import Table
 
     notes: list[str] = []
 
@@ -236,7 +236,6 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
 
 def _tau_table(doc: dict, wanted: list[float], batch, dash):
     """σ(τ) at exactly the τ asked for, per device and axis."""
-    from rich.table import Table
 
     table = Table(title="Allan deviation σ(τ) at the τ asked for (rad/s)")
     table.add_column("device")
@@ -269,8 +268,8 @@ def _write_report(parts, batch, doc: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from diffgyro._jsonio import atomic_write_text, dumps
     from diffgyro.allan import plot_allan
-    from diffgyro.jsonio import atomic_write_text, dumps
 
     out.mkdir(parents=True, exist_ok=True)
     rows, figs = [], []

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import sys
+import warnings
 from pathlib import Path
 from typing import Annotated
 
 import typer
+
+from diffgyro.errors import DataError
 
 from . import app
 from ._load import load_from_cli
@@ -39,10 +42,8 @@ def compensate_command(
 ) -> None:
     """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
     calibrated range are clamped to it, with a warning."""
-    import warnings
 
     from diffgyro import calibration, io
-    from diffgyro.errors import DataError
 
     calib = calibration.load(cal)
     batch = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -64,8 +65,8 @@ def compensate_command(
                         hint="choose another --out")
     io.save(corrected, out)
     if as_json:
+        from diffgyro._jsonio import dumps
         from diffgyro.carry import residuals
-        from diffgyro.jsonio import dumps
 
         counts = [int(v) for v in corrected.mask.sum(axis=1)]
         carried = residuals(corrected, batch)

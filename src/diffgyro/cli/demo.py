@@ -8,7 +8,10 @@ from typing import Annotated
 
 import typer
 
+from diffgyro.errors import DataError
+
 from . import app
+from .diagnose import print_diagnosis, print_ladder, wide_console
 
 
 @app.command("demo")
@@ -21,10 +24,8 @@ def demo_command(
     effect, refit, print the ladder and write the report (default ./diffgyro-demo/)."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from diffgyro.demo import BASE, TRUTH, run_demo
-    from diffgyro.errors import DataError
+    from diffgyro._demo import BASE, TRUTH, run_demo
 
-    from .diagnose import print_diagnosis, print_ladder, wide_console
 
     if devices < 1:
         raise DataError(f"--devices must be at least 1, not {devices}")

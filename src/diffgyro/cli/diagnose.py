@@ -3,14 +3,19 @@
 from __future__ import annotations
 
 import math
+import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.console import Console
+from rich.table import Table
+
+from diffgyro.errors import DataError
 
 from . import app
-from ._limits import LimitsOpt
-from ._load import streamed_dir
+from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
+from ._load import MIN_SAMPLES, load_for_model, longest_static, streamed_dir
 from ._options import (
     AccUnit,
     Columns,
@@ -25,7 +30,7 @@ from ._options import (
     TimeUnit,
     Topic,
 )
-from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
+from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_diagnose
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec to diagnose, e.g. 'bias_poly(2)' "
                                                          "(see 'diffgyro effects').")]
@@ -46,7 +51,6 @@ def _add(d) -> str:
 def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
     """A rich table of the devices, then each device's explanation (``judged``: the records
     with their --limits result, a column of pass/fail)."""
-    from rich.table import Table
 
     table = Table(title=f"diagnosis of {diag.spec} (rates in rad/s)")
     for col in ("device", "verdict", "rms", "held-out", "floor", "add", "held-out with it",
@@ -79,7 +83,6 @@ def skipped_lines(diag) -> list[str]:
 
 
 def print_ladder(ladder, console) -> None:
-    from rich.table import Table
 
     table = Table(title="model ladder (median over devices)")
     for col in ("added", "model", "held-out RMS", "noise floor", "adequate"):
@@ -91,9 +94,7 @@ def print_ladder(ladder, console) -> None:
 
 def wide_console():
     """A rich console; 140 columns when stdout is not a terminal (pipes, logs, tests)."""
-    import sys
 
-    from rich.console import Console
 
     return Console() if sys.stdout.isatty() else Console(width=140)
 
@@ -103,7 +104,6 @@ def _write_calibration(diag, batch, path: Path, err, judged=None) -> None:
     ``judged``: (records, summary) of --limits, kept in the file."""
     from diffgyro import calibration
 
-    from ._limits import attach
 
     cal = calibration.from_fit(diag.fit, batch)
     calibration.save(cal if judged is None else attach(cal, *judged), path)
@@ -158,10 +158,8 @@ def diagnose_command(
     _refuse_combinations(limits is not None and auto, streamed and static_only,
                          streamed and not synthesis)
     if streamed:
-        from ._stream import stream_diagnose
 
         if out is not None:
-            from diffgyro.errors import DataError
 
             raise DataError("--out needs every device in memory; it does not stream",
                             hint="run 'diffgyro fit --out' on the final model, or give data files "
@@ -171,11 +169,9 @@ def diagnose_command(
                         gyro_unit, acc_unit, temp_unit, time_unit, sampling_rate, drop_invalid,
                         chunk_devices, work_dir, resume, dask, results, limits=limits)
         return
-    from rich.console import Console
 
     from diffgyro.model import ErrorModel
 
-    from ._limits import load_limits
 
     lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
     spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
@@ -196,7 +192,6 @@ def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
                          streamed_without_synthesis: bool) -> None:
     """One line (exit 2) for options that do not go together."""
     if limits_with_auto:
-        from diffgyro.errors import DataError
 
         raise DataError("--limits judges the model given with --model; with --auto the model "
                         "shipped is known only at the end",
@@ -229,7 +224,6 @@ def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as
     file and the printed result (``static``: what --static-only kept, per device)."""
     judged = None
     if lim is not None:
-        from ._limits import judge
 
         judged = judge(lim, diag.to_json()["devices"], diag.fit, batch, diag.residuals)
     if report is not None:
@@ -247,7 +241,6 @@ def _static_only(batch):
     recording and the samples kept (extra keys of its --json record)."""
     from diffgyro.motion import motion_check
 
-    from ._load import MIN_SAMPLES, longest_static
 
     motion = motion_check(batch)
     recorded = [int(n) for n in batch.n_valid]
@@ -265,7 +258,6 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
     from diffgyro.data import Batch
     from diffgyro.model import ErrorModel
 
-    from ._load import load_for_model
 
     spec = ErrorModel.from_spec(model)
     recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -283,7 +275,6 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
 
     missing = spec.requires() - set(batch.signals) - {aux_key(k) for k in batch.aux} - {"t"}
     if missing:
-        from diffgyro.errors import DataError
 
         raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
                         file=batch.sources[0] if batch.sources else None)
@@ -309,7 +300,7 @@ def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None,
     ``judged``: (records, summary) of --limits; ``static``: per device, the motion of the
     whole recording and the samples --static-only kept."""
     if as_json:
-        from diffgyro.jsonio import dumps
+        from diffgyro._jsonio import dumps
 
         obj = diag.to_json()
         if judged is not None:
@@ -329,7 +320,6 @@ def _print_result(diag, ladder, as_json: bool, report: Path | None, judged=None,
     if ladder is not None:
         print_ladder(ladder, console)
     if judged is not None:
-        from ._limits import print_lines
 
         print_lines(*judged, console=console)
     if report is not None:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 from rich.console import Console
 from rich.table import Table
 
@@ -43,7 +45,6 @@ def effects_command() -> None:
 
 def _of_order_k(cls, args) -> str:
     """Every coefficient of a term of order k: ``c0, c1, …, ck`` (``a1, …, ak``)."""
-    import re
 
     def names(k: int) -> list[str]:
         term = cls(**{f: ("NAME" if kind == "column" else k) for f, kind in args})

@@ -4,13 +4,16 @@ from __future__ import annotations
 
 import json
 import sys
+from dataclasses import replace
 from pathlib import Path
 from typing import Annotated
 
 import typer
 
+from diffgyro.errors import DataError
+
 from . import app
-from ._load import load_from_cli
+from ._load import MIN_SAMPLES, load_from_cli
 from ._options import (
     AccUnit,
     Columns,
@@ -61,7 +64,6 @@ def export_command(
     A device that is not ok (a fit's status, or Allan read-outs of a recording that
     moved) is refused with the reason, unless --force.
     """
-    from diffgyro.errors import DataError
     from diffgyro.export import FORMATS, render
 
     fmt = fmt.lower()
@@ -86,7 +88,6 @@ def export_command(
 
         noise, report = _kalibr_noise(source, device, rate, (columns, gyro_unit, acc_unit, temp_unit,
                                       time_unit, sampling_rate, drop_invalid), force)
-        from dataclasses import replace
 
         if accel_noise_density is not None:
             noise = replace(noise, accel_noise_density=accel_noise_density)
@@ -117,7 +118,6 @@ def _devices_of(cal, fmt: str, device: str | None) -> str:
 
 
 def _ids(text: str) -> list[int]:
-    from diffgyro.errors import DataError
 
     try:
         return [int(x, 0) for x in text.split(",")]
@@ -126,7 +126,6 @@ def _ids(text: str) -> list[int]:
 
 
 def _read_json(source: Path, what: str):
-    from diffgyro.errors import DataError
 
     try:
         return json.loads(source.read_text(encoding="utf-8"))
@@ -156,7 +155,6 @@ def _is_json_object(path: Path) -> bool:
 
 def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
     """Noise densities from an 'allan --json' file, or from Allan curves of a recording."""
-    from diffgyro.errors import DataError
     from diffgyro.export import kalibr
 
     if _is_json_object(source):
@@ -182,7 +180,6 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
                             hint=err.hint) from None
     from diffgyro.motion import motion_check
 
-    from ._load import MIN_SAMPLES
 
     batch = load_from_cli([source], *load_opts, min_samples=MIN_SAMPLES)
     gyro_doc = kalibr.allan_of(batch, "gyro", motion_check(batch))
@@ -192,8 +189,7 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
 
 def _emit(text: str, out: str | None, source: Path, what: str) -> None:
     """``text`` to stdout, or to ``out`` with one line saying what was written."""
-    from diffgyro.errors import DataError
-    from diffgyro.jsonio import atomic_write_text
+    from diffgyro._jsonio import atomic_write_text
 
     if out is None or out == "-":
         sys.stdout.write(text)

@@ -7,9 +7,11 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.console import Console
+from rich.table import Table
 
 from . import app
-from ._limits import LimitsOpt
+from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import load_for_model, streamed_dir, units_json
 from ._options import (
     AccUnit,
@@ -26,7 +28,7 @@ from ._options import (
     Topic,
     motion_notes,
 )
-from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt
+from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_fit
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec, e.g. 'bias_poly(2)+gradient' "
                                                          "(see 'diffgyro effects').")]
@@ -60,13 +62,12 @@ def fit_command(
     chunks of devices with resumable state in --work-dir (see docs/dask.md).
     """
     from diffgyro import calibration
+    from diffgyro._jsonio import dumps
     from diffgyro.fit import fit
     from diffgyro.io import LoadReport
-    from diffgyro.jsonio import dumps
     from diffgyro.model import ErrorModel
 
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
-        from ._stream import stream_fit
 
         if static_only:
             raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
@@ -77,7 +78,6 @@ def fit_command(
                    temp_unit, time_unit, sampling_rate, drop_invalid, chunk_devices, work_dir,
                    resume, dask, results, limits=limits)
         return
-    from ._limits import attach, judge, load_limits, print_lines
 
     em = ErrorModel.from_spec(model)
     lim = load_limits(limits, em)
@@ -86,7 +86,7 @@ def fit_command(
                            sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
                            report=report)
     if dtemp_window is None:
-        from diffgyro.temperature import suggest_dtemp_window
+        from diffgyro._temperature import suggest_dtemp_window
 
         dtemp_window = suggest_dtemp_window(batch)
     result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)
@@ -101,8 +101,6 @@ def fit_command(
         print(dumps({"model": em.spec, "devices": records, "units": units_json(report)}
                     | ({} if summary is None else {"limits": summary})))
         return
-    from rich.console import Console
-    from rich.table import Table
 
     table = Table(title=f"fit {em.spec}  (rates in rad/s)")
     for col in ("device", "status", "rms", "held-out rms", "noise floor", "moving", "samples",

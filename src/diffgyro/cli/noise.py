@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import html
 import math
+import sys
 from pathlib import Path
 from typing import Annotated
 
@@ -75,7 +76,7 @@ def noise_command(
     its 95 % interval; the rejected structures are listed with their
     criterion values. Record the device static: motion is not noise.
     """
-    from diffgyro.jsonio import dumps
+    from diffgyro._jsonio import dumps
 
     batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, min_samples=2,
@@ -92,7 +93,7 @@ def noise_command(
 
 def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
     """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
-    from diffgyro.stochastic.devices import identify_devices
+    from diffgyro.stochastic import identify_devices
 
     motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
@@ -113,7 +114,6 @@ def moved_reasons(batch) -> list[str | None]:
 
 def _warn_uneven(batch) -> None:
     """A warning per device whose sampling is uneven: the wavelet variance assumes even steps."""
-    import sys
 
     import numpy as np
 
@@ -142,24 +142,23 @@ def display_line(name: str, p: dict) -> str:
 
 
 def _print_text(doc: dict, report: Path | None) -> None:
-    import typer as _t
 
-    from diffgyro.stochastic.selection import label
+    from diffgyro.stochastic import label
 
     for dev in doc["devices"]:
         if dev["status"] != "ok":
-            _t.echo(f"{dev['device']}: {dev['status']}: {dev['status_detail']}")
+            typer.echo(f"{dev['device']}: {dev['status']}: {dev['status_detail']}")
             continue
         for ax, a in dev["axes"].items():
-            _t.echo(f"{dev['device']} {ax}: {label(tuple(a['structure']))}")
+            typer.echo(f"{dev['device']} {ax}: {label(tuple(a['structure']))}")
             for c in a["components"]:
                 for name, p in c["params"].items():
-                    _t.echo(f"    {display_line(name, p)}")
+                    typer.echo(f"    {display_line(name, p)}")
             alts = [f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3]]
-            _t.echo(f"    next best: {'; '.join(alts)}")
-    _t.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
+            typer.echo(f"    next best: {'; '.join(alts)}")
+    typer.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
     if report is not None:
-        _t.echo(f"report: {report / 'index.html'}")
+        typer.echo(f"report: {report / 'index.html'}")
 
 
 def plot_noise(res, j: int, title: str | None = None):
@@ -168,7 +167,7 @@ def plot_noise(res, j: int, title: str | None = None):
     import matplotlib.pyplot as plt
     import numpy as np
 
-    from diffgyro.stochastic.selection import label
+    from diffgyro.stochastic import label
 
     names = ("white", "quantization", "Gauss–Markov 1", "Gauss–Markov 2", "random walk", "rate ramp")
     fig, axs = plt.subplots(1, 3, figsize=(15, 4.5), sharey=True)
@@ -210,8 +209,8 @@ def _write_report(doc: dict, models: dict, out: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from diffgyro.jsonio import atomic_write_text, dumps
-    from diffgyro.stochastic.selection import label
+    from diffgyro._jsonio import atomic_write_text, dumps
+    from diffgyro.stochastic import label
 
     out.mkdir(parents=True, exist_ok=True)
     parts = []

@@ -12,6 +12,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
+from rich.console import Console
+
+from diffgyro.errors import DataError
 
 from . import app
 from ._load import load_from_cli
@@ -113,8 +116,8 @@ def recipe_command(
     in_motion and a warning; --static-only runs them on the static samples only."""
     # Over 80 lines only through its signature: typer reads each recipe option from a
     # parameter of this function; the work is in the helpers below.
+    from diffgyro._jsonio import atomic_write_text, dumps
     from diffgyro.io import resolve_units
-    from diffgyro.jsonio import atomic_write_text, dumps
     from diffgyro.recipes import get
 
     recipe = get(name)
@@ -133,7 +136,6 @@ def recipe_command(
     if device is not None:
         recordings = [r for r in recordings if r.device == device]
         if not recordings:
-            from diffgyro.errors import DataError
 
             raise DataError(f"device {device!r} is not in the data", file=str(data))
     conv = resolve_units({"gyro": gyro_unit, "accel": acc_unit})
@@ -164,7 +166,6 @@ def _rest_check(name: str, recordings, static_only: bool):
     import numpy as np
 
     from diffgyro.data import Batch, Recording
-    from diffgyro.errors import DataError
     from diffgyro.motion import describe, motion_check
 
     if name not in REST_RECIPES:
@@ -197,7 +198,6 @@ def _recipe_options(recipe, name: str, data: Path, given: dict, sections: Path |
     """The options given on the command line that recipe ``name`` takes; an option it
     does not take is an error naming its options. Its sections file defaults to
     ``DATA_list.json`` beside the data."""
-    from diffgyro.errors import DataError
 
     given = {k: v for k, v in given.items() if v is not None}
     accepted = set(recipe.options())
@@ -223,7 +223,6 @@ def _recipe_options(recipe, name: str, data: Path, given: dict, sections: Path |
 def _run_devices(recipe, name: str, recordings, given: dict, conv: dict, file: str):
     """(device, result or None) per recording and the errors of the failed ones; with one
     device its error is raised, and so is the first when every device failed."""
-    from diffgyro.errors import DataError
 
     results, failed = [], {}
     for rec in recordings:
@@ -248,7 +247,7 @@ def _run_devices(recipe, name: str, recordings, given: dict, conv: dict, file: s
 def _payload(results, failed, rest=None) -> dict:
     """The JSON result: the recipe's own object for one device, else a record per device;
     ``rest``: per device the motion check of a recipe that assumes rest."""
-    from diffgyro.jsonio import to_json_safe
+    from diffgyro._jsonio import to_json_safe
 
     rest = rest or {}
     if len(results) == 1:
@@ -262,7 +261,6 @@ def _payload(results, failed, rest=None) -> dict:
 
 def _naming_file(err, file: str, device: str):
     """``err`` with the file and device filled in where it names neither."""
-    from diffgyro.errors import DataError
 
     if err.file is not None:
         return err
@@ -314,9 +312,8 @@ def _accepted_reasons(d: dict) -> str:
 def _print_human(name, recipe, results, gyro_unit: str = "rad/s", acc_unit: str = "m/s²") -> None:
     """Short, readable summary: scalars and small arrays of each result, with units."""
     import numpy as np
-    from rich.console import Console
 
-    from diffgyro.jsonio import dumps, to_json_safe
+    from diffgyro._jsonio import dumps, to_json_safe
 
     units = {k: u.format(gyro=gyro_unit, acc=acc_unit) for k, u in UNITS.get(name, {}).items()}
     con = Console(width=120)

@@ -13,6 +13,8 @@ from typing import Annotated
 
 import typer
 
+from diffgyro.errors import DataError
+
 from . import app
 
 
@@ -25,7 +27,6 @@ def _value(text: str):
 
 
 def _pairs(items: list[str] | None, what: str) -> dict:
-    from diffgyro.errors import DataError
 
     out = {}
     for item in items or []:

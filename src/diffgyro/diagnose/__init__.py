@@ -18,7 +18,7 @@ everything significant:
   ``gyro − rate`` (slow drift and the steps of a rate table drop out),
   checked against the short-τ Allan deviation of the residual. The decision
   measures held-out errors against it. The ``noise_floor`` reported beside it
-  is :mod:`diffgyro.noise`'s, the one ``fit`` reports for the same device.
+  is :mod:`diffgyro._noise`'s, the one ``fit`` reports for the same device.
 * **Significant means large and material** (:mod:`.decision`): a paired t
   over the folds, a base model materially above the floor, a real share of
   that gap closed and a material gain. These keep time-correlated noise
@@ -53,16 +53,16 @@ batches; ``tests/test_diagnose.py`` measures the rates they give.
 
 from __future__ import annotations
 
-from .candidates import CandidateSpec, candidate_specs
-from .decision import redecide
-from .evidence import evidence, explain
-from .floor import white_noise_rms
-from .ladder import Ladder, LadderStep, choose_effect, diagnose_auto
-from .results import AllanCurves, Candidate, DeviceDiagnosis, Diagnosis
-from .run import diagnose
-from .thresholds import GRID_POINTS, RW_GRID, Thresholds, families, family_of
+from ._candidates import CandidateSpec, candidate_specs
+from ._decision import redecide
+from ._evidence import evidence, explain
+from ._floor import white_noise_rms
+from ._ladder import Ladder, LadderStep, choose_effect, diagnose_auto
+from ._results import AllanCurves, Candidate, DeviceDiagnosis, Diagnosis
+from ._run import diagnose
+from ._thresholds import GRID_POINTS, RW_GRID, Thresholds, families, family_of
 
-__all__ = ["GRID_POINTS", "RW_GRID", "AllanCurves", "Candidate",
-           "CandidateSpec", "Diagnosis", "DeviceDiagnosis", "Ladder", "LadderStep", "Thresholds",
-           "candidate_specs", "choose_effect", "diagnose", "diagnose_auto",
-           "evidence", "explain", "families", "family_of", "redecide", "white_noise_rms"]
+__all__ = ["diagnose", "diagnose_auto", "Diagnosis", "DeviceDiagnosis", "Ladder", "LadderStep",
+           "GRID_POINTS", "RW_GRID", "AllanCurves", "Candidate", "CandidateSpec", "Thresholds",
+           "candidate_specs", "choose_effect", "evidence", "explain", "families", "family_of",
+           "redecide", "white_noise_rms"]

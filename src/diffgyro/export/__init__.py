@@ -7,8 +7,13 @@ warnings). The formulas, signs, clamping and units are in docs/export.md.
 
 from __future__ import annotations
 
+import dataclasses
+
 from ..calibration import Calibration
 from ..errors import DataError
+from . import ardupilot, c_header, px4
+
+__all__ = ["render", "FORMATS", "select_devices", "refuse_not_ok"]
 
 FORMATS = ("px4", "ardupilot", "kalibr", "c-header", "px4-ekf", "ardupilot-ekf")
 
@@ -52,7 +57,6 @@ def refuse_not_ok(devices: list[tuple[str, str, str]], force: bool) -> list[str]
 def _forced(cal: Calibration, names: list[str], force: bool) -> tuple[Calibration, list[str]]:
     """The calibration with the forced devices marked ok for the writers, and the lines
     that say so."""
-    import dataclasses
 
     lines = refuse_not_ok([(n, cal.device(n).status, cal.device(n).status_detail) for n in names],
                           force)
@@ -80,7 +84,6 @@ def render(cal: Calibration, fmt: str, device: str | None = None, instance: int 
     A device whose status is not ``ok`` is refused (a DataError naming it and why);
     ``force`` writes it anyway, with a comment in the file that says so."""
     if fmt in ("px4", "ardupilot", "c-header"):
-        from . import ardupilot, px4
 
         max_devices = {"px4": len(px4.SLOTS), "ardupilot": len(ardupilot.SLOTS), "c-header": 1}[fmt]
         names = select_devices(cal, device, fmt, max_devices)
@@ -92,7 +95,6 @@ def render(cal: Calibration, fmt: str, device: str | None = None, instance: int 
 
 def _render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
             device_ids: list[int] | None = None) -> tuple[str, list[str]]:
-    from . import ardupilot, c_header, px4
 
     if fmt == "px4":
         names = select_devices(cal, device, fmt, len(px4.SLOTS))

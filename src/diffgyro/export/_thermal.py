@@ -1,6 +1,6 @@
 """The thermal bias polynomial of a calibration, re-expanded about an autopilot's reference.
 
-diffgyro's ``bias_poly(k)`` is, per axis i (:mod:`diffgyro.effects.bias_poly`)::
+diffgyro's ``bias_poly(k)`` is, per axis i (:mod:`diffgyro.effects._bias_poly`)::
 
     b_i(T) = Σ_j c_ij · T_s^j,     T_s = (clip(T, T_lo, T_hi) − centre) / scale
 

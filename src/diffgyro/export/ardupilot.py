@@ -25,6 +25,8 @@ import numpy as np
 from ..calibration import Calibration
 from ._thermal import ThermalPoly, error_line, f32, float32_error, fmt_f32, thermal_poly
 
+__all__ = ["write", "parameters", "evaluate", "SLOTS", "NAME"]
+
 NAME = "ardupilot"
 #: INS_TCAL1 .. INS_TCAL3 (ArduPilot's three IMUs).
 SLOTS = range(1, 4)

@@ -23,6 +23,8 @@ import re
 from ..calibration import Calibration
 from ..errors import DataError
 
+__all__ = ["write", "SUPPORTED", "NAME"]
+
 NAME = "c-header"
 SUPPORTED = ("bias_poly", "scale_poly", "misalignment", "g_sens", "temp_diff")
 

@@ -34,6 +34,11 @@ from __future__ import annotations
 import math
 
 from ..errors import DataError
+from ._thermal import fmt_f32
+from .px4 import TYPE_FLOAT32
+
+__all__ = ["device_densities", "axis_densities", "px4_parameters", "ardupilot_parameters",
+           "write_px4", "write_ardupilot", "PX4_DT", "ARDUPILOT_DT"]
 
 #: PX4 EKF2's default prediction period, s (EKF2_PREDICT_US = 10000).
 PX4_DT = 0.010
@@ -108,8 +113,6 @@ def ardupilot_parameters(n: float, k: float, dt: float = ARDUPILOT_DT) -> dict[s
 
 def write_px4(params: dict[str, float], device: str, dt: float) -> str:
     """QGroundControl parameter file (the layout of :mod:`.px4`): float32 values."""
-    from ._thermal import fmt_f32
-    from .px4 import TYPE_FLOAT32
 
     lines = ["# Onboard parameters for Vehicle 1", "#",
              f"# gyro noise of device {device} written by diffgyro export --format px4-ekf",
@@ -121,7 +124,6 @@ def write_px4(params: dict[str, float], device: str, dt: float) -> str:
 
 def write_ardupilot(params: dict[str, float], device: str, dt: float) -> str:
     """Mission Planner parameter file (``NAME,VALUE``, the layout of :mod:`.ardupilot`)."""
-    from ._thermal import fmt_f32
 
     lines = [f"# gyro noise of device {device} written by diffgyro export --format ardupilot-ekf",
              f"# EKF3 step {dt:g} s: parameter = density / sqrt(step)"]

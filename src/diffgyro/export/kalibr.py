@@ -22,7 +22,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..allan import STOP_RATIO, allan, default_m, sample_interval, to_json
 from ..errors import DataError
+from ..motion import describe
+from . import refuse_not_ok
+
+__all__ = ["from_allan", "write", "ImuNoise", "allan_of", "NAME"]
 
 NAME = "kalibr"
 _KEYS = (("arw", "noise density"), ("rrw", "random walk"))
@@ -86,7 +91,6 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
                         hint=f"it has {', '.join(names[:10])}")
     pick = names.index(device) if device is not None else 0
     name, axes = names[pick], devs[pick]["axes"]
-    from . import refuse_not_ok
 
     report: list[str] = refuse_not_ok([(name, str(devs[pick].get("status", "ok")),
                                         str(devs[pick].get("status_detail", "")))], force)
@@ -104,7 +108,6 @@ def allan_of(batch, which: str = "gyro", motion=None) -> dict:
     """``allan --json`` object of a batch's gyro, or of its accelerometer (m/s² for rad/s);
     with ``motion`` (:class:`diffgyro.motion.Motion`) a device that moved gets status
     ``in_motion``."""
-    from ..allan import STOP_RATIO, allan, default_m, sample_interval, to_json
 
     y = np.moveaxis(np.asarray(getattr(batch, which), np.float64), -1, 1)
     nv = np.asarray(batch.n_valid, np.int64)
@@ -113,7 +116,6 @@ def allan_of(batch, which: str = "gyro", motion=None) -> dict:
     res = allan(y, dt[:, None], m, nv[:, None].repeat(3, axis=1))
     doc = to_json(res, batch.devices)
     if motion is not None:
-        from ..motion import describe
 
         for i, dev in enumerate(doc["devices"]):
             if motion.moved(i):

@@ -28,6 +28,8 @@ from ._thermal import (
     thermal_poly,
 )
 
+__all__ = ["write", "parameters", "evaluate", "as_int32", "SLOTS", "NAME"]
+
 NAME = "px4"
 #: PX4 has TC_G0 .. TC_G3.
 SLOTS = range(0, 4)

@@ -39,26 +39,15 @@ so loading a saved file gives bitwise identical values.
 
 from __future__ import annotations
 
-from .cells import LIMITS, cell_problem, check_cells
-from .columns import parse_columns
-from .load import load, load_batch
-from .reports import Dropped, LoadReport, UnitNote, check_min_samples
-from .save import save
-from .units import UNITS, resolve_units
+from ._cells import LIMITS, cell_problem, check_cells
+from ._columns import parse_columns
+from ._load import load, load_batch
+from ._plausible import check_plausible
+from ._reports import Dropped, LoadReport, UnitNote, check_min_samples
+from ._save import save
+from ._units import UNITS, resolve_units
 
-__all__ = [
-    "UNITS",
-    "Dropped",
-    "LIMITS",
-    "LoadReport",
-    "UnitNote",
-    "cell_problem",
-    "check_cells",
-    "check_min_samples",
-    "load",
-    "load_batch",
-    "parse_columns",
-    "resolve_units",
-    "save",
-]
+__all__ = ["load", "load_batch", "save", "LoadReport", "UNITS", "Dropped", "LIMITS", "UnitNote",
+           "cell_problem", "check_cells", "check_plausible", "check_min_samples", "parse_columns",
+           "resolve_units"]
 

@@ -12,10 +12,10 @@ list of rejected units (:mod:`.check`).
 
 from __future__ import annotations
 
-from .check import broken_text, check, check_model, lookup, summary, unmatched
-from .figures import add_figures, bias_figures, residual_allan
-from .spec import Limit, Limits, from_dict, load, split_path
+from ._check import broken_text, check, check_model, lookup, summary, unmatched
+from ._figures import add_figures, bias_figures, residual_allan
+from ._spec import Limit, Limits, from_dict, load, split_path
 
-__all__ = ["Limit", "Limits", "add_figures", "bias_figures", "broken_text", "check",
-           "check_model", "from_dict", "load", "lookup", "residual_allan", "split_path",
-           "summary", "unmatched"]
+__all__ = ["load", "check", "check_model", "Limits", "Limit", "add_figures", "bias_figures",
+           "broken_text", "from_dict", "lookup", "residual_allan", "split_path", "summary",
+           "unmatched"]

@@ -17,9 +17,9 @@ from __future__ import annotations
 from pathlib import Path
 
 from ..errors import DataError
-from .table import LogTable
+from ._table import LogTable
 
-__all__ = ["LOG_SUFFIXES", "LogTable", "is_rosbag_dir", "log_format", "read_log"]
+__all__ = ["read_log", "log_format", "LogTable", "LOG_SUFFIXES", "is_rosbag_dir"]
 
 # extension -> reader
 LOG_SUFFIXES = {".ulg": "ulog", ".bag": "rosbag", ".mcap": "rosbag", ".bin": "dataflash",
@@ -84,13 +84,13 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
     _check_magic(path, fmt, file)
     prefix = prefix if prefix is not None else (path.name if path.is_dir() else path.stem)
     if fmt == "ulog":
-        from . import ulog
+        from . import _ulog as ulog
 
         return ulog.read(path, file, prefix)
     if fmt == "rosbag":
-        from . import rosbag
+        from . import _rosbag as rosbag
 
         return rosbag.read(path, file, prefix, topic, temp_topic)
-    from . import dataflash
+    from . import _dataflash as dataflash
 
     return dataflash.read(path, file, prefix)

@@ -11,15 +11,15 @@ Dask.
 
 from __future__ import annotations
 
-from .run import (
-    DEFAULT_CHUNK_DEVICES,
-    INVALID,
-    RunSummary,
-    diagnose_dataset,
-    fit_chunk,
-    fit_dataset,
-    read_chunk,
+from ._run import (
+           DEFAULT_CHUNK_DEVICES,
+           INVALID,
+           RunSummary,
+           diagnose_dataset,
+           fit_chunk,
+           fit_dataset,
+           read_chunk,
 )
 
-__all__ = ["DEFAULT_CHUNK_DEVICES", "INVALID", "RunSummary", "diagnose_dataset", "fit_chunk",
-           "fit_dataset", "read_chunk"]
+__all__ = ["fit_dataset", "diagnose_dataset", "RunSummary", "DEFAULT_CHUNK_DEVICES", "INVALID",
+           "fit_chunk", "read_chunk"]

@@ -13,19 +13,20 @@ units.
 from __future__ import annotations
 
 import inspect
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
 from ..errors import DataError
-from ._common import RecipeResult, jsonable, require
-from .attitude_reference import AttitudeReferenceResult, attitude_reference
-from .binned_thermal import BinnedThermalResult, binned_thermal
-from .cube_bias import CubeBiasResult, cube_bias, read_sets
-from .fog_one_run import FogOneRunResult, fog_one_run
-from .multi_position import MultiPositionResult, multi_position
-from .six_position import SixPositionResult, read_sections, six_position
-from .static_intervals import static_intervals
-from .static_kalman import StaticKalmanResult, static_kalman
+from ._attitude_reference import AttitudeReferenceResult, attitude_reference
+from ._binned_thermal import BinnedThermalResult, binned_thermal
+from ._common import RecipeResult, jsonable, require, single_axis, toolkit_compensate
+from ._cube_bias import CubeBiasResult, cube_bias, read_sets
+from ._fog_one_run import FogOneRunResult, fog_one_run
+from ._multi_position import MultiPositionResult, multi_position
+from ._six_position import SixPositionResult, read_sections, six_position
+from ._static_intervals import static_intervals
+from ._static_kalman import StaticKalmanResult, heading_errors, static_kalman
 
 
 @dataclass(frozen=True)
@@ -82,7 +83,6 @@ def _cube_bias(rec, sections, *, all_faces=False):
 
 def _six_position(rec, sections, *, sampling_rate=None, rotation_angle=-360.0, gravity=9.81):
     """``rotation_angle`` in degrees; the recording is in SI units (rad/s, m/s²)."""
-    import math
 
     require(rec, "accel", recipe="six-position")
     return six_position(rec.gyro, rec.accel, sections, t=rec.t, sampling_rate=sampling_rate,
@@ -135,10 +135,9 @@ def get(name: str) -> Recipe:
                         hint="valid recipes: " + ", ".join(RECIPES)) from None
 
 
-__all__ = [
-    "RECIPES", "AttitudeReferenceResult", "BinnedThermalResult", "CubeBiasResult",
-    "FogOneRunResult", "MultiPositionResult", "Recipe", "RecipeResult", "SixPositionResult",
-    "StaticKalmanResult", "attitude_reference", "binned_thermal", "cube_bias", "fog_one_run", "get",
-    "jsonable", "multi_position", "read_sections", "read_sets", "six_position", "static_intervals",
-    "static_kalman",
-]
+__all__ = ["get", "RECIPES", "Recipe", "RecipeResult", "AttitudeReferenceResult",
+           "BinnedThermalResult", "CubeBiasResult", "FogOneRunResult", "MultiPositionResult",
+           "SixPositionResult", "StaticKalmanResult", "attitude_reference", "binned_thermal",
+           "cube_bias", "fog_one_run", "jsonable", "multi_position", "read_sections", "read_sets",
+           "six_position", "static_intervals", "static_kalman", "single_axis",
+           "toolkit_compensate", "heading_errors"]

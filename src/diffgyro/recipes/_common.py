@@ -11,9 +11,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from ..data import Recording
+from .._jsonio import to_json_safe
+from ..data import Batch, Recording
 from ..errors import DataError
-from ..jsonio import to_json_safe
+from ..fit import fit
 from ..model import ErrorModel
 from ..signals import Signals, make_signals
 
@@ -90,8 +91,6 @@ def toolkit_compensate(spec: str, fit_on: Recording, apply_to: Recording | None 
     ``error`` is the model's whole error (bias, scale, ...) on ``apply_to``
     at its compensated rate (default: ``fit_on`` itself).
     """
-    from ..data import Batch
-    from ..fit import fit
 
     apply_to = fit_on if apply_to is None else apply_to
     out = fit(spec, fit_on, **options)

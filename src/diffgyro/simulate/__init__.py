@@ -36,13 +36,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._aux import aux_names
 from ..data import Batch, Recording
 from ..errors import DataError, SpecError
 from ..model import ErrorModel, Params
 from ..signals import HEATING_THRESHOLD, TempNorm, latched_heating, make_signals
-from .noise import NoiseLevels, gyro_noise, noise_levels, quantise
-from .plans import PLANS, Environment, Plan, get_plan
-from .population import (
+from ._motion import to_body
+from ._noise import NoiseLevels, gyro_noise, noise_levels, quantise
+from ._plans import PLANS, Environment, Plan, get_plan
+from ._population import (
     PRESETS,
     Preset,
     draw_accel_errors,
@@ -51,13 +53,12 @@ from .population import (
     get_preset,
     stream,
 )
-from .thermal import sensor_temperature
-from .truth import Truth, rebase, truth_path
+from ._supply import supply_voltage
+from ._thermal import sensor_temperature
+from ._truth import Truth, rebase, truth_path
 
-__all__ = [
-    "PLANS", "PRESETS", "Environment", "NoiseLevels", "Plan", "Preset", "Truth", "demo_batch",
-    "get_plan", "model_error", "rebase", "simulate", "truth_path",
-]
+__all__ = ["simulate", "get_plan", "Truth", "Plan", "PLANS", "PRESETS", "Environment",
+           "NoiseLevels", "Preset", "demo_batch", "model_error", "rebase", "truth_path"]
 
 #: Samples × devices evaluated per compiled call of the error model.
 CHUNK_SAMPLES = 4_000_000
@@ -223,7 +224,6 @@ def _other_sensors(env, levels: NoiseLevels, acc: dict, temp, chamber, force, se
              + rng.standard_normal((d, n, 3)) * (levels.accel_noise / math.sqrt(env.dt))[:, None, None])
     mag = None
     if "mag" in env.outputs and env.mag_field is not None:
-        from .motion import to_body
 
         quat_d = np.broadcast_to(env.quat, (d, n, 4))
         mag = to_body(quat_d, env.mag_field) + levels.mag_noise * rng.standard_normal((d, n, 3))
@@ -245,8 +245,6 @@ def _recordings(env, devices, source, gyro, temp_out, ext_out, accel, mag, rate,
 
 def _extra_columns(model: ErrorModel, given, t, d: int, seed: int):
     """Extra columns (devices, n) by name, and each one's centring over all devices."""
-    from ..aux import aux_names
-    from .supply import supply_voltage
 
     n = t.shape[0]
     out = {}

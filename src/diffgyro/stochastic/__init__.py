@@ -11,9 +11,11 @@
 * :mod:`.bias_filter`: a Kalman filter of the bias that carries the identified model.
 """
 
-from .identify import NoiseModels, components_of, identify
-from .selection import catalogue, label, structure_mask
-from .simulate import simulate_noise
+from ._bias_filter import bias_filter, state_space
+from ._devices import identify_devices
+from ._identify import NoiseModels, components_of, identify
+from ._selection import catalogue, label, structure_mask
+from ._simulate import simulate_noise
 
-__all__ = ["NoiseModels", "catalogue", "components_of", "identify", "label", "simulate_noise",
-           "structure_mask"]
+__all__ = ["identify", "identify_devices", "NoiseModels", "label", "bias_filter", "catalogue",
+           "components_of", "simulate_noise", "state_space", "structure_mask"]

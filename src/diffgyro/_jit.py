@@ -1,0 +1,217 @@
+"""``filter_jit`` that returns as soon as the call is dispatched.
+
+``equinox.filter_jit`` waits for every call's result (so that its runtime
+errors carry a traceback). A loop over groups of devices then runs one group
+at a time: the host prepares the next group while the CPU is idle, and two
+groups never share the cores. diffgyro raises no runtime errors from inside
+compiled code (bad devices get a status), so it can let JAX dispatch
+asynchronously, as ``jax.jit`` does. Arrays (JAX or numpy) are traced;
+everything else is static, as in ``equinox.filter_jit``. XLA options can be
+given per program (``filter_jit(compiler_options=...)``), ``eval_shape``
+gives a call's result shapes from its cached trace, and ``compile_ahead``
+compiles a call on another thread.
+
+:func:`release_compiled_if_crowded` drops compiled programs before a process
+runs out of memory mappings (XLA's CPU JIT maps every kernel separately).
+"""
+from __future__ import annotations
+
+import collections
+import contextlib
+import functools
+import gc
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+import equinox as eqx
+import jax
+
+from ._program_cache import program
+
+
+def filter_jit(fun: Callable[..., Any] | None = None, *,
+               compiler_options: dict[str, Any] | None = None,
+               persistent: bool = False) -> Callable[..., Any]:
+    """Compile ``fun``: array leaves of its arguments traced, other leaves static
+    (hashable); results are not waited for. ``compiler_options`` go to XLA for this
+    program only (``filter_jit(compiler_options=...)`` decorates). ``persistent``: the
+    traced program is kept on disk for later processes (:mod:`diffgyro._program_cache`;
+    results must be dicts, lists and tuples of arrays)."""
+    if fun is None:
+        return functools.partial(filter_jit, compiler_options=compiler_options,
+                                 persistent=persistent)
+    if persistent and compiler_options:
+        raise ValueError("a persistent program is compiled with XLA's default options")
+
+    def body(treedef, static, dynamic):
+        return _unsplit(fun, treedef, static, dynamic)
+
+    # the options are XLA:CPU's (diffgyro._fit_sums.compile_options): another backend
+    # refuses an option it does not know, so there the program compiles with defaults
+    on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
+    elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu
+
+    def compiled_for_backend():
+        return on_cpu if jax.default_backend() == "cpu" else elsewhere
+
+    @functools.wraps(fun)
+    def call(*args, **kwargs):
+        treedef, static, dynamic = _split(args, kwargs)
+        if persistent:
+
+            stored = program(fun, treedef, static, dynamic,
+                             functools.partial(_unsplit, fun, treedef, static))
+            if stored is not None:
+                return stored(dynamic)
+        return compiled_for_backend()(treedef, static, dynamic)
+
+    call.lower = lambda *a, **k: compiled_for_backend().lower(*_split(a, k))  # type: ignore[attr-defined]
+
+    def compile_ahead(*a, **k) -> threading.Thread:
+        """Lower the call for these arguments here and compile it on a thread of its own;
+        join the thread before the call (which then finds the program compiled). XLA
+        compiles without the GIL, so this overlaps with Python tracing another program
+        (lowering is Python: done on the thread it would hold the GIL the other needs).
+        An error is left for the call itself to raise."""
+        log = logging.getLogger("diffgyro")
+        try:
+            lowered = compiled_for_backend().lower(*_split(a, k))
+        except Exception:  # noqa: BLE001 - the call lowers again and raises it
+            log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+            lowered = None
+
+        def work():
+            try:
+                if lowered is not None:
+                    lowered.compile()
+            except Exception:  # noqa: BLE001 - the call compiles again and raises it
+                log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+
+        thread = threading.Thread(target=work, name=f"compile {fun.__name__}", daemon=True)
+        thread.start()
+        return thread
+
+    call.compile_ahead = compile_ahead  # type: ignore[attr-defined]
+    # shapes and dtypes of the results, from the same (cached) trace as a call
+    call.eval_shape = lambda *a, **k: compiled_for_backend().eval_shape(*_split(a, k))  # type: ignore[attr-defined]
+    return call
+
+
+@contextlib.contextmanager
+def collector_paused():
+    """Pause Python's cyclic garbage collector while programs are traced and compiled.
+
+    Tracing allocates objects by the hundred thousand, so the collector runs
+    over and over and walks the whole heap each time it reaches the oldest
+    generation: 0.14 s of a 2.3 s first fit of bias_poly(1)+thermal_lag
+    (154 collections). Reference counting still frees what is not in a cycle;
+    the rest waits for the next collection after the block. Process-wide while
+    it lasts, so keep the block to the compile.
+    """
+    was = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if was:
+            gc.enable()
+
+
+def parallel_devices() -> list:
+    """The local JAX devices that compiled calls may run on side by side: every
+    accelerator, but one CPU device. Programs running side by side on two XLA CPU
+    devices deadlocked (jaxlib 0.10.2: fog-one-run's regression, 256 devices × 2000 samples,
+    every run, both as fit()'s groups taking turns and as one program sharded over a
+    mesh; all worker threads idle, the caller waiting on a result; also with
+    transfers finished before dispatch, without the thunk runtime and with
+    single-threaded Eigen)."""
+    devices = jax.local_devices()
+    return devices[:1] if devices[0].platform == "cpu" else devices
+
+
+def available_cores() -> int:
+    """The CPU cores this process may run on (its affinity where the OS tells it)."""
+    cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    return max(1, len(cores) if cores else (os.cpu_count() or 1))
+
+
+#: How often each compiled batch function was traced (tests check that a new batch
+#: size within a bucket does not compile again).
+TRACE_COUNTS: collections.Counter = collections.Counter()
+MAP_HEADROOM = 0.5  # share of vm.max_map_count past which compiled programs are dropped
+
+
+@functools.cache
+def map_limit() -> int | None:
+    """The kernel's limit on a process's memory mappings (``vm.max_map_count``), or None
+    where it can not be read (not Linux)."""
+    try:
+        with open("/proc/sys/vm/max_map_count") as f:
+            return int(f.read())
+    except (OSError, ValueError):
+        return None
+
+
+def mapped_regions() -> int | None:
+    """How many memory mappings this process holds now (None where it can not be read)."""
+    try:
+        with open("/proc/self/maps", "rb") as f:
+            return f.read().count(b"\n")
+    except OSError:
+        return None
+
+
+_last_check = [-float("inf")]
+
+
+def release_compiled_if_crowded(fraction: float = MAP_HEADROOM, limit: int | None = None,
+                                interval: float = 0.0) -> bool:
+    """Drop JAX's compiled programs if this process holds more than ``fraction`` of the
+    mappings the kernel allows (``limit``, default ``vm.max_map_count``); True if it did.
+    With ``interval`` (s), a check within that time of the last one returns at once
+    (counting 30 000 mappings takes about 30 ms; compiling 1000 more takes seconds).
+
+    XLA's CPU JIT maps each compiled kernel's sections on their own: the programs
+    of one thermal_lag fit hold about 1000 mappings, bias_poly(3)'s about 270, and
+    they stay while the program is cached. A process that compiles a few hundred
+    programs (a test worker, a service calibrating many model specs) reaches the
+    limit (65530 by default); the JIT then can not load new kernels ("Failed to
+    materialize symbols") and jaxlib 0.10.2 segfaulted unwinding that error.
+    Clearing JAX's caches unmaps them; later calls compile again, or load from the
+    persistent compilation cache.
+    """
+    now = time.monotonic()
+    if now - _last_check[0] < interval:
+        return False
+    _last_check[0] = now
+    limit = map_limit() if limit is None else limit
+    held = mapped_regions()
+    if limit is None or held is None or held <= fraction * limit:
+        return False
+    jax.clear_caches()
+    gc.collect()
+    logging.getLogger("diffgyro").info(
+        "released compiled programs: %d memory mappings of %d allowed, now %s",
+        held, limit, mapped_regions())
+    return True
+
+
+def _unsplit(fun, treedef, static, dynamic):
+    """``fun`` called on the arguments :func:`_split` took apart."""
+    leaves = [s if d is None else d for s, d in zip(static, dynamic, strict=True)]
+    args, kwargs = jax.tree.unflatten(treedef, leaves)
+    return fun(*args, **kwargs)
+
+
+def _split(args, kwargs):
+    """(treedef, static leaves, array leaves) of the arguments; None marks the other kind.
+    A ``jax.ShapeDtypeStruct`` stands for an array (``lower``, ``compile_ahead``)."""
+    leaves, treedef = jax.tree.flatten((args, kwargs))
+    arrays = [eqx.is_array(x) or isinstance(x, jax.ShapeDtypeStruct) for x in leaves]
+    static = tuple(None if a else x for x, a in zip(leaves, arrays, strict=True))
+    dynamic = [x if a else None for x, a in zip(leaves, arrays, strict=True)]
+    return treedef, static, dynamic

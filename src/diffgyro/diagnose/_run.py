@@ -1,0 +1,460 @@
+"""diagnose(model, batch): the base fit, then every device through the scoring, in chunks.
+
+Devices go through the compiled programs a chunk at a time (about
+:data:`CHUNK_SAMPLES` samples per chunk, a power-of-two number of devices so
+that few shapes compile), one device at a time inside (``lax.map``): memory
+is that of one device's per-sample arrays, whatever the batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .. import _aux as aux_cols
+from .. import _noise as noise
+from .. import allan as allan_mod
+from .._jit import filter_jit, release_compiled_if_crowded
+from .._signal_builder import batch_inputs, input_signals
+from .._temperature import suggest_dtemp_window
+from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
+from ..effects import AbstractNoise, RandomWalk, is_column_name
+from ..errors import SpecError
+from ..fit import fit as fit_fn
+from ..model import ErrorModel
+from ..signals import TempNorm
+from ._candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
+from ._decision import allan_slope, decide, not_judged
+from ._evidence import evidence
+from ._floor import white_noise_rms
+from ._greedy import pairs as greedy_pairs
+from ._noise_model import attach_noise
+from ._random_walk import random_walk_scores, segment_length
+from ._results import AllanCurves, Diagnosis
+from ._scoring import (
+    CandidateScores,
+    base_scores,
+    block_windows,
+    candidate_scores,
+    design_and_residual,
+    segments,
+    window,
+)
+from ._scoring import segment_length as search_length
+from ._synthesis import apply as synthesise
+from ._thresholds import Thresholds
+
+#: About this many samples (devices × padded length) go through one compiled call.
+CHUNK_SAMPLES = 1 << 18
+
+UNSUPPORTED = "the data cannot support it (range: e.g. no rate, no temperature span)"
+NOISE_UNSCORED = "diagnose scores one noise process, the random walk; fit this one directly"
+
+
+def chunk_size(n_devices: int, length: int) -> int:
+    """Devices per compiled call: a power of two, about :data:`CHUNK_SAMPLES` samples."""
+    g = 1 << max((CHUNK_SAMPLES // max(length, 1)).bit_length() - 1, 0)
+    return max(1, min(device_bucket(n_devices, minimum=1), g))
+
+
+def _chunks(n_devices: int, size: int):
+    """Device indices of each chunk, the last device repeated to fill the last chunk."""
+    for start in range(0, n_devices, size):
+        yield start, np.minimum(np.arange(start, start + size), n_devices - 1)
+
+
+def _put(x: np.ndarray) -> jax.Array:
+    """A host array on the device as it is: ``jnp.asarray`` of a numpy array compiles a
+    staging program for every new shape, ``device_put`` does not."""
+    return jax.device_put(np.asarray(x))
+
+
+def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
+    """One chunk's samples, the fit's temperature normalisation and sampling intervals and
+    the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
+    take = as_slice(idx)  # devices in order: views of the batch, not copies
+    norm = res.norm if res.model.requires() & {"temp"} else None
+    return batch_inputs(batch, take, norm, aux, put=_put)
+
+
+def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
+    """The extra columns diagnose reads, centred and scaled ((devices, n) each, zero where
+    not finite): those the model reads with the base fit's centring, the others (candidate
+    ``aux`` terms) with each device's own range; and, per column the model does not read,
+    every device's problem with it (None: usable, see :func:`diffgyro.aux.column_problem`)."""
+    used = aux_cols.aux_names(model.requires())
+    problems = {k: aux_cols.device_problems(batch, k) for k in batch.aux if k not in used}
+    fresh = [k for k, p in problems.items() if any(q is None for q in p)]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN devices: skipped below
+        norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
+                    for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
+        scaled = aux_cols.scaled(batch, norms)
+    return {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in scaled.items()}, problems
+
+
+def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict,
+                  n_dev: int) -> list[dict]:
+    """Per device, the column candidates (``aux(vdd)``) it skips and why: its column is
+    unusable (:func:`diffgyro.aux.column_problem`; the candidate's range marked so) or its
+    data cannot support the term."""
+    skips: list[dict] = [{} for _ in range(n_dev)]
+    for j, c in enumerate(every):
+        col = term_column(c.term)
+        if col is None:
+            continue
+        for i in range(n_dev):
+            why = problems.get(col, [None] * n_dev)[i]
+            if why is not None:
+                ranges[i, j] = 1.0
+                skips[i][c.term.spec] = why
+            elif ranges[i, j] > 0:
+                skips[i][c.term.spec] = UNSUPPORTED
+    return skips
+
+
+@filter_jit(persistent=True)
+def _ranges(cands, inputs, dtemp_window):
+    """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
+    an array: traced, one program for every window)."""
+    def one(inp):
+        s = input_signals(inp, dtemp_window)
+        return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
+
+    return jax.lax.map(one, inputs)
+
+
+def _white_noise(batch: Batch) -> np.ndarray:
+    """The decision's white-noise level (devices, 3), on the host."""
+    out = []
+    for i in range(batch.n_devices):
+        rate = None if batch.rate is None else np.asarray(batch.rate[i], np.float64)
+        gyro = np.asarray(batch.gyro[i], np.float64)
+        out.append(white_noise_rms(gyro if rate is None else gyro - rate, np.asarray(batch.mask[i]), rate))
+    return np.stack(out)
+
+
+def _device_scores(base: ErrorModel, cands: tuple[CandidateSpec, ...], n_blocks: int,
+                   n_folds: int, log_min_lag, rw_m: int, search_m: int, dtemp_window, inp: dict,
+                   beta_b, theta_b, floor_axes, idx, inside, dt0) -> dict:
+    """Held-out scores of the base model, every deterministic candidate and the random walk
+    (``log_min_lag``, ``dtemp_window``: traced scalars, :func:`_windows`; ``rw_m``,
+    ``search_m``: samples per segment of the random-walk check and the time-constant
+    search; ``dt0``: the median sample interval, :func:`_median_steps`)."""
+    sig = input_signals(inp, dtemp_window)
+    dtype = sig.gyro.dtype
+    y = sig.gyro - sig.rate
+    w = sig.mask.astype(dtype)
+    xb = base.design(sig, theta_b) if base.n_params else jnp.zeros((y.shape[0], 3, 0), dtype)
+    e = (y - jnp.einsum("nip,ip->ni", xb, beta_b)) * w[:, None]  # base residual (full fit)
+    e = jnp.where(jnp.isfinite(e), e, 0.0)
+    xe_w = design_and_residual(xb, e, idx, inside)
+    b = base_scores(xe_w, inside, n_folds)
+    searched = any(c.old is None and c.term.n_nonlinear for c in cands)  # a time-constant grid
+    seg = segments(sig, xe_w, idx, inside, search_m, n_folds) if searched else None
+    scores = [candidate_scores(c, base, sig, theta_b, log_min_lag, b, xe_w, idx, inside, seg, n_folds)
+              for c in cands]
+    base_full = jnp.sum(e * e, 0)
+    rw = random_walk_scores(xe_w, window(sig.t, idx, inside), inside, b.b_base,
+                            b.base_sse, b.base_blk, base_full, floor_axes, dt0, rw_m)
+    out = dict(cnt=b.cnt, base_sse=b.base_sse, base_full=base_full, blk_cnt=b.blk_cnt,
+               base_blk=b.base_blk, residual=e, **_fields(rw),
+               **_stacked(scores, n_folds, n_blocks, dtype))
+    if sig.dtemp is not None:
+        out["dtemp"] = sig.dtemp
+    if sig.heating is not None:
+        out["heating"] = sig.heating
+    return out
+
+
+def _stacked(scores: list[CandidateScores], n_folds: int, n_blocks: int, dtype) -> dict:
+    """The candidates' scores stacked on a leading axis (one NaN placeholder when there are
+    none: lax.map dislikes empty outputs)."""
+    if not scores:
+        return dict(cand_sse=jnp.full((1, n_folds, 3), jnp.nan, dtype),
+                    cand_full=jnp.full((1, 3), jnp.nan, dtype), cand_theta=jnp.full((1, 1), jnp.nan, dtype),
+                    cand_blk=jnp.full((1, n_blocks), jnp.nan, dtype), cand_edge=jnp.zeros((1,), bool))
+    q = max(int(s.theta.shape[0]) for s in scores)
+    theta = [jnp.pad(s.theta, (0, q - s.theta.shape[0]), constant_values=jnp.nan) for s in scores]
+    return dict(cand_sse=jnp.stack([s.held for s in scores]),
+                cand_full=jnp.stack([s.full for s in scores]), cand_theta=jnp.stack(theta),
+                cand_blk=jnp.stack([s.blk for s in scores]),
+                cand_edge=jnp.stack([s.edge for s in scores]))
+
+
+def _fields(module: eqx.Module) -> dict:
+    """A module's fields by name: the engine's output is keyed like :attr:`Diagnosis.raw`."""
+    return {f.name: getattr(module, f.name) for f in dataclasses.fields(module)}
+
+
+@filter_jit(persistent=True)
+def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
+            beta, theta, floors, idx, inside, dt0):
+    def one(args):
+        inp, b, th, fl, ix, ins, dt = args
+        return _device_scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m,
+                              dtemp_window, inp, b, th, fl, ix, ins, dt)
+
+    return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside, dt0))
+
+
+def _median_steps(t: np.ndarray) -> np.ndarray:
+    """Every device's median step of ``t`` (devices, length), padding included, at least
+    1e-12 s: on the host, whose median selects in linear time where the compiled
+    program sorted the whole record."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a device of one sample
+        return np.maximum(np.nanmedian(np.diff(t, axis=1), axis=1), 1e-12)
+
+
+def _windows(dtemp_window: float):
+    """The dT/dt window (s) as the compiled programs take it: arrays, traced, so that every
+    window shares one program; and the log of the shortest time constant a lag term's grid
+    starts at (the window, −inf for none), taken on the host."""
+    w = float(dtemp_window)
+    log_min_lag = math.log(w) if w > 0 else -math.inf
+    return _put(np.float64(log_min_lag)), _put(np.float64(w))
+
+
+def _gather(chunks: list[dict], n_dev: int) -> dict:
+    """Chunk outputs joined on the device axis, the repeated devices dropped."""
+    return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
+
+
+def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
+    """Ranges of every candidate and floors, streamed per chunk of devices."""
+    n_dev, length = batch.n_devices, batch.t.shape[1]
+    size = chunk_size(n_dev, length)
+    window_s = _windows(res.options.dtemp_window)[1]
+    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx, aux), window_s))
+              for _, idx in _chunks(n_dev, size)]
+    return np.concatenate(ranges)[:n_dev], _white_noise(batch)
+
+
+def _score(model, cands, batch, res, floors, aux: dict) -> dict:
+    """Every device's scores (:func:`_device_scores`), one chunk of devices at a time."""
+    opts = res.options
+    n_dev, length = batch.n_devices, batch.t.shape[1]
+    size = chunk_size(n_dev, length)
+    rw_m = segment_length(length, opts.n_blocks)
+    search_m = search_length(length, opts.n_blocks)
+    beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
+    windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
+    log_min_lag, window_s = _windows(opts.dtemp_window)
+    dt0 = _median_steps(np.asarray(batch.t))
+    out = []
+    for _, idx in _chunks(n_dev, size):
+        ix = np.stack([windows[i][0] for i in idx])
+        ins = np.stack([windows[i][1] for i in idx])
+        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
+                    window_s, _inputs(batch, res, idx, aux), _put(beta[idx]), _put(theta[idx]),
+                    _put(floors[idx]), _put(ix), _put(ins), _put(dt0[idx]))
+        out.append(jax.device_get(o))
+    out = _gather(out, n_dev)
+    if not cands:
+        for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk", "cand_edge"):
+            out[k] = out[k][:, :0]
+    return out
+
+
+def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
+    """Overlapping Allan deviation of every device's residual (devices, 3, k)."""
+
+    n_dev = batch.n_devices
+    pick = np.minimum(np.arange(device_bucket(n_dev, minimum=1)), n_dev - 1)  # few compiled shapes
+    dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
+    m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
+    nv = np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1)
+    adev, _ = allan_mod.oadev(_put(np.moveaxis(resid, -1, 1)[pick]), _put(dts[pick, None]),
+                              _put(np.asarray(m)), _put(nv))
+    adev = np.asarray(adev)[:n_dev]
+    tau = dts[:, None, None] * np.asarray(m)[None, None, :] * np.ones((1, 3, 1))
+    return AllanCurves(tau=tau, adev=adev)
+
+
+def _taus(cands, theta_row) -> list:
+    """The chosen time constant (s) of every candidate with one, else None."""
+    taus = []
+    for c, th in zip(cands, theta_row):
+        if c.old is None and c.term.n_nonlinear == 1 and np.isfinite(th).all():
+            taus.append(float(np.asarray(c.term.nonlinear_values(_put(th)))[0]))
+        else:
+            taus.append(None)
+    return taus
+
+
+def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
+    """(noise floor, per axis) of every device: the base fit's (:mod:`diffgyro.noise`),
+    computed here when that fit was run without it, so ``diagnose`` and ``fit`` report
+    the same floor for the same device."""
+
+    if res.options.noise_floor:
+        axes = np.asarray(res.noise_axes, float)
+    else:
+        axes = noise.noise_axes(np.asarray(batch.gyro), None if batch.rate is None
+                                else np.asarray(batch.rate), np.asarray(batch.mask, bool))
+    return [(float(f), [float(v) for v in a]) for f, a in zip(noise.noise_floor(axes), axes)]
+
+
+def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, unsupported,
+            skips: dict, pair=None):
+    """One device's :class:`DeviceDiagnosis` from its scores (floors: the white-noise level
+    the decision uses); slope and floor_allan too. ``skips``: the column candidates it skips
+    and why (:func:`_column_skips`), listed by term; ``pair``: :class:`.greedy.Pair`."""
+    nv = int(batch.n_valid[i])
+    total = float(batch.t[i, nv - 1] - batch.t[i, 0])
+    adev, tau = al.adev[i], al.tau[i]
+    slope = allan_slope(adev, tau, total)
+    first = np.isfinite(adev[:, 0])
+    floor_allan = float(np.sqrt(np.mean(adev[first, 0] ** 2))) if first.any() else float("nan")
+    status = res.status_name(i)
+    if status != "ok" or not (np.all(np.isfinite(np.asarray(res.params.beta[i])))
+                              and np.all(np.isfinite(np.asarray(res.params.theta[i])))):
+        d = not_judged(batch.devices[i], status, res.status_detail(i), floors[i],
+                       float(res.rms[i]), float(res.heldout_rms[i]))
+        d.skipped.update(skips)
+        return d, slope, floor_allan
+    sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
+    ev = evidence(out["residual"][i, :nv], batch.recording(i), sd, floors[i])
+    ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
+    d = decide(
+        batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
+        out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],
+        out["cand_sse"][i], out["cand_full"][i], ok, _taus(cands, out["cand_theta"][i]), rw_spec,
+        out["rw_interp"][i], out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
+        blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
+        edge=out["cand_edge"][i], base_spec=model.spec, pair=pair)
+    d.status_detail = res.status_detail(i)
+    for name in unsupported:
+        d.skipped[name] = UNSUPPORTED
+    for c in cands:  # column candidates are listed by term (aux(vdd)), not under one name
+        if term_column(c.term) is not None and d.skipped.get(c.effect) == UNSUPPORTED:
+            del d.skipped[c.effect]
+    d.skipped.update(skips)
+    return d, slope, floor_allan
+
+
+def _candidates(model: ErrorModel, batch: Batch, res, names):
+    """The deterministic candidates, the random walk's spec (or None), the extra columns
+    their terms read (:func:`_extra_columns`), every column's problems per device, the
+    column candidates no device can use (listed under skipped, never compiled) and the
+    other noise processes offered (listed under skipped: the smoother scored here is the
+    random walk's); the column terms that cannot be written (:func:`.unnamed_columns`)."""
+    aux, problems = _extra_columns(batch, model, res)
+    unnamed = unnamed_columns(problems, names)
+    specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
+                            names, columns=tuple(k for k in problems if is_column_name(k)))
+    dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
+    every = [c for c in specs if not isinstance(c.term, AbstractNoise) and c not in dead]
+    noise = [c for c in specs if isinstance(c.term, AbstractNoise)]
+    walk = next((c for c in noise if isinstance(c.term, RandomWalk)), None)
+    unscored = [c.effect for c in noise if c is not walk]
+    read = set(res.aux_norm) | {term_column(c.term) for c in every}
+    return (every, walk.spec if walk else None, {k: v for k, v in aux.items() if k in read},
+            problems, dead, unscored, unnamed)
+
+
+def _nested(*args, **kwargs) -> Diagnosis:
+    """The greedy pair's nested diagnosis: its residual's noise is not reported."""
+    return diagnose(*args, noise=False, **kwargs)
+
+
+def diagnose(
+    model: ErrorModel | str,
+    batch: Batch | Recording | list[Recording],
+    candidates: list[str] | None = None,
+    *,
+    thresholds: Thresholds | None = None,
+    base_fit=None,
+    greedy: bool = True,
+    synthesis: bool = True,
+    noise="auto",
+    **fit_options,
+) -> Diagnosis:
+    """Diagnose every device of ``batch`` against ``model``.
+
+    ``candidates`` limits the effects tried (names or terms, default: every
+    registered effect the data supports). ``base_fit`` reuses a
+    :class:`~diffgyro.fit.FitResult` of ``model`` on this batch. Other
+    keywords are fit options (``n_folds``, ``n_blocks``, ``dtemp_window``...).
+    ``greedy``: before a random walk is named, try the best term followed by the
+    best second term (:mod:`.greedy`). ``synthesis``: where no built-in term closes the
+    gap, propose a term built from the recording's signals (:mod:`.synthesis`).
+    ``noise``: identify the residual's stochastic model ("auto": where no term explains a
+    residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
+    Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
+    object.
+    """
+    release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
+
+    if isinstance(model, str):
+        model = ErrorModel.from_spec(model)
+    if model.noise is not None:
+
+        raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
+                        hint=f"drop {model.noise.spec} from --model: it is tried as a candidate")
+    batch = as_batch(batch)
+    th = thresholds or Thresholds()
+    if "dtemp_window" not in fit_options and base_fit is None:
+        fit_options["dtemp_window"] = suggest_dtemp_window(batch)
+    res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
+    every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
+                                                                         candidates)
+    all_ranges, floors = _prepare(batch, res, every, aux)
+    skips = _column_skips(every, all_ranges, problems, batch.n_devices)
+    for c in dead:
+        for i, why in enumerate(problems[term_column(c.term)]):
+            skips[i][c.term.spec] = why
+    for name, skip in ((n, s) for n in unscored for s in skips):
+        skip[name] = NOISE_UNSCORED
+    for skip in skips:
+        skip.update(unnamed)
+    # drop candidates no device can support (e.g. scale terms on a static run) before compiling
+    usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
+    cands = [every[j] for j in usable]
+    unsupported = [c.effect for j, c in enumerate(every)
+                   if j not in usable and term_column(c.term) is None]
+    out = _score(model, cands, batch, res, floors, aux)
+    ranges = all_ranges[:, usable]
+    al = _allan(out["residual"], batch)
+    reported = _reported_floor(batch, res)
+    devices, slopes, floor_allans = [], [], []
+    for i in range(batch.n_devices):
+        d, slope, fa = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                               unsupported, skips[i])
+        d.noise_floor, d.noise_axes = reported[i]
+        devices.append(d)
+        slopes.append(slope)
+        floor_allans.append(fa)
+    opts = res.options
+    if greedy:
+        nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+                       "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
+        pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
+        for i, pair in pairs.items():
+            devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                                 unsupported, skips[i], pair)[0]
+            devices[i].noise_floor, devices[i].noise_axes = reported[i]
+    if synthesis:
+
+        synthesise(devices, batch, res, model, cands, ranges <= 0, th)
+    def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
+        fl = np.array(floors, copy=True)
+        fl[i] = floor_axes
+        return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
+                       unsupported, skips[i])[0]
+
+    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
+    raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
+    return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
+                     thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+                                             "dtemp_window": opts.dtemp_window},
+                     raw={**raw, "floors": floors, "ok": ranges <= 0, "slope": np.asarray(slopes),
+                          "floor_allan": np.asarray(floor_allans), "candidates": cands,
+                          "n_valid": np.asarray(batch.n_valid)})

@@ -1,0 +1,44 @@
+"""Units a limit's bounds may be written in (datasheet units), as factors into the record's.
+
+A record holds rates in rad/s, noise densities (ARW) in rad/s/√Hz = rad/√s,
+temperature coefficients in rad/s/K. A bound may name its unit, e.g.
+``unit = "deg/s"``, ``"mdps"``, ``"deg/s/sqrt(Hz)"``, ``"mdps/√Hz"``,
+``"deg/sqrt(h)"``, ``"deg/s/K"``: any rate unit of ``--gyro-unit``, alone, per
+√Hz, or per kelvin (°C), and the angle random walk units deg/√h and rad/√s.
+"""
+
+from __future__ import annotations
+
+import math
+
+from ..errors import DataError
+from ..io import resolve_units
+
+UNIT_HELP = ("a rate unit (rad/s, deg/s, dps, mdps, deg/h ...), the same per sqrt(Hz) or per "
+             "K, or deg/sqrt(h)")
+_SQRT_HZ = ("/sqrt(hz)", "/√hz", "/rthz", "/rt(hz)", "/hz^0.5", "/hz^(1/2)")
+_PER_K = ("/k", "/°c", "/degc", "/c")
+_ARW = {"deg/sqrt(h)": math.pi / 180.0 / 60.0, "deg/√h": math.pi / 180.0 / 60.0,
+        "°/sqrt(h)": math.pi / 180.0 / 60.0, "°/√h": math.pi / 180.0 / 60.0,
+        "deg/rt(h)": math.pi / 180.0 / 60.0, "deg/rth": math.pi / 180.0 / 60.0,
+        "rad/sqrt(s)": 1.0, "rad/√s": 1.0}
+
+
+def _rate(text: str) -> float | None:
+
+    try:
+        scale, offset = resolve_units({"gyro": text}).get("gyro", (1.0, 0.0))  # SI: none
+    except DataError:
+        return None
+    return scale if offset == 0.0 else None
+
+
+def unit_scale(unit: str) -> float | None:
+    """The factor that turns a value in ``unit`` into the record's unit, or None."""
+    text = unit.strip().replace(" ", "").lower()
+    if text in _ARW:
+        return _ARW[text]
+    for suffix in _SQRT_HZ + _PER_K:
+        if text.endswith(suffix) and len(text) > len(suffix):
+            return _rate(text[: -len(suffix)])
+    return _rate(text)

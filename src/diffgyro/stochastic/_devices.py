@@ -1,0 +1,68 @@
+"""Noise models of many devices' three gyro axes, as the ``noise --json`` entries.
+
+One entry per device (``device``, ``status``, ``status_detail``, ``sample_interval``,
+``axes``: x, y, z each with ``structure``, ``components``, ``rejected``). Any
+(devices, samples, 3) rates serve: a batch's gyro (``diffgyro noise``) or the
+residuals of a calibrated model (``Diagnosis.residuals``, padding zeroed, with the
+batch's ``n_valid`` and ``t``), whose noise is what a filter must carry.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..allan import sample_interval
+from ._identify import identify
+from ._selection import PENALTY, catalogue
+
+AXES = ("x", "y", "z")
+#: Fewest samples for a model: 64 give 5 dyadic scales, enough for two or three parameters.
+MIN_SAMPLES = 64
+
+
+def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 2,
+                     penalty: float | None = None):
+    """(entries, {device index: (NoiseModels, row)}) for rates ``values`` (d, n, 3) in rad/s.
+
+    ``motion``: per device None (static) or a one-line reason it moved (status
+    ``in_motion``, no axes). Devices of equal length are identified together."""
+
+    pen = PENALTY if penalty is None else penalty
+    motion = [None] * len(devices) if motion is None else motion
+    entries, models, groups = [], {}, {}
+    for i, dev in enumerate(devices):
+        n = int(n_valid[i])
+        entry = {"device": dev, "status": "ok", "status_detail": "ok", "axes": None}
+        entries.append(entry)
+        rates = np.asarray(values[i, :n], np.float64)
+        if motion[i] is not None:
+            entry.update(status="in_motion", status_detail=str(motion[i]))
+        elif n < MIN_SAMPLES:
+            entry.update(status="too_short", status_detail=f"{n} samples; a noise model needs at "
+                         f"least {MIN_SAMPLES} (static, at the full rate)")
+        elif not np.all(np.isfinite(rates)):
+            entry.update(status="bad_data", status_detail="non-finite gyro samples")
+        elif np.any(np.ptp(rates, axis=0) == 0):
+            flat = ", ".join(ax for ax, p in zip(("gx", "gy", "gz"), np.ptp(rates, axis=0)) if p == 0)
+            entry.update(status="bad_data", status_detail=f"constant {flat}: no noise to model")
+        else:
+            dt = sample_interval(np.asarray(t[i]), n)
+            if not (math.isfinite(dt) and dt > 0):
+                entry.update(status="bad_data", status_detail="no sampling interval")
+            else:
+                entry["sample_interval"] = dt
+                groups.setdefault(n, []).append((i, dt))
+    for n, members in groups.items():  # devices of one length identified together
+        idx = [i for i, _ in members]
+        y = np.stack([np.asarray(values[i, :n], np.float64).T for i in idx])  # (d, 3, n)
+        dts = np.array([[dt] * 3 for _, dt in members])
+        res = identify(y, dts, structures=catalogue(max_gm), penalty=pen)
+        for j, i in enumerate(idx):
+            models[i] = (res, j)
+            entries[i]["axes"] = {
+                ax: {"structure": list(res.structure(j, a)), "components": res.components(j, a),
+                     "rejected": res.rejected(j, a)}
+                for a, ax in enumerate(AXES)}
+    return entries, models

@@ -1,0 +1,185 @@
+"""GMWM estimation of one structure: the empirical wavelet variance matched to the model's.
+
+The Generalized Method of Wavelet Moments (Guerrier et al., JASA 2013) minimises
+
+    (ν̂ − ν(θ))ᵀ Ω (ν̂ − ν(θ))
+
+over the parameters θ of a composite model, ν̂ the empirical Haar wavelet
+variances on dyadic scales, ν(θ) their theoretical values
+(:mod:`.components`) and Ω an efficient weight: the inverse of the
+covariance of the moments (:mod:`.covariance`). Here the moments are the
+logarithms of the wavelet variances (below), so scales whose variances differ
+by ten decades weigh by their relative precision alone.
+
+How a fit runs (one structure, one series; vmapped outside):
+
+1. Starting values: every pair of Gauss–Markov correlation times from a
+   dyadic grid (the slopes of the curve do the rest): with the T fixed the
+   model is linear in the powers N², Q², σ², K², R², which a small
+   non-negative least squares gives; the best pair is kept.
+2. Levenberg–Marquardt on the log-parameters (fixed iteration count, so it
+   traces and vmaps): log keeps every power and time positive.
+
+The moments matched are the logarithms of the wavelet variances, less their
+known bias (:func:`log_moments`): at the longest scales ν̂ is a χ² of a few
+degrees of freedom, whose typical value lies well below its mean, and matching
+it linearly lets those few scales pull the fit (a random walk read as a
+Gauss–Markov process bending down at the end of the record).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.scipy.special import digamma, polygamma
+from jaxtyping import Array, Bool, Float
+
+from ._components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
+
+#: Levenberg–Marquardt iterations per stage.
+ITERATIONS = 40
+#: Logarithms kept inside this range (no underflow of a power switched down to nothing).
+_LOG_FLOOR = -150.0
+
+
+def scaled_chol(cov_scaled: Float[Array, "J J"], valid: Bool[Array, " J"]) -> Float[Array, "J J"]:
+    """Cholesky factor of a covariance of relative wavelet variances, identity on invalid scales."""
+    vv = valid[:, None] & valid[None, :]
+    c = jnp.where(vv, cov_scaled, jnp.eye(cov_scaled.shape[0]))
+    jitter = 1e-10 * jnp.trace(c) / c.shape[0]
+    return jnp.linalg.cholesky(c + jitter * jnp.eye(c.shape[0]))
+
+
+def log_moments(rel_cov: Float[Array, "J J"]) -> tuple[Float[Array, "J J"], Float[Array, " J"]]:
+    """Covariance and bias of log ν̂ from the relative covariance of ν̂ (Σ/(ν νᵀ)).
+
+    A wavelet variance averaged over few independent terms is skewed (χ² with e = 2/Σ̃_jj
+    equivalent degrees of freedom: at the longest scales e is a few); its logarithm is
+    nearly symmetric, with mean log ν + ψ(e/2) − log(e/2) and variance ψ′(e/2). The
+    correlations of Σ̃ are kept."""
+
+    d = jnp.maximum(jnp.diag(rel_cov), 1e-12)
+    e = 2.0 / d
+    g = jnp.sqrt(polygamma(1, e / 2.0) / d)
+    return rel_cov * g[:, None] * g[None, :], digamma(e / 2.0) - jnp.log(e / 2.0)
+
+
+def residual(theta, mask, target, valid, tau, dt, chol):
+    """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias; zero on
+    invalid scales."""
+    r = jnp.where(valid, target - jnp.log(model_wv(theta, mask, tau, dt)), 0.0)
+    return jax.scipy.linalg.solve_triangular(chol, r, lower=True)
+
+
+def _bounds(dt, n):
+    lo = jnp.full((N_PARAMS,), _LOG_FLOOR)
+    hi = jnp.full((N_PARAMS,), -_LOG_FLOOR)
+    lo = lo.at[jnp.array(TAU_INDEX)].set(jnp.log(0.25 * dt))
+    hi = hi.at[jnp.array(TAU_INDEX)].set(jnp.log(20.0 * n * dt))
+    return lo, hi
+
+
+def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, chol, iterations=ITERATIONS):
+    """Minimise ‖residual‖² over the switched-on log-parameters; returns (θ, objective)."""
+    lo, hi = _bounds(dt, n)
+    fun = lambda th: residual(th, mask, target, valid, tau, dt, chol)  # noqa: E731
+    on = mask.astype(theta0.dtype)
+
+    def step(carry, _):
+        th, lam, cost = carry
+        r = fun(th)
+        jac = jax.jacfwd(fun)(th) * on[None, :]
+        g = jac.T @ r
+        a = jac.T @ jac
+        damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
+        delta = jnp.linalg.solve(a + jnp.diag(damp), -g) * on
+        trial = jnp.clip(th + delta, lo, hi)
+        tr = fun(trial)
+        new_cost = tr @ tr
+        better = jnp.isfinite(new_cost) & (new_cost < cost)
+        th = jnp.where(better, trial, th)
+        cost = jnp.where(better, new_cost, cost)
+        lam = jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9)
+        return (th, lam, cost), None
+
+    r0 = fun(theta0)
+    (th, _, cost), _ = jax.lax.scan(step, (theta0, jnp.asarray(1e-2, theta0.dtype), r0 @ r0),
+                                    None, length=iterations)
+    return th, cost
+
+
+def tau_grid(n_scales: int, dt) -> Float[Array, " K"]:
+    """Candidate Gauss–Markov correlation times: dt·2^k, k = 0 … J+3."""
+    return dt * 2.0 ** jnp.arange(n_scales + 4, dtype=jnp.float64)
+
+
+def start_pairs(n_scales: int) -> tuple[jax.Array, jax.Array]:
+    """Index pairs (a, b) into :func:`tau_grid` to start from, shared by every structure (one
+    compiled program): (a, a) for every a (one Gauss–Markov process, or none: the times are
+    then unused) and, for two, every pair of even indices with b ≥ a + 2 (times a factor 4 or
+    more apart, on a two-octave grid: the Levenberg–Marquardt steps refine them)."""
+
+    k = n_scales + 4
+    a, b = np.triu_indices(k, 2)
+    keep = (a % 2 == 0) & (b % 2 == 0)
+    a = np.concatenate([np.arange(k), a[keep]])
+    b = np.concatenate([np.arange(k), b[keep]])
+    return jnp.asarray(a), jnp.asarray(b)
+
+
+def _nnls_powers(cols, target, active, sweeps=6):
+    """Non-negative least squares ‖cols·p − target‖ over the active columns (an active set
+    shrunk by dropping negative coefficients; columns normalised first)."""
+    norm = jnp.sqrt(jnp.sum(cols**2, 0)) + 1e-300
+    c = cols / norm
+    act = active
+
+    def sweep(act, _):
+        w = act.astype(c.dtype)
+        a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
+        p = jnp.linalg.solve(a, (c * w).T @ target) * w
+        return act & (p > 0), p
+
+    act, ps = jax.lax.scan(sweep, act, None, length=sweeps)
+    w = act.astype(c.dtype)
+    a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
+    p = jnp.linalg.solve(a, (c * w).T @ target) * w
+    p = jnp.maximum(p, 0.0)
+    misfit = jnp.sum((c @ p - target) ** 2)
+    # a switched-on component the data do not ask for starts small, not at zero
+    p = jnp.where(active & (p <= 0), 1e-3 * jnp.sqrt(jnp.sum(target**2)), p)
+    return p / norm, misfit
+
+
+def starting_values(mask, wv_hat, valid, tau, dt, weight, grid, pairs):
+    """Log-parameters from the best grid pair of correlation times and NNLS powers."""
+    s = jnp.where(valid, wv_hat, 1.0)
+    sw = jnp.where(valid, jnp.sqrt(weight), 0.0)
+    rows_on = row_mask(mask)
+
+    def one(ia, ib):
+        th = jnp.zeros((N_PARAMS,)).at[3].set(jnp.log(grid[ia])).at[5].set(jnp.log(grid[ib]))
+        comp = 0.5 * component_avar(th, tau, dt)  # unit powers, (6, J)
+        cols = (comp / s[None, :] * sw[None, :]).T  # (J, 6)
+        p, misfit = _nnls_powers(cols, sw, rows_on)
+        return th, p, misfit
+
+    ths, ps, misfits = jax.vmap(one)(*pairs)
+    best = jnp.argmin(misfits)
+    th, p = ths[best], ps[best]
+    logp = jnp.log(jnp.maximum(p, 1e-300))
+    th = th.at[jnp.array(POWER_INDEX)].set(logp)
+    return jnp.clip(th, _LOG_FLOOR, -_LOG_FLOOR)
+
+
+def diag_rel_cov(count, m):
+    """First-stage relative covariance of ν̂: 4m/(3M) at each scale (white noise's equivalent
+    degrees of freedom), no correlation."""
+    return jnp.diag(4.0 * m / (3.0 * jnp.maximum(count, 1.0)))
+
+
+def jacobian_log(theta, mask, valid, tau, dt):
+    """∂ log ν(θ)/∂θ on the valid scales, switched-off columns zero: (J, 8)."""
+    f = lambda th: jnp.where(valid, jnp.log(model_wv(th, mask, tau, dt)), 0.0)  # noqa: E731
+    return jax.jacfwd(f)(theta) * mask.astype(theta.dtype)[None, :]

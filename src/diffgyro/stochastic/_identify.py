@@ -1,0 +1,246 @@
+"""Identify the stochastic model of every series: fit the catalogue, choose, give intervals.
+
+Per series (vmapped over devices × axes, one compiled program):
+
+1. the empirical Haar wavelet variance ν̂ on dyadic scales (:mod:`.wavelet_variance`);
+2. every candidate of the catalogue fitted with first-stage (diagonal) weights
+   (:mod:`.estimator`);
+3. Ω_ref: the inverse covariance of ν̂ (:mod:`.covariance`) under the
+   candidate that step 2 scores best; every candidate refitted with it and
+   scored by the criterion (:mod:`.selection`);
+4. the chosen structure's intervals from the sandwich (:mod:`.intervals`) with
+   Ω_ref as the weight and Σ at the chosen estimate.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._components import component_avar, model_wv, row_mask
+from ._covariance import wv_covariance
+from ._estimator import (
+    diag_rel_cov,
+    jacobian_log,
+    levenberg_marquardt,
+    log_moments,
+    scaled_chol,
+    start_pairs,
+    starting_values,
+    tau_grid,
+)
+from ._intervals import Z95, sandwich
+from ._selection import PENALTY, catalogue, effective_rank, label, structure_mask
+from ._wavelet_variance import dyadic_m, haar_wv
+
+#: Series per call of the compiled program. Larger batches of this program hung XLA's CPU
+#: runtime (every worker idle, the caller waiting: observed at 60 series, not at 8); a fixed
+#: chunk also keeps to one compiled program whatever the batch.
+CHUNK = 8
+#: Series per call on a GPU or TPU, where one call must carry more work.
+ACCEL_CHUNK = 128
+
+
+def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
+    valid = jnp.isfinite(wv_hat) & (wv_hat > 0) & (count > 1)
+    wv_hat = jnp.where(valid, wv_hat, 1.0)
+    log_wv = jnp.log(wv_hat)
+    mf = m.astype(wv_hat.dtype)
+    tau = mf * dt
+    cnt = count.astype(wv_hat.dtype)
+    grid = tau_grid(n_scales, dt)
+    pairs = start_pairs(n_scales)
+    rel0 = diag_rel_cov(cnt, mf)
+    weight1 = 1.0 / jnp.diag(rel0)
+    th0 = jax.vmap(lambda mk: starting_values(mk, wv_hat, valid, tau, dt, weight1, grid, pairs))(masks)
+
+    def rel_cov(th, mk):
+        nu = model_wv(th, mk, tau, dt)
+        return wv_covariance(th, mk, mf, cnt, n, dt) / (nu[:, None] * nu[None, :])
+
+    def weights(rel):
+        cov_log, bias = log_moments(rel)
+        return scaled_chol(cov_log, valid), log_wv - bias
+
+    chol0, target0 = weights(rel0)
+    k_nominal = jnp.sum(masks, axis=1)
+
+    def stage(carry, k):
+        # stage 0: diagonal first-stage weights; stage 1: Ω_ref, from the covariance of ν̂
+        # under the candidate that stage 0 scored best (its own objective + 2 per parameter)
+        th, obj = carry
+        ref = jnp.argmin(jnp.where(jnp.isfinite(obj), obj + 2.0 * k_nominal, jnp.inf))
+        chol1, target1 = weights(rel_cov(th[ref], masks[ref]))
+        chol = jnp.where(k == 0, chol0, chol1)
+        target = jnp.where(k == 0, target0, target1)
+        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, chol))(
+            th, masks)
+        return (th, obj), chol
+
+    obj0 = jnp.zeros(masks.shape[0], wv_hat.dtype)
+    (th2, obj), chols = jax.lax.scan(stage, (th0, obj0), jnp.arange(2))
+    chol_ref = chols[1]
+
+    def rank_of(th, mask):
+        d = jacobian_log(th, mask, valid, tau, dt)
+        return effective_rank(jax.scipy.linalg.solve_triangular(chol_ref, d, lower=True))
+
+    rank = jax.vmap(rank_of)(th2, masks)
+    crit = obj + penalty * k_nominal
+    pick = jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))
+    mask = masks[pick]
+    th = th2[pick]
+    rel_at = rel_cov(th, mask)
+    cov_log_at, _ = log_moments(rel_at)
+    vv = valid[:, None] & valid[None, :]
+    d = jacobian_log(th, mask, valid, tau, dt)
+    cov_theta = sandwich(d, chol_ref, jnp.where(vv, cov_log_at, 0.0), mask)
+    nu = model_wv(th, mask, tau, dt)
+    wv_sd = jnp.sqrt(jnp.diag(rel_at)) * nu
+    return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
+                theta=th, cov=cov_theta, wv_sd=wv_sd)
+
+
+@eqx.filter_jit
+def _identify_batch(wv_hat, count, n, dt, m, masks, penalty, n_scales):
+    f = lambda w, c, nn, d: _identify_one(w, c, nn, d, m, masks, penalty, n_scales)  # noqa: E731
+    return jax.vmap(f)(wv_hat, count, n, dt)
+
+
+@dataclass
+class NoiseModels:
+    """Identified models of a batch of series (leading shape ``lead``, e.g. devices × axes).
+
+    ``theta``/``cov``: log-parameters of the chosen structure and their covariance;
+    ``choice``: index into ``structures``; ``criterion``: every candidate's value (``objective`` + penalty × ``rank``);
+    ``tau``/``wv``/``wv_sd``: the empirical Haar wavelet variance, its model-based
+    standard deviation; ``dt``: sample interval per series."""
+
+    structures: list[tuple[str, ...]]
+    masks: np.ndarray
+    tau: np.ndarray
+    wv: np.ndarray
+    wv_sd: np.ndarray
+    valid: np.ndarray
+    dt: np.ndarray
+    choice: np.ndarray
+    theta: np.ndarray
+    cov: np.ndarray
+    criterion: np.ndarray
+    theta_all: np.ndarray
+    objective: np.ndarray
+    rank: np.ndarray
+
+    @property
+    def lead(self) -> tuple[int, ...]:
+        return self.choice.shape
+
+    def structure(self, *idx) -> tuple[str, ...]:
+        return self.structures[int(self.choice[idx])]
+
+    def components(self, *idx) -> list[dict]:
+        """The chosen model of one series as the JSON contract's components (SI units)."""
+        return components_of(self.theta[idx], self.cov[idx], self.masks[int(self.choice[idx])])
+
+    def rejected(self, *idx) -> list[dict]:
+        """The other candidates, best first, with their criterion values."""
+        crit = self.criterion[idx]
+        best = int(self.choice[idx])
+        order = [int(i) for i in np.argsort(crit, kind="stable") if int(i) != best]
+        return [{"structure": label(self.structures[i]), "kinds": list(self.structures[i]),
+                 "criterion": float(crit[i]) if np.isfinite(crit[i]) else None,
+                 "delta": float(crit[i] - crit[best]) if np.isfinite(crit[i]) else None}
+                for i in order]
+
+    def model_curve(self, idx, tau) -> tuple[np.ndarray, np.ndarray]:
+        """(per-component Allan variance (6, len τ), total) of one series' chosen model."""
+
+        mask = jnp.asarray(self.masks[int(self.choice[idx])])
+        rows = np.asarray(component_avar(jnp.asarray(self.theta[idx]), jnp.asarray(tau),
+                                         float(self.dt[idx])))
+        rows = np.where(np.asarray(row_mask(mask))[:, None], rows, np.nan)
+        return rows, np.nansum(rows, axis=0)
+
+
+def _param(log_power, log_var, unit, power=True):
+    """{"value", "ci", "unit"} of an amplitude √power (``power``) or of a time."""
+    h = 0.5 if power else 1.0
+    lv = h * log_power
+    se = h * np.sqrt(max(float(log_var), 0.0))
+    lo, hi = np.exp(lv - Z95 * se), np.exp(lv + Z95 * se)
+    clean = lambda x: float(x) if np.isfinite(x) else None  # noqa: E731
+    return {"value": clean(np.exp(lv)), "ci": [clean(lo), clean(hi)], "unit": unit}
+
+
+def components_of(theta, cov, mask) -> list[dict]:
+    """JSON components of one model (log-parameters ``theta``, covariance ``cov``)."""
+    theta = np.asarray(theta)
+    var = np.diag(np.asarray(cov))
+    out = []
+    if mask[0]:
+        out.append({"kind": "white", "params": {"arw": _param(theta[0], var[0], "rad/s/√Hz")}})
+    if mask[1]:
+        out.append({"kind": "quantization", "params": {"q": _param(theta[1], var[1], "rad")}})
+    gms = [(theta[i + 1], i) for i in (2, 4) if mask[i]]
+    for _, i in sorted(gms):  # shortest correlation time first
+        out.append({"kind": "gauss_markov", "params": {
+            "sigma": _param(theta[i], var[i], "rad/s"),
+            "tau": _param(theta[i + 1], var[i + 1], "s", power=False)}})
+    if mask[6]:
+        out.append({"kind": "random_walk", "params": {"rrw": _param(theta[6], var[6], "rad/s/√s")}})
+    if mask[7]:
+        out.append({"kind": "rate_ramp", "params": {"r": _param(theta[7], var[7], "rad/s²")}})
+    return out
+
+
+def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> NoiseModels:
+    """Identify the stochastic model of every series ``y`` (..., n) in rad/s sampled every ``dt``
+    seconds (scalar or per series); ``n_valid``: real samples of each padded series;
+    ``structures``: the candidates (default :func:`~.selection.catalogue`), each with white
+    noise; ``penalty``: the criterion's factor per parameter (:data:`~.selection.PENALTY`)."""
+    y = jnp.asarray(y, jnp.float64)
+    lead = y.shape[:-1]
+    n = y.shape[-1]
+    structures = list(structures) if structures is not None else catalogue()
+    masks = np.stack([structure_mask(s) for s in structures])
+    # candidates ordered by their number of parameters (ties keep the given order)
+    order = np.argsort(masks.sum(1), kind="stable")
+    structures = [structures[i] for i in order]
+    masks = masks[order]
+    nv = np.broadcast_to(np.asarray(n if n_valid is None else n_valid, np.int64), lead)
+    dtb = np.broadcast_to(np.asarray(dt, np.float64), lead)
+    m = dyadic_m(n)
+    wv, count = haar_wv(y, jnp.asarray(dtb), None if n_valid is None else jnp.asarray(nv), m)
+    flat = lambda a: jnp.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
+    args = [np.asarray(flat(a)) for a in (wv, count, nv.astype(np.float64), dtb)]
+    total = args[0].shape[0]
+    # fixed-size chunks, a power of two under it for fewer series: a few compiled programs
+    # for any batch
+    step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
+               1 << (max(total, 1) - 1).bit_length())
+    parts = []
+    for lo in range(0, total, step):
+        chunk = [a[lo:lo + step] for a in args]
+        short = step - chunk[0].shape[0]
+        if short:  # pad the last chunk with copies of its first series
+            chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
+        res = _identify_batch(*map(jnp.asarray, chunk), jnp.asarray(m), jnp.asarray(masks),
+                              jnp.asarray(float(penalty)), len(m))
+        parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
+    out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    out = {k: v.reshape(lead + v.shape[1:]) for k, v in out.items()}
+    tau = m[None, :] * dtb.reshape(-1, 1)
+    return NoiseModels(structures=structures, masks=masks, tau=tau.reshape(lead + (len(m),)),
+                       wv=np.asarray(wv), wv_sd=out["wv_sd"], valid=out["valid"], dt=dtb,
+                       choice=out["pick"], theta=out["theta"], cov=out["cov"],
+                       criterion=out["criterion"], theta_all=out["theta_all"],
+                       objective=out["objective"], rank=out["rank"])
+
+
+def model_wv_np(theta, mask, tau, dt) -> np.ndarray:
+    """The Haar wavelet variance of one model at τ (numpy in, numpy out)."""
+    return np.asarray(model_wv(jnp.asarray(theta), jnp.asarray(mask), jnp.asarray(tau), dt))
