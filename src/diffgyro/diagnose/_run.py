@@ -87,7 +87,7 @@ def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
     """The extra columns diagnose reads, centred and scaled ((devices, n) each, zero where
     not finite): those the model reads with the base fit's centring, the others (candidate
     ``aux`` terms) with each device's own range; and, per column the model does not read,
-    every device's problem with it (None: usable, see :func:`diffgyro.aux.column_problem`)."""
+    every device's problem with it (None: usable, see ``_aux.column_problem``)."""
     used = aux_cols.aux_names(model.requires())
     problems = {k: aux_cols.device_problems(batch, k) for k in batch.aux if k not in used}
     fresh = [k for k, p in problems.items() if any(q is None for q in p)]
@@ -102,7 +102,7 @@ def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
 def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict,
                   n_dev: int) -> list[dict]:
     """Per device, the column candidates (``aux(vdd)``) it skips and why: its column is
-    unusable (:func:`diffgyro.aux.column_problem`; the candidate's range marked so) or its
+    unusable (``_aux.column_problem``; the candidate's range marked so) or its
     data cannot support the term."""
     skips: list[dict] = [{} for _ in range(n_dev)]
     for j, c in enumerate(every):
@@ -290,7 +290,7 @@ def _taus(cands, theta_row) -> list:
 
 
 def _reported_floor(batch: Batch, res) -> list[tuple[float, list[float]]]:
-    """(noise floor, per axis) of every device: the base fit's (:mod:`diffgyro.noise`),
+    """(noise floor, per axis) of every device: the base fit's (``_noise``),
     computed here when that fit was run without it, so ``diagnose`` and ``fit`` report
     the same floor for the same device."""
 
