@@ -37,12 +37,13 @@ def test_every_built_in_effect_is_covered():
     assert built_in == set(ALONE)
 
 
-@pytest.fixture(scope="module")
-def recording() -> Recording:
-    """50 min at 1 Hz: soak 20 °C, up to 50 °C, soak, down to 10 °C, soak; turning on all axes."""
-    rng = np.random.default_rng(11)
-    t = np.arange(3000.0)
-    temp = np.interp(t, [0, 300, 1200, 1500, 2700, 3000], [20, 20, 50, 50, 10, 10])
+def turning_chamber_run(duration: int, knots: list[float], seed: int) -> Recording:
+    """``duration`` s at 1 Hz: soak 20 °C, up to 50 °C, soak, down to 10 °C, soak (times of
+    the ramps' ends ``knots``); turning on all axes, tilting, an external temperature and an
+    extra column: every signal a term can read."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(float(duration))
+    temp = np.interp(t, knots, [20, 20, 50, 50, 10, 10])
     temp = temp + 0.02 * rng.standard_normal(t.size)
     w = np.stack([np.sin(2 * np.pi * t / p + ph) for p, ph in ((97, 0), (61, 1), (43, 2))], 1)
     accel = 9.81 * np.stack([np.sin(t / 200), np.cos(t / 200) * np.sin(t / 310),
@@ -50,6 +51,12 @@ def recording() -> Recording:
     return Recording(t=t, gyro=1.5 * w + 0.01 * rng.standard_normal(w.shape), temp=temp,
                      temp_ext=temp - 4.0 + np.sin(t / 150), accel=accel,
                      aux={"vdd": 3.3 + 0.2 * np.sin(t / 400)}, device="imu0")
+
+
+@pytest.fixture(scope="module")
+def recording() -> Recording:
+    """50 min (see :func:`turning_chamber_run`)."""
+    return turning_chamber_run(3000, [0, 300, 1200, 1500, 2700, 3000], seed=11)
 
 
 def _calibration(spec: str, seed: int) -> dict:

@@ -9,6 +9,7 @@ import math
 import numpy as np
 import pytest
 from grammar_catalogue import CASES, SIGMA, make
+from test_apply_parity import turning_chamber_run
 
 import diffgyro
 from diffgyro import apply as A
@@ -72,16 +73,7 @@ def test_bad_spec_is_one_line_naming_the_position(spec, where):
 @pytest.fixture(scope="module")
 def recording() -> Recording:
     """40 min at 1 Hz: temperature up and down, turning on all axes, tilting, an extra column."""
-    rng = np.random.default_rng(3)
-    t = np.arange(2400.0)
-    temp = np.interp(t, [0, 300, 1000, 1300, 2100, 2400], [20, 20, 50, 50, 10, 10])
-    temp = temp + 0.02 * rng.standard_normal(t.size)
-    w = np.stack([np.sin(2 * np.pi * t / p + ph) for p, ph in ((97, 0), (61, 1), (43, 2))], 1)
-    accel = 9.81 * np.stack([np.sin(t / 200), np.cos(t / 200) * np.sin(t / 310),
-                             np.cos(t / 200) * np.cos(t / 310)], 1)
-    return Recording(t=t, gyro=1.5 * w + 0.01 * rng.standard_normal(w.shape), temp=temp,
-                     temp_ext=temp - 4.0 + np.sin(t / 150), accel=accel,
-                     aux={"vdd": 3.3 + 0.2 * np.sin(t / 400)}, device="imu0")
+    return turning_chamber_run(2400, [0, 300, 1000, 1300, 2100, 2400], seed=3)
 
 
 def _document(spec: str, seed: int) -> dict:
