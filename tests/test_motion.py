@@ -102,6 +102,31 @@ def test_a_rate_reference_is_not_flagged():
         assert res.status_name(0) == ("ok" if spec == "bias_poly(0)" else "insufficient_range")
 
 
+def test_a_device_is_judged_the_same_in_any_batch():
+    """A device's check does not depend on the batch around it: checked alone and unpadded
+    (the compiled check called on its own samples), and beside a longer device (its samples
+    padded, its baseline extrapolated past its end as unpadded), the numbers agree to
+    float32 rounding and the static masks are equal."""
+    import jax.numpy as jnp
+
+    from diffgyro.motion import _check, window_sizes
+
+    rec = _device("turns", duration=443.0, seed=3)
+    w, b = window_sizes(0.01)  # 41 s blocks: the recording ends in the second half of one
+    gyro = rec.gyro.copy()
+    gyro[:, 0] += 1e-4 * rec.t  # a steady drift, and a slow turn in that last half block
+    gyro[(rec.t >= 431.0) & (rec.t < 435.0), 2] += 0.03
+    rec = Recording(t=rec.t, gyro=gyro, accel=rec.accel, temp=rec.temp, device="turns")
+    alone = _check(jnp.asarray(rec.gyro, jnp.float32)[None], jnp.asarray(rec.accel, jnp.float32)[None],
+                   jnp.ones((1, rec.t.size), bool), w, b)
+    mixed = motion_check(Batch.from_recordings([rec, _device("long", duration=700.0)]))
+    for k in ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold"):
+        np.testing.assert_allclose(float(getattr(mixed, k)[0]), float(alone[k][0]), rtol=1e-5,
+                                   err_msg=k)
+    assert abs(float(mixed.rate_peak[0]) / 0.03 - 1.0) < 0.1  # the turn, against the drift's line
+    np.testing.assert_array_equal(np.asarray(mixed.static[0, :rec.t.size]), np.asarray(alone["static"][0]))
+
+
 def test_a_fast_thermal_transient_the_model_follows_is_not_motion():
     """A quiet gyro at 1 Hz whose bias follows a fast temperature step (time constant 20 s,
     0.002 rad/s per °C over 10 °C): window means leave any slow baseline, yet the model

@@ -250,9 +250,9 @@ def _rest_noise(local, half, valid, w: int, quantum=0.0):
     return sigma, mean_noise
 
 
-def _baseline(mean, use, b: int):
+def _baseline(mean, use, valid, b: int):
     """Slow baseline of the window means: the median over blocks of ``b`` windows of the
-    windows in ``use``, linearly interpolated between block centres."""
+    windows in ``use`` (of the ``valid`` ones), linearly interpolated between block centres."""
     k = mean.shape[0]
     kb = -(-k // b)
     pad = kb * b - k
@@ -260,13 +260,20 @@ def _baseline(mean, use, b: int):
     ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
     ok = jnp.broadcast_to(ok[:, None], vals.shape)
     med = _masked_quantile(vals.reshape(kb, b, -1), ok.reshape(kb, b, -1), 0.5, axis=1)  # (kb, c)
-    # a block without windows in use (padding, or all moving) holds the last block before it
-    # that has some (the first such block before any)
+    # a block without windows in use (all moving) holds the last block before it that has
+    # some (the first such block before any)
     has = ~jnp.isnan(med[:, 0])
     idx = jnp.arange(kb)
     last = jax.lax.cummax(jnp.where(has, idx, -1))
     first = jnp.argmax(has)
     med = med[jnp.where(last >= 0, last, first)]  # NaN only where no window is in use
+    # past the recording's end (padding), the line through its last two blocks: the last
+    # block's second half is then extrapolated as without the padding, so a device's
+    # baseline does not depend on the length of the batch it is checked in
+    data = jnp.any(jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b), axis=1)
+    end = jnp.max(jnp.where(data, idx, 0))
+    line = 2.0 * med[end] - med[jnp.maximum(end - 1, 0)]
+    med = jnp.where((idx > end)[:, None], line[None, :], med)
     if kb == 1:
         return jnp.broadcast_to(med, mean.shape)
     # linear between block centres, and extrapolated from the nearest two at the ends
@@ -325,8 +332,8 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     # a window leaves the baseline; a run of such windows is motion when it starts or
     # holds a jump (a turn starts within a window or two; thermal drift creeps)
     jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
-    moving = _runs_with(flag(mean - _baseline(mean, valid, b), var, valid), jump)
-    dev = mean - _baseline(mean, valid & ~moving, b)
+    moving = _runs_with(flag(mean - _baseline(mean, valid, valid, b), var, valid), jump)
+    dev = mean - _baseline(mean, valid & ~moving, valid, b)
     moving = _runs_with(flag(dev, var, valid), jump)
     thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
     return moving, dev, valid, sigma, thr0
@@ -389,25 +396,30 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     mask = np.asarray(batch.mask)
     d, n = mask.shape
     if d * n <= PAD_SAMPLES:  # small batches share a compiled check (see _padded)
-        gyro, accel, mask = (_padded(x, device_bucket(d, minimum=1), -(-n // (w * b)) * w * b)
+        blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
+        gyro, accel, mask = (_padded(x, device_bucket(d, minimum=1), blocks * w * b)
                              for x in (gyro, accel, mask))
+        # the check computes in float32 (_one_device): one program for either precision
+        gyro, accel = (None if x is None else x.astype(np.float32) for x in (gyro, accel))
     out = _check(jnp.asarray(gyro), None if accel is None else jnp.asarray(accel),
                  jnp.asarray(mask), w, b)
-    out = {k: v[:d] for k, v in out.items()}
+    out = {k: v[:d] if k == "static" else v[:d].astype(f64) for k, v in out.items()}
     out["static"] = out["static"][:, :n]
     return Motion(**out, window=w)
 
 
 #: Batches of at most this many samples (devices × samples) are padded to a bucketed
-#: shape before the check, so that batches of nearby sizes share one compiled program.
+#: shape before the check (devices to :func:`~diffgyro.data.device_bucket`, samples to a
+#: power of two of baseline blocks), so that batches of nearby sizes share one program.
 PAD_SAMPLES = 1 << 21
 
 
 def _padded(x, devices: int, samples: int):
     """``x`` (devices first, samples second, or None) padded with zeros (False for the
-    mask) to ``devices`` × ``samples``. Padded samples are invalid and fill whole baseline
-    blocks only up to the block the recording ends in, so every device's windows, blocks
-    and baseline are the ones it has unpadded; padded devices hold no valid sample."""
+    mask) to ``devices`` × ``samples``. Padded samples are invalid: every device's windows
+    and blocks are the ones it has unpadded, and its baseline past its last block is the
+    line it is extrapolated on unpadded (:func:`_baseline`); padded devices hold no valid
+    sample."""
     if x is None or x.shape[:2] == (devices, samples):
         return x
     out = np.zeros((devices, samples) + x.shape[2:], x.dtype)
