@@ -9,7 +9,7 @@ import os
 
 # The suite builds hundreds of XLA programs and runs most of them once or twice: compile
 # them with XLA's loop emitters instead of its MLIR fusion emitters (as fit() already does
-# for its costlier programs, diffgyro._fit_sums.compile_options.FAST_COMPILE) and without
+# for its costlier programs, diffgyro._xla_options.FAST_COMPILE) and without
 # LLVM's optimisation passes: the same programs, about half the compile time, slower to
 # run, results equal to rounding. Set before JAX starts its CPU client; child processes
 # inherit them; the flags are part of the persistent cache's key. Users and benchmarks/

@@ -50,7 +50,7 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     def body(treedef, static, dynamic):
         return _unsplit(fun, treedef, static, dynamic)
 
-    # the options are XLA:CPU's (diffgyro._fit_sums.compile_options): another backend
+    # the options are XLA:CPU's (diffgyro._xla_options): another backend
     # refuses an option it does not know, so there the program compiles with defaults
     on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
     elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu

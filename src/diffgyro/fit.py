@@ -36,7 +36,7 @@ from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
-from .motion import Motion, motion_check
+from .motion import Motion, compile_check, motion_check
 from .signals import Signals, TempNorm
 from .status import IN_MOTION, OK, STATUS_NAMES, collinear_terms, explain, fit_status, min_samples
 
@@ -507,11 +507,16 @@ def fit(
     batch = as_batch(data)
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
     recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
-    if static_only:
+    if static_only:  # the fit needs the check's static samples
+        motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
-    result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+    else:  # the check's program compiles while the fit's are traced
+        ahead = compile_check(batch)
+        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+        ahead.join()
+        motion = motion_check(batch)
     if not hasattr(result, "status"):  # a user's noise-component fit: its own result
         return result
     return judge_motion(result, batch, motion, recorded, static_only)

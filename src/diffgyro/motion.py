@@ -44,6 +44,8 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -51,7 +53,9 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Bool, Float
 
+from ._jit import filter_jit
 from ._jsonio import number
+from ._xla_options import FAST_COMPILE
 from .data import device_bucket, sampling_intervals
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
@@ -332,9 +336,13 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     # a window leaves the baseline; a run of such windows is motion when it starts or
     # holds a jump (a turn starts within a window or two; thermal drift creeps)
     jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
-    moving = _runs_with(flag(mean - _baseline(mean, valid, valid, b), var, valid), jump)
-    dev = mean - _baseline(mean, valid & ~moving, valid, b)
-    moving = _runs_with(flag(dev, var, valid), jump)
+    # twice: the baseline of the valid windows, then of those the first pass left static
+    # (one compiled body)
+    def again(_, state):
+        dev = mean - _baseline(mean, valid & ~state[0], valid, b)
+        return _runs_with(flag(dev, var, valid), jump), dev
+
+    moving, dev = jax.lax.fori_loop(0, 2, again, (jnp.zeros_like(valid), jnp.zeros_like(mean)))
     thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
     return moving, dev, valid, sigma, thr0
 
@@ -372,9 +380,42 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static}
 
 
-@eqx.filter_jit
-def _check(gyro, accel, mask, w: int, b: int):
+def _vmapped(gyro, accel, mask, w: int, b: int):
     return jax.vmap(lambda g, a, m: _one_device(g, a, m, w, b))(gyro, accel, mask)
+
+
+#: The check of a large batch, and of a small (padded) one: a small batch's check runs in
+#: milliseconds, and compiles in about 60 % of the time with XLA's loop emitters.
+_check = filter_jit(_vmapped)
+_check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
+
+
+class _Layout(NamedTuple):
+    """How a batch is checked: window and block sizes, the shape it is checked at (padded
+    for a small batch), the precision it is read in, and whether the accelerometer is."""
+
+    w: int
+    b: int
+    shape: tuple[int, int]
+    dtype: type
+    accel: bool
+    padded: bool
+
+
+def _layout(batch, dt: float | None) -> _Layout:
+    if dt is None:
+        dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
+    w, b = window_sizes(dt)
+    f64 = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
+    d, n = np.shape(batch.mask)
+    # with a rate reference, the referenced turns tilt gravity: no news in the accelerometer
+    accel = batch.accel is not None and batch.rate is None
+    if d * n > PAD_SAMPLES:
+        return _Layout(w, b, (d, n), f64, accel, False)
+    # small batches share a compiled check (see _padded), computed in float32 as
+    # _one_device does anyway: one program for either precision
+    blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
+    return _Layout(w, b, (device_bucket(d, minimum=1), blocks * w * b), np.float32, accel, True)
 
 
 def motion_check(batch, dt: float | None = None) -> Motion:
@@ -384,28 +425,38 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
 
-    if dt is None:
-        dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
-    w, b = window_sizes(dt)
+    lay = _layout(batch, dt)
     f64 = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
     gyro = np.asarray(batch.gyro, f64)
-    accel = None if batch.accel is None else np.asarray(batch.accel, f64)
-    if batch.rate is not None:  # what the rate reference does not explain; the turns it
-        gyro = gyro - np.asarray(batch.rate, f64)  # gives tilt gravity, and that is no news
-        accel = None
+    if batch.rate is not None:  # what the rate reference does not explain
+        gyro = gyro - np.asarray(batch.rate, f64)
+    accel = np.asarray(batch.accel, f64) if lay.accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
-    if d * n <= PAD_SAMPLES:  # small batches share a compiled check (see _padded)
-        blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
-        gyro, accel, mask = (_padded(x, device_bucket(d, minimum=1), blocks * w * b)
-                             for x in (gyro, accel, mask))
-        # the check computes in float32 (_one_device): one program for either precision
-        gyro, accel = (None if x is None else x.astype(np.float32) for x in (gyro, accel))
-    out = _check(jnp.asarray(gyro), None if accel is None else jnp.asarray(accel),
-                 jnp.asarray(mask), w, b)
+    if lay.padded:
+        gyro, accel, mask = (_padded(x, *lay.shape) for x in (gyro, accel, mask))
+        gyro, accel = (None if x is None else x.astype(lay.dtype) for x in (gyro, accel))
+    check = _check_small if lay.padded else _check
+    out = check(jnp.asarray(gyro), None if accel is None else jnp.asarray(accel),
+                jnp.asarray(mask), lay.w, lay.b)
     out = {k: v[:d] if k == "static" else v[:d].astype(f64) for k, v in out.items()}
     out["static"] = out["static"][:, :n]
-    return Motion(**out, window=w)
+    return Motion(**out, window=lay.w)
+
+
+def compile_check(batch, dt: float | None = None) -> threading.Thread:
+    """Compile :func:`motion_check`'s program for ``batch`` on a thread of its own, from
+    the batch's shapes only: a caller that has other programs to trace (a fit) overlaps
+    the two, and joins the thread before its :func:`motion_check`, which then finds the
+    program compiled."""
+    lay = _layout(batch, dt)
+
+    def spec(*tail, dtype=lay.dtype):
+        return jax.ShapeDtypeStruct(lay.shape + tail, dtype)
+
+    check = _check_small if lay.padded else _check
+    return check.compile_ahead(spec(3), spec(3) if lay.accel else None, spec(dtype=bool),
+                               lay.w, lay.b)
 
 
 #: Batches of at most this many samples (devices × samples) are padded to a bucketed
@@ -427,5 +478,5 @@ def _padded(x, devices: int, samples: int):
     return out
 
 
-__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "describe",
+__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "compile_check", "describe",
            "motion_check", "window_sizes"]

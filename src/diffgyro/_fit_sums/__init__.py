@@ -38,8 +38,8 @@ Devices are processed in groups of a fixed size on the host (and spread over
 every local accelerator), so only the group size — not the number of devices —
 is part of the compiled shape. Models with time constants take smaller groups:
 their batched Newton loops step in lockstep with the group's slowest device.
-The group program may reassociate its sums (:data:`.compile_options.REASSOCIATE`), is compiled for
-compile time unless it is a fused linear model's (:data:`.compile_options.FAST_COMPILE`), and returns
+The group program may reassociate its sums (:data:`diffgyro._xla_options.REASSOCIATE`), is compiled for
+compile time unless it is a fused linear model's (:data:`diffgyro._xla_options.FAST_COMPILE`), and returns
 its results packed in one array per group; the model-free noise floor is computed on
 the host's threads meanwhile (:mod:`diffgyro._noise`). Unless the model is fused linear,
 the group program stops at the sums and the finish (:func:`.finish.finish`: solves,
@@ -54,7 +54,7 @@ time constants), :mod:`.separable` (a device's sums with time constants),
 :mod:`.device` (the per-device program), :mod:`.finish` (solves, covariance, rank
 check, status), :mod:`.programs` (the compiled group programs and their packed
 results), :mod:`.inputs` (their per-device inputs on the host), :mod:`.groups`
-(group and chunk sizes), :mod:`.compile_options` (XLA options); :func:`solve_sums`
+(group and chunk sizes), :mod:`diffgyro._xla_options` (XLA options); :func:`solve_sums`
 here runs them over a batch.
 """
 
@@ -65,11 +65,11 @@ import numpy as np
 
 from .._jit import collector_paused, parallel_devices
 from .._noise import start as host_noise
+from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE
 from ..data import Batch, aux_key
 from ..model import ErrorModel
 from ..signals import TempNorm
 from . import groups
-from .compile_options import FAST_COMPILE, ONCE, REASSOCIATE
 from .groups import (
     CHUNK,
     FUSED_GROUP_FACTOR,

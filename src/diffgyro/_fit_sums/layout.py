@@ -12,10 +12,10 @@ import numpy as np
 from jax.interpreters import partial_eval as pe
 
 from .._jit import filter_jit
+from .._xla_options import ONCE
 from ..data import AUX_PREFIX
 from ..model import ErrorModel
 from ..signals import Signals, TempNorm, make_signals
-from .compile_options import ONCE
 
 #: Per-sample inputs a linear model may read, in the order the group function takes them.
 INPUTS = ("t", "rate", "temp", "temp_ext", "accel")

@@ -8,8 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import TRACE_COUNTS, filter_jit
+from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE
 from ..model import ErrorModel
-from .compile_options import FAST_COMPILE, ONCE, REASSOCIATE
 from .device import device
 from .finish import finish
 

@@ -1,4 +1,4 @@
-"""XLA compiler options of the sums path's programs."""
+"""XLA compiler options of the programs that set their own (the sums path's, the motion check's)."""
 
 from __future__ import annotations
 
