@@ -555,7 +555,7 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
 
     def pick(a, b):
         m = np.asarray(moved).reshape((-1,) + (1,) * (np.ndim(a) - 1))
-        return jnp.asarray(np.where(m, np.asarray(b), np.asarray(a)))
+        return np.where(m, np.asarray(b), np.asarray(a))
 
     fields = ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")
     return Motion(**{k: pick(getattr(motion, k), getattr(again, k)) for k in fields},

@@ -51,7 +51,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Bool, Float
 
 from ._jit import filter_jit
 from ._jsonio import number
@@ -89,14 +89,15 @@ class Motion(eqx.Module):
     (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
     window mean at rest noise that counts as moving, RMS over axes), and the
     per-sample ``static`` mask (valid, not moving, not next to a moving window).
+    A judgement the host reads, so numpy arrays.
     """
 
-    moving_fraction: Float[Array, " d"]
-    rate_peak: Float[Array, " d"]
-    rate_rms: Float[Array, " d"]
-    rest_noise: Float[Array, " d"]
-    threshold: Float[Array, " d"]
-    static: Bool[Array, "d n"]
+    moving_fraction: Float[np.ndarray, " d"]
+    rate_peak: Float[np.ndarray, " d"]
+    rate_rms: Float[np.ndarray, " d"]
+    rest_noise: Float[np.ndarray, " d"]
+    threshold: Float[np.ndarray, " d"]
+    static: Bool[np.ndarray, "d n"]
     window: int = eqx.field(static=True, default=0)
 
     def record(self, i: int) -> dict:
@@ -120,7 +121,7 @@ class Motion(eqx.Module):
     def select(self, idx) -> Motion:
         """The devices ``idx`` (an index array)."""
         idx = np.asarray(idx)
-        return Motion(*(jnp.asarray(getattr(self, k))[idx] for k in
+        return Motion(*(np.asarray(getattr(self, k))[idx] for k in
                         ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold",
                          "static")), window=self.window)
 
@@ -437,9 +438,11 @@ def motion_check(batch, dt: float | None = None) -> Motion:
         gyro, accel, mask = (_padded(x, *lay.shape) for x in (gyro, accel, mask))
         gyro, accel = (None if x is None else x.astype(lay.dtype) for x in (gyro, accel))
     check = _check_small if lay.padded else _check
-    out = check(jnp.asarray(gyro), None if accel is None else jnp.asarray(accel),
-                jnp.asarray(mask), lay.w, lay.b)
-    out = {k: v[:d] if k == "static" else v[:d].astype(f64) for k, v in out.items()}
+    out = check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
+                lay.w, lay.b)
+    # a judgement the host reads: numpy, unpadded on the host (no program per shape)
+    out = {k: np.asarray(v)[:d] if k == "static" else np.asarray(v)[:d].astype(f64)
+           for k, v in out.items()}
     out["static"] = out["static"][:, :n]
     return Motion(**out, window=lay.w)
 
