@@ -609,16 +609,16 @@ def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, optio
         theta0 = jnp.broadcast_to(jnp.asarray(theta0, sig.gyro.dtype), (n_dev, model.n_nonlinear))
         theta0 = theta0[np.minimum(np.arange(batch.n_devices), n_dev - 1)]
     out = _solve_batch(model, sig, opts, theta0)
-    if batch.n_devices != n_dev:
-        out = jax.tree.map(lambda a: a[:n_dev], out)
-        sig = jax.tree.map(lambda a: a[:n_dev], sig)
+    sig_norm = sig.norm
+    if batch.n_devices != n_dev:  # unpadded on the host: no slicing program per shape
+        out, sig_norm = jax.device_put(jax.tree.map(lambda a: np.asarray(a)[:n_dev], (out, sig_norm)))
         batch = batch.select(np.arange(n_dev))
     temp_range = None
     if batch.temp is not None:
         tmask = np.where(batch.mask, batch.temp, np.nan)
         temp_range = jnp.stack([jnp.asarray(np.nanmin(tmask, axis=1)),
                                 jnp.asarray(np.nanmax(tmask, axis=1))], axis=1)
-    norm_out = sig.norm if sig.norm is not None else TempNorm(
+    norm_out = sig_norm if sig_norm is not None else TempNorm(
         centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
     return FitResult(
         model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
