@@ -295,8 +295,9 @@ def test_bias_filter_with_the_identified_model_is_calibrated():
 
     n, dt = 40_000, 0.01
     k1, k2 = jax.random.split(jax.random.PRNGKey(11))
-    bias = simulate_noise(k1, n, dt, gm=((2e-3, 2.0),), rrw=2e-4)
-    y = bias + simulate_noise(k2, n, dt, arw=1e-3)
+    bias, white = jax.jit(lambda k1, k2: (simulate_noise(k1, n, dt, gm=((2e-3, 2.0),), rrw=2e-4),
+                                          simulate_noise(k2, n, dt, arw=1e-3)))(k1, k2)
+    y = bias + white
 
     def comp(kind, **params):
         return {"kind": kind, "params": {k: {"value": v} for k, v in params.items()}}
