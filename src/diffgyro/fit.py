@@ -540,7 +540,8 @@ def judge_motion(result, batch: Batch, motion: Motion | None = None, recorded=No
         if isinstance(result, FitResult) and np.any(moved & (np.asarray(status) == OK)):
             motion = _unexplained(result, batch, motion, moved)
             moved = motion.moved_all()
-        status = jnp.where(jnp.asarray(moved) & (status == OK), IN_MOTION, status)
+        status = np.asarray(status)  # on the host: no program per batch size
+        status = jax.device_put(np.where(moved & (status == OK), IN_MOTION, status).astype(status.dtype))
     return _replace(result, status=status, motion=motion, n_recorded=recorded,
                     static_only=static_only)
 
