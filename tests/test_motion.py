@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.io
@@ -17,7 +18,7 @@ from diffgyro import calibration
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
-from diffgyro.motion import MAX_MOVING_FRACTION, motion_check
+from diffgyro.motion import MAX_MOVING_FRACTION, _check, motion_check, window_sizes
 from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
@@ -107,10 +108,6 @@ def test_a_device_is_judged_the_same_in_any_batch():
     (the compiled check called on its own samples), and beside a longer device (its samples
     padded, its baseline extrapolated past its end as unpadded), the numbers agree to
     float32 rounding and the static masks are equal."""
-    import jax.numpy as jnp
-
-    from diffgyro.motion import _check, window_sizes
-
     rec = _device("turns", duration=443.0, seed=3)
     w, b = window_sizes(0.01)  # 41 s blocks: the recording ends in the second half of one
     gyro = rec.gyro.copy()

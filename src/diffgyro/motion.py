@@ -393,30 +393,37 @@ _check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
 
 class _Layout(NamedTuple):
     """How a batch is checked: window and block sizes, the shape it is checked at (padded
-    for a small batch), the precision it is read in, and whether the accelerometer is."""
+    for a small batch), the precision it is read in and the one it is checked in, and
+    whether the accelerometer is read."""
 
     w: int
     b: int
     shape: tuple[int, int]
+    read: type
     dtype: type
     accel: bool
     padded: bool
+
+    @property
+    def check(self):
+        return _check_small if self.padded else _check
 
 
 def _layout(batch, dt: float | None) -> _Layout:
     if dt is None:
         dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
     w, b = window_sizes(dt)
-    f64 = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
+    read = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
     d, n = np.shape(batch.mask)
     # with a rate reference, the referenced turns tilt gravity: no news in the accelerometer
     accel = batch.accel is not None and batch.rate is None
     if d * n > PAD_SAMPLES:
-        return _Layout(w, b, (d, n), f64, accel, False)
+        return _Layout(w, b, (d, n), read, read, accel, False)
     # small batches share a compiled check (see _padded), computed in float32 as
     # _one_device does anyway: one program for either precision
     blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
-    return _Layout(w, b, (device_bucket(d, minimum=1), blocks * w * b), np.float32, accel, True)
+    return _Layout(w, b, (device_bucket(d, minimum=1), blocks * w * b), read, np.float32,
+                   accel, True)
 
 
 def motion_check(batch, dt: float | None = None) -> Motion:
@@ -427,21 +434,19 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     accelerometer (the referenced turns tilt gravity)."""
 
     lay = _layout(batch, dt)
-    f64 = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
-    gyro = np.asarray(batch.gyro, f64)
+    gyro = np.asarray(batch.gyro, lay.read)
     if batch.rate is not None:  # what the rate reference does not explain
-        gyro = gyro - np.asarray(batch.rate, f64)
-    accel = np.asarray(batch.accel, f64) if lay.accel else None
+        gyro = gyro - np.asarray(batch.rate, lay.read)
+    accel = np.asarray(batch.accel, lay.read) if lay.accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
     if lay.padded:
         gyro, accel, mask = (_padded(x, *lay.shape) for x in (gyro, accel, mask))
         gyro, accel = (None if x is None else x.astype(lay.dtype) for x in (gyro, accel))
-    check = _check_small if lay.padded else _check
-    out = check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
-                lay.w, lay.b)
+    out = lay.check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
+                    lay.w, lay.b)
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    out = {k: np.asarray(v)[:d] if k == "static" else np.asarray(v)[:d].astype(f64)
+    out = {k: np.asarray(v)[:d] if k == "static" else np.asarray(v)[:d].astype(lay.read)
            for k, v in out.items()}
     out["static"] = out["static"][:, :n]
     return Motion(**out, window=lay.w)
@@ -457,9 +462,8 @@ def compile_check(batch, dt: float | None = None) -> threading.Thread:
     def spec(*tail, dtype=lay.dtype):
         return jax.ShapeDtypeStruct(lay.shape + tail, dtype)
 
-    check = _check_small if lay.padded else _check
-    return check.compile_ahead(spec(3), spec(3) if lay.accel else None, spec(dtype=bool),
-                               lay.w, lay.b)
+    return lay.check.compile_ahead(spec(3), spec(3) if lay.accel else None, spec(dtype=bool),
+                                   lay.w, lay.b)
 
 
 #: Batches of at most this many samples (devices × samples) are padded to a bucketed
