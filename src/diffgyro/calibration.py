@@ -263,6 +263,31 @@ def _flat_numbers(val, where: str, max_items: int = 256) -> dict:
     return out
 
 
+def _motion_record(val, where: str) -> dict:
+    """A ``motion`` object (:meth:`diffgyro.motion.Motion.record`): numbers, the verdict's
+    name, its reason in words, and the intervals of rest a fit kept."""
+    from .motion import MAX_INTERVALS, VERDICT_NAMES
+
+    if not isinstance(val, dict):
+        raise SpecError(f"calibration file: {where} must be an object")
+    text = {k: val[k] for k in ("verdict", "reason") if k in val}
+    spans = val.get("rest_intervals")
+    out = _flat_numbers({k: v for k, v in val.items() if k not in text and k != "rest_intervals"},
+                        where, 24)
+    if "verdict" in text and text["verdict"] not in VERDICT_NAMES:
+        raise SpecError(f"calibration file: {where}.verdict must be one of {VERDICT_NAMES}")
+    if "reason" in text and (not isinstance(text["reason"], str) or len(text["reason"]) > 2000):
+        raise SpecError(f"calibration file: {where}.reason must be a text of at most 2000 characters")
+    if spans is not None:
+        if (not isinstance(spans, list) or len(spans) > MAX_INTERVALS
+                or not all(isinstance(x, list) and len(x) == 3 for x in spans)):
+            raise SpecError(f"calibration file: {where}.rest_intervals must be a list of at most "
+                            f"{MAX_INTERVALS} [start, end, length] triples")
+        out["rest_intervals"] = [list(_flat_numbers(dict(zip("abc", x)), f"{where}.rest_intervals",
+                                                    3).values()) for x in spans]
+    return out | text
+
+
 def _flag(obj: dict, key: str, where: str) -> bool:
     val = obj.get(key, False)
     if not isinstance(val, bool):
@@ -336,7 +361,7 @@ def from_json(obj) -> Calibration:
                                      status_detail=_text(d, "status_detail", where),
                                      aux=_aux_entries(d.get("aux", {}), model, where),
                                      limits=_limits_entry(d.get("limits", {}), where),
-                                     motion=_flat_numbers(d.get("motion", {}), f"{where}.motion", 16),
+                                     motion=_motion_record(d.get("motion", {}), f"{where}.motion"),
                                      static_only=_flag(d, "static_only", where)))
     window = _req(obj, "dtemp_window", float, "file")
     if not (0 < window <= MAX_DTEMP_WINDOW):

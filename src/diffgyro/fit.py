@@ -36,9 +36,10 @@ from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
-from .motion import Motion, compile_check, motion_check
+from .motion import Motion, compile_check, motion_check, rest_kept
 from .signals import Signals, TempNorm
-from .status import IN_MOTION, OK, STATUS_NAMES, collinear_terms, explain, fit_status, min_samples
+from .status import (IN_MOTION, OK, REST_UNVERIFIED, STATUS_NAMES, collinear_terms, explain, fit_status,
+                     min_samples, residual_verdict)
 
 __all__ = ["fit", "FitResult", "FitOptions", "judge_motion", "solve_device", "batch_signals",
            "device_noise_floor", "masked_median"]
@@ -449,6 +450,7 @@ class FitResult(eqx.Module):
             "n_samples": int(self.n_samples[i]),
             "params": self.param_dict(i),
             "motion": None if self.motion is None else self.motion.record(i),
+            "residual_ratio": residual_verdict(self.heldout_rms[i], self.noise_floor[i])[1],
         } | ({"static_only": True, "n_recorded": int(self.n_recorded[i])} if self.static_only else {})
 
     def records(self) -> list[dict]:
@@ -525,23 +527,34 @@ def fit(
 def judge_motion(result, batch: Batch, motion: Motion | None = None, recorded=None,
                  static_only: bool = False):
     """``result`` (a :class:`FitResult` or the state-space path's fit) with the motion check
-    of ``batch`` (computed here unless given) and status ``in_motion`` for a device that
-    moved where the model has no rate reference; ``recorded``: samples per device before
-    ``static_only`` masked the moving ones. Every path that fits a batch ends here."""
+    of ``batch`` (computed here unless given) and, where the model has no rate reference,
+    status ``in_motion`` for a device that moved and ``rest_unverified`` for one whose
+    recording cannot show that it was at rest (:class:`diffgyro.motion.Motion`);
+    ``recorded``: samples per device before ``static_only`` masked the moving ones (whose
+    fit is ``rest_unverified`` where too little rest is left). Every path that fits a batch
+    ends here."""
     if motion is None:
         motion = motion_check(batch)
     if recorded is None:
         recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
     status = result.status
-    if not static_only and batch.rate is None:  # a fit with a rate reference subtracts it
-        moved = motion.moved_all()
+    if batch.rate is None:  # a fit with a rate reference subtracts it
+        if static_only:
+            motion = rest_kept(motion)
+            moved = np.zeros(len(motion.verdict), bool)
+        else:
+            moved = motion.moved_all()
         # (a random walk's smoothed bias follows a turn: only a deterministic model's
         # residual tells a thermal transient from motion)
-        if isinstance(result, FitResult) and np.any(moved & (np.asarray(status) == OK)):
+        if (not static_only and isinstance(result, FitResult)
+                and np.any(moved & (np.asarray(status) == OK))):
             motion = _unexplained(result, batch, motion, moved)
             moved = motion.moved_all()
         status = np.asarray(status)  # on the host: no program per batch size
-        status = jax.device_put(np.where(moved & (status == OK), IN_MOTION, status).astype(status.dtype))
+        unverified = motion.unverified_all()
+        status = np.where(moved & (status == OK), IN_MOTION, status)
+        status = np.where(unverified & (status == OK), REST_UNVERIFIED, status)
+        status = jax.device_put(status.astype(np.asarray(result.status).dtype))
     return _replace(result, status=status, motion=motion, n_recorded=recorded,
                     static_only=static_only)
 
@@ -553,14 +566,7 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
     stays in the residual."""
     resid = np.asarray(result.residuals(batch))  # (only called where batch.rate is None)
     again = motion_check(eqx.tree_at(lambda b: b.gyro, batch, resid))
-
-    def pick(a, b):
-        m = np.asarray(moved).reshape((-1,) + (1,) * (np.ndim(a) - 1))
-        return np.where(m, np.asarray(b), np.asarray(a))
-
-    fields = ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")
-    return Motion(**{k: pick(getattr(motion, k), getattr(again, k)) for k in fields},
-                  static=motion.static, window=motion.window)
+    return motion.where(moved, again)
 
 
 def _replace(result, **changes):

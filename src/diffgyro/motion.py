@@ -42,21 +42,23 @@ as stored, the rest works on the windows.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
 import threading
+import warnings
 from typing import NamedTuple
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 
 from ._jit import filter_jit
 from ._jsonio import number
 from ._xla_options import FAST_COMPILE
-from .data import device_bucket, sampling_intervals
+from .data import device_bucket
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
 EARTH_RATE = 7.292115e-5
@@ -72,12 +74,40 @@ HALF_QUANTILE = 0.2
 WINDOW_S = 0.25
 BLOCK_S = 30.0
 #: Fraction of a recording that may move before a fit without a rate reference is
-#: not ``ok`` (status ``in_motion``).
+#: not ``ok`` (status ``in_motion``), whatever the size of its turns.
 MAX_MOVING_FRACTION = 0.02
-#: ... and whose turns reach this many times the threshold (a slow unexplained change of
-#: the bias, a supply or duty step, can leave the baseline by a few thresholds; a turn by
-#: hand or vehicle leaves it by hundreds).
+#: A run of moving windows that turned through this angle (rad) or more, or whose
+#: window-mean rate reached :data:`MIN_PEAK_RATIO` times the threshold, is motion at any
+#: moving fraction. A slow unexplained change of the bias (a supply or duty step) leaves the
+#: baseline by a few thresholds and turns a window by hundredths of a degree; a turn by
+#: hand or vehicle leaves it by hundreds.
+MIN_TURN = math.radians(0.5)
 MIN_PEAK_RATIO = 10.0
+#: The coarsest resolution (rad) at which a recording can be called at rest: a window at
+#: the recording's rest noise must show a turn of this angle. A recording that cannot (too
+#: noisy, too slowly sampled, or with no quiet part, whose own motion sets its noise) is
+#: ``unverified``, never at rest.
+MAX_RESOLUTION = math.radians(1.0)
+#: Fewest valid windows a judgement needs (the rest noise is a quantile over them).
+MIN_WINDOWS = 16
+#: A window's noise may raise its threshold (vibration) at most this many times.
+LOUDER_CAP = 8.0
+#: Windows read for the rest noise's quantiles, and per baseline block for its median.
+QUANTILE_WINDOWS = 512
+BLOCK_WINDOWS = 16
+#: Intervals of rest listed in a record (the rest are counted).
+MAX_INTERVALS = 100
+#: Fastest change of a bias at rest (rad/s per s): a fast warm-up's. Two stretches of rest
+#: either side of a motion whose rates differ by more than this allows (and their noise)
+#: are not both rest: one of them spins (:func:`_rest_levels`).
+BIAS_SLEW = 2e-4
+
+#: Verdicts, in :attr:`Motion.verdict`.
+AT_REST, IN_MOTION, UNVERIFIED = 0, 1, 2
+VERDICT_NAMES = ("at_rest", "in_motion", "unverified")
+_STATUS = ("ok", "in_motion", "rest_unverified")
+_NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "rest_noise", "threshold",
+            "resolution", "n_windows")
 
 
 class Motion(eqx.Module):
@@ -85,45 +115,147 @@ class Motion(eqx.Module):
 
     ``moving_fraction`` (0..1 of the valid samples), ``rate_peak`` and
     ``rate_rms`` (rad/s, the window-mean rate of the moving windows less the
-    baseline, over the moving windows; 0 when none moved), ``rest_noise``
+    baseline, over the moving windows; 0 when none moved), ``turn_peak`` (rad, the
+    largest angle turned within one run of moving windows), ``rest_noise``
     (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
-    window mean at rest noise that counts as moving, RMS over axes), and the
-    per-sample ``static`` mask (valid, not moving, not next to a moving window).
-    A judgement the host reads, so numpy arrays.
+    window mean at rest noise that counts as moving, RMS over axes), ``resolution``
+    (rad: the turn a window at rest noise shows, threshold × window length),
+    ``n_windows`` (valid windows), the ``verdict`` (:data:`AT_REST`,
+    :data:`IN_MOTION` or :data:`UNVERIFIED`) and the per-sample ``static`` mask (valid,
+    not moving, not next to a moving window, at the rest's rate). A judgement the host
+    reads, so numpy arrays.
     """
 
     moving_fraction: Float[np.ndarray, " d"]
     rate_peak: Float[np.ndarray, " d"]
     rate_rms: Float[np.ndarray, " d"]
+    turn_peak: Float[np.ndarray, " d"]
     rest_noise: Float[np.ndarray, " d"]
     threshold: Float[np.ndarray, " d"]
+    resolution: Float[np.ndarray, " d"]
+    n_windows: Float[np.ndarray, " d"]
+    verdict: Int[np.ndarray, " d"]
     static: Bool[np.ndarray, "d n"]
-    window: int = eqx.field(static=True, default=0)
+    #: The samples' times (s), for the intervals of rest; None where not given.
+    t: Float[np.ndarray, "d n"] | None = None
+    #: Samples per window, and the window's length (s), per device.
+    window: Int[np.ndarray, " d"] | None = None
+    window_s: Float[np.ndarray, " d"] | None = None
+    #: Whether the verdict is of the rest kept (``static_only``: :func:`rest_kept`).
+    kept: bool = eqx.field(static=True, default=False)
 
     def record(self, i: int) -> dict:
-        """Device ``i``'s ``motion`` object (JSON-ready; null where not computed)."""
-        return {k: number(getattr(self, k)[i]) for k in
-                ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold")}
+        """Device ``i``'s ``motion`` object (JSON-ready; null where not computed): the
+        numbers, the ``verdict`` and, unless at rest, the ``reason`` in words; of a fit of
+        the rest only, the intervals kept (``rest_intervals``: start, end, length in s)."""
+        out = {k: number(getattr(self, k)[i]) for k in _NUMBERS}
+        out["n_windows"] = None if out["n_windows"] is None else int(out["n_windows"])
+        out["window_s"] = number(self.window_s[i])
+        out["verdict"] = VERDICT_NAMES[int(self.verdict[i])]
+        if self.kept:
+            spans = self.intervals(i)
+            out["rest_kept_s"] = number(sum(s[2] for s in spans))
+            out["rest_intervals"] = spans[:MAX_INTERVALS]
+            if len(spans) > MAX_INTERVALS:
+                out["rest_intervals_left_out"] = len(spans) - MAX_INTERVALS
+        if out["verdict"] != "at_rest":
+            out["reason"] = reason(out) if not self.kept else self._kept_reason(i, out)
+        return out
+
+    def intervals(self, i: int) -> list[list[float]]:
+        """The intervals of device ``i``'s static samples: ``[start, end, length]`` in s
+        (length counts the samples kept, one sampling interval each)."""
+        keep = np.asarray(self.static[i], bool)
+        edges = np.flatnonzero(np.diff(np.r_[0, keep.astype(np.int8), 0]))
+        if self.t is None or not edges.size:
+            return []
+        t = np.asarray(self.t[i], float)
+        dt = float(self.window_s[i]) / max(int(self.window[i]), 1)
+        return [[float(t[a]), float(t[b - 1]), float((b - a) * dt)]
+                for a, b in zip(edges[::2], edges[1::2])]
+
+    def _kept_reason(self, i: int, rec: dict) -> str:
+        need = MIN_WINDOWS * float(self.window_s[i])
+        if rec.get("rest_kept_s") is not None and rec["rest_kept_s"] < need:
+            return (f"too little rest left to fit: {rec['rest_kept_s']:.3g} s of rest kept "
+                    f"(at least {need:.3g} s needed)")
+        return reason({**rec, "verdict": "unverified"})
+
+    def where(self, flag, other: Motion) -> Motion:
+        """Per device, ``other``'s numbers and verdict where ``flag``, this one's elsewhere
+        (the static mask is this one's)."""
+        m = np.asarray(flag, bool)
+        return dataclasses.replace(self, verdict=np.where(m, other.verdict, self.verdict), **{
+            k: np.where(m, np.asarray(getattr(other, k)), np.asarray(getattr(self, k)))
+            for k in _NUMBERS})
 
     def moved_all(self) -> Bool[np.ndarray, " d"]:
-        """Whether each device moved: more than :data:`MAX_MOVING_FRACTION` of its recording,
-        with turns of at least :data:`MIN_PEAK_RATIO` times its threshold."""
-        frac = np.asarray(self.moving_fraction, float)
-        peak = np.asarray(self.rate_peak, float)
-        thr = np.asarray(self.threshold, float)
-        with np.errstate(invalid="ignore"):
-            return (frac > MAX_MOVING_FRACTION) & (peak >= MIN_PEAK_RATIO * thr)
+        """Whether each device moved (verdict :data:`IN_MOTION`)."""
+        return np.asarray(self.verdict) == IN_MOTION
+
+    def unverified_all(self) -> Bool[np.ndarray, " d"]:
+        """Whether each device's rest cannot be judged from its recording (verdict
+        :data:`UNVERIFIED`: too short, or too noisy to show a turn of a degree)."""
+        return np.asarray(self.verdict) == UNVERIFIED
+
+    def status(self, i: int) -> str:
+        """Device ``i``'s status for a result that assumes rest: ``ok``, ``in_motion`` or
+        ``rest_unverified``."""
+        return _STATUS[int(self.verdict[i])]
+
+    def status_detail(self, i: int, consequence: str = "") -> str:
+        """``ok``, or the status, why in words and ``consequence`` (what it means for the
+        result at hand)."""
+        name = self.status(i)
+        if name == "ok":
+            return name
+        return f"{name}: {self.record(i)['reason']}" + (f"; {consequence}" if consequence else "")
 
     def moved(self, i: int) -> bool:
         """Whether device ``i`` moved (:meth:`moved_all`)."""
         return bool(self.moved_all()[i])
 
+    def at_rest(self, i: int) -> bool:
+        """Whether device ``i`` was judged at rest."""
+        return int(self.verdict[i]) == AT_REST
+
     def select(self, idx) -> Motion:
         """The devices ``idx`` (an index array)."""
         idx = np.asarray(idx)
-        return Motion(*(np.asarray(getattr(self, k))[idx] for k in
-                        ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold",
-                         "static")), window=self.window)
+        return dataclasses.replace(self, t=None if self.t is None else np.asarray(self.t)[idx],
+                                   **{k: np.asarray(getattr(self, k))[idx]
+                                      for k in _NUMBERS + ("verdict", "static", "window",
+                                                           "window_s")})
+
+
+def rest_kept(motion: Motion) -> Motion:
+    """The verdict on the rest :attr:`Motion.static` keeps (a fit of the rest only): at rest
+    where at least :data:`MIN_WINDOWS` windows of it are kept and the recording resolves a
+    turn of :data:`MAX_RESOLUTION`, else unverified (too little rest, or too noisy to
+    show it)."""
+    kept = np.asarray(motion.static).sum(axis=1) / np.maximum(motion.window, 1)
+    with np.errstate(invalid="ignore"):
+        fine = (kept >= MIN_WINDOWS) & (np.asarray(motion.resolution, float) <= MAX_RESOLUTION)
+    return dataclasses.replace(motion, kept=True,
+                               verdict=np.where(fine, AT_REST, UNVERIFIED).astype(np.int8))
+
+
+def _verdicts(num: dict) -> np.ndarray:
+    """Each device's verdict from its numbers (:data:`_NUMBERS`, numpy): in motion where a
+    run of moving windows turned by :data:`MIN_TURN` or more, reached :data:`MIN_PEAK_RATIO`
+    times the threshold, or more than :data:`MAX_MOVING_FRACTION` of the recording moved;
+    else unverified where the recording is too short (:data:`MIN_WINDOWS`) or too noisy to
+    show a turn of :data:`MAX_RESOLUTION`; else at rest."""
+    with np.errstate(invalid="ignore"):
+        frac = np.nan_to_num(np.asarray(num["moving_fraction"], float))
+        peak = np.asarray(num["rate_peak"], float)
+        thr = np.asarray(num["threshold"], float)
+        turn = np.asarray(num["turn_peak"], float)
+        moved = (frac > 0) & ((turn >= MIN_TURN) | (peak >= MIN_PEAK_RATIO * thr)
+                              | (frac > MAX_MOVING_FRACTION))
+        short = ~(np.asarray(num["n_windows"], float) >= MIN_WINDOWS)
+        coarse = ~(np.asarray(num["resolution"], float) <= MAX_RESOLUTION)
+    return np.where(moved, IN_MOTION, np.where(short | coarse, UNVERIFIED, AT_REST)).astype(np.int8)
 
 
 def describe(rec: dict) -> str:
@@ -133,9 +265,30 @@ def describe(rec: dict) -> str:
 
     frac = rec.get("moving_fraction")
     pct = "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
+    turn = rec.get("turn_peak")
+    turned = "" if turn is None else f", turns up to {math.degrees(turn):.2g}°"
     return (f"{pct} % of the recording moved (rates up to {g(rec.get('rate_peak'))} rad/s, "
-            f"{g(rec.get('rate_rms'))} rad/s RMS, against a rest noise of "
+            f"{g(rec.get('rate_rms'))} rad/s RMS{turned}, against a rest noise of "
             f"{g(rec.get('rest_noise'))} rad/s)")
+
+
+def reason(rec: dict) -> str:
+    """Why a ``motion`` record's device is not at rest, in words."""
+    if rec.get("verdict") == "in_motion":
+        return describe(rec)
+    n, tw = rec.get("n_windows"), rec.get("window_s") or 0.0
+    if not n:
+        return "no valid window: whether the device was at rest cannot be judged"
+    if n < MIN_WINDOWS:
+        return (f"too short to judge whether the device was at rest: {n * tw:.3g} s "
+                f"({n} window{'s' * (n != 1)} of {tw:.2g} s); the check needs {MIN_WINDOWS * tw:.3g} s "
+                f"({MIN_WINDOWS} windows)")
+    res = rec.get("resolution")
+    return (f"cannot show whether the device was at rest: its quietest windows ({tw:.2g} s) "
+            f"only resolve a turn of {math.degrees(res):.2g}° (rest noise "
+            f"{rec.get('rest_noise'):.2g} rad/s), and rest must be shown to "
+            f"{math.degrees(MAX_RESOLUTION):.0f}°; record at rest at a higher rate, or "
+            f"give a rate reference")
 
 
 def window_sizes(dt: float) -> tuple[int, int]:
@@ -233,6 +386,11 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
     return jnp.squeeze(out, axis)
 
 
+def _subsample(n: int, limit: int) -> np.ndarray:
+    """At most ``limit`` indices spread evenly over ``range(n)`` (all of them when fewer)."""
+    return np.arange(n) if n <= limit else (np.arange(limit) * n) // limit
+
+
 def _rest_noise(local, half, valid, w: int, quantum=0.0):
     """Rest noise per axis: of one sample (σ, from the local noise), and of a window mean.
 
@@ -243,7 +401,15 @@ def _rest_noise(local, half, valid, w: int, quantum=0.0):
     sensor outputs are low-pass filtered, and filtered noise averages more slowly than
     white noise does. A quantised output (``quantum``: the smallest change between samples)
     has at least the rounding noise quantum/√12 per sample, though the quietest windows may
-    not change at all."""
+    not change at all. The quantiles are read from at most :data:`QUANTILE_WINDOWS` windows
+    spread evenly over the recording (a quantile needs hundreds of values, not all)."""
+    k = local.shape[0]
+    if k > QUANTILE_WINDOWS:  # spread over the device's own windows, not the padded batch's
+        span = jnp.max(jnp.where(valid, jnp.arange(k), -1)) + 1
+        j = jnp.arange(QUANTILE_WINDOWS)
+        pick = jnp.where(span <= QUANTILE_WINDOWS, j, (j * span) // QUANTILE_WINDOWS)
+        local, half = local[pick], half[pick]
+        valid = valid[pick] & (j < span)
     ok = jnp.broadcast_to(valid[:, None], local.shape)
     q = _masked_quantile(local, ok, REST_QUANTILE)
     z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
@@ -257,14 +423,17 @@ def _rest_noise(local, half, valid, w: int, quantum=0.0):
 
 def _baseline(mean, use, valid, b: int):
     """Slow baseline of the window means: the median over blocks of ``b`` windows of the
-    windows in ``use`` (of the ``valid`` ones), linearly interpolated between block centres."""
+    windows in ``use`` (of the ``valid`` ones; at most :data:`BLOCK_WINDOWS` of them spread
+    evenly over the block), linearly interpolated between block centres."""
     k = mean.shape[0]
     kb = -(-k // b)
     pad = kb * b - k
     vals = jnp.concatenate([mean, jnp.zeros((pad, mean.shape[1]), mean.dtype)])
     ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
-    ok = jnp.broadcast_to(ok[:, None], vals.shape)
-    med = _masked_quantile(vals.reshape(kb, b, -1), ok.reshape(kb, b, -1), 0.5, axis=1)  # (kb, c)
+    pick = _subsample(b, BLOCK_WINDOWS)
+    sub_vals = vals.reshape(kb, b, -1)[:, pick]
+    sub_ok = jnp.broadcast_to(ok.reshape(kb, b)[:, pick, None], sub_vals.shape)
+    med = _masked_quantile(sub_vals, sub_ok, 0.5, axis=1)  # (kb, c)
     # a block without windows in use (all moving) holds the last block before it that has
     # some (the first such block before any)
     has = ~jnp.isnan(med[:, 0])
@@ -297,30 +466,42 @@ def _baseline(mean, use, valid, b: int):
         return v.reshape(kb * b, -1)[:k]
 
     first_j, second_j = np.clip(blocks - 1, 0, kb - 2), np.clip(blocks, 0, kb - 2)
-    assert np.array_equal(np.where(second[0, :, 0], second_j[:, None], first_j[:, None]).reshape(-1)[:k], j)
     lo, hi = spread(first_j, second_j), spread(first_j + 1, second_j + 1)
     return lo + frac * (hi - lo)
 
 
+def _run_start(flag):
+    """Per window, the index of the last window at or before it that is not ``flag`` (−1
+    where none): the window before the run of ``flag`` it belongs to."""
+    idx = jnp.arange(flag.shape[0])
+    return jax.lax.cummax(jnp.where(flag, -1, idx))
+
+
 def _runs_with(flag, mark):
-    """``flag`` with every run of True that holds no ``mark`` cleared."""
+    """``flag`` with every run of True that holds no ``mark`` cleared (running maxima
+    forwards and minima backwards: no scatter, no sort)."""
     k = flag.shape[0]
-    start = flag & ~jnp.concatenate([jnp.zeros((1,), bool), flag[:-1]])
-    run = jnp.where(flag, jnp.cumsum(start) - 1, k)
-    has = jax.ops.segment_max((flag & mark).astype(jnp.int32), run, num_segments=k + 1)
-    return flag & (has[run] > 0)
+    idx = jnp.arange(k)
+    ahead = jax.lax.cummax(jnp.where(flag & mark, idx, -1)) > _run_start(flag)
+    end = jax.lax.cummin(jnp.where(flag, k, idx), reverse=True)
+    behind = jax.lax.cummin(jnp.where(flag & mark, idx, k), reverse=True) < end
+    return flag & (ahead | behind)
 
 
 def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
-    """Moving windows of one signal, its window deviations, window validity, rest noise and
-    threshold. ``step``: the deviation is the change from the previous window (the
-    accelerometer: a device at rest in a new pose has a new gravity, not motion)."""
+    """Moving windows of one signal, its window means and deviations, window validity, rest
+    noise and threshold per axis. ``step``: the deviation is the change from the previous
+    window (the accelerometer: a device at rest in a new pose has a new gravity, not
+    motion)."""
     mean, local, half, c, valid, quantum = _window_stats(x, mask, w)
     sigma, mean_noise = _rest_noise(local, half, valid, w, quantum)
     sigma = jnp.where(jnp.isnan(sigma), 0.0, sigma)
     mean_noise = jnp.where(jnp.isnan(mean_noise), 0.0, mean_noise)
-    # vibration raises the local noise, and with it what a window mean may scatter
-    louder = jnp.maximum(local / jnp.where(sigma > 0, sigma, jnp.inf)[None, :], 1.0)
+    thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
+    # vibration raises the local noise, and with it what a window mean may scatter; but a
+    # window may not hide a turn of more than the resolution a window at rest noise has
+    # (motion raises the local noise of a slowly sampled recording too)
+    louder = jnp.clip(local / jnp.where(sigma > 0, sigma, jnp.inf)[None, :], 1.0, LOUDER_CAP)
     var = (mean_noise[None, :] * louder) ** 2 * (w / jnp.maximum(c, 1.0))[:, None]
 
     def flag(dev, var, ok):
@@ -333,7 +514,7 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     var_prev = jnp.concatenate([var[:1], var[:-1]])
     jump = flag(mean - prev, var + var_prev, ok)  # a change between neighbouring windows
     if step:
-        return jump, mean - prev, valid, sigma, jnp.maximum(K_SIGMA * mean_noise, floor)
+        return jump, mean, mean - prev, valid, sigma, thr0
     # a window leaves the baseline; a run of such windows is motion when it starts or
     # holds a jump (a turn starts within a window or two; thermal drift creeps)
     jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
@@ -344,8 +525,7 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
         return _runs_with(flag(dev, var, valid), jump), dev
 
     moving, dev = jax.lax.fori_loop(0, 2, again, (jnp.zeros_like(valid), jnp.zeros_like(mean)))
-    thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
-    return moving, dev, valid, sigma, thr0
+    return moving, mean, dev, valid, sigma, thr0
 
 
 def _one_device(gyro, accel, mask, w: int, b: int):
@@ -355,14 +535,22 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     gyro = gyro.astype(jnp.float32)
     accel = None if accel is None else accel.astype(jnp.float32)
     n = gyro.shape[0]
-    moving, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
+    moving, mean, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
     if accel is not None:
-        acc_moving, _, _, _, _ = _moving_windows(accel, mask, w, b, ACCEL_FLOOR, step=True)
+        acc_moving = _moving_windows(accel, mask, w, b, ACCEL_FLOOR, step=True)[0]
         moving = moving | acc_moving
     rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
     n_mov = jnp.sum(moving)
     peak = jnp.max(jnp.where(moving, rate, 0.0))
     rms = jnp.sqrt(jnp.sum(jnp.where(moving, rate**2, 0.0)) / jnp.maximum(n_mov, 1))
+    # the angle turned within each run of moving windows (in window-mean rate × windows;
+    # the host scales it by the window's length): the rate less the baseline, summed
+    # from the run's start
+    turned = jnp.cumsum(jnp.where(moving[:, None], dev, 0.0), axis=0)
+    before = _run_start(moving)
+    turned = turned - jnp.where(before[:, None] >= 0, turned[jnp.maximum(before, 0)], 0.0)
+    turn = jnp.max(jnp.where(moving, jnp.sqrt(jnp.sum(turned**2, axis=1)), 0.0))
+
     def per_sample(flag):
         return jnp.broadcast_to(flag[:, None], (flag.shape[0], w)).reshape(-1)[:n]
 
@@ -375,10 +563,12 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
     nan = jnp.asarray(jnp.nan, gyro.dtype)
     out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
-               rate_rms=jnp.where(some, rms, nan),
+               rate_rms=jnp.where(some, rms, nan), turn_peak=jnp.where(some, turn, nan),
                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
-               threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan))
-    return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static}
+               threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan),
+               n_windows=jnp.sum(valid).astype(gyro.dtype))
+    windows = dict(window_rate=mean, window_moving=moving, window_valid=valid, threshold_axes=thr0)
+    return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static} | windows
 
 
 def _vmapped(gyro, accel, mask, w: int, b: int):
@@ -403,61 +593,183 @@ class _Layout(NamedTuple):
     dtype: type
     accel: bool
     padded: bool
+    dt: float
 
     @property
     def check(self):
         return _check_small if self.padded else _check
 
 
-def _layout(batch, dt: float | None) -> _Layout:
-    if dt is None:
-        dt = float(np.median(sampling_intervals(batch))) if batch.n_devices else 0.01
+def _layout(shape: tuple[int, int], read: type, accel: bool, dt: float) -> _Layout:
+    """The layout of a batch of ``shape`` (devices, samples) read in ``read`` precision,
+    sampled every ``dt`` s."""
     w, b = window_sizes(dt)
-    read = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
-    d, n = np.shape(batch.mask)
-    # with a rate reference, the referenced turns tilt gravity: no news in the accelerometer
-    accel = batch.accel is not None and batch.rate is None
+    d, n = shape
     if d * n > PAD_SAMPLES:
-        return _Layout(w, b, (d, n), read, read, accel, False)
+        return _Layout(w, b, (d, n), read, read, accel, False, dt)
     # small batches share a compiled check (see _padded), computed in float32 as
     # _one_device does anyway: one program for either precision
     blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
     return _Layout(w, b, (device_bucket(d, minimum=1), blocks * w * b), read, np.float32,
-                   accel, True)
+                   accel, True, dt)
+
+
+def _intervals(batch) -> np.ndarray:
+    """Each device's sampling interval (s): the median of its first intervals between valid
+    samples (at most 1024 of them; 0.01 where it has none)."""
+    t = np.asarray(batch.t)[:, :1025].astype(float)
+    m = np.asarray(batch.mask)[:, :1025]
+    dt = np.where(m[:, 1:] & m[:, :-1], np.diff(t, axis=1), np.nan)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a device with no interval
+        out = np.nanmedian(dt, axis=1) if dt.shape[1] else np.full(len(t), np.nan)
+    return np.where(np.isfinite(out) & (out > 0), out, 0.01)
+
+
+def _groups(batch, dt: float | None) -> dict[tuple[int, int], np.ndarray]:
+    """Devices grouped by window and block sizes (one group unless the batch mixes rates),
+    with each device's sampling interval."""
+    d = np.shape(batch.mask)[0]
+    dts = _intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0) else np.full(d, dt)
+    sizes = [window_sizes(x) for x in dts]
+    groups: dict = {}
+    for i, wb in enumerate(sizes):
+        groups.setdefault(wb, []).append(i)
+    return {k: np.asarray(v) for k, v in groups.items()}, dts
+
+
+def _reads(batch) -> tuple[type, bool]:
+    read = np.float64 if np.asarray(batch.gyro).dtype == np.float64 else np.float32
+    # with a rate reference, the referenced turns tilt gravity: no news in the accelerometer
+    return read, batch.accel is not None and batch.rate is None
 
 
 def motion_check(batch, dt: float | None = None) -> Motion:
     """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
-    module docstring); ``dt`` the sampling interval (default: the median over devices).
+    module docstring); ``dt`` the sampling interval (default: each device's own; devices
+    sampled at rates far apart are checked in windows of their own).
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-
-    lay = _layout(batch, dt)
-    gyro = np.asarray(batch.gyro, lay.read)
+    groups, dts = _groups(batch, dt)
+    read, use_accel = _reads(batch)
+    gyro = np.asarray(batch.gyro, read)
     if batch.rate is not None:  # what the rate reference does not explain
-        gyro = gyro - np.asarray(batch.rate, lay.read)
-    accel = np.asarray(batch.accel, lay.read) if lay.accel else None
+        gyro = gyro - np.asarray(batch.rate, read)
+    accel = np.asarray(batch.accel, read) if use_accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
+    parts = []
+    for (w, _), idx in groups.items():
+        if len(groups) == 1:
+            part = _check_group(gyro, accel, mask, dts, read, use_accel)
+        else:
+            part = _check_group(gyro[idx], None if accel is None else accel[idx], mask[idx],
+                                dts[idx], read, use_accel)
+        parts.append((idx, part))
+    if len(parts) == 1:
+        num, static, window = parts[0][1]
+    else:
+        num = {k: np.zeros(d, read) for k in _NUMBERS}
+        static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
+        for idx, (pn, ps, pw) in parts:
+            for k in _NUMBERS:
+                num[k][idx] = pn[k]
+            static[idx], window[idx] = ps, pw
+    t = getattr(batch, "t", None)
+    return Motion(**num, verdict=_verdicts(num), static=static,
+                  t=None if t is None else np.asarray(t), window=window, window_s=window * dts)
+
+
+def _check_group(gyro, accel, mask, dts, read, use_accel):
+    """The numbers, static mask and window length (samples) of devices of one layout."""
+    d, n = mask.shape
+    lay = _layout((d, n), read, use_accel, float(np.median(dts)))
+    recorded = mask
     if lay.padded:
         gyro, accel, mask = (_padded(x, *lay.shape) for x in (gyro, accel, mask))
         gyro, accel = (None if x is None else x.astype(lay.dtype) for x in (gyro, accel))
     out = lay.check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
                     lay.w, lay.b)
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    out = {k: np.asarray(v)[:d] if k == "static" else np.asarray(v)[:d].astype(lay.read)
-           for k, v in out.items()}
-    out["static"] = out["static"][:, :n]
-    return Motion(**out, window=lay.w)
+    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS if k != "resolution"}
+    static = np.array(out["static"])[:d, :n]
+    window_s = lay.w * np.asarray(dts, float)
+    num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
+    num["resolution"] = num["threshold"] * window_s
+    # stretches of rest either side of a motion at rates no bias change explains: the
+    # one at the rest's rate is rest, the others spin (the windows of the moving devices)
+    for i in np.flatnonzero(num["moving_fraction"] > 0):
+        level = _rest_levels(*(np.asarray(out[k][i]) for k in
+                               ("window_rate", "window_moving", "window_valid", "threshold_axes")),
+                             window_s[i])
+        if level is not None:
+            moving, rate, turn = level
+            near = moving | np.r_[moving[1:], False] | np.r_[False, moving[:-1]]
+            static[i] = ~np.repeat(near, lay.w)[:n] & recorded[i]
+            num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
+                                          / max(recorded[i].sum(), 1))
+            num["rate_peak"][i] = max(num["rate_peak"][i], rate)
+            num["turn_peak"][i] = max(num["turn_peak"][i], turn)
+    return num, static, np.full(d, lay.w)
+
+
+def _rest_levels(rate, moving, valid, thr, window_s: float):
+    """Stretches of rest either side of a motion whose rates disagree (one device's windows:
+    mean rate (k, 3), moving, valid, and the threshold per axis): a bias does not step
+    while the device turns; it drifts by at most :data:`BIAS_SLEW` and the window noise
+    (the threshold). Consecutive stretches that agree, end to start, are one level; the
+    level with the most windows is rest and the others spin. None where every stretch is
+    at one level; else the windows moving (those of the spinning stretches added), the
+    largest rate of a spin against the rest's, and the largest angle one turned."""
+    static = valid & ~moving
+    edges = np.flatnonzero(np.diff(np.r_[0, static.astype(np.int8), 0]))
+    runs = list(zip(edges[::2], edges[1::2]))
+    if len(runs) < 2:
+        return None
+    thr = np.maximum(np.asarray(thr, float), 2.0 * EARTH_RATE)
+    clusters: list[dict] = []
+    for start, end in runs:
+        span = max(1, min(BLOCK_WINDOWS, end - start))
+        head = np.median(rate[start:start + span], axis=0)
+        for c in reversed(clusters):
+            gap = (start - c["end"] + span) * window_s
+            if np.sqrt(np.sum(((head - c["tail"]) / (thr + BIAS_SLEW * gap)) ** 2)) <= 1.0:
+                break
+        else:
+            c = {"runs": [], "windows": 0}
+            clusters.append(c)
+        c["runs"].append((start, end))
+        c["windows"] += end - start
+        c["end"] = end
+        c["tail"] = np.median(rate[end - span:end], axis=0)
+    if len(clusters) < 2:
+        return None
+    rest = max(clusters, key=lambda c: c["windows"])
+    ref = np.median(np.concatenate([rate[a:b] for a, b in rest["runs"]]), axis=0)
+    moving = moving.copy()
+    peak = turn = 0.0
+    for c in clusters:
+        if c is rest:
+            continue
+        for a, b in c["runs"]:
+            moving[a:b] = True
+            off = float(np.linalg.norm(np.median(rate[a:b], axis=0) - ref))
+            peak, turn = max(peak, off), max(turn, off * (b - a) * window_s)
+    return moving, peak, turn
 
 
 def compile_check(batch, dt: float | None = None) -> threading.Thread:
-    """Compile :func:`motion_check`'s program for ``batch`` on a thread of its own, from
-    the batch's shapes only: a caller that has other programs to trace (a fit) overlaps
-    the two, and joins the thread before its :func:`motion_check`, which then finds the
-    program compiled."""
-    lay = _layout(batch, dt)
+    """Compile :func:`motion_check`'s program for ``batch`` (of its largest group of
+    devices) on a thread of its own, from the batch's shapes only: a caller that has other
+    programs to trace (a fit) overlaps the two, and joins the thread before its
+    :func:`motion_check`, which then finds the program compiled."""
+    groups, dts = _groups(batch, dt)
+    idx = max(groups.values(), key=len)
+    read, use_accel = _reads(batch)
+    n = np.shape(batch.mask)[1]
+    d = np.shape(batch.mask)[0] if len(groups) == 1 else len(idx)
+    lay = _layout((d, n), read, use_accel, float(np.median(dts[idx])))
 
     def spec(*tail, dtype=lay.dtype):
         return jax.ShapeDtypeStruct(lay.shape + tail, dtype)

@@ -96,5 +96,12 @@ FigureReport = Annotated[
 
 
 def motion_notes(records: list[dict]) -> list[str]:
-    """One line per device that is not ok: its name and why (the text output's notes)."""
-    return [f"{r['device']}: {r['status_detail']}" for r in records if r.get("status") != "ok"]
+    """One line per device that is not ok (its name and why), and per device whose held-out
+    RMS stands above its noise floor (:func:`diffgyro.status.residual_note`): the text
+    output's notes."""
+    from diffgyro.status import residual_note
+
+    lines = [f"{r['device']}: {r['status_detail']}" for r in records if r.get("status") != "ok"]
+    notes = (residual_note(r["device"], r.get("heldout_rms"), r.get("noise_floor"))
+             for r in records if r.get("status") == "ok")
+    return lines + [n for n in notes if n]

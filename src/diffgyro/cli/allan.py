@@ -106,17 +106,18 @@ def allan_command(
 
 def _add_motion(doc: dict, motion, batch, recorded, static_only: bool) -> None:
     """Each device's motion check, and a status that says whether its read-outs are a
-    sensor's noise (``in_motion`` when the curve's samples include motion)."""
-    from diffgyro.motion import describe
+    sensor's noise (``in_motion`` when the curve's samples include motion,
+    ``rest_unverified`` when nothing shows they do not)."""
+    from diffgyro.motion import rest_kept
 
+    if static_only:
+        motion = rest_kept(motion)
     for i, dev in enumerate(doc["devices"]):
-        rec = motion.record(i)
-        moved = motion.moved(i) and not static_only
-        dev["status"] = "in_motion" if moved else "ok"
-        dev["status_detail"] = (f"in_motion: {describe(rec)}; these read-outs measure the motion, "
-                                "not the sensor's noise: record at rest, or use --static-only"
-                                if moved else "ok")
-        dev["motion"] = rec
+        dev["status"] = motion.status(i)
+        dev["status_detail"] = motion.status_detail(
+            i, "these read-outs may measure the motion, not the sensor's noise: record at "
+               "rest" + ("" if static_only else ", or use --static-only"))
+        dev["motion"] = motion.record(i)
         if static_only:
             n = int(batch.n_valid[i])
             t = batch.t[i]

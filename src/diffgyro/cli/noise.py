@@ -103,13 +103,14 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
 
 def moved_reasons(batch) -> list[str | None]:
     """Per device, None when the motion check (:func:`diffgyro.motion.motion_check`) found
-    it at rest, else why not (its status becomes ``in_motion``, its axes null)."""
-    from diffgyro.motion import describe, motion_check
+    it at rest, else why not (its status becomes ``in_motion`` or ``rest_unverified``, its
+    axes null)."""
+    from diffgyro.motion import motion_check
 
     motion = motion_check(batch)
-    return [f"in_motion: {describe(motion.record(i))}; a noise model of this recording would "
-            "measure the motion, not the sensor: record at rest" if motion.moved(i) else None
-            for i in range(batch.n_devices)]
+    return [None if motion.at_rest(i) else motion.status_detail(
+        i, "a noise model of this recording would measure the motion, not the sensor: "
+           "record at rest") for i in range(batch.n_devices)]
 
 
 def _warn_uneven(batch) -> None:

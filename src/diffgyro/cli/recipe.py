@@ -166,7 +166,7 @@ def _rest_check(name: str, recordings, static_only: bool):
     import numpy as np
 
     from diffgyro.data import Batch, Recording
-    from diffgyro.motion import describe, motion_check
+    from diffgyro.motion import motion_check, rest_kept
 
     if name not in REST_RECIPES:
         if static_only:
@@ -184,10 +184,14 @@ def _rest_check(name: str, recordings, static_only: bool):
                                for s in rec.signals}, device=rec.device, source=rec.source,
                             aux={k: np.asarray(v)[keep] for k, v in rec.aux.items()})
             extra.update(static_only=True, n_samples=int(keep.sum()), n_recorded=int(keep.size))
-        elif motion.moved(i):
-            extra.update(status="in_motion", status_detail=(
-                f"in_motion: {describe(extra['motion'])}; recipe {name} assumes the device at "
-                "rest: record at rest, or run it on the static intervals only with --static-only"))
+        if static_only:
+            kept = rest_kept(motion)
+            extra.update(motion=kept.record(i), status=kept.status(i), status_detail=kept.status_detail(
+                i, f"recipe {name} assumes the device at rest"))
+        elif not motion.at_rest(i):
+            extra.update(status=motion.status(i), status_detail=motion.status_detail(
+                i, f"recipe {name} assumes the device at rest: record at rest, or run it on "
+                   "the static intervals only with --static-only"))
         out.append(rec)
         rest[rec.device] = extra
     return out, rest

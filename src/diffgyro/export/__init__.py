@@ -56,18 +56,34 @@ def refuse_not_ok(devices: list[tuple[str, str, str]], force: bool) -> list[str]
 
 def _forced(cal: Calibration, names: list[str], force: bool) -> tuple[Calibration, list[str]]:
     """The calibration with the forced devices marked ok for the writers, and the lines
-    that say so."""
+    that say so: a device whose held-out RMS stands above its noise floor
+    (:func:`diffgyro.status.residual_verdict`) is written with a warning, and refused
+    unless ``force`` where it stands above :data:`diffgyro.status.RESIDUAL_REFUSE`."""
+    from ..status import residual_note, residual_verdict
 
-    lines = refuse_not_ok([(n, cal.device(n).status, cal.device(n).status_detail) for n in names],
-                          force)
+    def judged(n):
+        d = cal.device(n)
+        if d.status != "ok":
+            return d.status, d.status_detail
+        q = d.quality or {}
+        if residual_verdict(q.get("heldout_rms"), q.get("noise_floor"))[0] == "unexplained":
+            note = residual_note(n, q.get("heldout_rms"), q.get("noise_floor"))
+            return "unexplained_residual", note.split(": ", 1)[1]
+        return "ok", ""
+
+    lines = refuse_not_ok([(n, *judged(n)) for n in names], force)
+    warned = [f"WARNING: device {note}" for n in names if cal.device(n).status == "ok"
+              and judged(n)[0] == "ok" and (note := residual_note(
+                  n, (cal.device(n).quality or {}).get("heldout_rms"),
+                  (cal.device(n).quality or {}).get("noise_floor")))]
     if not lines:
-        return cal, []
+        return cal, warned
     devs = [dataclasses.replace(d, status="ok") if d.device in names else d for d in cal.devices]
-    return dataclasses.replace(cal, devices=devs), lines
+    return dataclasses.replace(cal, devices=devs), lines + warned
 
 
 def _with_note(text: str, lines: list[str], fmt: str) -> str:
-    """``text`` with the --force lines as comments: after the first line of a parameter
+    """``text`` with the --force and warning lines as comments: after the first line of a parameter
     file (QGroundControl reads its header line), first in a C header."""
     if not lines:
         return text

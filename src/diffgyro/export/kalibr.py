@@ -24,7 +24,6 @@ import numpy as np
 
 from ..allan import STOP_RATIO, allan, default_m, sample_interval, to_json
 from ..errors import DataError
-from ..motion import describe
 from . import refuse_not_ok
 
 __all__ = ["from_allan", "write", "ImuNoise", "allan_of", "NAME"]
@@ -107,7 +106,7 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
 def allan_of(batch, which: str = "gyro", motion=None) -> dict:
     """``allan --json`` object of a batch's gyro, or of its accelerometer (m/s² for rad/s);
     with ``motion`` (:class:`diffgyro.motion.Motion`) a device that moved gets status
-    ``in_motion``."""
+    ``in_motion``, one whose rest cannot be shown ``rest_unverified``."""
 
     y = np.moveaxis(np.asarray(getattr(batch, which), np.float64), -1, 1)
     nv = np.asarray(batch.n_valid, np.int64)
@@ -118,9 +117,9 @@ def allan_of(batch, which: str = "gyro", motion=None) -> dict:
     if motion is not None:
 
         for i, dev in enumerate(doc["devices"]):
-            if motion.moved(i):
-                dev["status"] = "in_motion"
-                dev["status_detail"] = f"in_motion: {describe(motion.record(i))}"
+            if not motion.at_rest(i):
+                dev["status"] = motion.status(i)
+                dev["status_detail"] = motion.status_detail(i)
     return doc
 
 

@@ -26,8 +26,8 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
                      penalty: float | None = None):
     """(entries, {device index: (NoiseModels, row)}) for rates ``values`` (d, n, 3) in rad/s.
 
-    ``motion``: per device None (static) or a one-line reason it moved (status
-    ``in_motion``, no axes). Devices of equal length are identified together."""
+    ``motion``: per device None (static) or a one-line status detail saying why not
+    (``in_motion: ...`` or ``rest_unverified: ...``: that status, no axes). Devices of equal length are identified together."""
 
     pen = PENALTY if penalty is None else penalty
     motion = [None] * len(devices) if motion is None else motion
@@ -38,7 +38,7 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
         entries.append(entry)
         rates = np.asarray(values[i, :n], np.float64)
         if motion[i] is not None:
-            entry.update(status="in_motion", status_detail=str(motion[i]))
+            entry.update(status=str(motion[i]).split(":", 1)[0], status_detail=str(motion[i]))
         elif n < MIN_SAMPLES:
             entry.update(status="too_short", status_detail=f"{n} samples; a noise model needs at "
                          f"least {MIN_SAMPLES} (static, at the full rate)")
