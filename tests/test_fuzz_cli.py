@@ -23,7 +23,8 @@ from hypothesis import strategies as st
 
 from diffgyro.cli import main
 
-N = 48  # samples per device: small, so that each run takes milliseconds once compiled
+N = 72  # samples per device: small, so that each run takes milliseconds once compiled, and
+#        long enough (36 s) for the motion check to judge rest
 HEADER = ["device", "t", "gx", "gy", "gz", "temp", "ax", "ay", "az"]
 # the same columns as readable headers with their units (read from the headers)
 UNIT_HEADER = ["device", "time (s)", "Gyroscope X (rad/s)", "Gyroscope Y (rad/s)",
@@ -193,9 +194,9 @@ noise_floor = { min = 0, max = 0.01 } # rad/s
 
 
 def log_devices() -> list[dict]:
-    """Two devices like :func:`good_rows` as log samples (µs time stamps, 100 Hz)."""
+    """Two devices like :func:`good_rows` as log samples (µs time stamps, 10 Hz)."""
     rng = np.random.default_rng(8)
-    us = 10_000_000 + np.arange(N, dtype=np.int64) * 10_000
+    us = 10_000_000 + np.arange(N, dtype=np.int64) * 100_000
     temp = 20.0 + 10.0 * np.arange(N) / (N - 1)
     return [{"us": us, "temp": temp,
              "gyro": 1e-3 * (k + 1) + 2e-5 * (temp - 25.0)[:, None] + rng.normal(0, 1e-4, (N, 3)),

@@ -18,7 +18,7 @@ from diffgyro import calibration
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
-from diffgyro.motion import MAX_MOVING_FRACTION, _check, motion_check, window_sizes
+from diffgyro.motion import _check, motion_check, window_sizes
 from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
@@ -71,7 +71,7 @@ def test_simulated_rest_drift_and_vibration_are_not_motion_turns_are(simulated):
     assert rec["status_detail"].startswith("in_motion: 6 % of the recording moved")
     assert "--static-only" in rec["status_detail"]
     assert set(rec["motion"]) == {"moving_fraction", "rate_peak", "rate_rms", "turn_peak",
-                                  "rest_noise", "threshold", "resolution", "n_windows",
+                                  "tilt_peak", "rest_noise", "threshold", "resolution", "n_windows",
                                   "window_s", "verdict", "reason"}
     assert rec["motion"]["verdict"] == "in_motion" and rec["motion"]["turn_peak"] > 0.5
 
@@ -233,7 +233,7 @@ def test_px4_logs_on_the_ground_are_not_flagged(path, capsys):
     nothing moved, status ok, and the bias is pyulog's mean of the samples."""
     dev = _json(capsys, ["fit", str(path), "--model", "bias_poly(0)", "--json"])["devices"][0]
     assert dev["status"] == "ok", dev["status_detail"]
-    assert dev["motion"]["moving_fraction"] < MAX_MOVING_FRACTION
+    assert dev["motion"]["moving_fraction"] < 0.02 and dev["motion"]["verdict"] == "at_rest"
     ref = _pyulog_gyro(path).mean(axis=0)
     got = [dev["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
     np.testing.assert_allclose(got, ref, rtol=0, atol=1e-9)
@@ -242,7 +242,7 @@ def test_px4_logs_on_the_ground_are_not_flagged(path, capsys):
 def test_export_refuses_a_device_in_motion_unless_forced(tmp_path, capsys):
     cal = tmp_path / "cal.json"
     _json(capsys, ["fit", str(FLIGHT), "--model", "bias_poly(0)", "--json", "--out", str(cal)])
-    assert calibration.load(cal).devices[0].motion["moving_fraction"] > MAX_MOVING_FRACTION
+    assert calibration.load(cal).devices[0].motion["moving_fraction"] > 0.02
     for fmt in ("px4", "ardupilot", "c-header"):
         code, output = _run(capsys, ["export", str(cal), "--format", fmt])
         assert code == 2
@@ -273,7 +273,7 @@ def test_allan_on_a_moving_recording_says_so(capsys):
 def test_diagnose_gives_no_verdict_on_motion(capsys):
     dev = _json(capsys, ["diagnose", str(FLIGHT), "--model", "bias_poly(0)", "--json"])["devices"][0]
     assert dev["status"].startswith("in_motion")
-    assert dev["motion"]["moving_fraction"] > MAX_MOVING_FRACTION
+    assert dev["motion"]["moving_fraction"] > 0.02
     assert dev["best"] is None and "no effect is named" in dev["explanation"]
 
 

@@ -41,6 +41,7 @@ from .errors import SpecError
 from .fit import FitResult
 from .model import ErrorModel, Params
 from .signals import TempNorm
+from .motion import MAX_INTERVALS, VERDICT_NAMES
 from .status import STATUS_NAMES
 
 __all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",
@@ -266,8 +267,6 @@ def _flat_numbers(val, where: str, max_items: int = 256) -> dict:
 def _motion_record(val, where: str) -> dict:
     """A ``motion`` object (:meth:`diffgyro.motion.Motion.record`): numbers, the verdict's
     name, its reason in words, and the intervals of rest a fit kept."""
-    from .motion import MAX_INTERVALS, VERDICT_NAMES
-
     if not isinstance(val, dict):
         raise SpecError(f"calibration file: {where} must be an object")
     text = {k: val[k] for k in ("verdict", "reason") if k in val}

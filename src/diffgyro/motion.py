@@ -73,16 +73,13 @@ HALF_QUANTILE = 0.2
 #: Window length (s) and baseline block (s) aimed at.
 WINDOW_S = 0.25
 BLOCK_S = 30.0
-#: Fraction of a recording that may move before a fit without a rate reference is
-#: not ``ok`` (status ``in_motion``), whatever the size of its turns.
-MAX_MOVING_FRACTION = 0.02
-#: A run of moving windows that turned through this angle (rad) or more, or whose
-#: window-mean rate reached :data:`MIN_PEAK_RATIO` times the threshold, is motion at any
-#: moving fraction. A slow unexplained change of the bias (a supply or duty step) leaves the
-#: baseline by a few thresholds and turns a window by hundredths of a degree; a turn by
-#: hand or vehicle leaves it by hundreds.
-MIN_TURN = math.radians(0.5)
+#: A recording moved where a run of its moving windows reached this many times the
+#: threshold (at any moving fraction), or gravity tilted by :data:`MIN_TILT` within a
+#: stretch between moves. A slow unexplained change of the bias (a supply or duty step)
+#: leaves the baseline by a few thresholds, and for long enough it adds up to a degree;
+#: a turn by hand or vehicle leaves it by hundreds.
 MIN_PEAK_RATIO = 10.0
+MIN_TILT = math.radians(0.5)
 #: The coarsest resolution (rad) at which a recording can be called at rest: a window at
 #: the recording's rest noise must show a turn of this angle. A recording that cannot (too
 #: noisy, too slowly sampled, or with no quiet part, whose own motion sets its noise) is
@@ -97,17 +94,26 @@ QUANTILE_WINDOWS = 512
 BLOCK_WINDOWS = 16
 #: Intervals of rest listed in a record (the rest are counted).
 MAX_INTERVALS = 100
-#: Fastest change of a bias at rest (rad/s per s): a fast warm-up's. Two stretches of rest
+#: Fastest change of a bias at rest (rad/s per s): a fast warm-up's (0.5 mrad/s/°C at
+#: 0.1 °C/s). Two stretches of rest
 #: either side of a motion whose rates differ by more than this allows (and their noise)
-#: are not both rest: one of them spins (:func:`_rest_levels`).
-BIAS_SLEW = 2e-4
+#: are not both rest: one of them spins (:func:`_rest_stretches`).
+BIAS_SLEW = 5e-5
+#: Gravity's change that a stretch of rest may not show (m/s²: a tilt of half a degree),
+#: over chunks of this many windows (slow enough that a bias's thermal drift shows
+#: nothing), and the fewest windows of a stretch of rest between two moves.
+TILT_FLOOR = 9.80665 * math.sin(math.radians(0.5))
+STRETCH_CHUNK = 32
+MIN_STRETCH = 4
+#: Levels held at least this share as long as the longest are candidates for the rest.
+REST_SHARE = 0.5
 
 #: Verdicts, in :attr:`Motion.verdict`.
 AT_REST, IN_MOTION, UNVERIFIED = 0, 1, 2
 VERDICT_NAMES = ("at_rest", "in_motion", "unverified")
 _STATUS = ("ok", "in_motion", "rest_unverified")
-_NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "rest_noise", "threshold",
-            "resolution", "n_windows")
+_NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak", "rest_noise",
+            "threshold", "resolution", "n_windows")
 
 
 class Motion(eqx.Module):
@@ -116,7 +122,9 @@ class Motion(eqx.Module):
     ``moving_fraction`` (0..1 of the valid samples), ``rate_peak`` and
     ``rate_rms`` (rad/s, the window-mean rate of the moving windows less the
     baseline, over the moving windows; 0 when none moved), ``turn_peak`` (rad, the
-    largest angle turned within one run of moving windows), ``rest_noise``
+    largest angle turned within one run of moving windows, from the rate less the
+    baseline), ``tilt_peak`` (rad, the largest tilt of gravity within a stretch between
+    moves, where the accelerometer is read), ``rest_noise``
     (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
     window mean at rest noise that counts as moving, RMS over axes), ``resolution``
     (rad: the turn a window at rest noise shows, threshold × window length),
@@ -130,6 +138,7 @@ class Motion(eqx.Module):
     rate_peak: Float[np.ndarray, " d"]
     rate_rms: Float[np.ndarray, " d"]
     turn_peak: Float[np.ndarray, " d"]
+    tilt_peak: Float[np.ndarray, " d"]
     rest_noise: Float[np.ndarray, " d"]
     threshold: Float[np.ndarray, " d"]
     resolution: Float[np.ndarray, " d"]
@@ -242,17 +251,16 @@ def rest_kept(motion: Motion) -> Motion:
 
 def _verdicts(num: dict) -> np.ndarray:
     """Each device's verdict from its numbers (:data:`_NUMBERS`, numpy): in motion where a
-    run of moving windows turned by :data:`MIN_TURN` or more, reached :data:`MIN_PEAK_RATIO`
-    times the threshold, or more than :data:`MAX_MOVING_FRACTION` of the recording moved;
-    else unverified where the recording is too short (:data:`MIN_WINDOWS`) or too noisy to
-    show a turn of :data:`MAX_RESOLUTION`; else at rest."""
+    run of moving windows reached :data:`MIN_PEAK_RATIO` times the threshold or gravity
+    tilted by :data:`MIN_TILT`; else unverified where the recording is too short
+    (:data:`MIN_WINDOWS`) or too noisy to show a turn of :data:`MAX_RESOLUTION`; else at
+    rest."""
     with np.errstate(invalid="ignore"):
         frac = np.nan_to_num(np.asarray(num["moving_fraction"], float))
         peak = np.asarray(num["rate_peak"], float)
         thr = np.asarray(num["threshold"], float)
-        turn = np.asarray(num["turn_peak"], float)
-        moved = (frac > 0) & ((turn >= MIN_TURN) | (peak >= MIN_PEAK_RATIO * thr)
-                              | (frac > MAX_MOVING_FRACTION))
+        tilt = np.asarray(num["tilt_peak"], float)
+        moved = (frac > 0) & ((peak >= MIN_PEAK_RATIO * thr) | (tilt >= MIN_TILT))
         short = ~(np.asarray(num["n_windows"], float) >= MIN_WINDOWS)
         coarse = ~(np.asarray(num["resolution"], float) <= MAX_RESOLUTION)
     return np.where(moved, IN_MOTION, np.where(short | coarse, UNVERIFIED, AT_REST)).astype(np.int8)
@@ -265,8 +273,10 @@ def describe(rec: dict) -> str:
 
     frac = rec.get("moving_fraction")
     pct = "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
-    turn = rec.get("turn_peak")
+    turn, tilt = rec.get("turn_peak"), rec.get("tilt_peak")
     turned = "" if turn is None else f", turns up to {math.degrees(turn):.2g}°"
+    if tilt:
+        turned += f", gravity tilted by up to {math.degrees(tilt):.2g}°"
     return (f"{pct} % of the recording moved (rates up to {g(rec.get('rate_peak'))} rad/s, "
             f"{g(rec.get('rate_rms'))} rad/s RMS{turned}, against a rest noise of "
             f"{g(rec.get('rest_noise'))} rad/s)")
@@ -536,9 +546,12 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     accel = None if accel is None else accel.astype(jnp.float32)
     n = gyro.shape[0]
     moving, mean, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
+    windows = dict(window_rate=mean, window_moving=moving, window_valid=valid, threshold_axes=thr0)
     if accel is not None:
-        acc_moving = _moving_windows(accel, mask, w, b, ACCEL_FLOOR, step=True)[0]
+        acc_moving, acc_mean, _, _, _, acc_thr = _moving_windows(accel, mask, w, b, ACCEL_FLOOR,
+                                                                 step=True)
         moving = moving | acc_moving
+        windows |= dict(window_accel=acc_mean, accel_threshold=acc_thr, window_moving=moving)
     rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
     n_mov = jnp.sum(moving)
     peak = jnp.max(jnp.where(moving, rate, 0.0))
@@ -567,7 +580,6 @@ def _one_device(gyro, accel, mask, w: int, b: int):
                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
                threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan),
                n_windows=jnp.sum(valid).astype(gyro.dtype))
-    windows = dict(window_rate=mean, window_moving=moving, window_valid=valid, threshold_axes=thr0)
     return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static} | windows
 
 
@@ -692,7 +704,9 @@ def _check_group(gyro, accel, mask, dts, read, use_accel):
     out = lay.check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
                     lay.w, lay.b)
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS if k != "resolution"}
+    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS
+           if k not in ("resolution", "tilt_peak")}
+    num["tilt_peak"] = np.zeros(d, lay.read)
     static = np.array(out["static"])[:d, :n]
     window_s = lay.w * np.asarray(dts, float)
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
@@ -700,11 +714,14 @@ def _check_group(gyro, accel, mask, dts, read, use_accel):
     # stretches of rest either side of a motion at rates no bias change explains: the
     # one at the rest's rate is rest, the others spin (the windows of the moving devices)
     for i in np.flatnonzero(num["moving_fraction"] > 0):
-        level = _rest_levels(*(np.asarray(out[k][i]) for k in
-                               ("window_rate", "window_moving", "window_valid", "threshold_axes")),
-                             window_s[i])
+        acc = ({"accel": np.asarray(out["window_accel"][i]),
+                "accel_thr": np.asarray(out["accel_threshold"][i])} if accel is not None else {})
+        level = _rest_stretches(*(np.asarray(out[k][i]) for k in
+                                  ("window_rate", "window_moving", "window_valid", "threshold_axes")),
+                                window_s[i], **acc)
         if level is not None:
-            moving, rate, turn = level
+            moving, rate, turn, tilt = level
+            num["tilt_peak"][i] = tilt
             near = moving | np.r_[moving[1:], False] | np.r_[False, moving[:-1]]
             static[i] = ~np.repeat(near, lay.w)[:n] & recorded[i]
             num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
@@ -714,49 +731,94 @@ def _check_group(gyro, accel, mask, dts, read, use_accel):
     return num, static, np.full(d, lay.w)
 
 
-def _rest_levels(rate, moving, valid, thr, window_s: float):
-    """Stretches of rest either side of a motion whose rates disagree (one device's windows:
-    mean rate (k, 3), moving, valid, and the threshold per axis): a bias does not step
-    while the device turns; it drifts by at most :data:`BIAS_SLEW` and the window noise
-    (the threshold). Consecutive stretches that agree, end to start, are one level; the
-    level with the most windows is rest and the others spin. None where every stretch is
-    at one level; else the windows moving (those of the spinning stretches added), the
-    largest rate of a spin against the rest's, and the largest angle one turned."""
-    static = valid & ~moving
-    edges = np.flatnonzero(np.diff(np.r_[0, static.astype(np.int8), 0]))
-    runs = list(zip(edges[::2], edges[1::2]))
-    if len(runs) < 2:
-        return None
+def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel_thr=None):
+    """The stretches of one device's recording that are rest, where it moved (its windows:
+    mean rate (k, 3), moving, valid, the threshold per axis; the accelerometer's window
+    means and threshold where read).
+
+    Between its moves a device held by hand or turned slowly is not at rest, and neither
+    is one that spins steadily:
+
+    * at rest, gravity holds still: a window whose specific force leaves the median of
+      its stretch (over :data:`STRETCH_CHUNK` windows) by more than :data:`TILT_FLOOR`
+      (a tilt of half a degree) or the accelerometer's threshold moved;
+    * a stretch shorter than :data:`MIN_STRETCH` windows between moves is no rest;
+    * a bias does not step while the device turns: it drifts by at most
+      :data:`BIAS_SLEW` (and the window noise, the threshold). Stretches that agree, end
+      to start, are one level. The rest is the level the device held longest, or, of the
+      levels held at least :data:`REST_SHARE` as long, the one nearest to zero rate (a
+      bias is small beside a spin); the other levels spin.
+
+    Returns None where the check's own windows stand; else the windows moving, the
+    largest rate of a spin against the rest's, the largest angle one turned and the
+    largest tilt of gravity (rad)."""
+    given = moving
+    moving = moving.copy()
+    k = moving.size
     thr = np.maximum(np.asarray(thr, float), 2.0 * EARTH_RATE)
+
+    def stretches():
+        static = valid & ~moving
+        edges = np.flatnonzero(np.diff(np.r_[0, static.astype(np.int8), 0]))
+        return list(zip(edges[::2], edges[1::2]))
+
+    runs = stretches()
+    tilt = 0.0
+    if accel is not None:
+        floor = max(TILT_FLOOR, float(np.linalg.norm(accel_thr)))
+        g = max(float(np.median(np.linalg.norm(accel[valid], axis=1))), 1e-9) if valid.any() else 1.0
+        for start, end in runs:
+            for c0 in range(start, end, STRETCH_CHUNK):
+                c1 = min(end, c0 + STRETCH_CHUNK)
+                if end - c1 < STRETCH_CHUNK // 2:  # a short last chunk joins its neighbour
+                    c1 = end
+                part = accel[c0:c1]
+                off = np.linalg.norm(part - np.median(part, axis=0), axis=1)
+                moving[c0:c1] |= off > floor
+                if np.any(off > floor):
+                    tilt = max(tilt, math.asin(min(float(off.max()) / g, 1.0)))
+                if c1 == end:
+                    break
+    runs = stretches()
+    for start, end in runs:
+        if end - start < MIN_STRETCH and (start > 0 or end < k):
+            moving[start:end] = True
+    runs = [r for r in stretches() if r[1] - r[0] >= MIN_STRETCH]
     clusters: list[dict] = []
     for start, end in runs:
-        span = max(1, min(BLOCK_WINDOWS, end - start))
+        span = min(BLOCK_WINDOWS, end - start)
         head = np.median(rate[start:start + span], axis=0)
-        for c in reversed(clusters):
-            gap = (start - c["end"] + span) * window_s
-            if np.sqrt(np.sum(((head - c["tail"]) / (thr + BIAS_SLEW * gap)) ** 2)) <= 1.0:
-                break
-        else:
-            c = {"runs": [], "windows": 0}
-            clusters.append(c)
-        c["runs"].append((start, end))
-        c["windows"] += end - start
-        c["end"] = end
-        c["tail"] = np.median(rate[end - span:end], axis=0)
+        best, dist = None, 1.0
+        for c in clusters:
+            gap = min((start - c["end"] + span) * window_s, BLOCK_S)
+            # medians of a few windows each: their difference's noise is below a window's
+            tol = thr * min(1.0, 1.25 * math.sqrt(2.0 / min(span, c["span"]))) + BIAS_SLEW * gap
+            z = float(np.sqrt(np.sum(((head - c["tail"]) / tol) ** 2)))
+            if z <= dist:
+                best, dist = c, z
+        if best is None:
+            best = {"runs": [], "windows": 0}
+            clusters.append(best)
+        best["runs"].append((start, end))
+        best["windows"] += end - start
+        best["end"], best["span"] = end, span
+        best["tail"] = np.median(rate[end - span:end], axis=0)
+    for c in clusters:
+        c["level"] = np.median(np.concatenate([rate[a:b] for a, b in c["runs"]]), axis=0)
     if len(clusters) < 2:
-        return None
-    rest = max(clusters, key=lambda c: c["windows"])
-    ref = np.median(np.concatenate([rate[a:b] for a, b in rest["runs"]]), axis=0)
-    moving = moving.copy()
+        return None if np.array_equal(moving, given) else (moving, 0.0, 0.0, tilt)
+    most = max(c["windows"] for c in clusters)
+    rest = min((c for c in clusters if c["windows"] >= REST_SHARE * most),
+               key=lambda c: float(np.linalg.norm(c["level"])))
     peak = turn = 0.0
     for c in clusters:
-        if c is rest:
-            continue
+        if np.sqrt(np.sum(((c["level"] - rest["level"]) / thr) ** 2)) <= 1.0:
+            continue  # at the rest's level (a level split only by the drift allowed)
+        off = float(np.linalg.norm(c["level"] - rest["level"]))
         for a, b in c["runs"]:
             moving[a:b] = True
-            off = float(np.linalg.norm(np.median(rate[a:b], axis=0) - ref))
             peak, turn = max(peak, off), max(turn, off * (b - a) * window_s)
-    return moving, peak, turn
+    return moving, peak, turn, tilt
 
 
 def compile_check(batch, dt: float | None = None) -> threading.Thread:
@@ -797,5 +859,6 @@ def _padded(x, devices: int, samples: int):
     return out
 
 
-__all__ = ["ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_MOVING_FRACTION", "MIN_PEAK_RATIO", "Motion", "compile_check", "describe",
-           "motion_check", "window_sizes"]
+__all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "compile_check",
+           "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES", "ACCEL_FLOOR",
+           "EARTH_RATE", "K_SIGMA", "MAX_RESOLUTION", "MIN_PEAK_RATIO", "MIN_TILT", "MIN_WINDOWS"]

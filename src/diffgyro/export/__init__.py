@@ -11,6 +11,7 @@ import dataclasses
 
 from ..calibration import Calibration
 from ..errors import DataError
+from ..status import residual_note, residual_verdict
 from . import ardupilot, c_header, px4
 
 __all__ = ["render", "FORMATS", "select_devices", "refuse_not_ok"]
@@ -59,8 +60,6 @@ def _forced(cal: Calibration, names: list[str], force: bool) -> tuple[Calibratio
     that say so: a device whose held-out RMS stands above its noise floor
     (:func:`diffgyro.status.residual_verdict`) is written with a warning, and refused
     unless ``force`` where it stands above :data:`diffgyro.status.RESIDUAL_REFUSE`."""
-    from ..status import residual_note, residual_verdict
-
     def judged(n):
         d = cal.device(n)
         if d.status != "ok":

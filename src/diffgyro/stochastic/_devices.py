@@ -37,11 +37,11 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
         entry = {"device": dev, "status": "ok", "status_detail": "ok", "axes": None}
         entries.append(entry)
         rates = np.asarray(values[i, :n], np.float64)
-        if motion[i] is not None:
-            entry.update(status=str(motion[i]).split(":", 1)[0], status_detail=str(motion[i]))
-        elif n < MIN_SAMPLES:
+        if n < MIN_SAMPLES:  # the most basic problem first
             entry.update(status="too_short", status_detail=f"{n} samples; a noise model needs at "
                          f"least {MIN_SAMPLES} (static, at the full rate)")
+        elif motion[i] is not None:
+            entry.update(status=str(motion[i]).split(":", 1)[0], status_detail=str(motion[i]))
         elif not np.all(np.isfinite(rates)):
             entry.update(status="bad_data", status_detail="non-finite gyro samples")
         elif np.any(np.ptp(rates, axis=0) == 0):
