@@ -89,7 +89,7 @@ t = rec.t - rec.t[0]
 m = motion_check(Batch.from_recordings([rec]))
 static = np.asarray(m.static[0])[: t.size]
 print(f"{rec.device}: {t.size} samples over {t[-1]:.1f} s")
-print({k: round(v, 6) for k, v in m.record(0).items()})
+print({k: round(v, 6) if isinstance(v, float) else v for k, v in m.record(0).items()})
 
 fig, axs = plt.subplots(2, 1, figsize=(9, 4), sharex=True)
 for j, axis in enumerate("xyz"):

@@ -538,6 +538,28 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     return moving, mean, dev, valid, sigma, thr0
 
 
+def _tilted(accel, valid, moving, thr):
+    """Windows whose specific force leaves the mean of its chunk of :data:`STRETCH_CHUNK`
+    windows by more than a tilt of :data:`TILT_FLOOR` (or the accelerometer's threshold),
+    in chunks where nothing else moved (a chunk with a move in it is left to
+    :func:`_rest_stretches`, which splits it there), and the largest such tilt (rad)."""
+    k = accel.shape[0]
+    c = STRETCH_CHUNK
+    kc = -(-k // c)
+    pad = kc * c - k
+    a = jnp.concatenate([accel, jnp.zeros((pad, 3), accel.dtype)]).reshape(kc, c, 3)
+    use = jnp.concatenate([valid & ~moving, jnp.zeros((pad,), bool)]).reshape(kc, c)
+    still = ~jnp.any(jnp.concatenate([moving, jnp.zeros((pad,), bool)]).reshape(kc, c), axis=1)
+    count = jnp.sum(use, axis=1)
+    mean = jnp.sum(jnp.where(use[..., None], a, 0.0), axis=1) / jnp.maximum(count, 1)[:, None]
+    off = jnp.sqrt(jnp.sum((a - mean[:, None, :]) ** 2, axis=2))
+    floor = jnp.maximum(TILT_FLOOR, jnp.sqrt(jnp.sum(thr**2)))
+    flag = use & (still & (count >= c // 2))[:, None] & (off > floor)
+    g = jnp.maximum(jnp.sqrt(jnp.sum(mean**2, axis=1)), 1e-9)[:, None]
+    tilt = jnp.max(jnp.where(flag, jnp.arcsin(jnp.minimum(off / g, 1.0)), 0.0))
+    return flag.reshape(-1)[:k], tilt
+
+
 def _one_device(gyro, accel, mask, w: int, b: int):
     # float32 is ample to tell motion from noise, and halves the traffic of the one
     # pass over the samples; the results are given back in the input's precision
@@ -547,10 +569,13 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     n = gyro.shape[0]
     moving, mean, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
     windows = dict(window_rate=mean, window_moving=moving, window_valid=valid, threshold_axes=thr0)
+    tilt = jnp.zeros((), jnp.float32)
     if accel is not None:
         acc_moving, acc_mean, _, _, _, acc_thr = _moving_windows(accel, mask, w, b, ACCEL_FLOOR,
                                                                  step=True)
         moving = moving | acc_moving
+        tilted, tilt = _tilted(acc_mean, valid, moving, acc_thr)
+        moving = moving | tilted
         windows |= dict(window_accel=acc_mean, accel_threshold=acc_thr, window_moving=moving)
     rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
     n_mov = jnp.sum(moving)
@@ -577,6 +602,7 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     nan = jnp.asarray(jnp.nan, gyro.dtype)
     out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
                rate_rms=jnp.where(some, rms, nan), turn_peak=jnp.where(some, turn, nan),
+               tilt_peak=jnp.where(some, tilt, nan),
                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
                threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan),
                n_windows=jnp.sum(valid).astype(gyro.dtype))
@@ -723,9 +749,7 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
     out = lay.check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
                     lay.w, lay.b, None if rate is None else jax.device_put(rate))
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS
-           if k not in ("resolution", "tilt_peak")}
-    num["tilt_peak"] = np.zeros(d, lay.read)
+    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS if k != "resolution"}
     static = np.array(out["static"])[:d, :n]
     window_s = lay.w * np.asarray(dts, float)
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
@@ -740,7 +764,7 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
                                 window_s[i], **acc)
         if level is not None:
             moving, rate, turn, tilt = level
-            num["tilt_peak"][i] = tilt
+            num["tilt_peak"][i] = max(num["tilt_peak"][i], tilt)
             near = moving | np.r_[moving[1:], False] | np.r_[False, moving[:-1]]
             static[i] = ~np.repeat(near, lay.w)[:n] & recorded[i]
             num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
