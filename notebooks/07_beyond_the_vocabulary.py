@@ -87,6 +87,7 @@ def recording(profile: int) -> Recording:
     temp = np.interp(t, np.asarray(knots[0]) * t[-1], knots[1])
     err = BIAS + np.outer(temp - 30, TC) + accel @ GS.T + K * ((temp - 30) * accel[:, 2])[:, None]
     gyro = err + SIGMA * rng.standard_normal((N, 3))
+    accel = accel + 0.02 * rng.standard_normal((N, 3))  # the accelerometer's own noise
     return Recording(t=t, gyro=gyro, temp=temp + 0.01 * rng.standard_normal(N), accel=accel,
                      device="imu0", source=f"tumble-{profile}.csv")
 
