@@ -11,8 +11,12 @@ the list gives.
 For every log the script runs ``diffgyro fit LOG --model bias_poly(0) --json`` and
 ``diffgyro export`` of its calibration, and checks:
 
-* ``motion``: no device ``ok``, and ``export --format px4`` refuses the calibration;
-* ``rest``: every device ``ok`` and judged ``at_rest``, its bias the reference mean;
+* ``motion``: no device ``ok``, and ``export --format px4`` refuses the calibration; and
+  the same with the log thinned to about 10 Hz (every k-th sample, as a logger that
+  writes the sensor at a lower rate than it samples keeps it: a low-rate log of the
+  same motion);
+* ``rest``: every device ``ok`` and judged ``at_rest``, its bias the reference mean (the
+  status of the log thinned to about 10 Hz is reported);
 * ``spin``: the plain fit not ``ok``; with ``--static-only`` the fit ``ok``, none of the
   rest it kept within the spin, and its bias the reference's mean over the reference's
   rest intervals to within four standard errors of a mean of the kept samples (the
@@ -82,11 +86,15 @@ def judge(entry: dict, data: Path) -> dict:
         code, _, err = _run(["export", str(cal), "--format", "px4"])
         row["export_refused"] = code == 2
         row["export_error"] = err.strip().splitlines()[-1] if err.strip() else ""
-        row["pass"] = all(d["status"] != "ok" for d in devices) and code == 2
+        low = _thinned(path, entry["options"], entry["rate_hz"])
+        row["thinned"] = low
+        row["pass"] = (all(d["status"] != "ok" for d in devices) and code == 2
+                       and all(d["status"] != "ok" for d in low["devices"]))
     elif entry["category"] == "rest":
         ref = np.asarray(entry["reference_mean_rad_s"], float)
         got = np.asarray(row["devices"][0]["c0"], float)
         row["c0_minus_reference"] = (got - ref).tolist()
+        row["thinned"] = _thinned(path, entry["options"], entry["rate_hz"])  # reported only
         row["pass"] = (all(d["status"] == "ok" and d["verdict"] == "at_rest" for d in row["devices"])
                        and bool(np.allclose(got, ref, rtol=0, atol=1e-9)))
     else:  # spin
@@ -107,6 +115,29 @@ def judge(entry: dict, data: Path) -> dict:
         row["pass"] = (plain and dev["status"] == "ok" and spun == 0.0
                        and bool(np.all(np.abs(got - ref) <= 4 * se)))
     return row
+
+
+def _thinned(path: Path, options: list[str], rate: float, target: float = 10.0) -> dict:
+    """The fit of the log thinned to about ``target`` Hz (every k-th sample), as CSV."""
+    from diffgyro.cli._load import load_from_cli
+
+    opts = dict(zip(options[::2], options[1::2]))
+    recs = load_from_cli([path], opts.get("--columns"), opts.get("--gyro-unit"),
+                         opts.get("--acc-unit"), batch=False)
+    k = max(1, int(round(rate / target)))
+    folder = Path(tempfile.mkdtemp())
+    frames = []
+    for r in recs:
+        frames.append(r.to_frame().iloc[::k])  # (its device column names the device)
+    import pandas as pd
+
+    csv = folder / "thinned.csv"
+    pd.concat(frames).to_csv(csv, index=False)
+    doc, cal = _fit(csv, ["--gyro-unit", "rad/s", "--acc-unit", "m/s²"])  # as written: SI
+    code, _, _ = _run(["export", str(cal), "--format", "px4"])
+    return {"every": k, "rate_hz": rate / k, "export_refused": code == 2,
+            "devices": [{k2: d.get(k2) for k2 in ("device", "status", "status_detail")}
+                        for d in doc["devices"]]}
 
 
 def _first_time(path: Path) -> float:
@@ -133,6 +164,9 @@ def main() -> None:
         row = judge(entry, args.data)
         rows.append(row)
         st = ", ".join(f"{d['status']}" for d in row["devices"])
+        low = row.get("thinned")
+        st += "" if low is None else (f"; at {low['rate_hz']:.1f} Hz: "
+                                      + ", ".join(d["status"] for d in low["devices"]))
         print(f"{'PASS' if row['pass'] else 'FAIL'}  {row['category']:6s} {row['rate_hz']:7.1f} Hz  "
               f"{entry['file']}: {st}" + (f"; static-only {row['static_status']}, "
                                           f"{100 * row['kept_inside_reference_rest']:.0f} % of the kept "

@@ -440,10 +440,15 @@ def _baseline(mean, use, valid, b: int):
     pad = kb * b - k
     vals = jnp.concatenate([mean, jnp.zeros((pad, mean.shape[1]), mean.dtype)])
     ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
-    pick = _subsample(b, BLOCK_WINDOWS)
-    sub_vals = vals.reshape(kb, b, -1)[:, pick]
-    sub_ok = jnp.broadcast_to(ok.reshape(kb, b)[:, pick, None], sub_vals.shape)
-    med = _masked_quantile(sub_vals, sub_ok, 0.5, axis=1)  # (kb, c)
+    vals, ok = vals.reshape(kb, b, -1), ok.reshape(kb, b)
+    if b > BLOCK_WINDOWS:  # spread over the windows each block holds (a last block may be short)
+        has = jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b)
+        span = jnp.max(jnp.where(has, jnp.arange(b), -1), axis=1, keepdims=True) + 1
+        j = jnp.arange(BLOCK_WINDOWS)[None, :]
+        pick = jnp.where(span >= BLOCK_WINDOWS, (j * span) // BLOCK_WINDOWS, j)
+        vals = jnp.take_along_axis(vals, pick[..., None], axis=1)
+        ok = jnp.take_along_axis(ok, pick, axis=1) & (j < span)
+    med = _masked_quantile(vals, jnp.broadcast_to(ok[..., None], vals.shape), 0.5, axis=1)  # (kb, c)
     # a block without windows in use (all moving) holds the last block before it that has
     # some (the first such block before any)
     has = ~jnp.isnan(med[:, 0])
@@ -532,6 +537,8 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     # (one compiled body)
     def again(_, state):
         dev = mean - _baseline(mean, valid & ~state[0], valid, b)
+        # where the first pass left no window static, its own baseline stands
+        dev = jnp.where(jnp.isnan(dev), state[1], dev)
         return _runs_with(flag(dev, var, valid), jump), dev
 
     moving, dev = jax.lax.fori_loop(0, 2, again, (jnp.zeros_like(valid), jnp.zeros_like(mean)))
