@@ -14,6 +14,7 @@ import inspect
 import pkgutil
 import sys
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -32,8 +33,19 @@ app = typer.Typer(
 _loaded = False
 
 
+def _print_version(value: bool) -> None:
+    """``--version``: the installed package's version (``importlib.metadata``, read when
+    ``diffgyro`` is imported; JAX is not loaded), then exit 0."""
+    if value:
+        print(f"diffgyro {diffgyro.__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_print_version,
+                                          help="Print the version and exit.")] = False,
+) -> None:
     """Gyroscope calibration with differentiable error models (rates in rad/s)."""
 
 
