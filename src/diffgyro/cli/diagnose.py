@@ -73,15 +73,29 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
         console.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
+#: Reasons shown per candidate not tried (each device's own is in --json's ``skipped``).
+SKIPPED_SHOWN = 4
+
+
 def skipped_lines(diag) -> list[str]:
-    """Each candidate not tried, once, with its reason and the devices that skipped it."""
-    seen: dict[tuple[str, str], list[str]] = {}
+    """Each candidate not tried with each device's reason (what its data show against
+    what the term needs), the devices with the same reason on one line; at most
+    :data:`SKIPPED_SHOWN` reasons per candidate, then how many devices more."""
+    seen: dict[str, dict[str, list[str]]] = {}
     for d in diag.devices:
         for term, why in d.skipped.items():
-            seen.setdefault((term, why), []).append(d.device)
+            seen.setdefault(term, {}).setdefault(why, []).append(d.device)
     n = len(diag.devices)
-    return [f"not tried: {term} ({why}; {'every device' if len(devs) == n else ', '.join(devs)})"
-            for (term, why), devs in seen.items()]
+    out = []
+    for term, reasons in seen.items():
+        for why, devs in list(reasons.items())[:SKIPPED_SHOWN]:
+            out.append(f"not tried: {term} ({why}; "
+                       f"{'every device' if len(devs) == n else ', '.join(devs)})")
+        more = sum(len(devs) for devs in list(reasons.values())[SKIPPED_SHOWN:])
+        if more:
+            out.append(f"not tried: {term} on {more} more device(s), each for its own reason "
+                       f"(see --json: skipped)")
+    return out
 
 
 def print_ladder(ladder, console) -> None:
