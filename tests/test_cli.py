@@ -36,6 +36,42 @@ def test_bad_input_is_one_clear_line(case, tmp_path, capsys):
     assert must in err, err
 
 
+@pytest.mark.parametrize("argv", [
+    ["fit", "--model", "bias_poly(2)", "--json"],
+    ["diagnose", "--model", "bias_poly(0)", "--json"],
+    ["allan", "--json"],
+    ["noise", "--json"],
+    ["recipe", "binned-thermal", "--json"],
+    ["compensate", "--cal", "CAL", "--out", "OUT", "--json"],
+])
+def test_json_error_is_an_object_on_stdout(argv, tmp_path, capsys):
+    """Under --json, every command that takes it gives its error as one JSON object on
+    stdout (the DataError's fields) as well as the one line on stderr, exit code 2."""
+    path = tmp_path / "bad.csv"
+    path.write_text(BAD["missing_column"][0])
+    cal = tmp_path / "cal.json"
+    cal.write_text("{}")
+    argv = [str(cal) if a == "CAL" else str(tmp_path / "o.csv") if a == "OUT" else a
+            for a in argv]
+    code = main([*argv[:2], str(path), *argv[2:]] if argv[0] == "recipe"
+                else [argv[0], str(path), *argv[1:]])
+    out, err = capsys.readouterr()
+    assert code == 2
+    line, = err.strip().splitlines()
+    doc = json.loads(out)
+    assert set(doc) == {"error", "problem", "file", "device", "column", "row", "hint"}
+    assert line == f"diffgyro: error: {doc['error']}"
+    if argv[0] != "compensate":  # compensate reads the (empty) calibration first
+        assert doc["file"] == str(path) and doc["column"] == "gz" and doc["row"] is None
+    assert main([argv[0], str(tmp_path / "nope.csv"), "--json"] if argv[0] in ("allan", "noise")
+                else ["fit", str(tmp_path / "nope.csv"), "-m", "bias_poly(0)", "--json"]) == 2
+    out, err = capsys.readouterr()
+    assert json.loads(out)["file"] == str(tmp_path / "nope.csv") and err.count("\n") == 1
+    assert main(["fit", str(path), "-m", "bias_poly(2)+gradiant", "--json"]) == 2  # a SpecError
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["problem"] == "unknown effect 'gradiant'" and doc["file"] is None
+
+
 def test_unknown_unit_and_repeated_device(tmp_path, capsys):
     a = tmp_path / "a.csv"
     a.write_text("device,t,gx,gy,gz\nu1,0,0,0,0\nu1,1,0,0,0\nu1,2,0,0,0\n")

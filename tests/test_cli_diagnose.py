@@ -137,8 +137,10 @@ def test_bad_data_is_one_line(tmp_path, capsys):
     path.write_text("t,gx,gy,gz,temp\n0,0,0,0,20\n1,0,0,0,21\n1,0,0,0,22\n")
     code = main(["diagnose", str(path), "--model", "bias_poly(1)", "--json"])
     cap = capsys.readouterr()
-    assert code == 2 and cap.out == ""
-    assert len(cap.err.strip().splitlines()) == 1 and "bad.csv" in cap.err
+    assert code == 2 and len(cap.err.strip().splitlines()) == 1 and "bad.csv" in cap.err
+    doc = json.loads(cap.out)  # --json: the error as an object on stdout too
+    assert doc["file"] == str(path) and doc["row"] == 3 and doc["column"] == "t"
+    assert cap.err.strip() == f"diffgyro: error: {doc['error']}"
 
 
 def test_model_needs_missing_column(tmp_path, capsys):

@@ -82,3 +82,12 @@ def test_help_reads_cleanly_at_80_columns(tmp_path):
     # a docstring's paragraph wraps to the terminal, its source line breaks gone
     assert "Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside\n" \
         "  the calibrated range" in outs["compensate"]
+
+
+def test_version_answers_without_jax(tmp_path):
+    """``diffgyro --version``: the installed package's version, exit 0, no JAX."""
+    from importlib.metadata import version
+
+    seen, out, _ = _probe(["--version"], tmp_path)
+    assert seen == {"code": 0, "jax": False, "equinox": False}
+    assert out.strip() == f"diffgyro {version('diffgyro')}"

@@ -112,3 +112,31 @@ def test_kalibr_export_reads_allan_json_by_content(thermal, tmp_path, capsys):
     # read as Allan read-outs, not as a recording: it writes, or names what the curves lack
     assert (code == 0 and "gyroscope_noise_density" in out) or \
         (code == 2 and "the Allan curves show no" in err), (out, err)
+
+
+NUMBER_CELL = re.compile(r"\d\.\d{3}e[-+]\d{2}")
+
+
+@pytest.mark.parametrize("extra", [[], ["--static-only"]])
+def test_fit_table_with_limits_at_80_columns_never_splits_a_number(thermal, tmp_path, capsys,
+                                                                   monkeypatch, extra):
+    """A number stays whole on one line of an 80-column table (rich folded ``2.898e-0`` /
+    ``4`` before): the numeric columns do not wrap, the text columns fold."""
+    limits = tmp_path / "limits.toml"
+    limits.write_text('[about]\nname = "line"\n\n[limits]\nheldout_rms = { max = 0.01 }\n')
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["fit", str(thermal / "log.csv"), "-m", "bias_poly(1)", "--limits",
+                 str(limits), *extra]) == 0
+    out = capsys.readouterr().out
+    body = [line for line in out.splitlines() if line.startswith("│")]
+    drawn = [line for line in out.splitlines() if line[:1] in "┏┃┡│└"]
+    assert body and max(map(len, drawn)) <= 80, out
+    rows = [[c.strip() for c in line.split("│")[1:-1]] for line in body]
+    for cells in rows:  # rms, held-out rms, noise floor: a whole number or (a folded row) none
+        nums = cells[2:5]
+        assert all(NUMBER_CELL.fullmatch(c) for c in nums) or nums == ["", "", ""], cells
+        assert re.fullmatch(r"\d+( of \d+)?|", cells[6]), cells  # samples
+    for above, below in zip(rows, rows[1:]):  # no number goes on in the line below
+        for a, b in zip(above[2:7], below[2:7]):
+            assert not (re.search(r"[\d.e-]$", a) and re.match(r"[\d.e+-]", b)), (a, b, out)
+    assert sum(NUMBER_CELL.fullmatch(c) is not None for r in rows for c in r) == 6

@@ -5,8 +5,9 @@ endings, wrong extensions and magic bytes, damaged Parquet/NPZ/compressed files
 and damaged logs: PX4 ULog, ROS 1 bag, ArduPilot DataFlash) through every
 command (fit and diagnose with a limits file); export reads damaged calibration files and
 fit and diagnose damaged limits files (TOML). Each run ends with exit 0 and strict JSON on stdout (no
-NaN/Infinity), or exit 2 and exactly one line on stderr naming the file: never a
-traceback. Derandomized, so CI sees the same examples every run."""
+NaN/Infinity), or exit 2 and exactly one line on stderr naming the file (under --json
+the same error also as a JSON object on stdout): never a traceback. Derandomized, so CI
+sees the same examples every run."""
 
 from __future__ import annotations
 
@@ -288,6 +289,10 @@ def check(command: str, argv: list[str], path: Path) -> None:
     assert last.startswith("diffgyro: error: ") and all(
         n.startswith("diffgyro: ") and "error" not in n for n in notes), err
     lines = [last]
+    if "--json" in argv:  # the same error as one JSON object on stdout
+        doc = strict_json(out)
+        assert last == f"diffgyro: error: {doc['error']}", (out, err)
+        assert {"file", "device", "column", "row"} <= set(doc), doc
     # the file at fault: the damaged one, or (a log read whole whose devices, named after
     # the file, are not in it) the calibration
     assert str(path) in lines[0] or path.name in lines[0] or (
@@ -385,6 +390,8 @@ def test_damaged_limits_file_gives_json_or_one_line(ground, data):
             continue
         line, = [x for x in err.strip().splitlines() if not x.startswith("diffgyro: warning")]
         assert code == 2 and line.startswith(f"diffgyro: error: file {path}: "), err
+        doc = strict_json(out)  # --json: the error as an object on stdout too
+        assert doc["file"] == str(path) and line == f"diffgyro: error: {doc['error']}", out
         if key is not None and "not valid TOML" not in line and "UTF-8" not in line:
             assert f"key {key!r}" in line or f"key '{key}." in line, line
 

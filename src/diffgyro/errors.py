@@ -46,6 +46,16 @@ class DataError(ValueError):
             text += f" ({self.hint})"
         return text.replace("\n", " ")
 
+    def to_json(self) -> dict:
+        """The ``--json`` error object: ``error`` (the one line, as on stderr), the bare
+        ``problem``, and ``file``, ``device``, ``column``, ``row``, ``hint`` (``None``
+        where not known)."""
+        return {"error": self.message(), "problem": self.problem,
+                "file": None if self.file is None else str(self.file),
+                "device": None if self.device is None else str(self.device),
+                "column": None if self.column is None else str(self.column),
+                "row": None if self.row is None else int(self.row), "hint": self.hint}
+
 
 class SpecError(DataError):
     """A model spec string or calibration file that cannot be understood."""

@@ -3,7 +3,8 @@
 Each command lives in its own module of this package and registers itself on
 ``app`` when imported; every module here is imported by :func:`main`.
 Bad input raises :class:`~diffgyro.errors.DataError`: its one-line message
-goes to stderr and the exit code is 2, never a traceback.
+goes to stderr and the exit code is 2, never a traceback; under ``--json`` the same
+error is also a JSON object on stdout (:meth:`~diffgyro.errors.DataError.to_json`).
 """
 
 from __future__ import annotations
@@ -11,9 +12,11 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
+import json
 import pkgutil
 import sys
 from pathlib import Path
+from typing import Annotated
 
 import typer
 
@@ -32,8 +35,19 @@ app = typer.Typer(
 _loaded = False
 
 
+def _print_version(value: bool) -> None:
+    """``--version``: the installed package's version (``importlib.metadata``, read when
+    ``diffgyro`` is imported; JAX is not loaded), then exit 0."""
+    if value:
+        print(f"diffgyro {diffgyro.__version__}")
+        raise typer.Exit()
+
+
 @app.callback()
-def _root() -> None:
+def _root(
+    version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_print_version,
+                                          help="Print the version and exit.")] = False,
+) -> None:
     """Gyroscope calibration with differentiable error models (rates in rad/s)."""
 
 
@@ -66,20 +80,42 @@ def _check_inputs(command, values: dict) -> None:
                 raise DataError("file not found", file=str(path))
 
 
+def json_param(command) -> str | None:
+    """The name of ``command``'s ``--json`` flag (``as_json``, ``json_out``), or None."""
+    return next((p.name for p in command.params if "--json" in getattr(p, "opts", ())), None)
+
+
+def error_json(err: Exception) -> dict:
+    """The ``--json`` error object of ``err``: a DataError's fields, or (a usage error
+    raised once the options were read) its message with the fields null."""
+    if isinstance(err, DataError):
+        return err.to_json()
+    text = err.format_message() if hasattr(err, "format_message") else str(err)
+    return DataError(text).to_json()
+
+
 def _engine_first(command):
     """``command``'s callback with its input files checked, then float64 and the
     compilation cache turned on: JAX starts only when a command runs, after its
-    options parsed (``--help`` and usage errors answer without it)."""
+    options parsed (``--help`` and usage errors answer without it). Under ``--json``
+    an error is also its JSON object on stdout (the one line still goes to stderr)."""
 
     callback = command.callback
+    flag = json_param(command)
 
     @functools.wraps(callback)
     def run_command(*args, **kwargs):
-
-        _check_inputs(command, kwargs)
-        diffgyro.enable_x64()
-        diffgyro.enable_compilation_cache()
-        return callback(*args, **kwargs)
+        try:
+            _check_inputs(command, kwargs)
+            diffgyro.enable_x64()
+            diffgyro.enable_compilation_cache()
+            return callback(*args, **kwargs)
+        except Exception as err:
+            usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2
+            if flag is not None and kwargs.get(flag) and (isinstance(err, DataError) or usage):
+                sys.stdout.flush()
+                print(json.dumps(error_json(err)), flush=True)
+            raise
 
     return run_command
 

@@ -9,9 +9,9 @@ from pathlib import Path
 from typing import Annotated
 
 import typer
-from rich.console import Console
-from rich.table import Table
+from rich.markup import escape
 
+from . import _tables as tables
 from . import app
 from ._load import MIN_SAMPLES, load_from_cli, longest_static, units_json
 from ._options import (
@@ -28,6 +28,7 @@ from ._options import (
     TimeUnit,
     Topic,
 )
+from ._tables import NUMBER, TEXT
 
 AXES = ("gx", "gy", "gz")
 
@@ -209,19 +210,19 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
             return f"{x:.4g}"
         return dash((ax.get("missing") or {}).get(key) or "not defined by this curve")
 
-    table = Table(title="Allan deviation read-outs")
-    for col in ("device", "axis", "ARW (rad/s/√Hz)", "bias instability (rad/s)",
-                "RRW (rad/s²/√Hz)", "τ range (s)"):
-        table.add_column(col)
+    rows = []
     for dev in doc["devices"]:
         for name, ax in dev["axes"].items():
             span = f"{ax['tau'][0]:.3g} – {ax['tau'][-1]:.3g}" if ax["tau"] else "—"
-            table.add_row(str(dev["device"]), name, cell(ax, "arw"), cell(ax, "bias_instability"),
-                          cell(ax, "rrw"), span)
-    con = Console(width=120)
+            rows.append([escape(str(dev["device"])), name, cell(ax, "arw"),
+                         cell(ax, "bias_instability"), cell(ax, "rrw"), span])
+    table = tables.table("Allan deviation read-outs", [
+        ("device", TEXT), ("axis", TEXT), ("ARW (rad/s/√Hz)", NUMBER),
+        ("bias instability (rad/s)", NUMBER), ("RRW (rad/s²/√Hz)", NUMBER),
+        ("τ range (s)", NUMBER)], rows, (con := tables.console(120)).width)
     con.print(table)
     if wanted:
-        con.print(_tau_table(doc, wanted, batch, dash))
+        con.print(_tau_table(doc, wanted, batch, dash, con.width))
     for i, reason in enumerate(notes, 1):
         con.print(f"[{i}] {reason}", markup=False, highlight=False, soft_wrap=True)
     for dev in doc["devices"]:
@@ -235,14 +236,10 @@ def _print_table(doc: dict, report: Path | None, wanted: list[float] | None = No
         con.print(f"report: {report / 'index.html'}")
 
 
-def _tau_table(doc: dict, wanted: list[float], batch, dash):
+def _tau_table(doc: dict, wanted: list[float], batch, dash, width: int):
     """σ(τ) at exactly the τ asked for, per device and axis."""
 
-    table = Table(title="Allan deviation σ(τ) at the τ asked for (rad/s)")
-    table.add_column("device")
-    table.add_column("axis")
-    for t in wanted:
-        table.add_column(f"τ = {t:g} s", justify="right")
+    rows = []
     for i, dev in enumerate(doc["devices"]):
         span = None
         if batch is not None:
@@ -259,8 +256,10 @@ def _tau_table(doc: dict, wanted: list[float], batch, dash):
                     row.append(dash("τ longer than a quarter of the recording"
                                     + (f" ({span:.4g} s)" if span is not None else "")
                                     + ": too few clusters to average"))
-            table.add_row(str(dev["device"]), name, *row)
-    return table
+            rows.append([escape(str(dev["device"])), name, *row])
+    return tables.table("Allan deviation σ(τ) at the τ asked for (rad/s)",
+                        [("device", TEXT), ("axis", TEXT),
+                         *((f"τ = {t:g} s", NUMBER) for t in wanted)], rows, width)
 
 
 def _write_report(parts, batch, doc: dict, out: Path) -> None:

@@ -3,16 +3,16 @@
 from __future__ import annotations
 
 import math
-import sys
 from pathlib import Path
 from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.table import Table
+from rich.markup import escape
 
 from diffgyro.errors import DataError
 
+from . import _tables as tables
 from . import app
 from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import MIN_SAMPLES, load_for_model, longest_static, streamed_dir
@@ -31,6 +31,7 @@ from ._options import (
     Topic,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_diagnose
+from ._tables import NUMBER, TEXT
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec to diagnose, e.g. 'bias_poly(2)' "
                                                          "(see 'diffgyro effects').")]
@@ -52,18 +53,19 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
     """A rich table of the devices, then each device's explanation (``judged``: the records
     with their --limits result, a column of pass/fail)."""
 
-    table = Table(title=f"diagnosis of {diag.spec} (rates in rad/s)")
-    for col in ("device", "verdict", "rms", "held-out", "floor", "add", "held-out with it",
-                "close alternatives", *(("limits",) if judged else ())):
-        left = col in ("device", "verdict", "add", "close alternatives")
-        table.add_column(col, justify="left" if left else "right", no_wrap=col != "close alternatives")
+    rows = []
     for i, d in enumerate(diag.devices):
         colour = {"adequate": "green", "not_judged": "yellow"}.get(d.verdict, "red")
-        table.add_row(d.device, f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms), _fmt(d.heldout_rms),
-                      _fmt(d.noise_floor), _add(d),
-                      _fmt(d.best.heldout_rms) if d.best else "",
-                      ", ".join(c.term or c.effect for c in d.alternatives),
-                      *((judged[i]["limits"]["result"],) if judged else ()))
+        rows.append([escape(d.device), f"[{colour}]{d.verdict}[/{colour}]", _fmt(d.rms),
+                     _fmt(d.heldout_rms), _fmt(d.noise_floor), escape(_add(d)),
+                     _fmt(d.best.heldout_rms) if d.best else "",
+                     escape(", ".join(c.term or c.effect for c in d.alternatives)),
+                     *((judged[i]["limits"]["result"],) if judged else ())])
+    table = tables.table(f"diagnosis of {diag.spec} (rates in rad/s)", [
+        ("device", TEXT), ("verdict", TEXT), ("rms", NUMBER), ("held-out", NUMBER),
+        ("floor", NUMBER), ("add", TEXT), ("held-out with it", NUMBER),
+        ("close alternatives", TEXT), *((("limits", TEXT),) if judged else ())], rows,
+        console.width, justify={"limits": "right"})
     console.print(table)
     for d in diag.devices:
         console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
@@ -71,32 +73,45 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
         console.print(line, markup=False, highlight=False, soft_wrap=True)
 
 
+#: Reasons shown per candidate not tried (each device's own is in --json's ``skipped``).
+SKIPPED_SHOWN = 4
+
+
 def skipped_lines(diag) -> list[str]:
-    """Each candidate not tried, once, with its reason and the devices that skipped it."""
-    seen: dict[tuple[str, str], list[str]] = {}
+    """Each candidate not tried with each device's reason (what its data show against
+    what the term needs), the devices with the same reason on one line; at most
+    :data:`SKIPPED_SHOWN` reasons per candidate, then how many devices more."""
+    seen: dict[str, dict[str, list[str]]] = {}
     for d in diag.devices:
         for term, why in d.skipped.items():
-            seen.setdefault((term, why), []).append(d.device)
+            seen.setdefault(term, {}).setdefault(why, []).append(d.device)
     n = len(diag.devices)
-    return [f"not tried: {term} ({why}; {'every device' if len(devs) == n else ', '.join(devs)})"
-            for (term, why), devs in seen.items()]
+    out = []
+    for term, reasons in seen.items():
+        for why, devs in list(reasons.items())[:SKIPPED_SHOWN]:
+            out.append(f"not tried: {term} ({why}; "
+                       f"{'every device' if len(devs) == n else ', '.join(devs)})")
+        more = sum(len(devs) for devs in list(reasons.values())[SKIPPED_SHOWN:])
+        if more:
+            out.append(f"not tried: {term} on {more} more device(s), each for its own reason "
+                       f"(see --json: skipped)")
+    return out
 
 
 def print_ladder(ladder, console) -> None:
 
-    table = Table(title="model ladder (median over devices)")
-    for col in ("added", "model", "held-out RMS", "noise floor", "adequate"):
-        table.add_column(col, justify="left" if col in ("added", "model") else "right")
-    for added, spec, h, f, k in ladder.table_rows():
-        table.add_row(added, spec, _fmt(h), _fmt(f), f"{k}/{len(ladder.devices)}")
+    rows = [[escape(added), escape(spec), _fmt(h), _fmt(f), f"{k}/{len(ladder.devices)}"]
+            for added, spec, h, f, k in ladder.table_rows()]
+    table = tables.table("model ladder (median over devices)", [
+        ("added", TEXT), ("model", TEXT), ("held-out RMS", NUMBER), ("noise floor", NUMBER),
+        ("adequate", NUMBER)], rows, console.width)
     console.print(table)
 
 
 def wide_console():
-    """A rich console; 140 columns when stdout is not a terminal (pipes, logs, tests)."""
-
-
-    return Console() if sys.stdout.isatty() else Console(width=140)
+    """A rich console as wide as the terminal (or ``COLUMNS``); 140 columns when stdout
+    is not a terminal and ``COLUMNS`` is not set (pipes, logs, tests)."""
+    return tables.console(140)
 
 
 def _write_calibration(diag, batch, path: Path, err, judged=None) -> None:

@@ -8,8 +8,8 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
-from rich.table import Table
 
+from . import _tables as tables
 from . import app
 from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import load_for_model, streamed_dir, units_json
@@ -29,6 +29,7 @@ from ._options import (
     motion_notes,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_fit
+from ._tables import NUMBER, TEXT
 
 Model = Annotated[str, typer.Option("--model", "-m", help="Model spec, e.g. 'bias_poly(2)+gradient' "
                                                          "(see 'diffgyro effects').")]
@@ -102,17 +103,20 @@ def fit_command(
                     | ({} if summary is None else {"limits": summary})))
         return
 
-    table = Table(title=f"fit {em.spec}  (rates in rad/s)")
-    for col in ("device", "status", "rms", "held-out rms", "noise floor", "moving", "samples",
-                *(("limits",) if summary else ())):
-        table.add_column(col, overflow="fold")  # a long name wraps whole, never cut to "name/…"
+    static = any(r.get("static_only") for r in records)
+    rows = []
     for r in records:
         mo = (r.get("motion") or {}).get("moving_fraction")
-        n = str(r["n_samples"]) + (f" of {r['n_recorded']} (static only)" if r.get("static_only") else "")
-        table.add_row(r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
-                      _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
-                      *((r["limits"]["result"],) if summary else ()))
-    Console().print(table)
+        n = str(r["n_samples"]) + (f" of {r['n_recorded']}" if r.get("static_only") else "")
+        rows.append([r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
+                     _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
+                     *((r["limits"]["result"],) if summary else ())])
+    table = tables.table(f"fit {em.spec}  (rates in rad/s)", [
+        ("device", TEXT), ("status", TEXT), ("rms", NUMBER), ("held-out rms", NUMBER),
+        ("noise floor", NUMBER), ("moving", NUMBER),
+        ("samples (static only)" if static else "samples", NUMBER),
+        *((("limits", TEXT),) if summary else ())], rows, (con := Console()).width)
+    con.print(table)
     for line in motion_notes(records):
         print(line)
     if summary is not None:

@@ -132,9 +132,11 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
            floor_axes: np.ndarray, floor_allan: float, slope: float, n_valid: int,
            th: Thresholds, ev: dict, blocks: dict | None = None,
            edge: np.ndarray | None = None, base_spec: str | None = None,
-           pair=None) -> DeviceDiagnosis:
+           pair=None, why: dict[int, str] | None = None) -> DeviceDiagnosis:
     """Scores, significance, ranking and verdict of one device from its per-fold numbers;
-    ``pair`` (:class:`.greedy.Pair`): the best term followed by the best second term."""
+    ``pair`` (:class:`.greedy.Pair`): the best term followed by the best second term;
+    ``why``: the reason this device's data cannot support candidate ``j`` (``skipped``),
+    where ``ok[j]`` is false (a candidate not in it is left out of ``skipped``)."""
     floor = float(np.sqrt(np.mean(floor_axes**2)))
     sc = _Scorer(cnt=cnt, base_fold=base_fold, f2=max(floor**2, 1e-300), n_valid=n_valid, th=th,
                  blocks=blocks, base_spec=base_spec)
@@ -143,7 +145,8 @@ def decide(name: str, status: str, base_fold: np.ndarray, cnt: np.ndarray, base_
     skipped: dict = {}
     for j, (effect, spec) in enumerate(zip(names, specs)):
         if not ok[j]:
-            skipped[effect] = "the data cannot support it (range: e.g. no rate, no temperature span)"
+            if why and j in why:
+                skipped[effect] = why[j]
             continue
         if not np.all(np.isfinite(cand_fold[j])):
             skipped[effect] = "the fit failed"
@@ -234,7 +237,9 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
                 r[rw_key], r["rw_full"], r["floors"], float(r["floor_allan"]), float(r["slope"]),
                 int(r["n_valid"]), thresholds, row["diag"].get("evidence", {}),
                 blocks={"cnt": r["blk_cnt"], "base": r["base_blk"], "cand": r["cand_blk"]}
-                if "blk_cnt" in r else None, edge=r.get("cand_edge", _edge_from_theta(r)))
+                if "blk_cnt" in r else None, edge=r.get("cand_edge", _edge_from_theta(r)),
+                why={j: row["diag"]["skipped"][n] for j, n in enumerate(names)
+                     if n in row["diag"].get("skipped", {})})
     d.noise_floor = row["diag"].get("noise_floor", math.nan)
     d.noise_axes = row["diag"].get("noise_floor_axes", [])
     return d.record()

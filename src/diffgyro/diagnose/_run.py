@@ -49,11 +49,11 @@ from ._scoring import (
 from ._scoring import segment_length as search_length
 from ._synthesis import apply as synthesise
 from ._thresholds import Thresholds
+from ._unsupported import reason as unsupported_reason
 
 #: About this many samples (devices × padded length) go through one compiled call.
 CHUNK_SAMPLES = 1 << 18
 
-UNSUPPORTED = "the data cannot support it (range: e.g. no rate, no temperature span)"
 NOISE_UNSCORED = "diagnose scores one noise process, the random walk; fit this one directly"
 
 
@@ -100,10 +100,11 @@ def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
 
 
 def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict,
-                  n_dev: int) -> list[dict]:
+                  batch: Batch) -> list[dict]:
     """Per device, the column candidates (``aux(vdd)``) it skips and why: its column is
     unusable (``_aux.column_problem``; the candidate's range marked so) or its
-    data cannot support the term."""
+    data cannot support the term (:func:`._unsupported.reason`)."""
+    n_dev = batch.n_devices
     skips: list[dict] = [{} for _ in range(n_dev)]
     for j, c in enumerate(every):
         col = term_column(c.term)
@@ -115,7 +116,7 @@ def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict
                 ranges[i, j] = 1.0
                 skips[i][c.term.spec] = why
             elif ranges[i, j] > 0:
-                skips[i][c.term.spec] = UNSUPPORTED
+                skips[i][c.term.spec] = unsupported_reason(c.term, batch.recording(i))
     return skips
 
 
@@ -321,21 +322,21 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
         d.skipped.update(skips)
         return d, slope, floor_allan
     sd = {k: (out[k][i, :nv] if k in out else None) for k in ("dtemp", "heating")}
-    ev = evidence(out["residual"][i, :nv], batch.recording(i), sd, floors[i])
+    rec = batch.recording(i)
+    ev = evidence(out["residual"][i, :nv], rec, sd, floors[i])
     ok = ranges[i] <= 0 if ranges.size else np.zeros(0, bool)
+    why = {j: unsupported_reason(c.term, rec, sd["dtemp"], sd["heating"])
+           for j, c in enumerate(cands) if not ok[j] and term_column(c.term) is None}
     d = decide(
         batch.devices[i], res.status_name(i), out["base_sse"][i], out["cnt"][i],
         out["base_full"][i], [c.effect for c in cands], [c.spec for c in cands],
         out["cand_sse"][i], out["cand_full"][i], ok, _taus(cands, out["cand_theta"][i]), rw_spec,
         out["rw_interp"][i], out["rw_full"][i], floors[i], floor_allan, slope, nv, th, ev,
         blocks={"cnt": out["blk_cnt"][i], "base": out["base_blk"][i], "cand": out["cand_blk"][i]},
-        edge=out["cand_edge"][i], base_spec=model.spec, pair=pair)
+        edge=out["cand_edge"][i], base_spec=model.spec, pair=pair, why=why)
     d.status_detail = res.status_detail(i)
-    for name in unsupported:
-        d.skipped[name] = UNSUPPORTED
-    for c in cands:  # column candidates are listed by term (aux(vdd)), not under one name
-        if term_column(c.term) is not None and d.skipped.get(c.effect) == UNSUPPORTED:
-            del d.skipped[c.effect]
+    for c in unsupported:  # column candidates are listed by term (aux(vdd)), in skips
+        d.skipped[c.effect] = unsupported_reason(c.term, rec, sd["dtemp"], sd["heating"])
     d.skipped.update(skips)
     return d, slope, floor_allan
 
@@ -407,7 +408,7 @@ def diagnose(
     every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
                                                                          candidates)
     all_ranges, floors = _prepare(batch, res, every, aux)
-    skips = _column_skips(every, all_ranges, problems, batch.n_devices)
+    skips = _column_skips(every, all_ranges, problems, batch)
     for c in dead:
         for i, why in enumerate(problems[term_column(c.term)]):
             skips[i][c.term.spec] = why
@@ -418,7 +419,7 @@ def diagnose(
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
-    unsupported = [c.effect for j, c in enumerate(every)
+    unsupported = [c for j, c in enumerate(every)
                    if j not in usable and term_column(c.term) is None]
     out = _score(model, cands, batch, res, floors, aux)
     ranges = all_ranges[:, usable]
