@@ -41,6 +41,7 @@ from __future__ import annotations
 import math
 
 from ..errors import DataError
+from ..stochastic import SHORT_SAMPLES, SPAN_LIMIT
 from ._thermal import fmt_f32
 from .px4 import TYPE_FLOAT32
 
@@ -63,8 +64,6 @@ def unsupported(axis: dict, dt: float | None = None) -> list[str]:
     out = []
     shortest = ((axis.get("resolution") or {}).get("gauss_markov_tau") or {}).get("min")
     if not isinstance(shortest, (int, float)) and dt:  # a model written before the resolution
-        from ..stochastic import SHORT_SAMPLES
-
         shortest = SHORT_SAMPLES * dt
     for c in axis.get("components", []):
         kind = c.get("kind")
@@ -72,8 +71,6 @@ def unsupported(axis: dict, dt: float | None = None) -> list[str]:
         for name in used.get(kind, ()):
             status, why = p[name].get("status"), p[name].get("why", "no reason given")
             if status is None:  # a model written before the judgement: its interval's span
-                from ..stochastic import SPAN_LIMIT
-
                 lo, hi = (p[name].get("ci") or [None, None])[:2]
                 if not (isinstance(lo, (int, float)) and isinstance(hi, (int, float)) and lo > 0
                         and hi / lo <= SPAN_LIMIT):
