@@ -156,8 +156,8 @@ def notes(resolution: dict, structure: list[str]) -> list[str]:
                    f"below {SHORT_SAMPLES:g} sample intervals ({fmt_time(lo)}): white noise at "
                    f"{1.0 / dt:.4g} Hz, merged into the white part (σ²·dt·(1+φ)/(1−φ))")
     for e in resolution["excluded"]:
-        out.append(f"{e['structure']} fits {e['better_by']:.3g} better but its Gauss–Markov τ "
-                   f"{fmt_time(e['tau'])} is beyond {LONG_SHARE:g} of the {fmt_time(record)} "
+        out.append(f"{e['structure']} scores {e['better_by']:.3g} lower on the criterion but its "
+                   f"Gauss–Markov τ {fmt_time(e['tau'])} is beyond {LONG_SHARE:g} of the {fmt_time(record)} "
                    "record: a bias that slow reads as a random walk or ramp here")
     k = resolution.get("random_walk_limit")
     if k is not None and "random_walk" not in structure:
