@@ -24,11 +24,15 @@ N = 8192  # the first 82 s: the length test_diagnose_noise compiles for
 
 
 @pytest.fixture(scope="module")
-def entry():
+def recording():
     a = np.loadtxt(DATA, delimiter=",", skiprows=1)[:N]
-    dt = (a[-1, 0] - a[0, 0]) / (N - 1)
-    rates = np.deg2rad(a[:, 1:4])[None]
-    entries, _ = identify_devices(rates, np.array([N]), (np.arange(N) * dt)[None], ["mpu6050"])
+    return np.deg2rad(a[:, 1:4]), (a[-1, 0] - a[0, 0]) / (N - 1)
+
+
+@pytest.fixture(scope="module")
+def entry(recording):
+    rates, dt = recording
+    entries, _ = identify_devices(rates[None], np.array([N]), (np.arange(N) * dt)[None], ["mpu6050"])
     return entries[0]
 
 
@@ -50,3 +54,27 @@ def test_no_walk_in_82_seconds_at_rest(entry):
     the identification following a drift the recording does not hold."""
     for axis in entry["axes"].values():
         assert "random_walk" not in axis["structure"] and "rate_ramp" not in axis["structure"]
+
+
+def test_nothing_below_resolution_and_white_as_allantools_reads_it(entry, recording):
+    """No component the record cannot resolve (no process merged into the white part, every
+    Gauss–Markov time inside the resolvable range, every parameter identified), and the white
+    density within 10 % of allantools' read-out: the overlapping Allan deviation on the −1/2
+    line, σ(τ)·√τ over τ = 0.1 … 1 s (geometric mean at octave τ)."""
+    import allantools
+
+    rates, dt = recording
+    taus = dt * 2.0 ** np.arange(12)
+    for k, (ax, axis) in enumerate(entry["axes"].items()):
+        res = axis["resolution"]
+        assert not res["merged"] and "fitted_structure" not in axis, ax
+        lo, hi = res["gauss_markov_tau"]["min"], res["gauss_markov_tau"]["max"]
+        for c in axis["components"]:
+            assert all(p["status"] == "identified" for p in c["params"].values()), (ax, c)
+            if c["kind"] == "gauss_markov":
+                assert lo <= c["params"]["tau"]["value"] <= hi, (ax, c)
+        t, adev, _, _ = allantools.oadev(rates[:, k], rate=1.0 / dt, data_type="freq", taus=taus)
+        line = adev * np.sqrt(t)
+        readout = float(np.exp(np.mean(np.log(line[(t >= 0.1) & (t <= 1.01)]))))
+        arw = axis["components"][0]["params"]["arw"]["value"]
+        assert arw == pytest.approx(readout, rel=0.10), (ax, arw, readout)

@@ -54,15 +54,17 @@ def export_command(
     temp_unit: TempUnit = None, time_unit: TimeUnit = None, sampling_rate: SamplingRate = None,
     drop_invalid: DropInvalid = False,
     force: Annotated[bool, typer.Option("--force", help="Write a device whose status is not ok "
-                                        "(in_motion, insufficient_range, ...) anyway; the file "
-                                        "says so in a comment.")] = False,
+                                        "(in_motion, insufficient_range, ...), or noise parameters "
+                                        "the model does not identify, anyway; the file says so in "
+                                        "a comment.")] = False,
 ) -> None:
     """Write SOURCE in an autopilot's or estimator's format (docs/export.md: formulas, units).
 
     A model the format cannot hold exactly (px4, ardupilot: anything but bias_poly(k ≤ 3))
     is refused, never truncated; the float32 error of autopilot parameters is reported.
     A device that is not ok (a fit's status, or Allan read-outs of a recording that
-    moved) is refused with the reason, unless --force.
+    moved), or a noise parameter the model does not identify (px4-ekf, ardupilot-ekf,
+    kalibr from 'noise --json'), is refused with the reason, unless --force.
     """
     from diffgyro.export import FORMATS, render
 
@@ -72,13 +74,16 @@ def export_command(
     if fmt in ("px4-ekf", "ardupilot-ekf"):
         from diffgyro.export import ekf_noise
 
-        name, n, k, report = ekf_noise.device_densities(_read_json(source, "noise models"), device)
+        name, n, k, report = ekf_noise.device_densities(_read_json(source, "noise models"), device,
+                                                        force=force)
+        forced = [ln for ln in report if ln.startswith("WARNING: written")]
         if fmt == "px4-ekf":
             dt = ekf_noise.PX4_DT if ekf_dt is None else ekf_dt
-            text = ekf_noise.write_px4(ekf_noise.px4_parameters(n, k, dt), name, dt)
+            text = ekf_noise.write_px4(ekf_noise.px4_parameters(n, k, dt), name, dt, forced)
         else:
             dt = ekf_noise.ARDUPILOT_DT if ekf_dt is None else ekf_dt
-            text = ekf_noise.write_ardupilot(ekf_noise.ardupilot_parameters(n, k, dt), name, dt)
+            text = ekf_noise.write_ardupilot(ekf_noise.ardupilot_parameters(n, k, dt), name, dt,
+                                             forced)
         for line in report:
             print(f"diffgyro: {line}", file=sys.stderr)
         _emit(text, out, source, f"{fmt} noise parameters of device {name}")
@@ -166,7 +171,7 @@ def _kalibr_noise(source: Path, device, rate, load_opts, force: bool = False):
         if _is_noise_doc(doc):
             from diffgyro.export import ekf_noise
 
-            name, n, k, report = ekf_noise.device_densities(doc, device)
+            name, n, k, report = ekf_noise.device_densities(doc, device, force=force)
             dt = next((d.get("sample_interval") for d in doc["devices"] if str(d.get("device")) == name),
                       None)
             if rate is None and not (isinstance(dt, (int, float)) and dt > 0):

@@ -34,16 +34,6 @@ from ._options import (
 )
 
 AXES = ("x", "y", "z")
-#: Display units: (factor from SI, unit) per parameter.
-_DEG = 180.0 / math.pi
-DISPLAY = {
-    "arw": (_DEG * 60.0, "°/√h"),
-    "q": (1e6, "µrad"),
-    "sigma": (_DEG * 3600.0, "°/h"),
-    "tau": (1.0, "s"),
-    "rrw": (_DEG * 3600.0 * 60.0, "°/h/√h"),
-    "r": (_DEG * 3600.0**2, "°/h²"),
-}
 _NAMES = {"arw": "ARW", "q": "quantization Q", "sigma": "GM σ (bias instability)",
           "tau": "GM correlation time", "rrw": "RRW", "r": "rate ramp"}
 
@@ -98,7 +88,9 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
     motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
                                        motion=motion, max_gm=max_gm, penalty=penalty)
-    return {"devices": entries}, models
+    from diffgyro.stochastic import INTERVAL_LEVEL
+
+    return {"interval_level": INTERVAL_LEVEL, "devices": entries}, models
 
 
 def moved_reasons(batch) -> list[str | None]:
@@ -131,14 +123,20 @@ def _fmt(x) -> str:
 
 
 def display_line(name: str, p: dict) -> str:
-    """One parameter in display units and SI, with its 95 % interval."""
-    k, unit = DISPLAY[name]
+    """One parameter in display units and SI (the other spelling of the SI unit beside it),
+    with its interval; a parameter the record does not determine says so and why."""
+    from diffgyro.stochastic import DISPLAY
+
+    unit, same, k, dunit = DISPLAY[name]
     lo, hi = p["ci"]
     sc = lambda v: None if v is None else v * k  # noqa: E731
-    text = (f"{_NAMES[name]}: {_fmt(sc(p['value']))} {unit} "
+    text = (f"{_NAMES[name]}: {_fmt(sc(p['value']))} {dunit} "
             f"[{_fmt(sc(lo))}, {_fmt(sc(hi))}]")
-    if unit not in ("s",):
-        text += f"  ({_fmt(p['value'])} {p['unit']})"
+    if dunit != unit:
+        text += f"  ({_fmt(p['value'])} {p.get('unit', unit)}"
+        text += f" = {same})" if same else ")"
+    if p.get("status") == "not_identified":
+        text += f"  NOT IDENTIFIED: {p.get('why', '')}"
     return text
 
 
@@ -155,9 +153,13 @@ def _print_text(doc: dict, report: Path | None) -> None:
             for c in a["components"]:
                 for name, p in c["params"].items():
                     typer.echo(f"    {display_line(name, p)}")
-            alts = [f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3]]
+            alts = [f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3]
+                    if r.get("resolvable", True)]
             typer.echo(f"    next best: {'; '.join(alts)}")
-    typer.echo("intervals: 95 %; criterion differences in parentheses (lower is better)")
+            for note in (a.get("resolution") or {}).get("notes", []):
+                typer.echo(f"    resolution: {note}")
+    level = doc.get("interval_level", 0.95)
+    typer.echo(f"intervals: {level * 100:g} %; criterion differences in parentheses (lower is better)")
     if report is not None:
         typer.echo(f"report: {report / 'index.html'}")
 
@@ -236,6 +238,8 @@ def _write_report(doc: dict, models: dict, out: Path) -> None:
             alts = "; ".join(f"{r['structure']} (+{_fmt(r['delta'])})" for r in a["rejected"][:3])
             rows.append(f"<tr><td>{ax}</td><td>chosen: {html.escape(label(tuple(a['structure'])))}"
                         f"</td><td>next best: {html.escape(alts)}</td></tr>")
+            rows += [f"<tr><td>{ax}</td><td>resolution</td><td>{html.escape(note)}</td></tr>"
+                     for note in (a.get("resolution") or {}).get("notes", [])]
         parts.append(f"<h2>{html.escape(str(name))}</h2><table>{''.join(rows)}</table>"
                      f"<img src=\"{png}\" alt=\"noise model of {html.escape(str(name))}\">")
     page = f"""<!doctype html>

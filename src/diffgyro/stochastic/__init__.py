@@ -7,6 +7,8 @@
 * :mod:`.estimator`: the GMWM fit of one structure;
 * :mod:`.selection`: the catalogue of structures and the criterion;
 * :mod:`.intervals`: asymptotic confidence intervals;
+* :mod:`.resolution`: what a record resolves (Gauss–Markov times too short or too long for
+  it, parameters it does not determine, the smallest walk it would see) and the units;
 * :mod:`.identify`: all of it for a batch of series; :mod:`.simulate`: known truth;
 * :mod:`.bias_filter`: a Kalman filter of the bias that carries the identified model.
 """
@@ -14,8 +16,10 @@
 from ._bias_filter import bias_filter, state_space
 from ._devices import identify_devices
 from ._identify import NoiseModels, components_of, identify
+from ._resolution import DISPLAY, INTERVAL_LEVEL, SHORT_SAMPLES, SPAN_LIMIT, gm_white_power
 from ._selection import catalogue, label, structure_mask
 from ._simulate import simulate_noise
 
 __all__ = ["identify", "identify_devices", "NoiseModels", "label", "bias_filter", "catalogue",
-           "components_of", "simulate_noise", "state_space", "structure_mask"]
+           "components_of", "simulate_noise", "state_space", "structure_mask", "DISPLAY",
+           "INTERVAL_LEVEL", "SHORT_SAMPLES", "SPAN_LIMIT", "gm_white_power"]

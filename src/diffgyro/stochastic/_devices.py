@@ -1,7 +1,8 @@
 """Noise models of many devices' three gyro axes, as the ``noise --json`` entries.
 
-One entry per device (``device``, ``status``, ``status_detail``, ``sample_interval``,
-``axes``: x, y, z each with ``structure``, ``components``, ``rejected``). Any
+One entry per device (``device``, ``status``, ``status_detail``, ``interval_level``,
+``sample_interval``, ``axes``: x, y, z each with ``structure``, ``components``,
+``rejected``, ``resolution``; :mod:`.resolution`). Any
 (devices, samples, 3) rates serve: a batch's gyro (``diffgyro noise``) or the
 residuals of a calibrated model (``Diagnosis.residuals``, padding zeroed, with the
 batch's ``n_valid`` and ``t``), whose noise is what a filter must carry.
@@ -15,11 +16,24 @@ import numpy as np
 
 from ..allan import sample_interval
 from ._identify import identify
+from ._resolution import INTERVAL_LEVEL
 from ._selection import PENALTY, catalogue
 
 AXES = ("x", "y", "z")
 #: Fewest samples for a model: 64 give 5 dyadic scales, enough for two or three parameters.
 MIN_SAMPLES = 64
+
+
+def axis_entry(res, *idx) -> dict:
+    """One axis of a ``noise --json`` entry: the structure as reported (``fitted_structure``
+    too where a process the sampling cannot resolve was merged into the white part), the
+    components, the rejected candidates and what the record resolves."""
+    out = {"structure": list(res.reported_structure(*idx))}
+    if out["structure"] != list(res.structure(*idx)):
+        out["fitted_structure"] = list(res.structure(*idx))
+    out.update(components=res.components(*idx), rejected=res.rejected(*idx),
+               resolution=res.resolution(*idx))
+    return out
 
 
 def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 2,
@@ -34,7 +48,8 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
     entries, models, groups = [], {}, {}
     for i, dev in enumerate(devices):
         n = int(n_valid[i])
-        entry = {"device": dev, "status": "ok", "status_detail": "ok", "axes": None}
+        entry = {"device": dev, "status": "ok", "status_detail": "ok",
+                 "interval_level": INTERVAL_LEVEL, "axes": None}
         entries.append(entry)
         rates = np.asarray(values[i, :n], np.float64)
         if n < MIN_SAMPLES:  # the most basic problem first
@@ -61,8 +76,5 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
         res = identify(y, dts, structures=catalogue(max_gm), penalty=pen)
         for j, i in enumerate(idx):
             models[i] = (res, j)
-            entries[i]["axes"] = {
-                ax: {"structure": list(res.structure(j, a)), "components": res.components(j, a),
-                     "rejected": res.rejected(j, a)}
-                for a, ax in enumerate(AXES)}
+            entries[i]["axes"] = {ax: axis_entry(res, j, a) for a, ax in enumerate(AXES)}
     return entries, models

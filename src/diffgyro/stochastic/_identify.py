@@ -14,6 +14,7 @@ Per series (vmapped over devices × axes, one compiled program):
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import equinox as eqx
@@ -34,6 +35,7 @@ from ._estimator import (
     tau_grid,
 )
 from ._intervals import Z95, sandwich
+from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
 from ._selection import PENALTY, catalogue, effective_rank, label, structure_mask
 from ._wavelet_variance import dyadic_m, haar_wv
 
@@ -91,7 +93,12 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
 
     rank = jax.vmap(rank_of)(th2, masks)
     crit = obj + penalty * k_nominal
-    pick = jnp.argmin(jnp.where(jnp.isfinite(crit), crit, jnp.inf))
+    # a Gauss–Markov time beyond the record's share is a walk or ramp: not a candidate
+    # (:mod:`.resolution`)
+    long = LONG_SHARE * n * dt
+    admissible = ~((masks[:, 2] & (th2[:, 3] > jnp.log(long)))
+                   | (masks[:, 4] & (th2[:, 5] > jnp.log(long))))
+    pick = jnp.argmin(jnp.where(jnp.isfinite(crit) & admissible, crit, jnp.inf))
     mask = masks[pick]
     th = th2[pick]
     rel_at = rel_cov(th, mask)
@@ -101,8 +108,31 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     cov_theta = sandwich(d, chol_ref, jnp.where(vv, cov_log_at, 0.0), mask)
     nu = model_wv(th, mask, tau, dt)
     wv_sd = jnp.sqrt(jnp.diag(rel_at)) * nu
+    limits = detection_limits(d, mask, valid, tau, dt, nu, scaled_chol(cov_log_at, valid), penalty)
     return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
-                theta=th, cov=cov_theta, wv_sd=wv_sd)
+                theta=th, cov=cov_theta, wv_sd=wv_sd, admissible=admissible, limits=limits)
+
+
+def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
+    """(K, R): the smallest random walk (rad/s/√s) and ramp (rad/s²) the criterion would
+    take, added to the chosen model: power = √penalty × its standard error at zero, the
+    chosen model's other parameters free, under the efficient weight ``chol`` (the
+    covariance of log ν̂ at the chosen estimate; :mod:`.resolution`)."""
+    on = mask.astype(d.dtype)
+    walk = jnp.where(valid, 0.5 * (tau / 3.0 + dt**2 / (6.0 * tau)) / nu, 0.0)
+    ramp = jnp.where(valid, 0.25 * tau**2 / nu, 0.0)
+
+    def power(col):
+        dd = jnp.concatenate([d, col[:, None]], axis=1)
+        w = jax.scipy.linalg.solve_triangular(chol, dd, lower=True)
+        free = jnp.concatenate([on, jnp.ones((1,), d.dtype)])
+        f = w.T @ w + jnp.diag(1.0 - free)
+        ev, v = jnp.linalg.eigh(f)
+        inv = jnp.where(ev > 1e-12 * jnp.max(ev), 1.0 / ev, 1e12 / jnp.max(ev))
+        var = jnp.sum(v[-1] ** 2 * inv)
+        return jnp.sqrt(jnp.sqrt(penalty) * jnp.sqrt(var))
+
+    return jnp.stack([power(walk), power(ramp)])
 
 
 @eqx.filter_jit
@@ -134,6 +164,9 @@ class NoiseModels:
     theta_all: np.ndarray
     objective: np.ndarray
     rank: np.ndarray
+    admissible: np.ndarray | None = None
+    limits: np.ndarray | None = None
+    n_valid: np.ndarray | None = None
 
     @property
     def lead(self) -> tuple[int, ...]:
@@ -142,18 +175,77 @@ class NoiseModels:
     def structure(self, *idx) -> tuple[str, ...]:
         return self.structures[int(self.choice[idx])]
 
-    def components(self, *idx) -> list[dict]:
-        """The chosen model of one series as the JSON contract's components (SI units)."""
-        return components_of(self.theta[idx], self.cov[idx], self.masks[int(self.choice[idx])])
+    def _resolved(self, idx):
+        """(θ, cov, mask, merged) of the chosen model with the Gauss–Markov processes too
+        short for the sampling merged into the white part (:func:`.resolution.merge_short`)."""
+        return merge_short(self.theta[idx], self.cov[idx], self.masks[int(self.choice[idx])],
+                           float(self.dt[idx]))
 
-    def rejected(self, *idx) -> list[dict]:
-        """The other candidates, best first, with their criterion values."""
+    def components(self, *idx) -> list[dict]:
+        """The chosen model of one series as the JSON contract's components (SI units), what
+        the record cannot resolve merged or judged (:mod:`.resolution`): each parameter with
+        its ``status``, ``display`` units and, where ``not_identified``, ``why``."""
+        theta, cov, mask, _ = self._resolved(idx)
+        return [{**c, "params": {k: judge(k, p) for k, p in c["params"].items()}}
+                for c in components_of(theta, cov, mask)]
+
+    def reported_structure(self, *idx) -> tuple[str, ...]:
+        """The structure as reported: the chosen one less the processes merged into white."""
+        s = list(self.structure(*idx))
+        for _ in self._resolved(idx)[3]:
+            s.remove("gauss_markov")
+        return tuple(s)
+
+    def record_length(self, *idx) -> float:
+        """Samples × interval of one series (s)."""
+        if self.n_valid is None:  # built by hand: the longest scale is at most n/4 samples
+            return 4.0 * float(self.tau[idx][-1])
+        return float(self.n_valid[idx]) * float(self.dt[idx])
+
+    def resolution(self, *idx) -> dict:
+        """What the record of one series resolves (:mod:`.resolution`): the Gauss–Markov
+        times it can tell from white noise and from a walk, the processes merged into the
+        white part, the better-fitting candidates left out as unresolvable, and the smallest
+        random walk and ramp the criterion would take; ``notes``: the same as sentences."""
+        dt = float(self.dt[idx])
+        record = self.record_length(*idx)
+        _, _, _, merged = self._resolved(idx)
         crit = self.criterion[idx]
         best = int(self.choice[idx])
+        excluded = []
+        adm = self.admissible[idx] if self.admissible is not None else np.ones(len(crit), bool)
+        for i in np.argsort(crit, kind="stable"):
+            i = int(i)
+            if adm[i] or not np.isfinite(crit[i]) or crit[i] >= crit[best]:
+                continue
+            th, mk = self.theta_all[idx][i], self.masks[i]
+            taus = [math.exp(th[t]) for v, t in ((2, 3), (4, 5)) if mk[v]]
+            excluded.append({"structure": label(self.structures[i]), "better_by": float(crit[best] - crit[i]),
+                             "tau": max(taus)})
+        lim = self.limits[idx] if self.limits is not None else (np.nan, np.nan)
+        out = {"sample_interval": dt, "record_length": record,
+               "gauss_markov_tau": {"min": short_limit(dt), "max": long_limit(record), "unit": "s"},
+               "random_walk_limit": limit_param("rrw", float(lim[0])),
+               "rate_ramp_limit": limit_param("r", float(lim[1])),
+               "merged": [{"kind": "gauss_markov", "sigma": s, "tau": t, "into": "white"}
+                          for s, t in merged],
+               "excluded": excluded}
+        out["notes"] = notes(out, list(self.reported_structure(*idx)))
+        return out
+
+    def rejected(self, *idx) -> list[dict]:
+        """The other candidates, best first, with their criterion values; those the record
+        cannot resolve (a Gauss–Markov time beyond its share) last, ``resolvable`` false."""
+        crit = self.criterion[idx]
+        best = int(self.choice[idx])
+        adm = self.admissible[idx] if self.admissible is not None else np.ones(len(crit), bool)
         order = [int(i) for i in np.argsort(crit, kind="stable") if int(i) != best]
+        order = [i for i in order if adm[i]] + [i for i in order if not adm[i]]
         return [{"structure": label(self.structures[i]), "kinds": list(self.structures[i]),
                  "criterion": float(crit[i]) if np.isfinite(crit[i]) else None,
-                 "delta": float(crit[i] - crit[best]) if np.isfinite(crit[i]) else None}
+                 "delta": float(crit[i] - crit[best]) if np.isfinite(crit[i]) else None,
+                 **({} if adm[i] else {"resolvable": False, "why": "a Gauss–Markov correlation "
+                    f"time beyond {LONG_SHARE:g} of the record"})}
                 for i in order]
 
     def model_curve(self, idx, tau) -> tuple[np.ndarray, np.ndarray]:
@@ -191,7 +283,7 @@ def components_of(theta, cov, mask) -> list[dict]:
             "sigma": _param(theta[i], var[i], "rad/s"),
             "tau": _param(theta[i + 1], var[i + 1], "s", power=False)}})
     if mask[6]:
-        out.append({"kind": "random_walk", "params": {"rrw": _param(theta[6], var[6], "rad/s/√s")}})
+        out.append({"kind": "random_walk", "params": {"rrw": _param(theta[6], var[6], "rad/s²/√Hz")}})
     if mask[7]:
         out.append({"kind": "rate_ramp", "params": {"r": _param(theta[7], var[7], "rad/s²")}})
     return out
@@ -238,7 +330,8 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
                        wv=np.asarray(wv), wv_sd=out["wv_sd"], valid=out["valid"], dt=dtb,
                        choice=out["pick"], theta=out["theta"], cov=out["cov"],
                        criterion=out["criterion"], theta_all=out["theta_all"],
-                       objective=out["objective"], rank=out["rank"])
+                       objective=out["objective"], rank=out["rank"], admissible=out["admissible"],
+                       limits=out["limits"], n_valid=nv)
 
 
 def model_wv_np(theta, mask, tau, dt) -> np.ndarray:
