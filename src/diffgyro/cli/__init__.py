@@ -12,7 +12,6 @@ from __future__ import annotations
 import functools
 import importlib
 import inspect
-import json
 import pkgutil
 import sys
 from pathlib import Path
@@ -113,8 +112,10 @@ def _engine_first(command):
         except Exception as err:
             usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2
             if flag is not None and kwargs.get(flag) and (isinstance(err, DataError) or usage):
+                from diffgyro._jsonio import dumps  # the one sanitiser of JSON output
+
                 sys.stdout.flush()
-                print(json.dumps(error_json(err)), flush=True)
+                print(dumps(error_json(err)), flush=True)
             raise
 
     return run_command
