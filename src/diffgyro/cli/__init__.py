@@ -22,6 +22,8 @@ import typer
 import diffgyro
 from diffgyro.errors import DataError
 
+from . import _progress
+
 app = typer.Typer(
     name="diffgyro",
     help="Gyroscope calibration with differentiable error models.",
@@ -46,8 +48,12 @@ def _print_version(value: bool) -> None:
 def _root(
     version: Annotated[bool, typer.Option("--version", is_eager=True, callback=_print_version,
                                           help="Print the version and exit.")] = False,
+    quiet: Annotated[bool, typer.Option("--quiet", "-q",
+                                        help="No progress display on stderr (it is shown only "
+                                             "when stderr is a terminal).")] = False,
 ) -> None:
     """Gyroscope calibration with differentiable error models (rates in rad/s)."""
+    _progress.set_quiet(quiet)
 
 
 def load_commands() -> typer.Typer:
@@ -108,6 +114,10 @@ def _engine_first(command):
             _check_inputs(command, kwargs)
             diffgyro.enable_x64()
             diffgyro.enable_compilation_cache()
+            if _progress.shown():  # a first run says once that it compiles
+                from diffgyro import _program_cache
+
+                _program_cache.on_new_program = _progress.compiling
             return callback(*args, **kwargs)
         except Exception as err:
             usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2

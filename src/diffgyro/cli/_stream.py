@@ -15,6 +15,7 @@ import typer
 
 from diffgyro.errors import DataError
 
+from . import _progress
 from ._load import units_from_cli
 
 ChunkDevices = Annotated[
@@ -60,7 +61,7 @@ def stream_fit(data, model, out, as_json, dtemp_window, columns, gyro_unit, acc_
         units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
         drop_invalid=drop_invalid, sampling_rate=sampling_rate,
         fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
-        progress=True,
+        progress=not _progress.quiet(),
         json_stream=sys.stdout if as_json else None, limits=limits)
     bad = ", ".join(f"{n} {s}" for s, n in sorted(summary.statuses.items()) if s != "ok")
     print(f"diffgyro fit: {summary.n_ok} of {summary.n_devices} devices ok"
@@ -109,7 +110,7 @@ def stream_diagnose(data, model, as_json, report, auto, candidates, dtemp_window
         units=units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
         drop_invalid=drop_invalid, sampling_rate=sampling_rate,
         fit_options={} if dtemp_window is None else {"dtemp_window": float(dtemp_window)},
-        progress=True, json_stream=sys.stdout if as_json else None, limits=limits)
+        progress=not _progress.quiet(), json_stream=sys.stdout if as_json else None, limits=limits)
     verdicts: dict[str, int] = {}
     missing: dict[str, int] = {}
     with open(summary.outputs["results"], encoding="utf-8") as fh:

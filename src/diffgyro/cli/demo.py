@@ -10,7 +10,7 @@ import typer
 
 from diffgyro.errors import DataError
 
-from . import app
+from . import _progress, app
 from .diagnose import print_diagnosis, print_ladder, wide_console
 
 
@@ -22,8 +22,6 @@ def demo_command(
 ) -> None:
     """Simulate gyros with a hidden effect, fit a base model, diagnose it, add the named
     effect, refit, print the ladder and write the report (default ./diffgyro-demo/)."""
-    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
-
     from diffgyro._demo import BASE, TRUTH, run_demo
 
 
@@ -33,11 +31,8 @@ def demo_command(
     console.print(f"[bold]diffgyro demo[/bold]: the truth is [cyan]{TRUTH}[/cyan] "
                   f"(hidden); we start from [cyan]{BASE}[/cyan].")
     start = time.perf_counter()
-    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn(),
-                  console=console, transient=True) as bar:
-        task = bar.add_task("starting", total=None)
-        result = run_demo(out, n_devices=devices, seed=seed,
-                          progress=lambda text: bar.update(task, description=text))
+    with _progress.steps("starting") as step:
+        result = run_demo(out, n_devices=devices, seed=seed, progress=step)
     print_diagnosis(result.ladder.first, console)
     print_ladder(result.ladder, console)
     named = ", ".join(result.added) or "nothing"

@@ -12,8 +12,8 @@ from rich.markup import escape
 
 from diffgyro.errors import DataError
 
+from . import _progress, app
 from . import _tables as tables
-from . import app
 from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import MIN_SAMPLES, load_for_model, longest_static, streamed_dir
 from ._options import (
@@ -189,14 +189,18 @@ def diagnose_command(
 
 
     lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
-    spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
-                                                acc_unit, temp_unit, time_unit, sampling_rate,
-                                                drop_invalid, topic, temp_topic)
-    batch, static = _static_only(batch) if static_only else (batch, None)
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
         | ({} if synthesis else {"synthesis": False})
     err = Console(stderr=True)
-    diag, ladder = _diagnosis(spec, batch, names, auto, max_steps, opts, err)
+    with _progress.steps(f"loading {len(data)} file(s)") as step:
+        spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
+                                                    acc_unit, temp_unit, time_unit,
+                                                    sampling_rate, drop_invalid, topic,
+                                                    temp_topic)
+        if static_only:
+            step("finding each device's longest static interval")
+        batch, static = _static_only(batch) if static_only else (batch, None)
+        diag, ladder = _diagnosis(spec, batch, names, auto, max_steps, opts, step)
     if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
         for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
             d.skipped.update(partial)
@@ -220,17 +224,15 @@ def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
                                  "directly", param_hint="--no-synthesis")
 
 
-def _diagnosis(spec, batch, names, auto: bool, max_steps: int, opts: dict, err):
-    """The diagnosis of ``spec`` (the first rung of the ladder with --auto) and the ladder."""
+def _diagnosis(spec, batch, names, auto: bool, max_steps: int, opts: dict, step):
+    """The diagnosis of ``spec`` (the first rung of the ladder with --auto) and the ladder
+    (``step``: told each stage, :mod:`._progress`)."""
     from diffgyro.diagnose import diagnose, diagnose_auto
 
     if auto:
-        with err.status("diagnosing") as status:
-            ladder = diagnose_auto(spec, batch, names, max_steps=max_steps,
-                                   progress=lambda text: status.update(text), **opts)
+        ladder = diagnose_auto(spec, batch, names, max_steps=max_steps, progress=step, **opts)
         return ladder.first, ladder
-    with err.status(f"diagnosing {spec.spec} on {batch.n_devices} device(s)"):
-        return diagnose(spec, batch, names, **opts), None
+    return diagnose(spec, batch, names, progress=step, **opts), None
 
 
 def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
@@ -244,7 +246,7 @@ def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as
     if report is not None:
         from diffgyro.report import write_report
 
-        with err.status(f"writing the report to {report}"):
+        with _progress.steps(f"writing the report to {report}"):
             write_report(diag, batch, report, ladder=ladder, limits=judged)
     if out is not None:
         _write_calibration(ladder.final if ladder is not None else diag, batch, out, err, judged)

@@ -9,8 +9,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from . import _progress, app
 from . import _tables as tables
-from . import app
 from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import load_for_model, streamed_dir, units_json
 from ._options import (
@@ -83,14 +83,16 @@ def fit_command(
     em = ErrorModel.from_spec(model)
     lim = load_limits(limits, em)
     report = LoadReport()
-    batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                           report=report)
-    if dtemp_window is None:
-        from diffgyro._temperature import suggest_dtemp_window
+    with _progress.steps(f"loading {len(data)} file(s)") as step:
+        batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                               sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                               report=report)
+        if dtemp_window is None:
+            from diffgyro._temperature import suggest_dtemp_window
 
-        dtemp_window = suggest_dtemp_window(batch)
-    result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)
+            dtemp_window = suggest_dtemp_window(batch)
+        step(f"fitting {em.spec} on {batch.n_devices} device(s)")
+        result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)
     records = result.records()
     summary = None
     if lim is not None:

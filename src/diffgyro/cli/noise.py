@@ -17,7 +17,7 @@ from typing import Annotated
 
 import typer
 
-from . import app
+from . import _progress, app
 from ._load import load_from_cli
 from ._options import (
     AccUnit,
@@ -68,26 +68,32 @@ def noise_command(
     """
     from diffgyro._jsonio import dumps
 
-    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, min_samples=2,
-                          topic=topic, temp_topic=temp_topic)
-    _warn_uneven(batch)
-    doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty)
-    if report is not None:
-        _write_report(doc, models, report)
+    with _progress.steps(f"loading {len(data)} file(s)") as step:
+        batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                              sampling_rate, drop_invalid, min_samples=2,
+                              topic=topic, temp_topic=temp_topic)
+        _warn_uneven(batch)
+        doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty, progress=step)
+        if report is not None:
+            step(f"writing the report to {report}")
+            _write_report(doc, models, report)
     if json_out:
         typer.echo(dumps(doc))
     else:
         _print_text(doc, report)
 
 
-def identify_batch(batch, max_gm: int = 2, penalty: float | None = None):
-    """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro."""
+def identify_batch(batch, max_gm: int = 2, penalty: float | None = None, progress=None):
+    """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro
+    (``progress``: told each stage)."""
     from diffgyro.stochastic import identify_devices
 
+    if progress is not None:
+        progress(f"checking that the {batch.n_devices} device(s) are at rest")
     motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
-                                       motion=motion, max_gm=max_gm, penalty=penalty)
+                                       motion=motion, max_gm=max_gm, penalty=penalty,
+                                       progress=progress)
     from diffgyro.stochastic import INTERVAL_LEVEL
 
     return {"interval_level": INTERVAL_LEVEL, "devices": entries}, models

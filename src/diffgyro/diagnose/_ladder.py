@@ -106,7 +106,7 @@ def diagnose_auto(
     One model for the whole batch: each rung adds the effect that most
     devices missing an effect name as their best. A random walk ends the
     ladder (its rung reports the smoother's held-out numbers). ``progress``
-    is called with a line of text before each diagnosis.
+    is called with a line of text before each diagnosis and each of its stages.
     """
 
     if isinstance(model, str):
@@ -117,7 +117,7 @@ def diagnose_auto(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     say = progress or (lambda _text: None)
     say(f"diagnosing {model.spec}")
-    diag = diagnose(model, batch, candidates, thresholds=th, **fit_options)
+    diag = diagnose(model, batch, candidates, thresholds=th, progress=progress, **fit_options)
     first = diag
     steps = [_step(diag, None)]
     for _ in range(max_steps):
@@ -139,6 +139,6 @@ def diagnose_auto(
             break
         added = added_term(diag.spec, spec)
         say(f"adding {added}: diagnosing {spec}")
-        diag = diagnose(spec, batch, candidates, thresholds=th, **fit_options)
+        diag = diagnose(spec, batch, candidates, thresholds=th, progress=progress, **fit_options)
         steps.append(_step(diag, added))
     return Ladder(devices=[d.device for d in first.devices], steps=steps, first=first, final=diag)

@@ -238,8 +238,9 @@ def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
 
-def _score(model, cands, batch, res, floors, aux: dict) -> dict:
-    """Every device's scores (:func:`_device_scores`), one chunk of devices at a time."""
+def _score(model, cands, batch, res, floors, aux: dict, say=lambda _text: None) -> dict:
+    """Every device's scores (:func:`_device_scores`), one chunk of devices at a time
+    (``say``: told before each chunk)."""
     opts = res.options
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
@@ -250,7 +251,9 @@ def _score(model, cands, batch, res, floors, aux: dict) -> dict:
     log_min_lag, window_s = _windows(opts.dtemp_window)
     dt0 = _median_steps(np.asarray(batch.t))
     out = []
-    for _, idx in _chunks(n_dev, size):
+    for start, idx in _chunks(n_dev, size):
+        say(f"scoring {len(cands)} candidate(s) on devices {start + 1}-{min(start + size, n_dev)} "
+            f"of {n_dev}")
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
         o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
@@ -361,6 +364,20 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
             problems, dead, unscored, unnamed)
 
 
+def _skips(every, all_ranges, problems, batch, dead, unscored, unnamed) -> list[dict]:
+    """Per device, every candidate not tried and why (:func:`_column_skips`, the column
+    candidates no device can use, the noise processes not scored, the unnamed columns)."""
+    skips = _column_skips(every, all_ranges, problems, batch)
+    for c in dead:
+        for i, why in enumerate(problems[term_column(c.term)]):
+            skips[i][c.term.spec] = why
+    for name, skip in ((n, s) for n in unscored for s in skips):
+        skip[name] = NOISE_UNSCORED
+    for skip in skips:
+        skip.update(unnamed)
+    return skips
+
+
 def _nested(*args, **kwargs) -> Diagnosis:
     """The greedy pair's nested diagnosis: its residual's noise is not reported."""
     return diagnose(*args, noise=False, **kwargs)
@@ -376,6 +393,7 @@ def diagnose(
     greedy: bool = True,
     synthesis: bool = True,
     noise="auto",
+    progress=None,
     **fit_options,
 ) -> Diagnosis:
     """Diagnose every device of ``batch`` against ``model``.
@@ -389,6 +407,8 @@ def diagnose(
     gap, propose a term built from the recording's signals (:mod:`.synthesis`).
     ``noise``: identify the residual's stochastic model ("auto": where no term explains a
     residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
+    ``progress`` is called with a line of text before each stage (the base fit, the
+    candidates' ranges, each chunk of devices scored, the pairs, synthesis, noise).
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
@@ -401,28 +421,26 @@ def diagnose(
         raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
                         hint=f"drop {model.noise.spec} from --model: it is tried as a candidate")
     batch = as_batch(batch)
+    say = progress or (lambda _text: None)
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
+    if base_fit is None:
+        say(f"fitting {model.spec} on {batch.n_devices} device(s)")
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
     every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
                                                                          candidates)
+    say(f"checking which of {len(every)} candidate(s) the data support")
     all_ranges, floors = _prepare(batch, res, every, aux)
-    skips = _column_skips(every, all_ranges, problems, batch)
-    for c in dead:
-        for i, why in enumerate(problems[term_column(c.term)]):
-            skips[i][c.term.spec] = why
-    for name, skip in ((n, s) for n in unscored for s in skips):
-        skip[name] = NOISE_UNSCORED
-    for skip in skips:
-        skip.update(unnamed)
+    skips = _skips(every, all_ranges, problems, batch, dead, unscored, unnamed)
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
     cands = [every[j] for j in usable]
     unsupported = [c for j, c in enumerate(every)
                    if j not in usable and term_column(c.term) is None]
-    out = _score(model, cands, batch, res, floors, aux)
+    out = _score(model, cands, batch, res, floors, aux, say)
     ranges = all_ranges[:, usable]
+    say("Allan deviation of the residuals")
     al = _allan(out["residual"], batch)
     reported = _reported_floor(batch, res)
     devices, slopes, floor_allans = [], [], []
@@ -437,13 +455,14 @@ def diagnose(
     if greedy:
         nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                        "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
+        say("trying the best term followed by a second")
         pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
         for i, pair in pairs.items():
             devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
                                  unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
     if synthesis:
-
+        say("proposing terms built from the recording's signals")
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
     def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
         fl = np.array(floors, copy=True)
@@ -451,6 +470,7 @@ def diagnose(
         return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
                        unsupported, skips[i])[0]
 
+    say("identifying the residual's noise")
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,

@@ -37,11 +37,12 @@ def axis_entry(res, *idx) -> dict:
 
 
 def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 2,
-                     penalty: float | None = None):
+                     penalty: float | None = None, progress=None):
     """(entries, {device index: (NoiseModels, row)}) for rates ``values`` (d, n, 3) in rad/s.
 
     ``motion``: per device None (static) or a one-line status detail saying why not
-    (``in_motion: ...`` or ``rest_unverified: ...``: that status, no axes). Devices of equal length are identified together."""
+    (``in_motion: ...`` or ``rest_unverified: ...``: that status, no axes). Devices of equal length are identified together.
+    ``progress`` is called with a line of text before each group of devices."""
 
     pen = PENALTY if penalty is None else penalty
     motion = [None] * len(devices) if motion is None else motion
@@ -69,8 +70,13 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
             else:
                 entry["sample_interval"] = dt
                 groups.setdefault(n, []).append((i, dt))
+    done, total = 0, sum(len(m) for m in groups.values())
     for n, members in groups.items():  # devices of one length identified together
         idx = [i for i, _ in members]
+        if progress is not None:
+            progress(f"identifying the noise models of devices {done + 1}-{done + len(idx)} "
+                     f"of {total}")
+        done += len(idx)
         y = np.stack([np.asarray(values[i, :n], np.float64).T for i in idx])  # (d, 3, n)
         dts = np.array([[dt] * 3 for _, dt in members])
         res = identify(y, dts, structures=catalogue(max_gm), penalty=pen)
