@@ -793,6 +793,8 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
       its stretch (over :data:`STRETCH_CHUNK` windows) by more than :data:`TILT_FLOOR`
       (a tilt of half a degree) or the accelerometer's threshold moved;
     * a stretch shorter than :data:`MIN_STRETCH` windows between moves is no rest;
+    * gravity that turned across a move (the stretches either side at rest in poses
+      apart by more than :data:`TILT_FLOOR`) shows the move turned the device: a tilt;
     * a bias does not step while the device turns: it drifts by at most
       :data:`BIAS_SLEW` (and the window noise, the threshold). Stretches that agree, end
       to start, are one level. The rest is the level the device held longest, or, of the
@@ -834,6 +836,13 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
         if end - start < MIN_STRETCH and (start > 0 or end < k):
             moving[start:end] = True
     runs = [r for r in stretches() if r[1] - r[0] >= MIN_STRETCH]
+    if accel is not None:  # gravity turned across a move: the gyro's run was a turn
+        for (a0, a1), (b0, b1) in zip(runs, runs[1:]):
+            before = np.median(accel[max(a0, a1 - BLOCK_WINDOWS):a1], axis=0)
+            after = np.median(accel[b0:min(b1, b0 + BLOCK_WINDOWS)], axis=0)
+            if np.linalg.norm(after - before) > floor:
+                cos = before @ after / max(np.linalg.norm(before) * np.linalg.norm(after), 1e-12)
+                tilt = max(tilt, math.acos(min(max(cos, -1.0), 1.0)))
     clusters: list[dict] = []
     for start, end in runs:
         span = min(BLOCK_WINDOWS, end - start)
@@ -856,7 +865,7 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
     for c in clusters:
         c["level"] = np.median(np.concatenate([rate[a:b] for a, b in c["runs"]]), axis=0)
     if len(clusters) < 2:
-        return None if np.array_equal(moving, given) else (moving, 0.0, 0.0, tilt)
+        return None if np.array_equal(moving, given) and not tilt else (moving, 0.0, 0.0, tilt)
     most = max(c["windows"] for c in clusters)
     rest = min((c for c in clusters if c["windows"] >= REST_SHARE * most),
                key=lambda c: float(np.linalg.norm(c["level"])))
