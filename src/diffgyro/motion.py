@@ -107,13 +107,16 @@ STRETCH_CHUNK = 32
 MIN_STRETCH = 4
 #: Levels held at least this share as long as the longest are candidates for the rest.
 REST_SHARE = 0.5
+#: The largest rate a gyro's bias reaches (rad/s, about 29 °/s: beyond the zero-rate
+#: offsets that consumer MEMS datasheets allow); a level above it is a turn.
+MAX_BIAS = 0.5
 
 #: Verdicts, in :attr:`Motion.verdict`.
 AT_REST, IN_MOTION, UNVERIFIED = 0, 1, 2
 VERDICT_NAMES = ("at_rest", "in_motion", "unverified")
 _STATUS = ("ok", "in_motion", "rest_unverified")
-_NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak", "rest_noise",
-            "threshold", "resolution", "n_windows")
+_NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak", "rest_rate",
+            "rest_noise", "threshold", "resolution", "n_windows")
 
 
 class Motion(eqx.Module):
@@ -124,7 +127,8 @@ class Motion(eqx.Module):
     baseline, over the moving windows; 0 when none moved), ``turn_peak`` (rad, the
     largest angle turned within one run of moving windows, from the rate less the
     baseline), ``tilt_peak`` (rad, the largest tilt of gravity within a stretch between
-    moves, where the accelerometer is read), ``rest_noise``
+    moves, where the accelerometer is read), ``rest_rate`` (rad/s, the mean rate of the
+    windows judged at rest: a bias, unless it exceeds :data:`MAX_BIAS`), ``rest_noise``
     (rad/s per sample, RMS over axes), ``threshold`` (rad/s, the deviation of a
     window mean at rest noise that counts as moving, RMS over axes), ``resolution``
     (rad: the turn a window at rest noise shows, threshold × window length),
@@ -139,6 +143,7 @@ class Motion(eqx.Module):
     rate_rms: Float[np.ndarray, " d"]
     turn_peak: Float[np.ndarray, " d"]
     tilt_peak: Float[np.ndarray, " d"]
+    rest_rate: Float[np.ndarray, " d"]
     rest_noise: Float[np.ndarray, " d"]
     threshold: Float[np.ndarray, " d"]
     resolution: Float[np.ndarray, " d"]
@@ -184,6 +189,9 @@ class Motion(eqx.Module):
                 for a, b in zip(edges[::2], edges[1::2])]
 
     def _kept_reason(self, i: int, rec: dict) -> str:
+        if rec.get("rest_rate") is not None and rec["rest_rate"] > MAX_BIAS:
+            return (f"the rest it keeps turns at {rec['rest_rate']:.2g} rad/s, more than any "
+                    f"gyro's bias ({MAX_BIAS:g} rad/s): a spin, and no rest was found")
         need = MIN_WINDOWS * float(self.window_s[i])
         if rec.get("rest_kept_s") is not None and rec["rest_kept_s"] < need:
             return (f"too little rest left to fit: {rec['rest_kept_s']:.3g} s of rest kept "
@@ -239,20 +247,23 @@ class Motion(eqx.Module):
 
 def rest_kept(motion: Motion) -> Motion:
     """The verdict on the rest :attr:`Motion.static` keeps (a fit of the rest only): at rest
-    where at least :data:`MIN_WINDOWS` windows of it are kept and the recording resolves a
-    turn of :data:`MAX_RESOLUTION`, else unverified (too little rest, or too noisy to
-    show it)."""
+    where at least :data:`MIN_WINDOWS` windows of it are kept, the recording resolves a
+    turn of :data:`MAX_RESOLUTION` and the rest kept turns no faster than a bias
+    (:data:`MAX_BIAS`), else unverified (too little rest, too noisy to show it, or a
+    spin)."""
     kept = np.asarray(motion.static).sum(axis=1) / np.maximum(motion.window, 1)
     with np.errstate(invalid="ignore"):
-        fine = (kept >= MIN_WINDOWS) & (np.asarray(motion.resolution, float) <= MAX_RESOLUTION)
+        fine = ((kept >= MIN_WINDOWS) & (np.asarray(motion.resolution, float) <= MAX_RESOLUTION)
+                & ~(np.asarray(motion.rest_rate, float) > MAX_BIAS))
     return dataclasses.replace(motion, kept=True,
                                verdict=np.where(fine, AT_REST, UNVERIFIED).astype(np.int8))
 
 
 def _verdicts(num: dict) -> np.ndarray:
     """Each device's verdict from its numbers (:data:`_NUMBERS`, numpy): in motion where a
-    run of moving windows reached :data:`MIN_PEAK_RATIO` times the threshold or gravity
-    tilted by :data:`MIN_TILT`; else unverified where the recording is too short
+    run of moving windows reached :data:`MIN_PEAK_RATIO` times the threshold, gravity
+    tilted by :data:`MIN_TILT`, or the windows left at rest turn faster than any bias
+    (:data:`MAX_BIAS`); else unverified where the recording is too short
     (:data:`MIN_WINDOWS`) or too noisy to show a turn of :data:`MAX_RESOLUTION`; else at
     rest."""
     with np.errstate(invalid="ignore"):
@@ -261,9 +272,16 @@ def _verdicts(num: dict) -> np.ndarray:
         thr = np.asarray(num["threshold"], float)
         tilt = np.asarray(num["tilt_peak"], float)
         moved = (frac > 0) & ((peak >= MIN_PEAK_RATIO * thr) | (tilt >= MIN_TILT))
+        moved |= np.asarray(num["rest_rate"], float) > MAX_BIAS  # a steady turn, no bias
         short = ~(np.asarray(num["n_windows"], float) >= MIN_WINDOWS)
         coarse = ~(np.asarray(num["resolution"], float) <= MAX_RESOLUTION)
     return np.where(moved, IN_MOTION, np.where(short | coarse, UNVERIFIED, AT_REST)).astype(np.int8)
+
+
+def pct_of(rec: dict) -> str:
+    """A ``motion`` record's moving fraction in percent, as text."""
+    frac = rec.get("moving_fraction")
+    return "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
 
 
 def describe(rec: dict) -> str:
@@ -271,9 +289,12 @@ def describe(rec: dict) -> str:
     def g(x):
         return "—" if x is None else f"{x:.2g}"
 
-    frac = rec.get("moving_fraction")
-    pct = "?" if frac is None else f"{100 * frac:.0f}" if frac >= 0.01 else f"{100 * frac:.1g}"
-    turn, tilt = rec.get("turn_peak"), rec.get("tilt_peak")
+    pct = pct_of(rec)
+    turn, tilt, steady = rec.get("turn_peak"), rec.get("tilt_peak"), rec.get("rest_rate")
+    if steady is not None and steady > MAX_BIAS:
+        return (f"it turns steadily at {steady:.2g} rad/s, more than any gyro's bias "
+                f"({MAX_BIAS:g} rad/s): a spin, not rest; {pct_of(rec)} % of the recording "
+                f"moved besides")
     turned = "" if turn is None else f", turns up to {math.degrees(turn):.2g}°"
     if tilt:
         turned += f", gravity tilted by up to {math.degrees(tilt):.2g}°"
@@ -603,13 +624,16 @@ def _one_device(gyro, accel, mask, w: int, b: int):
     near = moving | jnp.concatenate([moving[1:], jnp.zeros((1,), bool)]) | jnp.concatenate(
         [jnp.zeros((1,), bool), moving[:-1]])
     static = ~per_sample(near) & mask
+    still = valid & ~moving
+    rest_rate = jnp.sqrt(jnp.sum((jnp.sum(jnp.where(still[:, None], mean, 0.0), axis=0)
+                                  / jnp.maximum(jnp.sum(still), 1)) ** 2))
     count = jnp.sum(mask)
     some = jnp.any(valid)
     frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
     nan = jnp.asarray(jnp.nan, gyro.dtype)
     out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
                rate_rms=jnp.where(some, rms, nan), turn_peak=jnp.where(some, turn, nan),
-               tilt_peak=jnp.where(some, tilt, nan),
+               tilt_peak=jnp.where(some, tilt, nan), rest_rate=jnp.where(some, rest_rate, nan),
                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
                threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan),
                n_windows=jnp.sum(valid).astype(gyro.dtype))
@@ -777,6 +801,9 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
             num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
                                           / max(recorded[i].sum(), 1))
             num["rate_peak"][i] = max(num["rate_peak"][i], rate)
+            still = np.asarray(out["window_valid"][i]) & ~moving
+            if still.any():
+                num["rest_rate"][i] = np.linalg.norm(np.asarray(out["window_rate"][i])[still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
     return num, static, np.full(d, lay.w)
 
@@ -799,7 +826,8 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
       :data:`BIAS_SLEW` (and the window noise, the threshold). Stretches that agree, end
       to start, are one level. The rest is the level the device held longest, or, of the
       levels held at least :data:`REST_SHARE` as long, the one nearest to zero rate (a
-      bias is small beside a spin); the other levels spin.
+      bias is small beside a spin), among the levels a bias can have (:data:`MAX_BIAS`);
+      the other levels spin.
 
     Returns None where the check's own windows stand; else the windows moving, the
     largest rate of a spin against the rest's, the largest angle one turned and the
@@ -866,8 +894,11 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
         c["level"] = np.median(np.concatenate([rate[a:b] for a, b in c["runs"]]), axis=0)
     if len(clusters) < 2:
         return None if np.array_equal(moving, given) and not tilt else (moving, 0.0, 0.0, tilt)
-    most = max(c["windows"] for c in clusters)
-    rest = min((c for c in clusters if c["windows"] >= REST_SHARE * most),
+    # a rate beyond any gyro's bias is no rest (unless every level is: an output in counts
+    # with its offset, or a rate about a logged reference)
+    small = [c for c in clusters if np.linalg.norm(c["level"]) <= MAX_BIAS] or clusters
+    most = max(c["windows"] for c in small)
+    rest = min((c for c in small if c["windows"] >= REST_SHARE * most),
                key=lambda c: float(np.linalg.norm(c["level"])))
     peak = turn = 0.0
     for c in clusters:

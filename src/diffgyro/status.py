@@ -146,7 +146,7 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
                 f"(rx, ry, rz), or fit the static intervals only with --static-only")
     if name == "rest_unverified":
         rec = motion or {}
-        why = rec.get("rest") or reason(rec)
+        why = rec.get("reason") or reason(rec)
         return (f"{name}: {why}; a fit without a rate reference needs the device at rest, and "
                 f"nothing shows that it was")
     if name == "failed":
