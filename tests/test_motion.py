@@ -71,7 +71,7 @@ def test_simulated_rest_drift_and_vibration_are_not_motion_turns_are(simulated):
     assert rec["status_detail"].startswith("in_motion: 6 % of the recording moved")
     assert "--static-only" in rec["status_detail"]
     assert set(rec["motion"]) == {"moving_fraction", "rate_peak", "rate_rms", "turn_peak",
-                                  "tilt_peak", "rest_noise", "threshold", "resolution", "n_windows",
+                                  "tilt_peak", "rest_rate", "rest_noise", "threshold", "resolution", "n_windows",
                                   "window_s", "verdict", "reason"}
     assert rec["motion"]["verdict"] == "in_motion" and rec["motion"]["turn_peak"] > 0.5
 
