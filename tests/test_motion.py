@@ -345,3 +345,130 @@ def test_ardupilot_flight_is_flagged_and_bench_log_is_not(capsys):
             k = int(d["device"].rsplit("imu", 1)[1])
             got = [d["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
             np.testing.assert_allclose(got, ref[k].mean(axis=0), rtol=0, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- the verdict
+
+
+def _quiet(n, fs, seed=0, accel=True):
+    """A gyro at rest (white noise 3e-3 rad/s, the module's BIAS) with gravity on z."""
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    acc = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.02, (n, 3)) if accel else None
+    return t, BIAS + rng.normal(0.0, 0.003, (n, 3)), acc
+
+
+def test_too_short_to_judge_is_rest_unverified_and_export_refuses(tmp_path, capsys):
+    """Three seconds at 100 Hz hold 9 windows: not enough to know the rest noise, so the
+    device is rest_unverified (never "moving 0 %"), with the reason, and not exported."""
+    t, g, a = _quiet(300, 100.0)
+    rec = Recording(t=t, gyro=g, accel=a, device="short")
+    res = fit("bias_poly(0)", rec)
+    r = res.records()[0]
+    assert r["status"] == "rest_unverified" and r["motion"]["verdict"] == "unverified"
+    assert "too short to judge" in r["status_detail"] and "16 windows" in r["status_detail"]
+    path = tmp_path / "short.csv"
+    rec.to_frame().to_csv(path, index=False)
+    cal = tmp_path / "cal.json"
+    _json(capsys, ["fit", str(path), "--model", "bias_poly(0)", "--json", "--out", str(cal)])
+    code, output = _run(capsys, ["export", str(cal), "--format", "px4"])
+    assert code == 2 and "rest_unverified" in output
+
+
+def test_a_slow_log_with_no_quiet_part_is_not_at_rest():
+    """A flight logged at 8 Hz: turns all along (0.3 to 2 rad/s), no still window. Its
+    'quietest' windows set a threshold of tenths of a rad/s, too coarse to show a turn of
+    a degree: not ok, whatever its moving fraction."""
+    fs, n = 8.0, 960
+    t = np.arange(n) / fs
+    rng = np.random.default_rng(5)
+    turn = sum(a * np.sin(2 * np.pi * f * t[:, None] + p) for a, f, p in
+               zip(rng.uniform(0.3, 2.0, (6, 3)), rng.uniform(0.05, 1.5, (6, 1)),
+                   rng.uniform(0, 6, (6, 3))))
+    rec = Recording(t=t, gyro=BIAS + turn + rng.normal(0, 0.003, (n, 3)), device="flight")
+    m = motion_check(Batch.from_recordings([rec]))
+    assert m.status(0) in ("in_motion", "rest_unverified"), m.record(0)
+    assert fit("bias_poly(0)", rec).status_name(0) != "ok"
+
+
+def test_steady_spin_after_rest_keeps_only_the_rest():
+    """A minute at rest, then a steady 0.9 rad/s roll about the vertical (gravity does not
+    move) for the rest of the record: the plain fit is in_motion; --static-only keeps the
+    first minute only, lists it, and its bias is the true one."""
+    fs = 50.0
+    t, g, a = _quiet(int(150 * fs), fs, seed=2)
+    spin = np.clip(t - 60.0, 0.0, 1.0) * 0.9  # spun up over a second
+    g = g.copy()
+    g[:, 2] += spin
+    rec = Recording(t=t, gyro=g, accel=a, device="rocket")
+    assert fit("bias_poly(0)", rec).status_name(0) == "in_motion"
+    r = fit("bias_poly(0)", rec, static_only=True).records()[0]
+    assert r["status"] == "ok", r["status_detail"]
+    spans = r["motion"]["rest_intervals"]
+    assert spans and all(end <= 60.0 for _, end, _ in spans)
+    assert r["motion"]["rest_kept_s"] > 50.0
+    got = [r["params"][ax]["bias_poly(0).c0"] for ax in "xyz"]
+    np.testing.assert_allclose(got, BIAS, atol=5 * 0.003 / np.sqrt(50 * fs))
+
+
+def test_a_slow_tilt_is_motion_by_gravity():
+    """A turn of 5° about x over 20 s, held, and back: too slow for the gyro's windows to
+    reach ten thresholds, but gravity turns with it: in_motion, with the tilt reported."""
+    fs = 20.0
+    t, g, a = _quiet(int(240 * fs), fs, seed=3)
+    u = t - 60.0
+    w = np.radians(5.0) / 20.0
+    rate = np.where((u >= 0) & (u < 20), w, 0.0) - np.where((u >= 40) & (u < 60), w, 0.0)
+    ang = np.cumsum(rate) / fs
+    g = g.copy()
+    g[:, 0] += rate
+    a = a.copy()
+    a[:, 1], a[:, 2] = np.cos(ang) * a[:, 1] + np.sin(ang) * a[:, 2], -np.sin(ang) * a[:, 1] + np.cos(ang) * a[:, 2]
+    m = motion_check(Batch.from_recordings([Recording(t=t, gyro=g, accel=a, device="tilt")]))
+    rec = m.record(0)
+    assert rec["verdict"] == "in_motion" and rec["tilt_peak"] >= np.radians(0.5), rec
+    assert "gravity tilted" in rec["reason"]
+
+
+def test_devices_at_other_rates_are_judged_in_windows_of_their_own():
+    """A 1 kHz gyro batch of 0.3 s beside a 25 Hz IMU of a minute, in one batch: the short
+    fast one is too short to judge (not at rest in windows of the slow one's length)."""
+    t1, g1, a1 = _quiet(300, 1000.0, seed=4)
+    t2, g2, a2 = _quiet(1500, 25.0, seed=5)
+    m = motion_check(Batch.from_recordings([Recording(t=t1, gyro=g1, accel=a1, device="fast"),
+                                            Recording(t=t2, gyro=g2, accel=a2, device="slow")]))
+    assert [m.record(i)["verdict"] for i in range(2)] == ["unverified", "at_rest"]
+    assert m.window_s[0] < 0.5 and m.window_s[1] > 0.1 and m.window[0] != m.window[1]
+
+
+def test_export_warns_of_a_model_limit_and_refuses_an_unexplained_residual(tmp_path, capsys):
+    """The residual rule: a cubic on a run whose bias also follows dT/dt stands a few times
+    over its floor (written, with a warning naming the factor and diagnose); a constant on
+    a steep thermal bias stands far over it (refused unless --force, which says so)."""
+    from diffgyro.simulate import simulate
+
+    batch, _ = simulate("thermal", 1, effects="bias_poly(2)+gradient", seed=0, sample_rate=2.0,
+                        duration=3600.0)
+    from diffgyro.io import save
+
+    path = save(batch, tmp_path / "x.csv")
+    # a bias of 2 mrad/s per °C over 40 °C against 3e-4 rad/s of noise, at rest
+    t, g, a = _quiet(7200, 2.0, seed=6)
+    temp = 20.0 + 40.0 * t / t[-1]
+    steep = save(Recording(t=t, gyro=BIAS + 0.1 * (g - BIAS) + 2e-3 * (temp - 40.0)[:, None],
+                           temp=temp, accel=a, device="steep"), tmp_path / "steep.csv")
+    for model, expect in (("bias_poly(3)", "warn"), ("bias_poly(0)", "refuse")):
+        path = steep if expect == "refuse" else path
+        cal = tmp_path / f"{expect}.json"
+        dev = _json(capsys, ["fit", str(path), "--model", model, "--json", "--out", str(cal)])["devices"][0]
+        ratio = dev["residual_ratio"]
+        code, output = _run(capsys, ["export", str(cal), "--format", "px4", "-o", str(tmp_path / f"{expect}.params")])
+        if expect == "warn":
+            assert 3.0 < ratio <= 10.0 and code == 0, (ratio, output)
+            assert f"{ratio:.3g}x its noise floor" in output and "diagnose" in output
+            assert "diagnose" in (tmp_path / f"{expect}.params").read_text()
+        else:
+            assert ratio > 10.0 and code == 2 and "--force" in output, (ratio, output)
+            code, output = _run(capsys, ["export", str(cal), "--format", "px4", "--force", "-o",
+                                         str(tmp_path / "forced.params")])
+            assert code == 0 and "written with --force" in (tmp_path / "forced.params").read_text()
