@@ -100,10 +100,17 @@ batch = Batch.from_recordings([first])
 #
 # `bias_poly(1)+g_sens` is the model one would start with. Its held-out error is
 # well above the noise floor, and no built-in term closes the gap.
+#
+# The simulated tumble moves between poses instantly, and its gyro records no turn.
+# The judgement of rest sees gravity turn between poses and rightly calls the session
+# moved (a real tumble's gyro would show each turn: fit it with `static_only=True`, or
+# with the table's rate as a reference). This study of the error model is about the
+# poses, so the fits here leave that check out (`check_motion=False`).
 
 # %%
 BASE = "bias_poly(1)+g_sens"
-base_fit = fit(BASE, batch)
+NO_CHECK = {"check_motion": False}
+base_fit = fit(BASE, batch, **NO_CHECK)
 print(f"{BASE}: held-out {float(base_fit.heldout_rms[0]):.2e} rad/s, "
       f"floor {float(base_fit.noise_floor[0]):.2e}")
 assert float(base_fit.heldout_rms[0]) > 1.5 * SIGMA
@@ -117,7 +124,7 @@ assert float(base_fit.heldout_rms[0]) > 1.5 * SIGMA
 # smallest set that reaches the floor.
 
 # %%
-d = diagnose(BASE, batch).devices[0]
+d = diagnose(BASE, batch, **NO_CHECK).devices[0]
 print(d.explanation)
 assert d.verdict == "missing_effect" and d.best.effect == "term"
 assert d.best.term == "term(temp*az)"
@@ -128,7 +135,7 @@ print(proposed)
 # ## Fit it: the error falls to the floor
 
 # %%
-res = fit(proposed, batch)
+res = fit(proposed, batch, **NO_CHECK)
 print(f"{proposed}: held-out {float(res.heldout_rms[0]):.2e} rad/s")
 assert float(res.heldout_rms[0]) <= 1.1 * SIGMA
 
@@ -204,7 +211,7 @@ class ThermalGSensZ(AbstractEffect):
         return jnp.broadcast_to(col[:, None, None], (col.shape[0], 3, 1))
 
 
-own = fit(f"{BASE}+thermal_gsens_z", batch)
+own = fit(f"{BASE}+thermal_gsens_z", batch, **NO_CHECK)
 k_own = np.asarray(own.params.beta)[0, :, -1]
 k_grammar = np.asarray(res.params.beta)[0, :, -1]
 print("per-axis coefficient, own term:    ", k_own)

@@ -73,3 +73,11 @@ def pytest_collection_modifyitems(config, items):
         if any(d.scope == "module" and d.baseid.split("::")[0] == module
                for defs in info.name2fixturedefs.values() for d in defs):
             item.add_marker(pytest.mark.xdist_group(module))
+
+
+@pytest.fixture(autouse=True)
+def _no_inherited_terminal_width(monkeypatch):
+    """pytest-xdist's workers inherit COLUMNS=80, and the command line's tables follow
+    COLUMNS when it is set: every test starts without it (a test that wants a width sets
+    it), so that the tables are as wide with ``-n 2`` as without."""
+    monkeypatch.delenv("COLUMNS", raising=False)
