@@ -564,9 +564,15 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
     devices whose recording moved; the others keep ``motion``. A fast thermal transient the
     model follows is not motion; a turn no model without a rate reference can follow
     stays in the residual."""
-    resid = np.asarray(result.residuals(batch))  # (only called where batch.rate is None)
-    again = motion_check(eqx.tree_at(lambda b: b.gyro, batch, resid))
-    return motion.where(moved, again)
+    idx = np.flatnonzero(moved)  # only those: a residual and a check of the batch cost more
+    d = result.n_devices              # than the fit itself
+
+    def take(x):
+        return x[idx] if isinstance(x, (np.ndarray, jax.Array)) and x.ndim and x.shape[0] == d else x
+
+    sub, part = jax.tree.map(take, result), batch.select(idx)
+    resid = np.asarray(sub.residuals(part))  # (only called where batch.rate is None)
+    return motion.put(idx, motion_check(eqx.tree_at(lambda b: b.gyro, part, resid)))
 
 
 def _replace(result, **changes):

@@ -198,6 +198,16 @@ class Motion(eqx.Module):
                     f"(at least {need:.3g} s needed)")
         return reason({**rec, "verdict": "unverified"})
 
+    def put(self, idx, other: Motion) -> Motion:
+        """Devices ``idx`` with ``other``'s numbers and verdict (``other`` holds those
+        devices only, in that order); the static mask stays this one's."""
+        num = {k: np.array(getattr(self, k)) for k in _NUMBERS}
+        verdict = np.array(self.verdict)
+        for k in _NUMBERS:
+            num[k][idx] = np.asarray(getattr(other, k))
+        verdict[idx] = np.asarray(other.verdict)
+        return dataclasses.replace(self, verdict=verdict, **num)
+
     def where(self, flag, other: Motion) -> Motion:
         """Per device, ``other``'s numbers and verdict where ``flag``, this one's elsewhere
         (the static mask is this one's)."""
@@ -716,11 +726,12 @@ def _groups(batch, dt: float | None) -> dict[tuple[int, int], np.ndarray]:
     with each device's sampling interval."""
     d = np.shape(batch.mask)[0]
     dts = _intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0) else np.full(d, dt)
-    sizes = [window_sizes(x) for x in dts]
+    values, which = np.unique(dts, return_inverse=True)  # (devices share a few rates)
+    sizes = [window_sizes(float(x)) for x in values]
     groups: dict = {}
-    for i, wb in enumerate(sizes):
-        groups.setdefault(wb, []).append(i)
-    return {k: np.asarray(v) for k, v in groups.items()}, dts
+    for j, wb in enumerate(sizes):
+        groups.setdefault(wb, []).append(np.flatnonzero(which == j))
+    return {k: np.sort(np.concatenate(v)) for k, v in groups.items()}, dts
 
 
 def _reads(batch) -> tuple[type, bool]:
@@ -767,9 +778,10 @@ def motion_check(batch, dt: float | None = None) -> Motion:
                   t=None if t is None else np.asarray(t), window=window, window_s=window * dts)
 
 
-def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
+def _check_group(gyro, accel, mask, rate, dts, read, use_accel):  # noqa: C901
     """The numbers, static mask and window length (samples) of devices of one layout."""
     d, n = mask.shape
+    referenced = rate is not None
     lay = _layout((d, n), read, use_accel, float(np.median(dts)))
     recorded = mask
     if lay.padded:  # copied to the padded shape in the check's precision
@@ -787,10 +799,17 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
     # one at the rest's rate is rest, the others spin (the windows of the moving devices)
-    for i in np.flatnonzero(num["moving_fraction"] > 0):
-        acc = ({"accel": np.asarray(out["window_accel"][i]),
-                "accel_thr": np.asarray(out["accel_threshold"][i])} if accel is not None else {})
-        level = _rest_stretches(*(np.asarray(out[k][i]) for k in
+    # (with a rate reference the check reads what the reference does not explain: its
+    # windows stand as the compiled check left them)
+    refined = np.flatnonzero(num["moving_fraction"] > 0) if not referenced else []
+    if len(refined):  # on the host, once (not a program per device)
+        win = {k: np.asarray(out[k]) for k in ("window_rate", "window_moving", "window_valid",
+                                                "threshold_axes", "window_accel", "accel_threshold")
+               if k in out}
+    for i in refined:
+        acc = ({"accel": win["window_accel"][i], "accel_thr": win["accel_threshold"][i]}
+               if "window_accel" in win else {})
+        level = _rest_stretches(*(win[k][i] for k in
                                   ("window_rate", "window_moving", "window_valid", "threshold_axes")),
                                 window_s[i], **acc)
         if level is not None:
@@ -801,9 +820,9 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):
             num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
                                           / max(recorded[i].sum(), 1))
             num["rate_peak"][i] = max(num["rate_peak"][i], rate)
-            still = np.asarray(out["window_valid"][i]) & ~moving
+            still = win["window_valid"][i] & ~moving
             if still.any():
-                num["rest_rate"][i] = np.linalg.norm(np.asarray(out["window_rate"][i])[still].mean(axis=0))
+                num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
     return num, static, np.full(d, lay.w)
 
@@ -816,7 +835,7 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
     Between its moves a device held by hand or turned slowly is not at rest, and neither
     is one that spins steadily:
 
-    * at rest, gravity holds still: a window whose specific force leaves the median of
+    * at rest, gravity holds still: a window whose specific force leaves the mean of
       its stretch (over :data:`STRETCH_CHUNK` windows) by more than :data:`TILT_FLOOR`
       (a tilt of half a degree) or the accelerometer's threshold moved;
     * a stretch shorter than :data:`MIN_STRETCH` windows between moves is no rest;
@@ -847,18 +866,24 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
     if accel is not None:
         floor = max(TILT_FLOOR, float(np.linalg.norm(accel_thr)))
         g = max(float(np.median(np.linalg.norm(accel[valid], axis=1))), 1e-9) if valid.any() else 1.0
+        # chunks of STRETCH_CHUNK windows from each stretch's start (a short last chunk
+        # joins its neighbour), their means by one reduction over the stretches' windows
+        chunks = []
         for start, end in runs:
-            for c0 in range(start, end, STRETCH_CHUNK):
-                c1 = min(end, c0 + STRETCH_CHUNK)
-                if end - c1 < STRETCH_CHUNK // 2:  # a short last chunk joins its neighbour
-                    c1 = end
-                part = accel[c0:c1]
-                off = np.linalg.norm(part - np.median(part, axis=0), axis=1)
-                moving[c0:c1] |= off > floor
-                if np.any(off > floor):
-                    tilt = max(tilt, math.asin(min(float(off.max()) / g, 1.0)))
-                if c1 == end:
-                    break
+            cut = list(range(start, end, STRETCH_CHUNK))
+            if len(cut) > 1 and end - cut[-1] < STRETCH_CHUNK // 2:
+                cut.pop()
+            chunks += list(zip(cut, cut[1:] + [end]))
+        if chunks:
+            starts, ends = (np.asarray(x) for x in zip(*chunks))
+            idx = np.concatenate([np.arange(a, b) for a, b in zip(starts, ends)])
+            size = ends - starts
+            mean = np.add.reduceat(accel[idx], np.r_[0, np.cumsum(size)[:-1]], axis=0) / size[:, None]
+            off = np.linalg.norm(accel[idx] - np.repeat(mean, size, axis=0), axis=1)
+            over = off > floor
+            moving[idx[over]] = True
+            if over.any():
+                tilt = max(tilt, math.asin(min(float(off[over].max()) / g, 1.0)))
     runs = stretches()
     for start, end in runs:
         if end - start < MIN_STRETCH and (start > 0 or end < k):
