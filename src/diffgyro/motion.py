@@ -896,6 +896,31 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
             if np.linalg.norm(after - before) > floor:
                 cos = before @ after / max(np.linalg.norm(before) * np.linalg.norm(after), 1e-12)
                 tilt = max(tilt, math.acos(min(max(cos, -1.0), 1.0)))
+    clusters = _levels(rate, runs, thr, window_s)
+    if len(clusters) < 2:
+        return None if np.array_equal(moving, given) and not tilt else (moving, 0.0, 0.0, tilt)
+    # a rate beyond any gyro's bias is no rest (unless every level is: an output in counts
+    # with its offset, or a rate about a logged reference)
+    small = [c for c in clusters if np.linalg.norm(c["level"]) <= MAX_BIAS] or clusters
+    most = max(c["windows"] for c in small)
+    rest = min((c for c in small if c["windows"] >= REST_SHARE * most),
+               key=lambda c: float(np.linalg.norm(c["level"])))
+    peak = turn = 0.0
+    for c in clusters:
+        if np.sqrt(np.sum(((c["level"] - rest["level"]) / thr) ** 2)) <= 1.0:
+            continue  # at the rest's level (a level split only by the drift allowed)
+        off = float(np.linalg.norm(c["level"] - rest["level"]))
+        for a, b in c["runs"]:
+            moving[a:b] = True
+            peak, turn = max(peak, off), max(turn, off * (b - a) * window_s)
+    return moving, peak, turn, tilt
+
+
+def _levels(rate, runs, thr, window_s: float) -> list[dict]:
+    """The stretches ``runs`` grouped by the rate they hold: a stretch joins the level
+    whose last stretch ends at its rate (within the noise of medians of a few windows and
+    :data:`BIAS_SLEW` over the gap), else starts one. Each level: its stretches, windows
+    and median rate."""
     clusters: list[dict] = []
     for start, end in runs:
         span = min(BLOCK_WINDOWS, end - start)
@@ -917,23 +942,7 @@ def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel
         best["tail"] = np.median(rate[end - span:end], axis=0)
     for c in clusters:
         c["level"] = np.median(np.concatenate([rate[a:b] for a, b in c["runs"]]), axis=0)
-    if len(clusters) < 2:
-        return None if np.array_equal(moving, given) and not tilt else (moving, 0.0, 0.0, tilt)
-    # a rate beyond any gyro's bias is no rest (unless every level is: an output in counts
-    # with its offset, or a rate about a logged reference)
-    small = [c for c in clusters if np.linalg.norm(c["level"]) <= MAX_BIAS] or clusters
-    most = max(c["windows"] for c in small)
-    rest = min((c for c in small if c["windows"] >= REST_SHARE * most),
-               key=lambda c: float(np.linalg.norm(c["level"])))
-    peak = turn = 0.0
-    for c in clusters:
-        if np.sqrt(np.sum(((c["level"] - rest["level"]) / thr) ** 2)) <= 1.0:
-            continue  # at the rest's level (a level split only by the drift allowed)
-        off = float(np.linalg.norm(c["level"] - rest["level"]))
-        for a, b in c["runs"]:
-            moving[a:b] = True
-            peak, turn = max(peak, off), max(turn, off * (b - a) * window_s)
-    return moving, peak, turn, tilt
+    return clusters
 
 
 def compile_check(batch, dt: float | None = None) -> threading.Thread:
