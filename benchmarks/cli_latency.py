@@ -1,0 +1,79 @@
+"""Wall time of every command of the README walkthrough, as a user runs it: cold (a fresh
+persistent cache) and warm (the same command again, the caches filled), in one run.
+
+Each command runs as its own process (``python -m diffgyro ...``) in a fresh folder, on
+the walkthrough's files; the table gives the wall time from start to exit, the goal of
+each command (issue 45: fit ≤ 1.5 s, diagnose ≤ 2.5 s, noise ≤ 1.5 s, the commands that
+need no compiled program ≤ 0.5 s, cold ≤ 2× warm) and whether it is met.
+
+    python benchmarks/cli_latency.py --json benchmarks/results/cli-latency-cpu.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+#: (name, arguments, goal warm s): the README walkthrough in order, then the small ones.
+COMMANDS = [
+    ("simulate thermal", ["simulate", "--plan", "thermal", "--devices", "2", "--duration", "3600",
+                          "--rate", "2", "--effects", "bias_poly(2)+gradient", "--out", "x.csv"], None),
+    ("diagnose", ["diagnose", "x.csv", "--model", "bias_poly(2)"], 2.5),
+    ("fit", ["fit", "x.csv", "--model", "bias_poly(2)+gradient", "--out", "cal.json"], 1.5),
+    ("compensate", ["compensate", "x.csv", "--cal", "cal.json", "--out", "corrected.csv"], 0.5),
+    ("fit cubic", ["fit", "x.csv", "--model", "bias_poly(3)", "--out", "cal3.json"], 1.5),
+    ("export px4", ["export", "cal3.json", "--format", "px4", "--device-id", "2293768,2293776",
+                    "--out", "px4.params"], 0.5),
+    ("export ardupilot", ["export", "cal3.json", "--format", "ardupilot", "--out", "ardupilot.parm"], 0.5),
+    ("export c-header", ["export", "cal3.json", "--format", "c-header", "--device", "dev000",
+                         "--out", "gyro_cal.h"], 0.5),
+    ("simulate static", ["simulate", "--plan", "static", "--devices", "1", "--duration", "1200",
+                         "--rate", "10", "--noise", "rrw=2e-5", "--out", "static.csv"], None),
+    ("allan", ["allan", "static.csv", "--out", "allan.json"], None),
+    ("noise", ["noise", "static.csv", "--json"], 1.5),
+    ("effects", ["effects"], 0.5),
+    ("bad input", ["fit", "missing.csv", "--model", "bias_poly(1)"], 0.5),
+]
+
+
+def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int]:
+    t0 = time.perf_counter()
+    done = subprocess.run([sys.executable, "-m", "diffgyro", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True)
+    return time.perf_counter() - t0, done.returncode
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    work = Path(tempfile.mkdtemp())
+    env = {**os.environ, "DIFFGYRO_CACHE_DIR": str(work / "cache")}
+    rows = []
+    for name, cmd, goal in COMMANDS:
+        cold, code = _run(cmd, work, env)
+        warm, _ = _run(cmd, work, env)
+        met = None if goal is None else (warm <= goal and cold <= 2 * max(warm, 1e-9))
+        rows.append({"command": name, "cold_s": round(cold, 3), "warm_s": round(warm, 3),
+                     "goal_warm_s": goal, "exit": code, "met": met})
+    print("| command | cold s | warm s | goal (warm; cold ≤ 2× warm) | met |")
+    print("|---|---|---|---|---|")
+    for r in rows:
+        goal = "—" if r["goal_warm_s"] is None else f"≤ {r['goal_warm_s']} s"
+        met = "—" if r["met"] is None else ("yes" if r["met"] else "no")
+        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {goal} | {met} |")
+    if args.json:
+        with open(args.json, "w") as fh:
+            json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),
+                       "cores": os.cpu_count()}, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
