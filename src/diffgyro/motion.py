@@ -208,14 +208,6 @@ class Motion(eqx.Module):
         verdict[idx] = np.asarray(other.verdict)
         return dataclasses.replace(self, verdict=verdict, **num)
 
-    def where(self, flag, other: Motion) -> Motion:
-        """Per device, ``other``'s numbers and verdict where ``flag``, this one's elsewhere
-        (the static mask is this one's)."""
-        m = np.asarray(flag, bool)
-        return dataclasses.replace(self, verdict=np.where(m, other.verdict, self.verdict), **{
-            k: np.where(m, np.asarray(getattr(other, k)), np.asarray(getattr(self, k)))
-            for k in _NUMBERS})
-
     def moved_all(self) -> Bool[np.ndarray, " d"]:
         """Whether each device moved (verdict :data:`IN_MOTION`)."""
         return np.asarray(self.verdict) == IN_MOTION
@@ -427,9 +419,14 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
     return jnp.squeeze(out, axis)
 
 
-def _subsample(n: int, limit: int) -> np.ndarray:
-    """At most ``limit`` indices spread evenly over ``range(n)`` (all of them when fewer)."""
-    return np.arange(n) if n <= limit else (np.arange(limit) * n) // limit
+def _spread(has, limit: int):
+    """At most ``limit`` window indices spread evenly from the first window to the last one
+    ``has`` (along its last axis): those the windows hold, not the padded batch's; and
+    which of them lie in that span (all, unless it holds fewer windows)."""
+    k = has.shape[-1]
+    span = jnp.max(jnp.where(has, jnp.arange(k), -1), axis=-1, keepdims=True) + 1
+    j = jnp.arange(limit)
+    return jnp.where(span > limit, (j * span) // limit, j), j < span
 
 
 def _rest_noise(local, half, valid, w: int, quantum=0.0):
@@ -444,13 +441,9 @@ def _rest_noise(local, half, valid, w: int, quantum=0.0):
     has at least the rounding noise quantum/√12 per sample, though the quietest windows may
     not change at all. The quantiles are read from at most :data:`QUANTILE_WINDOWS` windows
     spread evenly over the recording (a quantile needs hundreds of values, not all)."""
-    k = local.shape[0]
-    if k > QUANTILE_WINDOWS:  # spread over the device's own windows, not the padded batch's
-        span = jnp.max(jnp.where(valid, jnp.arange(k), -1)) + 1
-        j = jnp.arange(QUANTILE_WINDOWS)
-        pick = jnp.where(span <= QUANTILE_WINDOWS, j, (j * span) // QUANTILE_WINDOWS)
-        local, half = local[pick], half[pick]
-        valid = valid[pick] & (j < span)
+    if local.shape[0] > QUANTILE_WINDOWS:  # the device's own windows, not the padded batch's
+        pick, inside = _spread(valid, QUANTILE_WINDOWS)
+        local, half, valid = local[pick], half[pick], valid[pick] & inside
     ok = jnp.broadcast_to(valid[:, None], local.shape)
     q = _masked_quantile(local, ok, REST_QUANTILE)
     z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
@@ -473,12 +466,10 @@ def _baseline(mean, use, valid, b: int):
     ok = jnp.concatenate([use, jnp.zeros((pad,), bool)])
     vals, ok = vals.reshape(kb, b, -1), ok.reshape(kb, b)
     if b > BLOCK_WINDOWS:  # spread over the windows each block holds (a last block may be short)
-        has = jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b)
-        span = jnp.max(jnp.where(has, jnp.arange(b), -1), axis=1, keepdims=True) + 1
-        j = jnp.arange(BLOCK_WINDOWS)[None, :]
-        pick = jnp.where(span >= BLOCK_WINDOWS, (j * span) // BLOCK_WINDOWS, j)
+        pick, inside = _spread(jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b),
+                               BLOCK_WINDOWS)
         vals = jnp.take_along_axis(vals, pick[..., None], axis=1)
-        ok = jnp.take_along_axis(ok, pick, axis=1) & (j < span)
+        ok = jnp.take_along_axis(ok, pick, axis=1) & inside
     med = _masked_quantile(vals, jnp.broadcast_to(ok[..., None], vals.shape), 0.5, axis=1)  # (kb, c)
     # a block without windows in use (all moving) holds the last block before it that has
     # some (the first such block before any)
@@ -756,23 +747,17 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     accel = np.asarray(batch.accel, read) if use_accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
-    parts = []
-    for (w, _), idx in groups.items():
-        if len(groups) == 1:
-            part = _check_group(gyro, accel, mask, rate, dts, read, use_accel)
-        else:
-            part = _check_group(*(None if x is None else x[idx] for x in (gyro, accel, mask, rate)),
-                                dts[idx], read, use_accel)
-        parts.append((idx, part))
-    if len(parts) == 1:
-        num, static, window = parts[0][1]
+    if len(groups) == 1:  # the batch as it is, no copy
+        num, static, window = _check_group(gyro, accel, mask, rate, dts, read, use_accel)
     else:
         num = {k: np.zeros(d, read) for k in _NUMBERS}
         static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
-        for idx, (pn, ps, pw) in parts:
+        for idx in groups.values():
+            pn, static[idx], window[idx] = _check_group(
+                *(None if x is None else x[idx] for x in (gyro, accel, mask, rate)), dts[idx],
+                read, use_accel)
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
-            static[idx], window[idx] = ps, pw
     t = getattr(batch, "t", None)
     return Motion(**num, verdict=_verdicts(num), static=static,
                   t=None if t is None else np.asarray(t), window=window, window_s=window * dts)

@@ -60,21 +60,19 @@ def _forced(cal: Calibration, names: list[str], force: bool) -> tuple[Calibratio
     that say so: a device whose held-out RMS stands above its noise floor
     (:func:`diffgyro.status.residual_verdict`) is written with a warning, and refused
     unless ``force`` where it stands above :data:`diffgyro.status.RESIDUAL_REFUSE`."""
-    def judged(n):
+    def judged(n):  # status, why not ok, and a warning for the file
         d = cal.device(n)
         if d.status != "ok":
-            return d.status, d.status_detail
+            return d.status, d.status_detail, None
         q = d.quality or {}
+        note = residual_note(n, q.get("heldout_rms"), q.get("noise_floor"))
         if residual_verdict(q.get("heldout_rms"), q.get("noise_floor"))[0] == "unexplained":
-            note = residual_note(n, q.get("heldout_rms"), q.get("noise_floor"))
-            return "unexplained_residual", note.split(": ", 1)[1]
-        return "ok", ""
+            return "unexplained_residual", note.split(": ", 1)[1], None
+        return "ok", "", note
 
-    lines = refuse_not_ok([(n, *judged(n)) for n in names], force)
-    warned = [f"WARNING: device {note}" for n in names if cal.device(n).status == "ok"
-              and judged(n)[0] == "ok" and (note := residual_note(
-                  n, (cal.device(n).quality or {}).get("heldout_rms"),
-                  (cal.device(n).quality or {}).get("noise_floor")))]
+    verdicts = {n: judged(n) for n in names}
+    lines = refuse_not_ok([(n, status, why) for n, (status, why, _) in verdicts.items()], force)
+    warned = [f"WARNING: device {note}" for _, _, note in verdicts.values() if note]
     if not lines:
         return cal, warned
     devs = [dataclasses.replace(d, status="ok") if d.device in names else d for d in cal.devices]
