@@ -40,8 +40,8 @@ from .data import Batch, Recording
 from .errors import SpecError
 from .fit import FitResult
 from .model import ErrorModel, Params
-from .signals import TempNorm
 from .motion import MAX_INTERVALS, VERDICT_NAMES
+from .signals import TempNorm
 from .status import STATUS_NAMES
 
 __all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",

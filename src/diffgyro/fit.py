@@ -36,10 +36,19 @@ from .data import Batch, Recording, as_batch, pad_devices
 from .effects import noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
-from .motion import Motion, compile_check, motion_check, rest_kept
+from .motion import PAD_SAMPLES, Motion, compile_check, motion_check, rest_kept
 from .signals import Signals, TempNorm
-from .status import (IN_MOTION, OK, REST_UNVERIFIED, STATUS_NAMES, collinear_terms, explain, fit_status,
-                     min_samples, residual_verdict)
+from .status import (
+    IN_MOTION,
+    OK,
+    REST_UNVERIFIED,
+    STATUS_NAMES,
+    collinear_terms,
+    explain,
+    fit_status,
+    min_samples,
+    residual_verdict,
+)
 
 __all__ = ["fit", "FitResult", "FitOptions", "judge_motion", "solve_device", "batch_signals",
            "device_noise_floor", "masked_median"]
@@ -564,15 +573,22 @@ def _unexplained(result: FitResult, batch: Batch, motion: Motion, moved) -> Moti
     devices whose recording moved; the others keep ``motion``. A fast thermal transient the
     model follows is not motion; a turn no model without a rate reference can follow
     stays in the residual."""
-    idx = np.flatnonzero(moved)  # only those: a residual and a check of the batch cost more
-    d = result.n_devices              # than the fit itself
+    d, n = np.shape(batch.mask)
+    # a large batch: only the devices that moved (a residual and a check of the whole batch
+    # cost more than the fit itself); a small one whole (its check program is compiled
+    # already, where a sub-batch's would compile anew)
+    idx = np.flatnonzero(moved) if d * n > PAD_SAMPLES else np.arange(d)
 
     def take(x):
         return x[idx] if isinstance(x, (np.ndarray, jax.Array)) and x.ndim and x.shape[0] == d else x
 
-    sub, part = jax.tree.map(take, result), batch.select(idx)
+    sub, part = (result, batch) if len(idx) == d else (jax.tree.map(take, result), batch.select(idx))
     resid = np.asarray(sub.residuals(part))  # (only called where batch.rate is None)
-    return motion.put(idx, motion_check(eqx.tree_at(lambda b: b.gyro, part, resid)))
+    again = motion_check(eqx.tree_at(lambda b: b.gyro, part, resid))
+    if len(idx) == d:
+        idx = np.flatnonzero(moved)
+        again = again.select(idx)
+    return motion.put(idx, again)
 
 
 def _replace(result, **changes):
