@@ -9,16 +9,16 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 import scipy.io
 
 from diffgyro import calibration
+from diffgyro._window_pass import window_stats
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
-from diffgyro.motion import _check, motion_check, window_sizes
+from diffgyro.motion import QUANTILE_WINDOWS, _check, motion_check, noise_quantiles, window_sizes
 from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
@@ -117,14 +117,18 @@ def test_a_device_is_judged_the_same_in_any_batch():
     gyro[:, 0] += 1e-4 * rec.t  # a steady drift, and a slow turn in that last half block
     gyro[(rec.t >= 431.0) & (rec.t < 435.0), 2] += 0.03
     rec = Recording(t=rec.t, gyro=gyro, accel=rec.accel, temp=rec.temp, device="turns")
-    alone = _check(jnp.asarray(rec.gyro, jnp.float32)[None], jnp.asarray(rec.accel, jnp.float32)[None],
-                   jnp.ones((1, rec.t.size), bool), w, b)
+    n = rec.t.size
+    alone = _check(*(window_stats(x[None], np.ones((1, n), bool), w, np.arange(1), -(-n // w),
+                                  noise_quantiles(), QUANTILE_WINDOWS) for x in (rec.gyro, rec.accel)),
+                   w, b)
     mixed = motion_check(Batch.from_recordings([rec, _device("long", duration=700.0)]))
+    assert mixed.window[0] == w  # it moved: judged in the windows of its rate
     for k in ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold"):
         np.testing.assert_allclose(float(getattr(mixed, k)[0]), float(alone[k][0]), rtol=1e-5,
                                    err_msg=k)
     assert abs(float(mixed.rate_peak[0]) / 0.03 - 1.0) < 0.1  # the turn, against the drift's line
-    np.testing.assert_array_equal(np.asarray(mixed.static[0, :rec.t.size]), np.asarray(alone["static"][0]))
+    near = np.repeat(np.asarray(alone["window_near"][0]), w)[:n]
+    np.testing.assert_array_equal(np.asarray(mixed.static[0, :n]), ~near)
 
 
 def test_a_fast_thermal_transient_the_model_follows_is_not_motion():

@@ -26,7 +26,7 @@ stands out of the noise its mean can have::
 in a run of such windows that starts or holds a jump between neighbouring windows
 of the same size (a turn starts within a window or two; thermal drift changes
 little from one window to the next), with ``ν`` the noise of a window mean at rest
-(:func:`_rest_noise`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
+(:func:`noise_quantiles`), ``K`` = :data:`K_SIGMA` (a white-noise window passes it with probability
 below 1e-7) and a physical floor (:data:`EARTH_RATE` for the gyro: a sensor good
 enough to see Earth rotate does not call it motion; :data:`ACCEL_FLOOR` for the
 accelerometer). The accelerometer, where logged, catches what the gyro baseline
@@ -43,10 +43,8 @@ as stored, the rest works on the windows.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 import threading
-import warnings
 from typing import NamedTuple
 
 import equinox as eqx
@@ -73,6 +71,11 @@ HALF_QUANTILE = 0.2
 #: Window length (s) and baseline block (s) aimed at.
 WINDOW_S = 0.25
 BLOCK_S = 30.0
+#: Most windows per device in a first look: a long recording at rest is shown at rest in
+#: longer windows (the work on the windows then stays below the pass over the samples);
+#: one that moved, or whose longer windows cannot show a turn of :data:`MAX_RESOLUTION`,
+#: is judged again in the windows of its rate (:func:`motion_check`).
+MAX_WINDOWS = 512
 #: A recording moved where a run of its moving windows reached this many times the
 #: threshold (at any moving fraction), or gravity tilted by :data:`MIN_TILT` within a
 #: stretch between moves. A slow unexplained change of the bias (a supply or duty step)
@@ -324,69 +327,16 @@ def reason(rec: dict) -> str:
             f"give a rate reference")
 
 
-def window_sizes(dt: float) -> tuple[int, int]:
+def window_sizes(dt: float, samples: int | None = None) -> tuple[int, int]:
     """Samples per window and windows per baseline block for a sampling interval ``dt``
-    (powers of two, so nearby rates share a compiled check)."""
+    (powers of two, so nearby rates share a compiled check); for a recording of
+    ``samples``, windows long enough that it holds at most :data:`MAX_WINDOWS`."""
     dt = dt if math.isfinite(dt) and dt > 0 else 0.01
     w = int(np.clip(2 ** round(math.log2(max(WINDOW_S / dt, 1.0))), 4, 1024))
+    if samples is not None and samples > w * MAX_WINDOWS:
+        w = min(1 << math.ceil(math.log2(samples / MAX_WINDOWS)), max(w, 1024))
     b = int(np.clip(2 ** round(math.log2(max(BLOCK_S / (w * dt), 1.0))), 4, 4096))
     return w, b
-
-
-def _window_stats(x, mask, w: int):
-    """Per window: means, local noise from successive differences inside it (per axis), the
-    difference of the means of its two halves, valid-sample counts, and validity; and the
-    quantum per axis (the smallest nonzero change between neighbouring valid samples).
-
-    Every statistic is a sum (or min) over ``(k, w, c)`` blocks of the samples as stored (no
-    transposed or padded copy; a last partial window on its own), read in the input's
-    precision and reduced in float32."""
-    n = x.shape[0]
-    k0 = n // w
-    parts = [_block_sums(x[: k0 * w].reshape(k0, w, -1), mask[: k0 * w].reshape(k0, w))] if k0 else []
-    if k0 * w != n:  # the last partial window, padded (invalid) to a whole one
-        tail = jnp.zeros((w, x.shape[1]), x.dtype).at[: n - k0 * w].set(x[k0 * w:])
-        tmask = jnp.zeros((w,), bool).at[: n - k0 * w].set(mask[k0 * w:])
-        parts.append(_block_sums(tail[None], tmask[None]))
-    s1, total, s2, c1, c, cp, step = (
-        p[0] if len(parts) == 1 else
-        (jnp.minimum(*p) if i == 6 else jnp.concatenate(p)) for i, p in enumerate(zip(*parts)))
-    mean = total / jnp.maximum(c, 1.0)[:, None]
-    half = s1 / jnp.maximum(c1, 1.0)[:, None] - (total - s1) / jnp.maximum(c - c1, 1.0)[:, None]
-    s2 = s2 / jnp.maximum(cp, 1.0)[:, None] / 2.0
-    valid = (c >= max(w // 2, 2)) & (cp >= 2) & (c1 > 0) & (c > c1)
-    valid = valid & jnp.all(jnp.isfinite(mean) & jnp.isfinite(s2), axis=1)  # no NaN or inf sample
-    return mean, jnp.sqrt(s2), half, c, valid, jnp.where(jnp.isfinite(step), step, 0.0)
-
-
-def _block_sums(xs, ms):
-    """Sums over the windows ``(k, w, c)`` of samples ``xs`` (mask ``ms``, ``(k, w)``): of
-    the first half, of all, of squared successive differences; the counts of the first
-    half's, all and successive valid pairs; and the smallest nonzero change per axis.
-
-    Short windows are written sample by sample across the window, so that XLA fuses each
-    statistic into an elementwise loop over the samples without intermediate arrays."""
-    k, w, nc = xs.shape
-    h = w // 2
-    if w > 16:  # long windows: reductions along the window axis (an unrolled loop compiles slowly)
-        xs = jnp.where(ms[..., None], xs.astype(jnp.float32), 0.0)
-        c1 = jnp.sum(ms[:, :h], axis=1).astype(jnp.float32)
-        s1 = jnp.sum(xs[:, :h], axis=1)
-        pair = ms[:, 1:] & ms[:, :-1]
-        d = jnp.where(pair[..., None], xs[:, 1:] - xs[:, :-1], 0.0)
-        return (s1, s1 + jnp.sum(xs[:, h:], axis=1), jnp.sum(d * d, axis=1), c1,
-                c1 + jnp.sum(ms[:, h:], axis=1), jnp.sum(pair, axis=1).astype(jnp.float32),
-                jnp.min(jnp.where(d != 0.0, jnp.abs(d), jnp.inf), axis=(0, 1)))
-    x = [jnp.where(ms[:, j, None], xs[:, j].astype(jnp.float32), 0.0) for j in range(w)]
-    m = [jnp.broadcast_to(ms[:, j, None], (k, nc)).astype(jnp.float32) for j in range(w)]
-    pair = [m[j] * m[j + 1] for j in range(w - 1)]
-    d = [pair[j] * (x[j + 1] - x[j]) for j in range(w - 1)]
-    big = jnp.float32(jnp.inf)
-    out = jnp.stack([sum(x[:h]), sum(x[h:]), sum(dj * dj for dj in d), sum(m[:h]), sum(m[h:]),
-                     sum(pair), functools.reduce(jnp.minimum, (jnp.where(dj != 0.0, jnp.abs(dj), big)
-                                                               for dj in d))])
-    s1, s2_, sq, c1, c2, cp, step = out
-    return s1, s1 + s2_, sq, c1[:, 0], c1[:, 0] + c2[:, 0], cp[:, 0], jnp.min(step, axis=0)
 
 
 def _masked_quantile(x, valid, q: float, axis: int = 0):
@@ -429,30 +379,23 @@ def _spread(has, limit: int):
     return jnp.where(span > limit, (j * span) // limit, j), j < span
 
 
-def _rest_noise(local, half, valid, w: int, quantum=0.0):
-    """Rest noise per axis: of one sample (σ, from the local noise), and of a window mean.
+def noise_quantiles() -> tuple[float, float, float, float]:
+    """The quantiles that give a device's rest noise per axis, of one sample (σ) and of a
+    window mean (:mod:`diffgyro._window_pass` forms them in its pass).
 
     σ is the :data:`REST_QUANTILE` of the valid windows' local noise, divided by that
-    quantile of the χ distribution of a window's estimate (≈ normal). A window mean's
-    noise is at least σ/√w, and at least what the half-window differences show at rest
-    (their :data:`HALF_QUANTILE`, over that quantile of a normal's magnitude, halved):
-    sensor outputs are low-pass filtered, and filtered noise averages more slowly than
-    white noise does. A quantised output (``quantum``: the smallest change between samples)
-    has at least the rounding noise quantum/√12 per sample, though the quietest windows may
-    not change at all. The quantiles are read from at most :data:`QUANTILE_WINDOWS` windows
-    spread evenly over the recording (a quantile needs hundreds of values, not all)."""
-    if local.shape[0] > QUANTILE_WINDOWS:  # the device's own windows, not the padded batch's
-        pick, inside = _spread(valid, QUANTILE_WINDOWS)
-        local, half, valid = local[pick], half[pick], valid[pick] & inside
-    ok = jnp.broadcast_to(valid[:, None], local.shape)
-    q = _masked_quantile(local, ok, REST_QUANTILE)
-    z = 1.2815515655446004  # the normal quantile of 1 − REST_QUANTILE
-    sigma = jnp.maximum(q / max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5),
-                        quantum / math.sqrt(12.0))
-    hq = _masked_quantile(jnp.abs(half), ok, HALF_QUANTILE)
-    zh = 0.2533471031357997  # the normal quantile of (1 + HALF_QUANTILE) / 2
-    mean_noise = jnp.maximum(sigma / math.sqrt(w), hq / zh / 2.0)
-    return sigma, mean_noise
+    quantile of the χ distribution of a window's estimate (≈ normal: the normal quantile
+    ``z`` of 1 − REST_QUANTILE). A window mean's noise is at least σ/√w, and at least
+    what the half-window differences show at rest (their :data:`HALF_QUANTILE`, over the
+    normal quantile ``zh`` of (1 + HALF_QUANTILE)/2, halved): sensor outputs are low-pass
+    filtered, and filtered noise averages more slowly than white noise does. A quantised
+    output (the quantum: the smallest change between samples) has at least the rounding
+    noise quantum/√12 per sample, though the quietest windows may not change at all. The
+    quantiles are read from at most :data:`QUANTILE_WINDOWS` windows spread evenly over
+    the recording (a quantile needs hundreds of values, not all).
+
+    Returns REST_QUANTILE, HALF_QUANTILE, ``z`` and ``zh``."""
+    return REST_QUANTILE, HALF_QUANTILE, 1.2815515655446004, 0.2533471031357997
 
 
 def _baseline(mean, use, valid, b: int):
@@ -525,13 +468,25 @@ def _runs_with(flag, mark):
     return flag & (ahead | behind)
 
 
-def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
-    """Moving windows of one signal, its window means and deviations, window validity, rest
-    noise and threshold per axis. ``step``: the deviation is the change from the previous
-    window (the accelerometer: a device at rest in a new pose has a new gravity, not
-    motion)."""
-    mean, local, half, c, valid, quantum = _window_stats(x, mask, w)
-    sigma, mean_noise = _rest_noise(local, half, valid, w, quantum)
+class _Windows(NamedTuple):
+    """One signal's windows as the judgement reads them: means and validity, the rest noise
+    and threshold per axis, the variance a window mean has at rest (raised by its own
+    noise), the jumps between neighbouring windows, and the floor."""
+
+    mean: Float[jax.Array, "k 3"]
+    valid: Bool[jax.Array, " k"]
+    sigma: Float[jax.Array, " 3"]
+    threshold: Float[jax.Array, " 3"]
+    var: Float[jax.Array, "k 3"]
+    jump: Bool[jax.Array, " k"]
+    floor: float
+
+
+def _windows(stats, w: int, floor: float) -> _Windows:
+    """A signal's :class:`_Windows` from its window statistics (:mod:`diffgyro._window_pass`)."""
+    wins, c, valid, noise = stats
+    mean, local = wins[:, 0], wins[:, 1]
+    sigma, mean_noise = noise[0], noise[1]
     sigma = jnp.where(jnp.isnan(sigma), 0.0, sigma)
     mean_noise = jnp.where(jnp.isnan(mean_noise), 0.0, mean_noise)
     thr0 = jnp.maximum(K_SIGMA * mean_noise, floor)
@@ -540,31 +495,49 @@ def _moving_windows(x, mask, w: int, b: int, floor: float, step: bool = False):
     # (motion raises the local noise of a slowly sampled recording too)
     louder = jnp.clip(local / jnp.where(sigma > 0, sigma, jnp.inf)[None, :], 1.0, LOUDER_CAP)
     var = (mean_noise[None, :] * louder) ** 2 * (w / jnp.maximum(c, 1.0))[:, None]
-
-    def flag(dev, var, ok):
-        thr = jnp.maximum(K_SIGMA * jnp.sqrt(var), floor)
-        z = jnp.sqrt(jnp.sum((dev / thr) ** 2, axis=1))
-        return (z > 1.0) & ok
-
     prev = jnp.concatenate([mean[:1], mean[:-1]])
     ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
     var_prev = jnp.concatenate([var[:1], var[:-1]])
-    jump = flag(mean - prev, var + var_prev, ok)  # a change between neighbouring windows
-    if step:
-        return jump, mean, mean - prev, valid, sigma, thr0
-    # a window leaves the baseline; a run of such windows is motion when it starts or
-    # holds a jump (a turn starts within a window or two; thermal drift creeps)
-    jump = jump | jnp.concatenate([jump[1:], jnp.zeros((1,), bool)])
-    # twice: the baseline of the valid windows, then of those the first pass left static
-    # (one compiled body)
-    def again(_, state):
-        dev = mean - _baseline(mean, valid & ~state[0], valid, b)
-        # where the first pass left no window static, its own baseline stands
-        dev = jnp.where(jnp.isnan(dev), state[1], dev)
-        return _runs_with(flag(dev, var, valid), jump), dev
+    jump = _flag(mean - prev, var + var_prev, ok, floor)  # a change between neighbours
+    return _Windows(mean, valid, sigma, thr0, var, jump, floor)
 
-    moving, dev = jax.lax.fori_loop(0, 2, again, (jnp.zeros_like(valid), jnp.zeros_like(mean)))
-    return moving, mean, dev, valid, sigma, thr0
+
+def _flag(dev, var, ok, floor: float):
+    """Windows whose deviation ``dev`` stands out of the noise ``var`` its mean can have."""
+    thr = jnp.maximum(K_SIGMA * jnp.sqrt(var), floor)
+    z = jnp.sqrt(jnp.sum((dev / thr) ** 2, axis=1))
+    return (z > 1.0) & ok
+
+
+def _first_pass(win: _Windows, b: int):
+    """The deviation of each window from the baseline of all valid windows, and the windows
+    that leave it (before the rule on runs)."""
+    dev = win.mean - _baseline(win.mean, win.valid, win.valid, b)
+    dev = jnp.where(jnp.isnan(dev), 0.0, dev)
+    return dev, _flag(dev, win.var, win.valid, win.floor)
+
+
+def _runs(win: _Windows, dev, flags, b: int):
+    """The moving windows and their deviations, where some window left the first pass's
+    baseline: a run of such windows is motion when it starts or holds a jump (a turn
+    starts within a window or two; thermal drift creeps). Then again, with the baseline
+    of the windows the first pass left static."""
+    jump = win.jump | jnp.concatenate([win.jump[1:], jnp.zeros((1,), bool)])
+    moving = _runs_with(flags, jump)
+    again = win.mean - _baseline(win.mean, win.valid & ~moving, win.valid, b)
+    # where the first pass left no window static, its own baseline stands
+    dev = jnp.where(jnp.isnan(again), dev, again)
+    return _runs_with(_flag(dev, win.var, win.valid, win.floor), jump), dev
+
+
+def _turned(moving, dev):
+    """The largest angle turned within one run of moving windows (in window-mean rate ×
+    windows; the host scales it by the window's length): the rate less the baseline,
+    summed from the run's start."""
+    turned = jnp.cumsum(jnp.where(moving[:, None], dev, 0.0), axis=0)
+    before = _run_start(moving)
+    turned = turned - jnp.where(before[:, None] >= 0, turned[jnp.maximum(before, 0)], 0.0)
+    return jnp.max(jnp.where(moving, jnp.sqrt(jnp.sum(turned**2, axis=1)), 0.0))
 
 
 def _tilted(accel, valid, moving, thr):
@@ -589,70 +562,66 @@ def _tilted(accel, valid, moving, thr):
     return flag.reshape(-1)[:k], tilt
 
 
-def _one_device(gyro, accel, mask, w: int, b: int):
-    # float32 is ample to tell motion from noise, and halves the traffic of the one
-    # pass over the samples; the results are given back in the input's precision
-    out_dtype = gyro.dtype
-    gyro = gyro.astype(jnp.float32)
-    accel = None if accel is None else accel.astype(jnp.float32)
-    n = gyro.shape[0]
-    moving, mean, dev, valid, sigma, thr0 = _moving_windows(gyro, mask, w, b, 2.0 * EARTH_RATE)
-    windows = dict(window_rate=mean, window_moving=moving, window_valid=valid, threshold_axes=thr0)
-    tilt = jnp.zeros((), jnp.float32)
+def _chunk(gyro, accel, w: int, b: int):
+    """The judgement of a chunk of devices (leading axis) from their window statistics
+    (gyro, and accelerometer or None): the numbers, and per window the flags and means
+    the host reads. The rule on runs, and the angle turned, are worked out only in a chunk
+    where some window moved (at rest, nothing does)."""
+    each = jax.vmap
+    win = each(lambda st: _windows(st, w, 2.0 * EARTH_RATE))(gyro)
+    dev, flags = each(lambda v: _first_pass(v, b))(win)
+    moving, dev = jax.lax.cond(jnp.any(flags), each(lambda v, d, f: _runs(v, d, f, b)),
+                               lambda v, d, f: (jnp.zeros_like(f), d), win, dev, flags)
+    out = dict(window_rate=win.mean, window_valid=win.valid, threshold_axes=win.threshold)
+    tilt = jnp.zeros(moving.shape[:1], jnp.float32)
     if accel is not None:
-        acc_moving, acc_mean, _, _, _, acc_thr = _moving_windows(accel, mask, w, b, ACCEL_FLOOR,
-                                                                 step=True)
-        moving = moving | acc_moving
-        tilted, tilt = _tilted(acc_mean, valid, moving, acc_thr)
+        acc = each(lambda st: _windows(st, w, ACCEL_FLOOR))(accel)
+        moving = moving | acc.jump
+        tilted, tilt = each(_tilted)(acc.mean, win.valid, moving, acc.threshold)
         moving = moving | tilted
-        windows |= dict(window_accel=acc_mean, accel_threshold=acc_thr, window_moving=moving)
+        out |= dict(window_accel=acc.mean, accel_threshold=acc.threshold)
+    turn = jax.lax.cond(jnp.any(moving), each(_turned),
+                        lambda m, d: jnp.zeros(m.shape[:1], d.dtype), moving, dev)
+    return out | each(_numbers)(win, moving, dev, turn, tilt, gyro[1]) | dict(window_moving=moving)
+
+
+def _numbers(win: _Windows, moving, dev, turn, tilt, count):
+    """One device's numbers (:data:`_NUMBERS`, but the resolution the host forms) and its
+    windows not at rest (moving, or next to a moving one: the transitions)."""
     rate = jnp.sqrt(jnp.sum(dev**2, axis=1))
     n_mov = jnp.sum(moving)
     peak = jnp.max(jnp.where(moving, rate, 0.0))
     rms = jnp.sqrt(jnp.sum(jnp.where(moving, rate**2, 0.0)) / jnp.maximum(n_mov, 1))
-    # the angle turned within each run of moving windows (in window-mean rate × windows;
-    # the host scales it by the window's length): the rate less the baseline, summed
-    # from the run's start
-    turned = jnp.cumsum(jnp.where(moving[:, None], dev, 0.0), axis=0)
-    before = _run_start(moving)
-    turned = turned - jnp.where(before[:, None] >= 0, turned[jnp.maximum(before, 0)], 0.0)
-    turn = jnp.max(jnp.where(moving, jnp.sqrt(jnp.sum(turned**2, axis=1)), 0.0))
-
-    def per_sample(flag):
-        return jnp.broadcast_to(flag[:, None], (flag.shape[0], w)).reshape(-1)[:n]
-
-    samples = per_sample(moving) & mask
     near = moving | jnp.concatenate([moving[1:], jnp.zeros((1,), bool)]) | jnp.concatenate(
         [jnp.zeros((1,), bool), moving[:-1]])
-    static = ~per_sample(near) & mask
-    still = valid & ~moving
-    rest_rate = jnp.sqrt(jnp.sum((jnp.sum(jnp.where(still[:, None], mean, 0.0), axis=0)
+    still = win.valid & ~moving
+    rest_rate = jnp.sqrt(jnp.sum((jnp.sum(jnp.where(still[:, None], win.mean, 0.0), axis=0)
                                   / jnp.maximum(jnp.sum(still), 1)) ** 2))
-    count = jnp.sum(mask)
-    some = jnp.any(valid)
-    frac = jnp.where(some, jnp.sum(samples) / jnp.maximum(count, 1), jnp.nan)
-    nan = jnp.asarray(jnp.nan, gyro.dtype)
-    out = dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
-               rate_rms=jnp.where(some, rms, nan), turn_peak=jnp.where(some, turn, nan),
-               tilt_peak=jnp.where(some, tilt, nan), rest_rate=jnp.where(some, rest_rate, nan),
-               rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(sigma**2)), nan),
-               threshold=jnp.where(some, jnp.sqrt(jnp.mean(thr0**2)), nan),
-               n_windows=jnp.sum(valid).astype(gyro.dtype))
-    return {k: v.astype(out_dtype) for k, v in out.items()} | {"static": static} | windows
+    some = jnp.any(win.valid)
+    frac = jnp.where(some, jnp.sum(jnp.where(moving, count, 0.0))
+                     / jnp.maximum(jnp.sum(count), 1.0), jnp.nan)
+    nan = jnp.asarray(jnp.nan, jnp.float32)
+    return dict(moving_fraction=frac, rate_peak=jnp.where(some, peak, nan),
+                rate_rms=jnp.where(some, rms, nan), turn_peak=jnp.where(some, turn, nan),
+                tilt_peak=jnp.where(some, tilt, nan), rest_rate=jnp.where(some, rest_rate, nan),
+                rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(win.sigma**2)), nan),
+                threshold=jnp.where(some, jnp.sqrt(jnp.mean(win.threshold**2)), nan),
+                n_windows=jnp.sum(win.valid).astype(jnp.float32), window_near=near)
 
 
-def _vmapped(gyro, accel, mask, w: int, b: int, rate=None):
-    """The check of every device; of ``gyro − rate`` where a rate reference is given (the
-    difference formed as the samples are read: no copy of the batch on the host)."""
-    def one(args):
-        g, a, m, r = args
-        return _one_device(g if r is None else g - r, a, m, w, b)
+def _vmapped(gyro, accel, w: int, b: int):
+    """The check of every device from its window statistics (devices first, a multiple of
+    :data:`CHECK_CHUNK` or fewer): chunk by chunk."""
+    d = gyro[0].shape[0]
+    if d <= CHECK_CHUNK:
+        return _chunk(gyro, accel, w, b)
 
-    # devices in chunks of CHECK_CHUNK: every per-sample and per-window temporary is a
-    # chunk's (in cache, reused), not the batch's (fresh pages per call)
-    if gyro.shape[0] <= CHECK_CHUNK:
-        return jax.vmap(one)((gyro, accel, mask, rate))
-    return jax.lax.map(one, (gyro, accel, mask, rate), batch_size=CHECK_CHUNK)
+    def split(x):
+        return None if x is None else jax.tree.map(
+            lambda y: y.reshape((d // CHECK_CHUNK, CHECK_CHUNK) + y.shape[1:]), x)
+
+    out = jax.lax.map(lambda ga: _chunk(*ga, w, b), (split(gyro), split(accel)))
+    return jax.tree.map(lambda y: y.reshape((d,) + y.shape[2:]), out)
 
 
 #: Devices checked side by side (vmapped) in one step of the compiled loop over a batch's
@@ -668,15 +637,13 @@ _check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
 
 
 class _Layout(NamedTuple):
-    """How a batch is checked: window and block sizes, the shape it is checked at (padded
-    for a small batch), the precision it is read in and the one it is checked in, and
-    whether the accelerometer is read."""
+    """How a group of devices is checked: window and block sizes, the shape of its window
+    sums (devices, windows; padded for a small batch), whether the accelerometer is read,
+    and the sampling interval."""
 
     w: int
     b: int
     shape: tuple[int, int]
-    read: type
-    dtype: type
     accel: bool
     padded: bool
     dt: float
@@ -686,43 +653,55 @@ class _Layout(NamedTuple):
         return _check_small if self.padded else _check
 
 
-def _layout(shape: tuple[int, int], read: type, accel: bool, dt: float) -> _Layout:
-    """The layout of a batch of ``shape`` (devices, samples) read in ``read`` precision,
-    sampled every ``dt`` s."""
-    w, b = window_sizes(dt)
-    d, n = shape
-    if d * n > PAD_SAMPLES:
-        return _Layout(w, b, (d, n), read, read, accel, False, dt)
-    # small batches share a compiled check (see _padded), computed in float32 as
-    # _one_device does anyway: one program for either precision
-    blocks = 1 << (-(-n // (w * b)) - 1).bit_length()
-    return _Layout(w, b, (device_bucket(d, minimum=1), blocks * w * b), read, np.float32,
-                   accel, True, dt)
+def _layout(devices: int, samples: int, w: int, b: int, accel: bool, dt: float) -> _Layout:
+    """The layout of ``devices`` holding up to ``samples`` samples each, in windows of
+    ``w`` samples and blocks of ``b`` windows."""
+    k = -(-samples // w)
+    if devices * samples > PAD_SAMPLES:  # devices in whole chunks
+        rows = devices if devices <= CHECK_CHUNK else -(-devices // CHECK_CHUNK) * CHECK_CHUNK
+        return _Layout(w, b, (rows, k), accel, False, dt)
+    # small batches share a compiled check: devices to a bucket, windows to a power of
+    # two of blocks
+    blocks = 1 << (-(-k // b) - 1).bit_length()
+    rows = device_bucket(devices, minimum=1)
+    rows = rows if rows <= CHECK_CHUNK else -(-rows // CHECK_CHUNK) * CHECK_CHUNK
+    return _Layout(w, b, (rows, blocks * b), accel, True, dt)
 
 
 def _intervals(batch) -> np.ndarray:
     """Each device's sampling interval (s): the median of its first intervals between valid
-    samples (at most 1024 of them; 0.01 where it has none)."""
-    t = np.asarray(batch.t)[:, :1025].astype(float)
-    m = np.asarray(batch.mask)[:, :1025]
-    dt = np.where(m[:, 1:] & m[:, :-1], np.diff(t, axis=1), np.nan)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)  # a device with no interval
-        out = np.nanmedian(dt, axis=1) if dt.shape[1] else np.full(len(t), np.nan)
-    return np.where(np.isfinite(out) & (out > 0), out, 0.01)
+    samples (at most 256 of them; 0.01 where it has none)."""
+    t = np.asarray(batch.t)[:, :257].astype(float)
+    m = np.asarray(batch.mask)[:, :257]
+    dt = np.sort(np.where(m[:, 1:] & m[:, :-1], np.diff(t, axis=1), np.nan), axis=1)  # NaN last
+    count = np.sum(~np.isnan(dt), axis=1)
+    rows = np.arange(len(dt))
+    if not dt.shape[1]:
+        return np.full(len(dt), 0.01)
+    lo, hi = np.maximum(count - 1, 0) // 2, np.maximum(count, 1) // 2
+    out = 0.5 * (dt[rows, lo] + dt[rows, np.minimum(hi, dt.shape[1] - 1)])
+    return np.where((count > 0) & np.isfinite(out) & (out > 0), out, 0.01)
 
 
-def _groups(batch, dt: float | None) -> dict[tuple[int, int], np.ndarray]:
-    """Devices grouped by window and block sizes (one group unless the batch mixes rates),
-    with each device's sampling interval."""
-    d = np.shape(batch.mask)[0]
-    dts = _intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0) else np.full(d, dt)
-    values, which = np.unique(dts, return_inverse=True)  # (devices share a few rates)
-    sizes = [window_sizes(float(x)) for x in values]
+def _spans(mask) -> np.ndarray:
+    """Each device's samples up to its last valid one (the padding of a batch is not its)."""
+    mask = np.asarray(mask, bool)
+    last = mask.shape[1] - np.argmax(mask[:, ::-1], axis=1)
+    return np.where(mask.any(axis=1), last, 0)
+
+
+def _groups(dts, spans, fine: bool = False) -> dict[tuple[int, int], np.ndarray]:
+    """Devices grouped by window and block sizes (one group unless the batch mixes rates
+    or lengths far apart), from each device's sampling interval and span; ``fine``: in
+    the windows of its rate alone, however long the recording."""
+    keys = np.stack([dts, np.zeros_like(dts) if fine else spans.astype(float)], axis=1)
+    values, which = np.unique(keys, axis=0, return_inverse=True)  # (devices share a few)
+    which = np.ravel(which)
     groups: dict = {}
-    for j, wb in enumerate(sizes):
-        groups.setdefault(wb, []).append(np.flatnonzero(which == j))
-    return {k: np.sort(np.concatenate(v)) for k, v in groups.items()}, dts
+    for j, (dt, n) in enumerate(values):
+        groups.setdefault(window_sizes(float(dt), None if fine else int(n)), []).append(
+            np.flatnonzero(which == j))
+    return {k: np.sort(np.concatenate(v)) for k, v in groups.items()}
 
 
 def _reads(batch) -> tuple[type, bool]:
@@ -738,48 +717,71 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity)."""
-    groups, dts = _groups(batch, dt)
     read, use_accel = _reads(batch)
-    # the batch's arrays as stored (aligned: JAX reads them in place, no copy); the rate
-    # reference is subtracted in the compiled check (what it does not explain)
-    gyro = np.asarray(batch.gyro, read)
-    rate = None if batch.rate is None else np.asarray(batch.rate, read)
-    accel = np.asarray(batch.accel, read) if use_accel else None
+    # the batch's arrays as stored: the pass reads each device's rows in place, and
+    # subtracts the rate reference as it reads (what it does not explain)
+    gyro = np.asarray(batch.gyro)
+    rate = None if batch.rate is None else np.asarray(batch.rate)
+    accel = np.asarray(batch.accel) if use_accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
-    if len(groups) == 1:  # the batch as it is, no copy
-        num, static, window = _check_group(gyro, accel, mask, rate, dts, read, use_accel)
-    else:
-        num = {k: np.zeros(d, read) for k in _NUMBERS}
-        static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
-        for idx in groups.values():
-            pn, static[idx], window[idx] = _check_group(
-                *(None if x is None else x[idx] for x in (gyro, accel, mask, rate)), dts[idx],
-                read, use_accel)
+    dts = (_intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0)
+           else np.full(d, float(dt)))
+    spans = _spans(mask)
+    num = {k: np.zeros(d, read) for k in _NUMBERS}
+    static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
+
+    def check(groups):
+        for (w, b), idx in groups.items():
+            pn, static[idx], window[idx] = _check_group(gyro, accel, mask, rate, idx, w, b,
+                                                        dts[idx], spans[idx], use_accel)
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
+
+    check(_groups(dts, spans))
+    # a long recording is judged first in long windows: where nothing moved in them and
+    # they show a turn of MAX_RESOLUTION, it was at rest. Where something moved, or the
+    # long windows cannot show it (correlated noise averages slowly), it is judged again
+    # in the windows of its rate: where and how it moved, in the detail of its rate
+    rates, which = np.unique(dts, return_inverse=True)
+    own = np.array([window_sizes(x)[0] for x in rates])[np.ravel(which)]
+    with np.errstate(invalid="ignore"):
+        again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST))
+    if again.any():
+        idx = np.flatnonzero(again)
+        check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()})
     t = getattr(batch, "t", None)
     return Motion(**num, verdict=_verdicts(num), static=static,
                   t=None if t is None else np.asarray(t), window=window, window_s=window * dts)
 
 
-def _check_group(gyro, accel, mask, rate, dts, read, use_accel):  # noqa: C901
-    """The numbers, static mask and window length (samples) of devices of one layout."""
-    d, n = mask.shape
+def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel):  # noqa: C901
+    """The numbers (float32), static mask and window length (samples) of devices ``idx``,
+    all checked in windows of ``w`` samples and blocks of ``b`` windows."""
+    n = mask.shape[1]
+    d = len(idx)
+    lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
+    rows, k = lay.shape
     referenced = rate is not None
-    lay = _layout((d, n), read, use_accel, float(np.median(dts)))
-    recorded = mask
-    if lay.padded:  # copied to the padded shape in the check's precision
-        if rate is not None:
-            gyro, rate = gyro - rate, None
-        gyro, accel = (_padded(x, *lay.shape, dtype=lay.dtype) for x in (gyro, accel))
-        mask = _padded(mask, *lay.shape)
-    out = lay.check(*(None if x is None else jax.device_put(x) for x in (gyro, accel, mask)),
-                    lay.w, lay.b, None if rate is None else jax.device_put(rate))
+    from ._window_pass import window_stats  # numba: imported when a check runs
+
+    q = noise_quantiles()
+    stats = window_stats(gyro, mask, w, idx, k, q, QUANTILE_WINDOWS, rows, rate)
+    acc = window_stats(accel, mask, w, idx, k, q, QUANTILE_WINDOWS, rows) if use_accel else None
+    out = lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
+                      for x in (stats, acc)), w, b)
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    num = {k: np.array(out[k])[:d].astype(lay.read) for k in _NUMBERS if k != "resolution"}
-    static = np.array(out["static"])[:d, :n]
-    window_s = lay.w * np.asarray(dts, float)
+    num = {k: np.array(out[k])[:d] for k in _NUMBERS if k != "resolution"}
+    recorded = mask[idx]
+    samples = min(k * w, n)
+
+    def per_sample(flags):  # window flags (d, k) to the samples (d, n)
+        full = np.zeros((flags.shape[0], n), bool)
+        full[:, :samples] = np.repeat(flags, w, axis=1)[:, :samples]
+        return full
+
+    static = ~per_sample(np.asarray(out["window_near"])[:d]) & recorded
+    window_s = w * np.asarray(dts, float)
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
@@ -798,18 +800,18 @@ def _check_group(gyro, accel, mask, rate, dts, read, use_accel):  # noqa: C901
                                   ("window_rate", "window_moving", "window_valid", "threshold_axes")),
                                 window_s[i], **acc)
         if level is not None:
-            moving, rate, turn, tilt = level
+            moving, rate_i, turn, tilt = level
             num["tilt_peak"][i] = max(num["tilt_peak"][i], tilt)
             near = moving | np.r_[moving[1:], False] | np.r_[False, moving[:-1]]
-            static[i] = ~np.repeat(near, lay.w)[:n] & recorded[i]
-            num["moving_fraction"][i] = ((np.repeat(moving, lay.w)[:n] & recorded[i]).sum()
-                                          / max(recorded[i].sum(), 1))
-            num["rate_peak"][i] = max(num["rate_peak"][i], rate)
+            static[i] = ~per_sample(near[None])[0] & recorded[i]
+            num["moving_fraction"][i] = (per_sample(moving[None])[0] & recorded[i]).sum() / max(
+                recorded[i].sum(), 1)
+            num["rate_peak"][i] = max(num["rate_peak"][i], rate_i)
             still = win["window_valid"][i] & ~moving
             if still.any():
                 num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
-    return num, static, np.full(d, lay.w)
+    return num, static, np.full(d, w)
 
 
 def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel_thr=None):
@@ -935,41 +937,28 @@ def compile_check(batch, dt: float | None = None) -> threading.Thread:
     devices) on a thread of its own, from the batch's shapes only: a caller that has other
     programs to trace (a fit) overlaps the two, and joins the thread before its
     :func:`motion_check`, which then finds the program compiled."""
-    groups, dts = _groups(batch, dt)
-    idx = max(groups.values(), key=len)
-    read, use_accel = _reads(batch)
-    n = np.shape(batch.mask)[1]
-    d = np.shape(batch.mask)[0] if len(groups) == 1 else len(idx)
-    lay = _layout((d, n), read, use_accel, float(np.median(dts[idx])))
+    mask = np.asarray(batch.mask)
+    d = mask.shape[0]
+    dts = (_intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0)
+           else np.full(d, float(dt)))
+    spans = _spans(mask)
+    (w, b), idx = max(_groups(dts, spans).items(), key=lambda kv: len(kv[1]))
+    _, use_accel = _reads(batch)
+    lay = _layout(len(idx), int(max(spans[idx].max(initial=0), 1)), w, b, use_accel,
+                  float(np.median(dts[idx])))
 
-    def spec(*tail, dtype=lay.dtype):
-        return jax.ShapeDtypeStruct(lay.shape + tail, dtype)
+    def spec(*shape, dtype=np.float32):
+        return jax.ShapeDtypeStruct(shape, dtype)
 
-    rate = batch.rate is not None and not lay.padded  # subtracted in the check
-    return lay.check.compile_ahead(spec(3), spec(3) if lay.accel else None, spec(dtype=bool),
-                                   lay.w, lay.b, spec(3) if rate else None)
+    rows, k = lay.shape
+    stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
+    return lay.check.compile_ahead(stats, stats if lay.accel else None, w, b)
 
 
-#: Batches of at most this many samples (devices × samples) are padded to a bucketed
-#: shape before the check (devices to :func:`~diffgyro.data.device_bucket`, samples to a
-#: power of two of baseline blocks), so that batches of nearby sizes share one program.
+#: Groups of at most this many samples (devices × samples) are checked at a bucketed
+#: shape (devices to :func:`~diffgyro.data.device_bucket`, windows to a power of two of
+#: baseline blocks), so that batches of nearby sizes share one program.
 PAD_SAMPLES = 1 << 21
-
-
-def _padded(x, devices: int, samples: int, dtype=None):
-    """``x`` (devices first, samples second, or None) padded with zeros (False for the
-    mask) to ``devices`` × ``samples``, in ``dtype`` (default: ``x``'s). Padded samples are
-    invalid: every device's windows and blocks are the ones it has unpadded, and its
-    baseline past its last block is the line it is extrapolated on unpadded
-    (:func:`_baseline`); padded devices hold no valid sample."""
-    if x is None:
-        return None
-    dtype = x.dtype if dtype is None else np.dtype(dtype)
-    if x.shape[:2] == (devices, samples) and x.dtype == dtype:
-        return x
-    out = np.zeros((devices, samples) + x.shape[2:], dtype)
-    out[:x.shape[0], :x.shape[1]] = x
-    return out
 
 
 __all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "compile_check",

@@ -1,0 +1,156 @@
+"""The motion check's one pass over the samples (numba): window statistics.
+
+:mod:`diffgyro.motion` judges a recording from statistics of its windows. They are
+formed here in one read of each device's samples (the three axes side by side), on the
+host's cores in parallel over devices: XLA on a CPU reduces short windows several times
+slower than one compiled loop does, and the check would then cost more than the fit it
+guards. Sums accumulate in float64; the statistics are stored in float32 (what the
+judgement reads).
+
+Compiled on first use and cached on disk (``cache=True``); imported only when a check
+runs.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+from numba import njit, prange
+
+
+@njit(cache=True, nogil=True)
+def _quantile(values, n, q):  # pragma: no cover - compiled
+    """The ``q`` quantile of ``values[:n]`` (linear between order statistics; NaN if none)."""
+    if n == 0:
+        return math.nan
+    h = q * (n - 1)
+    lo = int(math.floor(h))
+    hi = min(lo + 1, n - 1)
+    part = np.partition(values[:n], (lo, hi)) if hi > lo else np.partition(values[:n], lo)
+    return part[lo] + (part[hi] - part[lo]) * (h - lo)
+
+
+@njit(cache=True, parallel=True, nogil=True)
+def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
+          limit):  # pragma: no cover - compiled
+    h = w // 2
+    need = max(h, 2)
+    rest_q, half_q = quantiles[0], quantiles[1]
+    # a quantile of a window's local noise is χ-distributed about σ (≈ normal): the
+    # normal quantile of 1 − rest_q and of (1 + half_q)/2 (see diffgyro.motion)
+    z, zh = quantiles[2], quantiles[3]
+    chi = max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
+    for r in prange(rows.shape[0]):
+        i = rows[r]
+        n = x.shape[1]
+        k = (n + w - 1) // w
+        q0 = q1 = q2 = math.inf
+        for j in range(min(k, stats.shape[1])):
+            a0 = a1 = a2 = b0 = b1 = b2 = e0 = e1 = e2 = 0.0
+            c1 = c = cp = 0.0
+            p0 = p1 = p2 = 0.0
+            prev = False
+            for s in range(min(w, n - j * w)):
+                t = j * w + s
+                if not mask[i, t]:
+                    prev = False
+                    continue
+                v0, v1, v2 = x[i, t, 0], x[i, t, 1], x[i, t, 2]
+                if rate.shape[0]:
+                    v0, v1, v2 = v0 - rate[i, t, 0], v1 - rate[i, t, 1], v2 - rate[i, t, 2]
+                if s < h:
+                    a0 += v0
+                    a1 += v1
+                    a2 += v2
+                    c1 += 1.0
+                else:
+                    b0 += v0
+                    b1 += v1
+                    b2 += v2
+                c += 1.0
+                if prev:
+                    d0, d1, d2 = v0 - p0, v1 - p1, v2 - p2
+                    e0 += d0 * d0
+                    e1 += d1 * d1
+                    e2 += d2 * d2
+                    cp += 1.0
+                    # the quantum: the smallest nonzero change between neighbours
+                    if d0 != 0.0 and abs(d0) < q0:
+                        q0 = abs(d0)
+                    if d1 != 0.0 and abs(d1) < q1:
+                        q1 = abs(d1)
+                    if d2 != 0.0 and abs(d2) < q2:
+                        q2 = abs(d2)
+                p0, p1, p2 = v0, v1, v2
+                prev = True
+            ca, cb, cq = max(c, 1.0), max(c1, 1.0), max(c - c1, 1.0)
+            m0, m1, m2 = (a0 + b0) / ca, (a1 + b1) / ca, (a2 + b2) / ca
+            cq2 = 2.0 * max(cp, 1.0)
+            s0, s1, s2 = math.sqrt(e0 / cq2), math.sqrt(e1 / cq2), math.sqrt(e2 / cq2)
+            stats[r, j, 0, 0], stats[r, j, 0, 1], stats[r, j, 0, 2] = m0, m1, m2
+            stats[r, j, 1, 0], stats[r, j, 1, 1], stats[r, j, 1, 2] = s0, s1, s2
+            stats[r, j, 2, 0] = a0 / cb - b0 / cq
+            stats[r, j, 2, 1] = a1 / cb - b1 / cq
+            stats[r, j, 2, 2] = a2 / cb - b2 / cq
+            count[r, j] = c
+            finite = (math.isfinite(m0) and math.isfinite(m1) and math.isfinite(m2)
+                      and math.isfinite(s0) and math.isfinite(s1) and math.isfinite(s2))
+            valid[r, j] = c >= need and cp >= 2.0 and c1 > 0.0 and c > c1 and finite
+        # the rest noise, from at most `limit` windows spread evenly over those it holds
+        span = 0
+        for j in range(stats.shape[1]):
+            if valid[r, j]:
+                span = j + 1
+        m = min(span, limit)
+        local = np.empty(m, np.float32)
+        half = np.empty(m, np.float32)
+        for a in range(3):
+            u = 0
+            for j in range(m):
+                at = (j * span) // limit if span > limit else j
+                if valid[r, at]:
+                    local[u] = stats[r, at, 1, a]
+                    half[u] = abs(stats[r, at, 2, a])
+                    u += 1
+            quantum = (q0, q1, q2)[a]
+            quantum = quantum if quantum < math.inf else 0.0
+            sigma = max(_quantile(local, u, rest_q) / chi, quantum / math.sqrt(12.0))
+            mean_noise = max(sigma / math.sqrt(w), _quantile(half, u, half_q) / zh / 2.0)
+            noise[r, 0, a] = sigma if u else math.nan
+            noise[r, 1, a] = mean_noise if u else math.nan
+
+
+def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
+                 rows: Int[np.ndarray, " r"], windows: int, quantiles: tuple[float, ...],
+                 limit: int, out_rows: int | None = None,
+                 rate: Float[np.ndarray, "d n 3"] | None = None
+                 ) -> tuple[Float[np.ndarray, "R K 3 3"], Float[np.ndarray, "R K"],
+                            Bool[np.ndarray, "R K"], Float[np.ndarray, "R 2 3"]]:
+    """Window statistics of devices ``rows`` of ``x − rate`` (``rate`` where given), in
+    windows of ``w`` valid-masked samples: per window and axis the mean, the local noise
+    (``√(mean Δ²/2)`` over successive valid pairs inside the window) and the difference of
+    the means of its two halves; per window the valid samples and whether it is valid
+    (half its samples, two pairs, both halves, every value finite). And per device the
+    rest noise per axis, of one sample (σ) and of a window mean, from the ``quantiles``
+    (the local noise's, the half differences', and the normal quantiles that correct
+    them, :func:`diffgyro.motion.noise_quantiles`) of at most ``limit`` valid windows
+    spread evenly over the device's, and the quantum (the smallest nonzero change
+    between neighbouring valid samples); NaN where it has no valid window. The outputs hold
+    ``out_rows`` devices (default ``len(rows)``) and ``windows`` windows: those past the
+    data are empty (invalid)."""
+    rows = np.ascontiguousarray(rows, np.int64)
+    total = len(rows) if out_rows is None else out_rows
+    stats = np.zeros((total, windows, 3, 3), np.float32)
+    count = np.zeros((total, windows), np.float32)
+    valid = np.zeros((total, windows), bool)
+    noise = np.full((total, 2, 3), np.nan, np.float32)
+    x = np.asarray(x)
+    rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
+    _pass(x, np.asarray(mask, bool), rate, rows, int(w), stats, count, valid, noise,
+          np.asarray(quantiles, np.float64), int(limit))
+    return stats, count, valid, noise
+
+
+__all__ = ["window_stats"]
