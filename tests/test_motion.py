@@ -18,7 +18,7 @@ from diffgyro._window_pass import window_stats
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
-from diffgyro.motion import QUANTILE_WINDOWS, _check, motion_check, noise_quantiles, window_sizes
+from diffgyro.motion import MAX_RESOLUTION, MAX_WINDOWS, QUANTILE_WINDOWS, _check, motion_check, noise_quantiles, window_sizes
 from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
@@ -476,3 +476,32 @@ def test_export_warns_of_a_model_limit_and_refuses_an_unexplained_residual(tmp_p
             code, output = _run(capsys, ["export", str(cal), "--format", "px4", "--force", "-o",
                                          str(tmp_path / "forced.params")])
             assert code == 0 and "written with --force" in (tmp_path / "forced.params").read_text()
+
+
+def test_a_long_recording_at_rest_is_shown_in_long_windows_and_a_knock_in_its_rates():
+    """A long recording of a quiet gyro (two hours at 10 Hz, 3e-4 rad/s) is first judged
+    in long windows, which show a turn of a degree: at rest it stays there; knocked once
+    (turned by 1 rad/s for 0.3 s), it is judged again in its rate's windows, which place
+    the knock within a few seconds. So is one tapped and turned back (a long window
+    then holds no angle, but is loud), and a noisy gyro, whose long windows cannot show a
+    degree."""
+    t, g, a = _quiet(72_000, 10.0, seed=7)
+    noisy = g
+    g = BIAS + 0.1 * (g - BIAS)
+    knocked = g.copy()
+    on = (t >= 3000.0) & (t < 3000.3)
+    knocked[on, 0] += 1.0
+    tapped = g.copy()  # and back: no angle left in a long window, but a loud one
+    tapped[(t >= 5000.0) & (t < 5000.2), 1] += 1.0
+    tapped[(t >= 5000.2) & (t < 5000.4), 1] -= 1.0
+    m = motion_check(Batch.from_recordings([Recording(t=t, gyro=g, accel=a, device="rest"),
+                                            Recording(t=t, gyro=knocked, accel=a, device="knock"),
+                                            Recording(t=t, gyro=noisy, accel=a, device="noisy"),
+                                            Recording(t=t, gyro=tapped, accel=a, device="tapped")]))
+    own = window_sizes(0.1)[0]
+    assert [m.record(i)["verdict"] for i in range(3)] == ["at_rest", "in_motion", "at_rest"]
+    assert m.window[0] > own and m.n_windows[0] <= MAX_WINDOWS
+    assert m.resolution[0] <= MAX_RESOLUTION
+    assert m.window[1] == own and m.window[2] == own and m.window[3] == own
+    moving = ~np.asarray(m.static[1, :t.size])
+    assert moving[on].all() and moving.sum() <= 8 * own  # the knock, within a few seconds

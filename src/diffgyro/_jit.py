@@ -71,13 +71,24 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
     call.lower = lambda *a, **k: compiled_for_backend().lower(*_split(a, k))  # type: ignore[attr-defined]
 
+    ahead: set = set()  # the signatures compiled ahead in this process
+
     def compile_ahead(*a, **k) -> threading.Thread:
         """Lower the call for these arguments here and compile it on a thread of its own;
         join the thread before the call (which then finds the program compiled). XLA
         compiles without the GIL, so this overlaps with Python tracing another program
         (lowering is Python: done on the thread it would hold the GIL the other needs).
-        An error is left for the call itself to raise."""
+        A signature compiled ahead before is not lowered again. An error is left for the
+        call itself to raise."""
         log = logging.getLogger("diffgyro")
+        treedef, static, dynamic = _split(a, k)
+        key = (treedef, static, jax.default_backend(),
+               tuple(None if x is None else (tuple(x.shape), str(x.dtype)) for x in dynamic))
+        if key in ahead:
+            done = threading.Thread(target=lambda: None, daemon=True)
+            done.start()
+            return done
+        ahead.add(key)
         try:
             lowered = compiled_for_backend().lower(*_split(a, k))
         except Exception:  # noqa: BLE001 - the call lowers again and raises it

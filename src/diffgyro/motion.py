@@ -479,6 +479,7 @@ class _Windows(NamedTuple):
     threshold: Float[jax.Array, " 3"]
     var: Float[jax.Array, "k 3"]
     jump: Bool[jax.Array, " k"]
+    loud: Bool[jax.Array, ""]
     floor: float
 
 
@@ -499,7 +500,9 @@ def _windows(stats, w: int, floor: float) -> _Windows:
     ok = valid & jnp.concatenate([jnp.zeros((1,), bool), valid[:-1]])
     var_prev = jnp.concatenate([var[:1], var[:-1]])
     jump = _flag(mean - prev, var + var_prev, ok, floor)  # a change between neighbours
-    return _Windows(mean, valid, sigma, thr0, var, jump, floor)
+    # a window louder than the cap allows: shaken or knocked, though its mean may not show it
+    loud = jnp.any(valid[:, None] & (local > LOUDER_CAP * sigma[None, :]))
+    return _Windows(mean, valid, sigma, thr0, var, jump, loud, floor)
 
 
 def _flag(dev, var, ok, floor: float):
@@ -606,7 +609,7 @@ def _numbers(win: _Windows, moving, dev, turn, tilt, count):
                 tilt_peak=jnp.where(some, tilt, nan), rest_rate=jnp.where(some, rest_rate, nan),
                 rest_noise=jnp.where(some, jnp.sqrt(jnp.mean(win.sigma**2)), nan),
                 threshold=jnp.where(some, jnp.sqrt(jnp.mean(win.threshold**2)), nan),
-                n_windows=jnp.sum(win.valid).astype(jnp.float32), window_near=near)
+                n_windows=jnp.sum(win.valid).astype(jnp.float32), window_near=near, loud=win.loud)
 
 
 def _vmapped(gyro, accel, w: int, b: int):
@@ -730,23 +733,25 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     spans = _spans(mask)
     num = {k: np.zeros(d, read) for k in _NUMBERS}
     static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
+    loud = np.zeros(d, bool)
 
     def check(groups):
         for (w, b), idx in groups.items():
-            pn, static[idx], window[idx] = _check_group(gyro, accel, mask, rate, idx, w, b,
-                                                        dts[idx], spans[idx], use_accel)
+            pn, static[idx], window[idx], loud[idx] = _check_group(
+                gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel)
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
 
     check(_groups(dts, spans))
-    # a long recording is judged first in long windows: where nothing moved in them and
-    # they show a turn of MAX_RESOLUTION, it was at rest. Where something moved, or the
-    # long windows cannot show it (correlated noise averages slowly), it is judged again
-    # in the windows of its rate: where and how it moved, in the detail of its rate
+    # a long recording is judged first in long windows: where nothing moved in them, none
+    # was shaken, and they show a turn of MAX_RESOLUTION, it was at rest. Where something
+    # moved or shook, or the long windows cannot show a degree (a noisy gyro, or
+    # correlated noise that averages slowly), it is judged again in the windows of its
+    # rate: whether and how it moved, in the detail of its rate
     rates, which = np.unique(dts, return_inverse=True)
     own = np.array([window_sizes(x)[0] for x in rates])[np.ravel(which)]
     with np.errstate(invalid="ignore"):
-        again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST))
+        again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST) | loud)
     if again.any():
         idx = np.flatnonzero(again)
         check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()})
@@ -756,8 +761,9 @@ def motion_check(batch, dt: float | None = None) -> Motion:
 
 
 def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel):  # noqa: C901
-    """The numbers (float32), static mask and window length (samples) of devices ``idx``,
-    all checked in windows of ``w`` samples and blocks of ``b`` windows."""
+    """The numbers (float32), static mask, window length (samples) and whether a window
+    was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
+    of ``w`` samples and blocks of ``b`` windows."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
@@ -811,7 +817,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
             if still.any():
                 num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
-    return num, static, np.full(d, w)
+    return num, static, np.full(d, w), np.asarray(out["loud"])[:d]
 
 
 def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel_thr=None):
