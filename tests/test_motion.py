@@ -18,7 +18,15 @@ from diffgyro._window_pass import window_stats
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
-from diffgyro.motion import MAX_RESOLUTION, MAX_WINDOWS, QUANTILE_WINDOWS, _check, motion_check, noise_quantiles, window_sizes
+from diffgyro.motion import (
+    MAX_RESOLUTION,
+    MAX_WINDOWS,
+    QUANTILE_WINDOWS,
+    _check,
+    motion_check,
+    noise_quantiles,
+    window_sizes,
+)
 from diffgyro.status import STATUS_NAMES
 
 DATA = Path(__file__).parent / "data"
