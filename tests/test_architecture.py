@@ -101,7 +101,7 @@ def test_graph_reads_known_edges():
     modules = _modules()
     edges = {(a, b) for a, b, _ in _imports(modules)}
     assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
-    assert ("diffgyro.kalman", "diffgyro.fit") in edges
+    assert ("diffgyro.kalman", "diffgyro._signal_builder") in edges
     assert ("diffgyro._noise", "diffgyro._noise_passes") in edges  # inside a function
     assert ("diffgyro.effects._bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError
@@ -189,8 +189,9 @@ def test_no_long_function_without_a_reason():
 
 #: The imports a function may make late instead of at its module's top, each for a named
 #: reason: an optional dependency (the extras ``logs`` and ``dask``, a POSIX-only module),
-#: a library only figures need (matplotlib), numba's compile on first use, and
-#: ``import diffgyro`` staying free of JAX. The command line's deferred loading of the
+#: a library only figures need (matplotlib), numba's compile on first use,
+#: ``import diffgyro`` staying free of JAX, and the state-space path, which the front door
+#: registers as the random walk's fit and loads when a model has one. The command line's deferred loading of the
 #: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
 DEFERRED = {
     "diffgyro": {"jax", "diffgyro._jit"},  # import diffgyro without JAX
@@ -198,6 +199,7 @@ DEFERRED = {
     "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
+    "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
                       "diffgyro.logs._dataflash"},
     "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'
@@ -309,8 +311,8 @@ LAYERS = (
     ("errors", "data", "_jit", "_xla_options", "_program_cache", "_jsonio"),
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
-     "_noise_passes"),
-    ("fit", "kalman", "_fit_sums"),
+     "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result"),
+    ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
     ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
     ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__"),
@@ -332,3 +334,62 @@ def test_layers_of_the_architecture_page():
         if pa != pb and row[pb] > row[pa]:
             up.add((pa, pb))
     assert up == UPWARD
+
+
+#: The names a user calls (and the result type fit() returns) from the front door of the
+#: fit; its engines (the direct solver, the noise floor, the signal builder, the motion
+#: judgement) live in private modules.
+FIT_API = ["fit", "FitResult", "AbstractFitResult", "FitOptions", "solve_device"]
+
+
+def test_fit_is_the_front_door_only():
+    """``diffgyro.fit`` exports what a user calls and defines only the front door (its
+    functions and the result); the engines it runs live in their own modules, which the
+    other paths import directly: no module takes anything but :data:`FIT_API` from
+    ``fit``, and ``kalman`` does not import it at all."""
+    import diffgyro.fit as front
+
+    assert front.__all__ == FIT_API
+    path, _ = _modules()["diffgyro.fit"]
+    defined = {n.name for n in ast.parse(path.read_text()).body
+               if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    assert defined <= {"fit", "FitResult", "_fit", "_fit_sums", "_aux_fields", "_predict_batch",
+                       "_fit_random_walk"}, defined
+    imports = _imports(_modules())
+    taken = {(a, name) for a, b, name in imports if b == "diffgyro.fit" and name not in FIT_API}
+    assert taken == set()
+    assert ("diffgyro.kalman", "diffgyro.fit") not in {(a, b) for a, b, _ in imports}
+
+
+#: The modules that import by name at run time, each for a reason: ``diffgyro``'s public
+#: names loaded on first use (``_LAZY``: the package itself, whose edges the layers leave
+#: out), the command line's commands found on disk (each registers itself), and the
+#: optional libraries of the log readers (the extra ``logs``).
+NAMED_IMPORTS = {"diffgyro", "diffgyro.cli", "diffgyro.logs._table"}
+
+
+def test_no_string_imports():
+    """Every edge between the package's modules is an ``import`` statement the graph reads:
+    no other module calls ``importlib.import_module`` or ``__import__``, and no string in
+    the code (docstrings aside) names one of the package's modules but the list of public
+    modules."""
+    modules = _modules()
+    calls, names = [], []
+    for mod, (path, _) in modules.items():
+        tree = ast.parse(path.read_text())
+        docs = {id(n.body[0].value) for n in ast.walk(tree)
+                if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef)) and n.body
+                and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call):
+                fn = node.func
+                called = fn.attr if isinstance(fn, ast.Attribute) else getattr(fn, "id", "")
+                if called in ("import_module", "__import__") and mod not in NAMED_IMPORTS:
+                    calls.append(f"{mod}:{node.lineno}")
+            elif (isinstance(node, ast.Constant) and isinstance(node.value, str)
+                  and id(node) not in docs and node.value in modules and node.value != "diffgyro"
+                  and mod != "diffgyro"):
+                names.append(f"{mod}:{node.lineno} {node.value!r}")
+    assert calls == []
+    assert names == []
+
