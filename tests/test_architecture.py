@@ -393,3 +393,58 @@ def test_no_string_imports():
     assert calls == []
     assert names == []
 
+
+def test_every_catalogue_signal_in_each_place_that_derives_signals():
+    """The signal catalogue is the one table of signals: every catalogue signal is present
+    in the signals each place makes (``make_signals``, plan design's steady state, the sums
+    path's probe), the simulator's error model and the report's overlays read it, and the
+    numpy-only ``apply`` derives every built-in one (in ``SIGNALS`` and its docstring).
+    A signal added to the catalogue that one of them lacks fails here."""
+    import re
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffgyro
+    from diffgyro import apply
+    from diffgyro._fit_sums.layout import INPUTS, _random_signals
+    from diffgyro._signal_catalogue import BUILT_IN, CATALOGUE, present
+    from diffgyro.data import Recording
+    from diffgyro.effects import product_of
+    from diffgyro.model import ErrorModel, Params
+    from diffgyro.plan_design import operating_signals
+    from diffgyro.signals import TempNorm, make_signals
+    from diffgyro.simulate import model_error
+
+    diffgyro.enable_x64()
+    n = 64
+    t = np.arange(n, dtype=float)
+    temp = 20.0 + 0.5 * t
+    rate = np.stack([np.sin(t / 5), np.cos(t / 7), np.sin(t / 3)], 1)
+    accel = np.tile([0.0, 0.0, 9.81], (n, 1))
+    made = {
+        "signals.make_signals": make_signals(
+            jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), rate=jnp.asarray(rate),
+            temp=jnp.asarray(temp), temp_ext=jnp.asarray(temp - 2), accel=jnp.asarray(accel)),
+        "plan_design.operating_signals": operating_signals(
+            [20.0, 30.0], [0.1, 0.2, 0.3], TempNorm(centre=25.0, scale=10.0)),
+        "_fit_sums.layout._random_signals": _random_signals(frozenset(INPUTS), n, 0),
+    }
+    for place, sig in made.items():
+        assert [s for s in CATALOGUE if not present(sig, s)] == [], place
+
+    every = ErrorModel.from_spec("+".join(f"term({s})" for s in CATALOGUE))
+    params = Params(beta=jnp.ones((1, 3, every.n_params)), theta=jnp.zeros((1, every.n_nonlinear)))
+    err = model_error(every, params, TempNorm(centre=25.0, scale=10.0), t, rate[None],
+                      temp[None], np.full((1, n), 0.5), temp[None] - 2, accel[None])
+    assert np.all(np.isfinite(err)) and np.any(err != 0), "simulate.model_error"
+
+    rec = Recording(t=t, gyro=np.zeros((n, 3)), rate=rate, temp=temp, temp_ext=temp - 2,
+                    accel=accel)
+    missing = [s for s in CATALOGUE if product_of(s, rec, np.full(n, 0.5 / 60)) is None]
+    assert missing == [], "effects.product_of (the report's overlays)"
+
+    assert set(apply.SIGNALS) >= set(BUILT_IN), "apply.SIGNALS"
+    words = set(re.findall(r"[a-z_]+", apply.__doc__))
+    assert [s for s in BUILT_IN if s not in words] == [], "apply's docstring"
+
