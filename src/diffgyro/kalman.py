@@ -47,7 +47,7 @@ from ._jsonio import number
 from ._noise_jax import device_noise_floor
 from ._options import FitOptions
 from ._signal_builder import batch_signals
-from .data import as_batch, bucket_length
+from .data import Batch, Recording, as_batch, bucket_length
 from .model import ErrorModel, Params
 from .signals import TempNorm
 from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, explain
@@ -530,24 +530,33 @@ def _fit_batch(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds, ch
 
 def fit_random_walk(
     model: ErrorModel | str,
-    batch,
+    batch: Batch | Recording | list[Recording],
     *,
     static: Bool[np.ndarray, "d n"] | None = None,
-    norm=None,
-    options=None,
+    norm: TempNorm | None = None,
+    options: FitOptions | None = None,
     reml: bool = False,
     p0: float | None = None,
     **option_overrides,
 ) -> RandomWalkFit:
     """Fit the deterministic part of ``model`` plus a bias random walk to every device.
 
-    The bias is observed where the reference rate is known (the data's
-    ``rx, ry, rz``) or, without one, where the device is static: ``static``
-    (devices × samples, e.g. from :mod:`diffgyro.detect`) or, if not given,
-    every sample (a static recording). q, r per axis and any time constants
-    are learned by maximum likelihood (``reml=True``: restricted likelihood),
-    β by GLS. ``options``/overrides: fields of ``fit.FitOptions`` (``n_blocks``,
-    ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
+    **Arguments:**
+
+    - ``model``: a spec string or :class:`~diffgyro.model.ErrorModel`
+      (``"bias_poly(0)+random_walk"``): its deterministic terms are fitted beside the walk.
+    - ``batch``: a :class:`~diffgyro.data.Batch`, one recording or a list of them.
+    - ``static``: (devices × samples) where the device is static, e.g. from
+      :mod:`diffgyro.detect`; the bias is observed there when the data hold no reference
+      rate (``rx, ry, rz``). None: every sample (a static recording).
+    - ``norm``: the temperature centring (default: each device's own range).
+    - ``options``: :class:`~diffgyro.fit.FitOptions`; keyword ``option_overrides`` set its
+      fields (``n_blocks``, ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
+    - ``reml``: learn q and r by the restricted likelihood instead of the profile one.
+    - ``p0``: prior variance of the walk's start, (rad/s)²; default 0 beside a constant
+      bias, else :data:`WIDE_PRIOR`.
+
+    q, r per axis and any time constants are learned by maximum likelihood, β by GLS.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
 
