@@ -1,7 +1,9 @@
 """The module graph of src/diffgyro: no import cycle, no private names across modules,
-every module importable first, imports at the module top (but for a named list), and
-the public API listed in one place (``diffgyro.PUBLIC_MODULES`` and each module's
-``__all__``).
+every module importable first, imports at the module top (but for a named list), no
+import by a string (every edge is one the graph reads), the public API listed in one
+place (``diffgyro.PUBLIC_MODULES`` and each module's ``__all__``), the fit's front door
+apart from its engines, and the signal catalogue present in every place that derives
+signals.
 
 The graph is read statically (``ast``) from every ``import`` and ``from ... import``
 in a module, at module level, inside a function or under ``TYPE_CHECKING``: an import
