@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from recordings import turning_chamber_run
 
 from diffgyro import apply as A
 from diffgyro import calibration as C
@@ -35,22 +36,6 @@ THETA = {"thermal_lag": math.log(300.0), "warmup": math.log(600.0), "term": math
 def test_every_built_in_effect_is_covered():
     built_in = {k for k, cls in registry().items() if cls.__module__.startswith("diffgyro.effects.")}
     assert built_in == set(ALONE)
-
-
-def turning_chamber_run(duration: int, knots: list[float], seed: int) -> Recording:
-    """``duration`` s at 1 Hz: soak 20 °C, up to 50 °C, soak, down to 10 °C, soak (times of
-    the ramps' ends ``knots``); turning on all axes, tilting, an external temperature and an
-    extra column: every signal a term can read."""
-    rng = np.random.default_rng(seed)
-    t = np.arange(float(duration))
-    temp = np.interp(t, knots, [20, 20, 50, 50, 10, 10])
-    temp = temp + 0.02 * rng.standard_normal(t.size)
-    w = np.stack([np.sin(2 * np.pi * t / p + ph) for p, ph in ((97, 0), (61, 1), (43, 2))], 1)
-    accel = 9.81 * np.stack([np.sin(t / 200), np.cos(t / 200) * np.sin(t / 310),
-                             np.cos(t / 200) * np.cos(t / 310)], 1)
-    return Recording(t=t, gyro=1.5 * w + 0.01 * rng.standard_normal(w.shape), temp=temp,
-                     temp_ext=temp - 4.0 + np.sin(t / 150), accel=accel,
-                     aux={"vdd": 3.3 + 0.2 * np.sin(t / 400)}, device="imu0")
 
 
 @pytest.fixture(scope="module")

@@ -1,7 +1,9 @@
 """The module graph of src/diffgyro: no import cycle, no private names across modules,
-every module importable first, imports at the module top (but for a named list), and
-the public API listed in one place (``diffgyro.PUBLIC_MODULES`` and each module's
-``__all__``).
+every module importable first, imports at the module top (but for a named list), no
+import by a string (every edge is one the graph reads), the public API listed in one
+place (``diffgyro.PUBLIC_MODULES`` and each module's ``__all__``), the fit's front door
+apart from its engines, and the signal catalogue present in every place that derives
+signals.
 
 The graph is read statically (``ast``) from every ``import`` and ``from ... import``
 in a module, at module level, inside a function or under ``TYPE_CHECKING``: an import
@@ -101,7 +103,7 @@ def test_graph_reads_known_edges():
     modules = _modules()
     edges = {(a, b) for a, b, _ in _imports(modules)}
     assert ("diffgyro.fit", "diffgyro.status") in edges  # from .status import (...)
-    assert ("diffgyro.kalman", "diffgyro.fit") in edges
+    assert ("diffgyro.kalman", "diffgyro._signal_builder") in edges
     assert ("diffgyro._noise", "diffgyro._noise_passes") in edges  # inside a function
     assert ("diffgyro.effects._bias_poly", "diffgyro.effects._common") in edges
     assert ("diffgyro", "diffgyro.errors") in edges  # from .errors import DataError, SpecError
@@ -189,8 +191,9 @@ def test_no_long_function_without_a_reason():
 
 #: The imports a function may make late instead of at its module's top, each for a named
 #: reason: an optional dependency (the extras ``logs`` and ``dask``, a POSIX-only module),
-#: a library only figures need (matplotlib), numba's compile on first use, and
-#: ``import diffgyro`` staying free of JAX. The command line's deferred loading of the
+#: a library only figures need (matplotlib), numba's compile on first use,
+#: ``import diffgyro`` staying free of JAX, and the state-space path, which the front door
+#: registers as the random walk's fit and loads when a model has one. The command line's deferred loading of the
 #: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
 DEFERRED = {
     "diffgyro": {"jax", "diffgyro._jit"},  # import diffgyro without JAX
@@ -198,6 +201,7 @@ DEFERRED = {
     "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
+    "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
                       "diffgyro.logs._dataflash"},
     "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'
@@ -309,8 +313,8 @@ LAYERS = (
     ("errors", "data", "_jit", "_xla_options", "_program_cache", "_jsonio"),
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
-     "_noise_passes"),
-    ("fit", "kalman", "_fit_sums"),
+     "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result"),
+    ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
     ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
     ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__"),
@@ -332,3 +336,117 @@ def test_layers_of_the_architecture_page():
         if pa != pb and row[pb] > row[pa]:
             up.add((pa, pb))
     assert up == UPWARD
+
+
+#: The names a user calls (and the result type fit() returns) from the front door of the
+#: fit; its engines (the direct solver, the noise floor, the signal builder, the motion
+#: judgement) live in private modules.
+FIT_API = ["fit", "FitResult", "AbstractFitResult", "FitOptions", "solve_device"]
+
+
+def test_fit_is_the_front_door_only():
+    """``diffgyro.fit`` exports what a user calls and defines only the front door (its
+    functions and the result); the engines it runs live in their own modules, which the
+    other paths import directly: no module takes anything but :data:`FIT_API` from
+    ``fit``, and ``kalman`` does not import it at all."""
+    import diffgyro.fit as front
+
+    assert front.__all__ == FIT_API
+    path, _ = _modules()["diffgyro.fit"]
+    defined = {n.name for n in ast.parse(path.read_text()).body
+               if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    assert defined <= {"fit", "FitResult", "_fit", "_fit_sums", "_aux_fields", "_predict_batch",
+                       "_fit_random_walk"}, defined
+    imports = _imports(_modules())
+    taken = {(a, name) for a, b, name in imports if b == "diffgyro.fit" and name not in FIT_API}
+    assert taken == set()
+    assert ("diffgyro.kalman", "diffgyro.fit") not in {(a, b) for a, b, _ in imports}
+
+
+#: The modules that import by name at run time, each for a reason: ``diffgyro``'s public
+#: names loaded on first use (``_LAZY``: the package itself, whose edges the layers leave
+#: out), the command line's commands found on disk (each registers itself), and the
+#: optional libraries of the log readers (the extra ``logs``).
+NAMED_IMPORTS = {"diffgyro", "diffgyro.cli", "diffgyro.logs._table"}
+
+
+def test_no_string_imports():
+    """Every edge between the package's modules is an ``import`` statement the graph reads:
+    no other module calls ``importlib.import_module`` or ``__import__``, and no string in
+    the code (docstrings aside) names one of the package's modules but the list of public
+    modules."""
+    modules = _modules()
+    calls, names = [], []
+    for mod, (path, _) in modules.items():
+        tree = ast.parse(path.read_text())
+        docs = {id(n.body[0].value) for n in ast.walk(tree)
+                if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef)) and n.body
+                and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Call):
+                fn = node.func
+                called = fn.attr if isinstance(fn, ast.Attribute) else getattr(fn, "id", "")
+                if called in ("import_module", "__import__") and mod not in NAMED_IMPORTS:
+                    calls.append(f"{mod}:{node.lineno}")
+            elif (isinstance(node, ast.Constant) and isinstance(node.value, str)
+                  and id(node) not in docs and node.value in modules and node.value != "diffgyro"
+                  and mod != "diffgyro"):
+                names.append(f"{mod}:{node.lineno} {node.value!r}")
+    assert calls == []
+    assert names == []
+
+
+def test_every_catalogue_signal_in_each_place_that_derives_signals():
+    """The signal catalogue is the one table of signals: every catalogue signal is present
+    in the signals each place makes (``make_signals``, plan design's steady state, the sums
+    path's probe), the simulator's error model and the report's overlays read it, and the
+    numpy-only ``apply`` derives every built-in one (in ``SIGNALS`` and its docstring).
+    A signal added to the catalogue that one of them lacks fails here."""
+    import re
+
+    import jax.numpy as jnp
+    import numpy as np
+
+    import diffgyro
+    from diffgyro import apply
+    from diffgyro._fit_sums.layout import INPUTS, _random_signals
+    from diffgyro._signal_catalogue import BUILT_IN, CATALOGUE, present
+    from diffgyro.data import Recording
+    from diffgyro.effects import product_of
+    from diffgyro.model import ErrorModel, Params
+    from diffgyro.plan_design import operating_signals
+    from diffgyro.signals import TempNorm, make_signals
+    from diffgyro.simulate import model_error
+
+    diffgyro.enable_x64()
+    n = 64
+    t = np.arange(n, dtype=float)
+    temp = 20.0 + 0.5 * t
+    rate = np.stack([np.sin(t / 5), np.cos(t / 7), np.sin(t / 3)], 1)
+    accel = np.tile([0.0, 0.0, 9.81], (n, 1))
+    made = {
+        "signals.make_signals": make_signals(
+            jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), rate=jnp.asarray(rate),
+            temp=jnp.asarray(temp), temp_ext=jnp.asarray(temp - 2), accel=jnp.asarray(accel)),
+        "plan_design.operating_signals": operating_signals(
+            [20.0, 30.0], [0.1, 0.2, 0.3], TempNorm(centre=25.0, scale=10.0)),
+        "_fit_sums.layout._random_signals": _random_signals(frozenset(INPUTS), n, 0),
+    }
+    for place, sig in made.items():
+        assert [s for s in CATALOGUE if not present(sig, s)] == [], place
+
+    every = ErrorModel.from_spec("+".join(f"term({s})" for s in CATALOGUE))
+    params = Params(beta=jnp.ones((1, 3, every.n_params)), theta=jnp.zeros((1, every.n_nonlinear)))
+    err = model_error(every, params, TempNorm(centre=25.0, scale=10.0), t, rate[None],
+                      temp[None], np.full((1, n), 0.5), temp[None] - 2, accel[None])
+    assert np.all(np.isfinite(err)) and np.any(err != 0), "simulate.model_error"
+
+    rec = Recording(t=t, gyro=np.zeros((n, 3)), rate=rate, temp=temp, temp_ext=temp - 2,
+                    accel=accel)
+    missing = [s for s in CATALOGUE if product_of(s, rec, np.full(n, 0.5 / 60)) is None]
+    assert missing == [], "effects.product_of (the report's overlays)"
+
+    assert set(apply.SIGNALS) >= set(BUILT_IN), "apply.SIGNALS"
+    words = set(re.findall(r"[a-z_]+", apply.__doc__))
+    assert [s for s in BUILT_IN if s not in words] == [], "apply's docstring"
+

@@ -58,7 +58,8 @@ def test_missing_file_and_bad_option_answer_without_jax(tmp_path):
 def test_public_names_still_load_on_use(tmp_path):
     code = ("import sys, diffgyro; assert 'jax' not in sys.modules; "
             "from diffgyro import Batch, ErrorModel; import diffgyro.effects as effects; "
-            "from diffgyro.effects import RandomWalk; "
+            "from diffgyro.effects import RandomWalk; import diffgyro.fit; "
+            "assert 'diffgyro.kalman' not in sys.modules; "
             "print(diffgyro.Params.__name__, callable(effects.noise_fit(ErrorModel.from_spec("
             "'bias_poly(0)+random_walk').noise)))")
     run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,

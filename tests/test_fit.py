@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from diffgyro import Batch, ErrorModel, calibration
-from diffgyro.fit import FitOptions, batch_signals, fit, solve_device
+from diffgyro._signal_builder import batch_signals
+from diffgyro.fit import FitOptions, fit, solve_device
 from diffgyro.simulate import simulate
 
 WHITE = {"rrw": 0.0, "bias_instability": 0.0, "quantum": 0.0}

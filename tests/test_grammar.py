@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 from grammar_catalogue import CASES, SIGMA, make
-from test_apply_parity import turning_chamber_run
+from recordings import turning_chamber_run
 
 import diffgyro
 from diffgyro import apply as A

@@ -12,9 +12,10 @@ import numpy as np
 import pytest
 
 from diffgyro import calibration
+from diffgyro._signal_builder import batch_signals
 from diffgyro.data import Batch, Recording
 from diffgyro.effects import AbstractNoise, BiasPoly, RandomWalk
-from diffgyro.fit import batch_signals, fit
+from diffgyro.fit import fit
 from diffgyro.kalman import (
     RandomWalkFit,
     fit_random_walk,

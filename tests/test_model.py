@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import registered
 
-from diffgyro import ErrorModel
+from diffgyro import ErrorModel, kalman
 from diffgyro.data import Recording
 from diffgyro.diagnose._candidates import candidate_specs
 from diffgyro.effects import (
@@ -20,7 +20,6 @@ from diffgyro.effects import (
 )
 from diffgyro.errors import SpecError
 from diffgyro.fit import fit
-from diffgyro.kalman import fit_random_walk
 
 
 def test_the_random_walk_is_the_noise_component():
@@ -80,7 +79,7 @@ def user_noise():
     base._NOISE_FITS.pop(Flicker, None)
 
 
-def test_a_registered_user_noise_process(user_noise):
+def test_a_registered_user_noise_process(user_noise, monkeypatch):
     model = ErrorModel.from_spec("flicker_walk+bias_poly(1)")
     assert model.noise == Flicker() and model.terms == (BiasPoly(order=1),)
     assert model.spec == "bias_poly(1)+flicker_walk"
@@ -96,8 +95,12 @@ def test_a_registered_user_noise_process(user_noise):
     assert not {"flicker_walk", "random_walk", "slow_walk"} & {
         c.effect for c in candidate_specs(model, frozenset({"temp"}))}
 
-    # fit() finds the noise component's fit by its class (or the nearest registered base)
-    assert noise_fit(SlowWalk()) is noise_fit(RandomWalk()) is fit_random_walk
+    # fit() finds the noise component's fit by its class (or the nearest registered base);
+    # the front door registers the random walk's, which runs the state-space path
+    assert noise_fit(SlowWalk()) is noise_fit(RandomWalk())
+    monkeypatch.setattr(kalman, "fit_random_walk", lambda m, batch, **kw: ("kalman", m.spec))
+    walk = ErrorModel.from_spec("bias_poly(1)+slow_walk")
+    assert noise_fit(walk.noise)(walk, None) == ("kalman", "bias_poly(1)+slow_walk")
     rec = Recording(t=np.arange(200.0), gyro=np.zeros((200, 3)), temp=np.linspace(20, 30, 200))
     with pytest.raises(SpecError, match="no fit is registered for the noise component"):
         fit(model, rec)

@@ -1,5 +1,5 @@
 """The host noise floor (``diffgyro._noise``): the same numbers as the pure-JAX
-``fit.device_noise_floor`` and as its definition written with numpy's median and quantile,
+``_noise_jax.device_noise_floor`` and as its definition written with numpy's median and quantile,
 chunked on threads, the same numbers from both fit paths, and the simulated σ on
 plain and quantised output."""
 from __future__ import annotations
@@ -11,7 +11,8 @@ import pytest
 
 from diffgyro import Batch, Recording
 from diffgyro import _noise as noise
-from diffgyro.fit import device_noise_floor, fit
+from diffgyro._noise_jax import device_noise_floor
+from diffgyro.fit import fit
 
 
 def exact(d):

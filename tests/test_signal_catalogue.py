@@ -9,6 +9,7 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+from recordings import turning_chamber_run
 
 import diffgyro
 from diffgyro import apply as A
@@ -27,16 +28,11 @@ def _x64():
 
 @pytest.fixture(scope="module")
 def recording() -> Recording:
-    """30 min at 1 Hz: temperature up, soak, down; turning on all axes; tilting."""
-    rng = np.random.default_rng(5)
-    t = np.arange(1800.0)
-    temp = np.interp(t, [0, 200, 800, 1000, 1600, 1800], [20, 20, 45, 45, 15, 15])
-    temp = temp + 0.02 * rng.standard_normal(t.size)
-    w = np.stack([np.sin(2 * np.pi * t / p + ph) for p, ph in ((97, 0), (61, 1), (43, 2))], 1)
-    accel = 9.81 * np.stack([np.sin(t / 200), np.cos(t / 200) * np.sin(t / 310),
-                             np.cos(t / 200) * np.cos(t / 310)], 1)
-    return Recording(t=t, gyro=w + 1e-3 * rng.standard_normal(w.shape), rate=w, temp=temp,
-                     temp_ext=temp - 3.0 + np.sin(t / 150), accel=accel, device="imu0")
+    """30 min at 1 Hz: temperature up, soak, down; turning on all axes with a reference
+    rate; tilting (:func:`recordings.turning_chamber_run`)."""
+    return turning_chamber_run(1800, [0, 200, 800, 1000, 1600, 1800], seed=5,
+                               temps=(20, 20, 45, 45, 15, 15), gain=1.0, noise=1e-3,
+                               ext_offset=3.0, reference=True)
 
 
 def test_every_signal_is_described_and_names_the_effects_that_follow_it():

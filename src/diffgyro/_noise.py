@@ -5,7 +5,7 @@ over pairs of valid samples: the truncation-corrected RMS of the deviations
 from their median inside a ±4σ₀ window (σ₀ = 1.4826 · MAD), over √2
 (:func:`sigma_from_differences`). Slow drift hardly changes from one sample to
 the next, so the differences see the white noise; the window keeps rate-table
-steps and outliers out. The same numbers as :func:`diffgyro.fit.device_noise_floor`
+steps and outliers out. The same numbers as :func:`diffgyro._noise_jax.device_noise_floor`
 (the pure-JAX version the differentiable paths use).
 
 Rows of more than :data:`SUBSAMPLE` differences: the median and the MAD only

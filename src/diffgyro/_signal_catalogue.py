@@ -3,16 +3,20 @@
 Each entry names a signal as the term grammar writes it (``term(temp*az)``), its unit as
 a term reads it, how it is derived from the loaded data, the data signals it needs (an
 effect's ``needs``), the :class:`~diffgyro.signals.Signals` fields it reads, and the
-built-in effects that follow it. The grammar (:mod:`diffgyro.effects._grammar`), term
-synthesis (:mod:`diffgyro.diagnose._synthesis`) and the docs read this table; the
-derivations themselves live in :func:`diffgyro.signals.make_signals`, and
-:mod:`diffgyro.apply` (numpy only, the firmware reference) is the one other place that
-computes them (its parity test holds the two together).
+built-in effects that follow it. The entry's ``value`` is the one place the signal is
+computed from the :class:`~diffgyro.signals.Signals` fields: the term grammar
+(:mod:`diffgyro.effects._grammar`, whose figure overlays ``product_of`` read it too), term
+synthesis (:mod:`diffgyro.diagnose._synthesis`) and the docs read this table; the fields
+are made by :func:`diffgyro.signals.make_signals` (the fit, the simulator) or set directly
+for steady state (``plan_design.operating_signals``) and the sums path's probe.
+:mod:`diffgyro.apply` (numpy only, the firmware reference) keeps its own twin
+(``apply.SIGNALS``), held to this table by tests/test_signal_catalogue.py; and
+tests/test_architecture.py fails when any of these places lacks a catalogue signal.
 
 A derived signal is a function of the fields of ``Signals``: adding one takes an entry
-here (its ``value`` derives it), its numpy derivation in :mod:`diffgyro.apply`
-(``environment`` and ``_signal``), and :mod:`diffgyro.signals` only for a helper of its
-own or a field computed once in ``make_signals`` (docs/architecture.md).
+here (its ``value`` derives it), its numpy derivation in ``apply.SIGNALS`` (and the list
+in apply's docstring), its line in docs/effects.md, and :mod:`diffgyro.signals` only for
+a helper of its own or a field computed once in ``make_signals`` (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -95,6 +99,9 @@ _ENTRIES = (
 #: are written in). Extra columns (``aux``) are not listed: any column name is a signal,
 #: centred and scaled by :mod:`diffgyro._aux`.
 CATALOGUE: dict[str, SignalInfo] = {s.name: s for s in _ENTRIES}
+#: The signals diffgyro itself defines (``register_signal`` adds others to
+#: :data:`CATALOGUE` only): the ones :mod:`diffgyro.apply` derives in numpy too.
+BUILT_IN: tuple[str, ...] = tuple(CATALOGUE)
 
 
 def register_signal(info: SignalInfo) -> SignalInfo:

@@ -2,8 +2,9 @@
 
 This file depends on numpy and the standard library only, so it can be
 copied next to a data pipeline or read as the specification of the formula.
-It derives the signals of ``diffgyro._signal_catalogue`` itself, in numpy (the
-one place besides ``diffgyro.signals``; parity tests hold the two together).
+It derives the signals of ``diffgyro._signal_catalogue`` itself, in numpy
+(:data:`SIGNALS`, and the list in step 3's ``term(EXPR)`` row): the one place
+besides the catalogue, held to it signal by signal by tests/test_signal_catalogue.py.
 For one device with calibration record ``dev`` (an entry of the file's
 ``devices`` list) and model spec ``spec``:
 
@@ -50,7 +51,7 @@ import re
 import numpy as np
 
 __all__ = ["compensate", "environment", "columns", "local_slope",
-           "HEATING_THRESHOLD", "G"]
+           "HEATING_THRESHOLD", "G", "SIGNALS"]
 
 HEATING_THRESHOLD = 0.05 / 60.0
 _OTHERS = ((1, 2), (0, 2), (0, 1))
@@ -91,22 +92,32 @@ def _factors(expr: str):
     return out
 
 
+def _force(k: int):
+    return lambda dev, rate, env: env["accel"][:, k] / G
+
+
+def _rate(k: int):
+    return lambda dev, rate, env: rate[:, k]
+
+
+#: Every signal of ``term(EXPR)`` by grammar name: ``(dev, rate, env) ->`` (n,), or (n, 3)
+#: for ``w``. The numpy twin of the catalogue (``diffgyro._signal_catalogue``), held to it
+#: by tests/test_signal_catalogue.py; any other name is an extra column.
+SIGNALS = {
+    "temp": lambda dev, rate, env: env["temp_s"],
+    "temp_ext": lambda dev, rate, env: (env["temp_ext"] - dev["temp_centre"]) / dev["temp_scale"],
+    "dtemp": lambda dev, rate, env: 60.0 * env["dtemp"],
+    "heating": lambda dev, rate, env: env["heating"],
+    **{f"a{c}": _force(k) for k, c in enumerate("xyz")},
+    **{f"r{c}": _rate(k) for k, c in enumerate("xyz")},
+    "w": lambda dev, rate, env: rate,
+}
+
+
 def _signal(name: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
     """A grammar signal: (n,), or (n, 3) for ``w``."""
-    if name == "temp":
-        return env["temp_s"]
-    if name == "temp_ext":
-        return (env["temp_ext"] - dev["temp_centre"]) / dev["temp_scale"]
-    if name == "dtemp":
-        return 60.0 * env["dtemp"]
-    if name == "heating":
-        return env["heating"]
-    if name in ("ax", "ay", "az"):
-        return env["accel"][:, "xyz".index(name[1])] / G
-    if name in ("rx", "ry", "rz"):
-        return rate[:, "xyz".index(name[1])]
-    if name == "w":
-        return rate
+    if name in SIGNALS:
+        return SIGNALS[name](dev, rate, env)
     return env["aux_s"][name]
 
 

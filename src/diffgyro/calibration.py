@@ -34,11 +34,11 @@ import numpy as np
 from . import __version__
 from . import _aux as aux_cols
 from ._aux import aux_names
+from ._fit_result import AbstractFitResult
 from ._jsonio import atomic_write_text, dumps, to_json_safe
 from ._signal_builder import batch_signals
 from .data import Batch, Recording
 from .errors import SpecError
-from .fit import FitResult
 from .model import ErrorModel, Params
 from .motion import MAX_INTERVALS, VERDICT_NAMES
 from .signals import TempNorm
@@ -142,14 +142,14 @@ def units_of(model: ErrorModel) -> dict:
                                                     "temperature": "°C"}
 
 
-def aux_entries(result: FitResult, i: int) -> dict:
+def aux_entries(result: AbstractFitResult, i: int) -> dict:
     """Device ``i``'s centre, scale and calibrated range of every extra column the fit read."""
     return {k: {"centre": float(nm.centre[i]), "scale": float(nm.scale[i]),
                 "range": np.asarray(result.aux_range[k][i], float).tolist()}
             for k, nm in result.aux_norm.items()}
 
 
-def from_fit(result: FitResult, batch: Batch | None = None) -> Calibration:
+def from_fit(result: AbstractFitResult, batch: Batch | None = None) -> Calibration:
     """A calibration file's content from a fit (``batch`` adds the input hash)."""
 
     devices = []

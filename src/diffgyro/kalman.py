@@ -31,6 +31,7 @@ Also here: a causal filter run (:func:`causal_bias`) for real-time compensation.
 from __future__ import annotations
 
 import math
+from typing import ClassVar
 
 import equinox as eqx
 import jax
@@ -39,16 +40,17 @@ import numpy as np
 import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
+from ._fit_result import AbstractFitResult
 from ._folds import fold_ids
 from ._jit import release_compiled_if_crowded
 from ._jsonio import number
+from ._noise_jax import device_noise_floor
 from ._options import FitOptions
-from .data import as_batch, bucket_length
-from .effects import RandomWalk, register_noise_fit
-from .fit import batch_signals, device_noise_floor
+from ._signal_builder import batch_signals
+from .data import Batch, Recording, as_batch, bucket_length
 from .model import ErrorModel, Params
 from .signals import TempNorm
-from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, STATUS_NAMES, explain
+from .status import FAILED, INSUFFICIENT_DATA, NOT_CONVERGED, OK, explain
 from .stochastic import bias_filter, state_space
 
 __all__ = ["fit_random_walk", "RandomWalkFit", "identified_bias", "smooth_bias", "causal_bias",
@@ -375,28 +377,32 @@ def observed_indices(obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------- the batch fit
 
 
-class RandomWalkFit(eqx.Module):
-    """Deterministic model + random walk fitted to every device of a batch.
+class RandomWalkFit(AbstractFitResult):
+    """Deterministic model + random walk fitted to every device of a batch: the fields of
+    :class:`~diffgyro.fit.AbstractFitResult` (``rms`` over the observed samples,
+    ``heldout_rms`` on held-out time blocks predicted by the smoother from the rest, with
+    q, r and θ from the full fit), and the walk's own below."""
 
-    Per device (leading axis d): ``params`` (beta (3, p), theta), ``q`` and
-    ``r`` per axis ((rad/s)²/s and (rad/s)²), ``loglik``, the smoothed total
-    ``bias`` (n, 3) and its ``walk`` part, the ``residual`` after smoothing
-    (zero where not observed), ``rms`` (observed samples), ``heldout_rms``
-    (held-out time blocks predicted by the smoother from the rest, with q, r
-    and θ from the full fit), ``noise_floor`` and ``status``.
-    """
+    residual_tells_motion: ClassVar[bool] = False
 
     model: ErrorModel = eqx.field(static=True)
     devices: tuple[str, ...] = eqx.field(static=True)
     params: Params
     norm: object
+    #: Random-walk intensity per axis, (rad/s)²/s.
     q: Float[Array, "d 3"]
+    #: White-noise variance per sample and axis, (rad/s)².
     r: Float[Array, "d 3"]
+    #: Log-likelihood (restricted with ``reml``).
     loglik: Float[Array, " d"]
+    #: The smoothed total bias (deterministic part and walk) on every sample.
     bias: Float[Array, "d n 3"]
+    #: The walk part of :attr:`bias`, and its standard deviation.
     walk: Float[Array, "d n 3"]
     walk_sd: Float[Array, "d n 3"]
+    #: What the smoothed bias leaves (zero where not observed).
     residual: Float[Array, "d n 3"]
+    #: The samples that observed the bias.
     observed: Bool[Array, "d n"]
     rms: Float[Array, " d"]
     heldout_rms: Float[Array, " d"]
@@ -408,24 +414,12 @@ class RandomWalkFit(eqx.Module):
     n_samples: Float[Array, " d"]
     temp_range: Float[Array, "d 2"] | None
     options: object
+    #: Prior variance of the walk's start, (rad/s)².
     p0: Float[Array, ""]
     reml: bool = eqx.field(static=True, default=False)
-    #: Whether each device was at rest (:mod:`diffgyro.motion`); None when not checked.
     motion: object = None
-    #: Fitted from the detected static intervals only.
     static_only: bool = eqx.field(static=True, default=False)
-    #: Valid samples of each recording before the moving ones were left out.
     n_recorded: Float[Array, " d"] | None = None
-
-    @property
-    def n_devices(self) -> int:
-        return len(self.devices)
-
-    def signals(self, batch):
-        """Derived signals of ``batch`` with this fit's temperature centring."""
-
-        norm = self.norm if self.model.requires() & {"temp"} else None
-        return batch_signals(batch, norm=norm, dtemp_window=self.options.dtemp_window)
 
     def smooth(self, batch, static=None) -> SmoothedBias:
         """The fitted model's bias on ``batch`` (same devices): β and θ kept, the walk smoothed
@@ -474,9 +468,6 @@ class RandomWalkFit(eqx.Module):
         """Rate random walk √q, rad/s²/√Hz."""
         return jnp.sqrt(self.q)
 
-    def status_name(self, i: int) -> str:
-        return STATUS_NAMES[int(self.status[i])]
-
     def status_detail(self, i: int) -> str:
         """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
         name = self.status_name(i)
@@ -487,39 +478,11 @@ class RandomWalkFit(eqx.Module):
         return explain(name, self.model, n_samples=self.n_samples[i], steps=self.steps[i],
                        motion=None if self.motion is None else self.motion.record(i))
 
-    def device_params(self, i: int) -> Params:
-        return jax.tree.map(lambda a: a[i], self.params)
+    def _axis_noise(self, i: int, axis: int) -> dict:
+        return {"random_walk.q": float(self.q[i, axis]), "random_walk.r": float(self.r[i, axis])}
 
-    def param_dict(self, i: int) -> dict:
-        """Device ``i``'s coefficients by label, plus the learned noise levels per axis."""
-        pr = self.device_params(i)
-        labels = self.model.param_labels()
-        out: dict = {}
-        for ax, name in enumerate("xyz"):
-            out[name] = {lab: float(v) for lab, v in zip(labels[ax], np.asarray(pr.beta[ax]))}
-            out[name]["random_walk.q"] = float(self.q[i, ax])
-            out[name]["random_walk.r"] = float(self.r[i, ax])
-        if self.model.n_nonlinear:
-            out["shared"] = {}
-            for t, _, qs in self.model.slices():
-                if t.n_nonlinear:
-                    vals = np.asarray(t.nonlinear_values(pr.theta[qs]))
-                    for n, v in zip(t.nonlinear_names(), vals):
-                        out["shared"][f"{t.spec}.{n}"] = float(v)
-        return out
-
-    def summary(self, i: int) -> dict:
-        return {
-            "device": self.devices[i], "status": self.status_name(i),
-            "status_detail": self.status_detail(i), "rms": number(self.rms[i]),
-            "heldout_rms": number(self.heldout_rms[i]), "noise_floor": number(self.noise_floor[i]),
-            "loglik": number(self.loglik[i]), "steps": int(self.steps[i]),
-            "n_samples": int(self.n_samples[i]), "params": self.param_dict(i),
-            "motion": None if self.motion is None else self.motion.record(i),
-        } | ({"static_only": True, "n_recorded": int(self.n_recorded[i])} if self.static_only else {})
-
-    def records(self) -> list[dict]:
-        return [self.summary(i) for i in range(self.n_devices)]
+    def _likelihood(self, i: int) -> dict:
+        return {"loglik": number(self.loglik[i])}
 
 
 def _fit_device(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds):
@@ -565,27 +528,35 @@ def _fit_batch(model, sig, obs, keep, p0, reml, max_steps, n_blocks, n_folds, ch
     return jax.lax.map(one, (sig, obs, keep), batch_size=chunk)
 
 
-@register_noise_fit(RandomWalk)
 def fit_random_walk(
     model: ErrorModel | str,
-    batch,
+    batch: Batch | Recording | list[Recording],
     *,
     static: Bool[np.ndarray, "d n"] | None = None,
-    norm=None,
-    options=None,
+    norm: TempNorm | None = None,
+    options: FitOptions | None = None,
     reml: bool = False,
     p0: float | None = None,
     **option_overrides,
 ) -> RandomWalkFit:
     """Fit the deterministic part of ``model`` plus a bias random walk to every device.
 
-    The bias is observed where the reference rate is known (the data's
-    ``rx, ry, rz``) or, without one, where the device is static: ``static``
-    (devices × samples, e.g. from :mod:`diffgyro.detect`) or, if not given,
-    every sample (a static recording). q, r per axis and any time constants
-    are learned by maximum likelihood (``reml=True``: restricted likelihood),
-    β by GLS. ``options``/overrides: fields of ``fit.FitOptions`` (``n_blocks``,
-    ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
+    **Arguments:**
+
+    - ``model``: a spec string or :class:`~diffgyro.model.ErrorModel`
+      (``"bias_poly(0)+random_walk"``): its deterministic terms are fitted beside the walk.
+    - ``batch``: a :class:`~diffgyro.data.Batch`, one recording or a list of them.
+    - ``static``: (devices × samples) where the device is static, e.g. from
+      :mod:`diffgyro.detect`; the bias is observed there when the data hold no reference
+      rate (``rx, ry, rz``). None: every sample (a static recording).
+    - ``norm``: the temperature centring (default: each device's own range).
+    - ``options``: :class:`~diffgyro.fit.FitOptions`; keyword ``option_overrides`` set its
+      fields (``n_blocks``, ``n_folds``, ``max_steps``, ``chunk``, ``dtemp_window``).
+    - ``reml``: learn q and r by the restricted likelihood instead of the profile one.
+    - ``p0``: prior variance of the walk's start, (rad/s)²; default 0 beside a constant
+      bias, else :data:`WIDE_PRIOR`.
+
+    q, r per axis and any time constants are learned by maximum likelihood, β by GLS.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
 

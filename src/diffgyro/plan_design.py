@@ -44,9 +44,10 @@ import numpy as np
 from jaxtyping import Array, Float
 from scipy.signal import lfilter
 
+from ._direct import solve_device
 from .data import Batch
 from .effects import first_order_lag
-from .fit import FitOptions, fit, solve_device
+from .fit import FitOptions, fit
 from .model import ErrorModel, Params
 from .signals import Signals, TempNorm, make_signals
 

@@ -36,10 +36,11 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float
 
+from ._direct import project_linear, solve_device, varpro
 from ._jit import release_compiled_if_crowded
 from ._linalg import normal_equations
 from .data import Batch
-from .fit import FitOptions, FitResult, project_linear, solve_device, varpro
+from .fit import FitOptions, FitResult
 from .model import ErrorModel, Params
 from .plan_design import compensation_error, flat, operating_signals, output_jacobian, unflat
 from .signals import Signals, TempNorm

@@ -87,7 +87,7 @@ def finish(model: ErrorModel, layout: Layout, opts, raw: DeviceSums) -> dict:
 
 def _covariance_separable(a, xg, gg, sigma2):
     """Gauss–Newton covariance of (β per axis, θ), each axis weighted by 1/σ_i², as
-    :func:`diffgyro.fit._covariance` forms it, from the Gram matrices ``a`` (3, p, p) and
+    :func:`diffgyro._direct._covariance` forms it, from the Gram matrices ``a`` (3, p, p) and
     the sums ``xg`` = Σ X ∂(Xβ)/∂θ (3, p, q) and ``gg`` = Σ (∂(Xβ)/∂θ)² (3, q, q)."""
     p = a.shape[-1]
     i_bt = xg / sigma2[:, None, None]

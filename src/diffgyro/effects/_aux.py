@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from ..data import aux_key
-from ..signals import masked_range
+from ..signals import Signals, masked_range
 from ._base import AbstractEffect, register
 from ._common import powers
 
@@ -33,7 +34,7 @@ class Aux(AbstractEffect):
     def spec(self):
         return f"aux({self.column})" if self.order == 1 else f"aux({self.column},{self.order})"
 
-    def requires(self):
+    def requires(self) -> frozenset[str]:
         return frozenset({aux_key(self.column)})
 
     def followed_signal(self):
@@ -42,7 +43,7 @@ class Aux(AbstractEffect):
     def param_names(self):
         return tuple(f"a{j}" for j in range(1, self.order + 1))
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         p = powers(sig.aux[self.column], 1, self.order)
         return jnp.broadcast_to(p[:, None, :], (p.shape[0], 3, self.order))
 

@@ -15,15 +15,14 @@ closed-form least squares and variable projection.
 A noise process (the bias random walk) is not a sum of columns: it is the
 model's noise component, estimated by a state-space smoother while fitting.
 It shares the registry and the spec grammar (``bias_poly(2)+random_walk``); its
-fit is registered by class (:func:`register_noise_fit`), so the regression paths
-never import the state-space path.
+fit is registered by class (:func:`register_noise_fit`): the front door
+(:mod:`diffgyro.fit`) registers the random walk's, a user's own code its process'.
 """
 
 from __future__ import annotations
 
 import abc
 import difflib
-import importlib
 import re
 from collections.abc import Callable
 from typing import ClassVar
@@ -117,9 +116,9 @@ _NOISE_FITS: dict[type, Callable] = {}
 
 def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callable]:
     """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models whose
-    noise component is a ``cls`` (:func:`diffgyro.kalman.fit_random_walk` registers
-    ``RandomWalk``). :func:`diffgyro.fit.fit` dispatches through this table, so the
-    direct and sums paths never import the state-space path."""
+    noise component is a ``cls``. :func:`diffgyro.fit.fit` dispatches through this table
+    and registers the built-in ``RandomWalk``'s fit (:func:`diffgyro.kalman.fit_random_walk`)
+    itself, so every edge is an import the module graph shows."""
     def add(fn: Callable) -> Callable:
         _NOISE_FITS[cls] = fn
         return fn
@@ -128,10 +127,8 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
 
 
 def noise_fit(noise: AbstractNoise) -> Callable:
-    """The fit registered for the class of ``noise`` (or the nearest base class)."""
-    for cls in type(noise).__mro__:  # a class names the module that registers its fit
-        if getattr(cls, "fit_module", None):
-            importlib.import_module(cls.fit_module)
+    """The fit registered for the class of ``noise`` (or the nearest base class); the
+    built-in processes' fits are registered once :mod:`diffgyro.fit` is imported."""
     for cls in type(noise).__mro__:
         if cls in _NOISE_FITS:
             return _NOISE_FITS[cls]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import equinox as eqx
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import MIN_SPAN_PER_ORDER, per_axis, powers, span_problem
 
@@ -25,13 +27,13 @@ class BiasPoly(AbstractEffect):
     def spec(self):
         return f"{self.name}({self.order})"
 
-    def requires(self):
+    def requires(self) -> frozenset[str]:
         return frozenset({"temp"}) if self.order >= 1 else frozenset()
 
     def param_names(self):
         return tuple(f"c{j}" for j in range(self.order + 1))
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         if self.order == 0:
             return per_axis(sig.t * 0 + 1.0)
         p = powers(sig.temp_s, 0, self.order)

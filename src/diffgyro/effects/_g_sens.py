@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AXES, AbstractEffect, register
 
 
@@ -25,7 +27,7 @@ class GSens(AbstractEffect):
     def labels(self, axis):
         return tuple(f"g_{AXES[axis]}{a}" for a in AXES)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return jnp.broadcast_to(sig.accel[:, None, :], (sig.accel.shape[0], 3, 3))
 
     def range_problem(self, sig):

@@ -40,11 +40,12 @@ from typing import ClassVar
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
-from .._signal_catalogue import CATALOGUE, G
+from .._signal_catalogue import CATALOGUE, present
 from ..data import aux_key
 from ..errors import SpecError
-from ..signals import masked_range
+from ..signals import Signals, TempNorm, masked_range
 from ._base import MAX_ORDER, AbstractEffect, register
 from ._common import (
     MIN_SPAN_PER_ORDER,
@@ -211,7 +212,7 @@ class Term(AbstractEffect):
         """The lagged signal, or None."""
         return next((n for n, lg, _ in self.factors if lg), None)
 
-    def requires(self):
+    def requires(self) -> frozenset[str]:
         out: set[str] = set()
         for n, _, _ in self.factors:
             out |= CATALOGUE[n].reads if n in CATALOGUE else {aux_key(n)}
@@ -253,7 +254,7 @@ class Term(AbstractEffect):
             out = out * (x if x.ndim == 2 else x[:, None])
         return out
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return self.product(sig, theta)[:, :, None]
 
     def range_problem(self, sig):
@@ -284,26 +285,39 @@ class Term(AbstractEffect):
 def product_of(expr: str, rec, dtemp=None, axis: int = 0):
     """The product ``expr`` of a recording's signals in plain units (°C, g, rad/s, the
     column's own; a lagged factor unlagged: its τ is the fit's), for figures; None when the
-    recording lacks one of them."""
+    recording lacks one of them. Each factor is the catalogue's value
+    (:data:`diffgyro._signal_catalogue.CATALOGUE`) on :func:`plain_signals`, or an extra
+    column."""
 
+    sig = plain_signals(rec, dtemp)
+    have = sig.available
     out = np.ones(rec.n)
     for name, _, p in parse_factors(expr):
-        if name in ("temp", "heating"):
-            x = rec.temp
-            if x is not None and name == "heating":
-                x = None if dtemp is None else np.sign(dtemp)
-        elif name == "temp_ext":
-            x = rec.temp_ext
-        elif name == "dtemp":
-            x = None if dtemp is None else 60.0 * np.asarray(dtemp)
-        elif name in ("ax", "ay", "az"):
-            x = None if rec.accel is None else rec.accel[:, "xyz".index(name[1])] / G
-        elif name in ("rx", "ry", "rz", "w"):
-            k = axis if name == "w" else "xyz".index(name[1])
-            x = None if rec.rate is None else rec.rate[:, k]
-        else:
+        info = CATALOGUE.get(name)
+        if info is None:
             x = rec.aux.get(name)
+        elif info.reads <= have and present(sig, name):
+            x = info.value(sig)
+            x = x[:, axis] if info.per_axis else x
+        else:
+            x = None
         if x is None:
             return None
         out = out * np.asarray(x, float) ** p
     return out
+
+
+def plain_signals(rec, dtemp=None) -> Signals:
+    """A recording's :class:`~diffgyro.signals.Signals` in plain units, on the host: the
+    temperature uncentred (centre 0, scale 1: a catalogue signal of it reads °C), dT/dt
+    the given ``dtemp`` (°C/s; None leaves it and the heating state out) and the heating
+    state its sign (the figures' overlay, not the latched state a fit reads)."""
+    n = rec.n
+    heating = None if dtemp is None or rec.temp is None else np.sign(dtemp)
+    return Signals(
+        t=np.asarray(rec.t, float) - float(rec.t[0]), gyro=np.asarray(rec.gyro, float),
+        mask=np.ones(n, bool), rate=np.zeros((n, 3)) if rec.rate is None else np.asarray(rec.rate),
+        temp=rec.temp, temp_s=rec.temp, dtemp=None if rec.temp is None or dtemp is None
+        else np.asarray(dtemp), heating=heating, temp_ext=rec.temp_ext, accel=rec.accel,
+        norm=TempNorm(centre=np.float64(0.0), scale=np.float64(1.0)),
+        has_rate=rec.rate is not None, aux=dict(rec.aux))

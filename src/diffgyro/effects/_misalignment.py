@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AXES, AbstractEffect, register
 from ._common import MIN_RATE, rate_problem
 
@@ -29,7 +31,7 @@ class Misalignment(AbstractEffect):
     def labels(self, axis):
         return tuple(f"m_{AXES[axis]}{AXES[j]}" for j in _OTHERS[axis])
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return jnp.stack([sig.rate[:, list(o)] for o in _OTHERS], axis=1)
 
     def range_problem(self, sig):

@@ -21,6 +21,3 @@ class RandomWalk(AbstractNoise):
     evidence_phrase = "wanders in time with no physical signal explaining it"
     description = "stochastic bias random walk, Kalman-smoothed, variance by maximum likelihood"
     unit = "(rad/s)²/s"
-    #: The module that registers this process' fit (:func:`diffgyro.effects.register_noise_fit`),
-    #: imported on first use so that ``import diffgyro`` does not load the state-space path.
-    fit_module = "diffgyro.kalman"

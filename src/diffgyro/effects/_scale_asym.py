@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import MIN_RATE, rate_problem
 
@@ -24,7 +26,7 @@ class ScaleAsym(AbstractEffect):
     def param_names(self):
         return ("a",)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return jnp.abs(sig.rate)[:, :, None]
 
     def range_problem(self, sig):

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from jaxtyping import Array, Float
+
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import MIN_RATE, rate_problem
 
@@ -22,7 +25,7 @@ class ScaleNonlin(AbstractEffect):
     def param_names(self):
         return ("n",)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return (sig.rate**3)[:, :, None]
 
     def range_problem(self, sig):

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import equinox as eqx
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import MIN_RATE, MIN_SPAN_PER_ORDER, powers, rate_problem, span_problem
 
@@ -26,13 +28,13 @@ class ScalePoly(AbstractEffect):
     def spec(self):
         return f"{self.name}({self.order})"
 
-    def requires(self):
+    def requires(self) -> frozenset[str]:
         return frozenset({"rate", "temp"}) if self.order >= 1 else frozenset({"rate"})
 
     def param_names(self):
         return tuple(f"s{j}" for j in range(self.order + 1))
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         if self.order == 0:
             return sig.rate[:, :, None]
         return sig.rate[:, :, None] * powers(sig.temp_s, 0, self.order)[:, None, :]

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import per_axis
 
@@ -23,7 +25,7 @@ class TempDiff(AbstractEffect):
     def param_names(self):
         return ("d",)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return per_axis(sig.temp - sig.temp_ext)
 
     def range_problem(self, sig):

@@ -5,7 +5,9 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import (
     LOG_TAU_RANGE,
@@ -106,13 +108,15 @@ class ThermalLag(AbstractEffect):
     def nonlinear_grid(self, sig):
         return log_grid(5.0 * (sig.t[1] - sig.t[0]) + 1.0, jnp.maximum(duration(sig) / 3.0, 60.0), 12)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         lag = first_order_lag(sig.t, sig.temp, time_constant(theta[0]))
         lag_s = (lag - sig.norm.centre) / sig.norm.scale
         d = powers(lag_s, 1, self.order) - powers(sig.temp_s, 1, self.order)
         return d[:, None, :].repeat(3, axis=1)
 
-    def columns_jet(self, sig, theta):
+    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]
+                    ) -> tuple[Float[Array, "n 3 p"], Float[Array, "q n 3 p"],
+                               Float[Array, "q q n 3 p"]]:
         """Exact, one recursion for the lag and its two derivatives in log τ."""
         lag, d1, d2 = first_order_lag_jet(sig.t, sig.temp, theta[0])
         ls = (lag - sig.norm.centre) / sig.norm.scale

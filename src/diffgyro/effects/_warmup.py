@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
+from ..signals import Signals
 from ._base import AbstractEffect, register
 from ._common import duration, log_grid, per_axis, time_constant
 
@@ -31,7 +33,7 @@ class Warmup(AbstractEffect):
     def nonlinear_grid(self, sig):
         return log_grid(3.0 * (sig.t[1] - sig.t[0]) + 1.0, jnp.maximum(duration(sig) / 4.0, 30.0), 12)
 
-    def columns(self, sig, theta):
+    def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         return per_axis(jnp.exp(-sig.t / time_constant(theta[0])))
 
     def nonlinear_values(self, theta):

@@ -33,13 +33,15 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .._direct import solve_device
 from .._fit_sums import group_size
 from .._jit import parallel_devices
+from .._motion_judge import judge_motion
 from .._options import FitOptions
 from .._signal_builder import stacked_signals
 from ..data import Batch, sampling_intervals
 from ..errors import SpecError
-from ..fit import FitResult, fit, judge_motion, solve_device
+from ..fit import FitResult, fit
 from ..model import ErrorModel, Params
 from ..signals import TempNorm
 
