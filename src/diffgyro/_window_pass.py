@@ -37,11 +37,6 @@ def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
           limit):  # pragma: no cover - compiled
     h = w // 2
     need = max(h, 2)
-    rest_q, half_q = quantiles[0], quantiles[1]
-    # a quantile of a window's local noise is χ-distributed about σ (≈ normal): the
-    # normal quantile of 1 − rest_q and of (1 + half_q)/2 (see diffgyro.motion)
-    z, zh = quantiles[2], quantiles[3]
-    chi = max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
     for r in prange(rows.shape[0]):
         i = rows[r]
         n = x.shape[1]
@@ -98,28 +93,38 @@ def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
             finite = (math.isfinite(m0) and math.isfinite(m1) and math.isfinite(m2)
                       and math.isfinite(s0) and math.isfinite(s1) and math.isfinite(s2))
             valid[r, j] = c >= need and cp >= 2.0 and c1 > 0.0 and c > c1 and finite
-        # the rest noise, from at most `limit` windows spread evenly over those it holds
-        span = 0
-        for j in range(stats.shape[1]):
-            if valid[r, j]:
-                span = j + 1
-        m = min(span, limit)
-        local = np.empty(m, np.float32)
-        half = np.empty(m, np.float32)
-        for a in range(3):
-            u = 0
-            for j in range(m):
-                at = (j * span) // limit if span > limit else j
-                if valid[r, at]:
-                    local[u] = stats[r, at, 1, a]
-                    half[u] = abs(stats[r, at, 2, a])
-                    u += 1
-            quantum = (q0, q1, q2)[a]
-            quantum = quantum if quantum < math.inf else 0.0
-            sigma = max(_quantile(local, u, rest_q) / chi, quantum / math.sqrt(12.0))
-            mean_noise = max(sigma / math.sqrt(w), _quantile(half, u, half_q) / zh / 2.0)
-            noise[r, 0, a] = sigma if u else math.nan
-            noise[r, 1, a] = mean_noise if u else math.nan
+        _rest_noise(stats[r], valid[r], (q0, q1, q2), w, quantiles, limit, noise[r])
+
+
+@njit(cache=True, nogil=True)
+def _rest_noise(stats, valid, quanta, w, quantiles, limit, noise):  # pragma: no cover - compiled
+    """One device's rest noise per axis, of one sample (σ) and of a window mean, from at
+    most ``limit`` of its valid windows spread evenly over those it holds."""
+    rest_q, half_q = quantiles[0], quantiles[1]
+    # a quantile of a window's local noise is χ-distributed about σ (≈ normal): the
+    # normal quantile of 1 − rest_q and of (1 + half_q)/2 (see diffgyro.motion)
+    z, zh = quantiles[2], quantiles[3]
+    chi = max(1.0 - z / math.sqrt(2.0 * max(w - 1, 1)), 0.5)
+    span = 0
+    for j in range(stats.shape[0]):
+        if valid[j]:
+            span = j + 1
+    m = min(span, limit)
+    local = np.empty(m, np.float32)
+    half = np.empty(m, np.float32)
+    for a in range(3):
+        u = 0
+        for j in range(m):
+            at = (j * span) // limit if span > limit else j
+            if valid[at]:
+                local[u] = stats[at, 1, a]
+                half[u] = abs(stats[at, 2, a])
+                u += 1
+        quantum = quanta[a] if quanta[a] < math.inf else 0.0
+        sigma = max(_quantile(local, u, rest_q) / chi, quantum / math.sqrt(12.0))
+        mean_noise = max(sigma / math.sqrt(w), _quantile(half, u, half_q) / zh / 2.0)
+        noise[0, a] = sigma if u else math.nan
+        noise[1, a] = mean_noise if u else math.nan
 
 
 def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
