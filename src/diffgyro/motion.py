@@ -35,9 +35,13 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
-Everything is pure JAX per device, vmapped over the batch and compiled once per
-shape and window sizes: the window statistics are elementwise sums over the samples
-as stored, the rest works on the windows.
+
+The samples are read once, by a compiled pass on the host's cores
+(:mod:`diffgyro._window_pass`: every window statistic and the rest noise); the
+judgement on the windows is JAX, vmapped over chunks of devices and compiled once per
+shape and window sizes. A long recording is first judged in longer windows (at most
+:data:`MAX_WINDOWS`), and again in its rate's where anything moved or shook, or the long
+windows cannot show a turn of :data:`MAX_RESOLUTION`.
 """
 
 from __future__ import annotations
