@@ -741,21 +741,23 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
     loud = np.zeros(d, bool)
 
-    def check(groups):
+    def check(groups, final):
         for (w, b), idx in groups.items():
             pn, static[idx], window[idx], loud[idx] = _check_group(
-                gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel)
+                gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
+                final=final or rate is not None or w <= min_own)
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
 
-    check(_groups(dts, spans))
+    rates, which = np.unique(dts, return_inverse=True)
+    own = np.array([window_sizes(x)[0] for x in rates])[np.ravel(which)]
+    min_own = int(own.min(initial=4))
+    check(_groups(dts, spans), final=False)
     # a long recording is judged first in long windows: where nothing moved in them, none
     # was shaken, and they show a turn of MAX_RESOLUTION, it was at rest. Where something
     # moved or shook, or the long windows cannot show a degree (a noisy gyro, or
     # correlated noise that averages slowly), it is judged again in the windows of its
     # rate: whether and how it moved, in the detail of its rate
-    rates, which = np.unique(dts, return_inverse=True)
-    own = np.array([window_sizes(x)[0] for x in rates])[np.ravel(which)]
     with np.errstate(invalid="ignore"):
         again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST) | loud)
     # (with a rate reference the check is of what the reference leaves, which no status
@@ -763,16 +765,18 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     again &= rate is None
     if again.any():
         idx = np.flatnonzero(again)
-        check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()})
+        check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()}, final=True)
     t = getattr(batch, "t", None)
     return Motion(**num, verdict=_verdicts(num), static=static,
                   t=None if t is None else np.asarray(t), window=window, window_s=window * dts)
 
 
-def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel):  # noqa: C901
+def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel,  # noqa: C901
+                 final: bool = True):
     """The numbers (float32), static mask, window length (samples) and whether a window
     was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
-    of ``w`` samples and blocks of ``b`` windows."""
+    of ``w`` samples and blocks of ``b`` windows. Not ``final`` (a first look in long
+    windows, judged again where anything moved): the stretches of rest are not sought."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
@@ -803,7 +807,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     # one at the rest's rate is rest, the others spin (the windows of the moving devices)
     # (with a rate reference the check reads what the reference does not explain: its
     # windows stand as the compiled check left them)
-    refined = np.flatnonzero(num["moving_fraction"] > 0) if not referenced else []
+    refined = np.flatnonzero(num["moving_fraction"] > 0) if final and not referenced else []
     if len(refined):  # on the host, once (not a program per device)
         win = {k: np.asarray(out[k]) for k in ("window_rate", "window_moving", "window_valid",
                                                 "threshold_axes", "window_accel", "accel_threshold")
