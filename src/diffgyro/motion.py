@@ -745,13 +745,12 @@ def motion_check(batch, dt: float | None = None) -> Motion:
         for (w, b), idx in groups.items():
             pn, static[idx], window[idx], loud[idx] = _check_group(
                 gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
-                final=final or rate is not None or w <= min_own)
+                final=final | (w <= own[idx]))
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
 
     rates, which = np.unique(dts, return_inverse=True)
     own = np.array([window_sizes(x)[0] for x in rates])[np.ravel(which)]
-    min_own = int(own.min(initial=4))
     check(_groups(dts, spans), final=False)
     # a long recording is judged first in long windows: where nothing moved in them, none
     # was shaken, and they show a turn of MAX_RESOLUTION, it was at rest. Where something
@@ -772,11 +771,12 @@ def motion_check(batch, dt: float | None = None) -> Motion:
 
 
 def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel,  # noqa: C901
-                 final: bool = True):
+                 final=True):
     """The numbers (float32), static mask, window length (samples) and whether a window
     was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
-    of ``w`` samples and blocks of ``b`` windows. Not ``final`` (a first look in long
-    windows, judged again where anything moved): the stretches of rest are not sought."""
+    of ``w`` samples and blocks of ``b`` windows. A device not ``final`` (per device: a
+    first look in long windows, judged again where anything moved) is not sought for its
+    stretches of rest."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
@@ -807,7 +807,8 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     # one at the rest's rate is rest, the others spin (the windows of the moving devices)
     # (with a rate reference the check reads what the reference does not explain: its
     # windows stand as the compiled check left them)
-    refined = np.flatnonzero(num["moving_fraction"] > 0) if final and not referenced else []
+    refined = (np.flatnonzero((num["moving_fraction"] > 0) & np.broadcast_to(final, (d,)))
+               if not referenced else [])
     if len(refined):  # on the host, once (not a program per device)
         win = {k: np.asarray(out[k]) for k in ("window_rate", "window_moving", "window_valid",
                                                 "threshold_axes", "window_accel", "accel_threshold")
