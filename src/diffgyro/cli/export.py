@@ -39,7 +39,16 @@ def export_command(
                                                  "(px4, 0-3, default 0), INS_TCAL<N> (ardupilot, 1-3, default 1).")] = None,
     out: Annotated[str | None, typer.Option("--out", "-o", help="File to write; '-' or none: stdout.")] = None,
     device_id: Annotated[str | None, typer.Option("--device-id", help="px4: the sensors' device_id "
-                                                  "(TC_G<N>_ID), comma-separated for several devices.")] = None,
+                                                  "(TC_G<N>_ID), comma-separated for several devices "
+                                                  "(default: the ids the log gave, kept in the "
+                                                  "calibration file).")] = None,
+    accel: Annotated[Path | None, typer.Option("--accel", help="px4, ardupilot: an accelerometer "
+                                               "calibration ('fit --channel accel --out') written "
+                                               "beside the gyro's: TC_A<N>_* or "
+                                               "INS_TCAL<N>_ACC*.")] = None,
+    accel_device_id: Annotated[str | None, typer.Option(
+        "--accel-device-id", help="px4: the accelerometers' device_id (TC_A<N>_ID), "
+                                  "comma-separated (default: from the calibration file).")] = None,
     rate: Annotated[float | None, typer.Option("--rate", help="kalibr: update_rate in Hz "
                                                "(default: the recording's).")] = None,
     topic: Annotated[str, typer.Option("--topic", help="kalibr: rostopic.")] = "/imu0",
@@ -104,10 +113,13 @@ def export_command(
         from diffgyro import calibration
 
         cal = calibration.load(source)
+        acc = None if accel is None else calibration.load(accel)
         ids = None if device_id is None else _ids(device_id)
+        acc_ids = None if accel_device_id is None else _ids(accel_device_id)
         text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
-                              force=force)
-        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}"
+                              force=force, accel=acc, accel_ids=acc_ids)
+        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}" + (
+            "" if acc is None else f" and the accelerometers of {_devices_of(acc, fmt, None)}")
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
     _emit(text, out, source, what)
