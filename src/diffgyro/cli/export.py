@@ -75,7 +75,7 @@ def export_command(
     moved), or a noise parameter the model does not identify (px4-ekf, ardupilot-ekf,
     kalibr from 'noise --json'), is refused with the reason, unless --force.
     """
-    from diffgyro.export import FORMATS, render
+    from diffgyro.export import FORMATS
 
     fmt = fmt.lower()
     if fmt not in FORMATS:
@@ -102,7 +102,6 @@ def export_command(
 
         noise, report = _kalibr_noise(source, device, rate, (columns, gyro_unit, acc_unit, temp_unit,
                                       time_unit, sampling_rate, drop_invalid), force)
-
         if accel_noise_density is not None:
             noise = replace(noise, accel_noise_density=accel_noise_density)
         if accel_random_walk is not None:
@@ -110,19 +109,29 @@ def export_command(
         text = kalibr.write(noise, topic, [ln for ln in report if ln.startswith("WARNING: written")])
         what = f"kalibr IMU noise of device {noise.device}"
     else:
-        from diffgyro import calibration
-
-        cal = calibration.load(source)
-        acc = None if accel is None else calibration.load(accel)
-        ids = None if device_id is None else _ids(device_id)
-        acc_ids = None if accel_device_id is None else _ids(accel_device_id)
-        text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
-                              force=force, accel=acc, accel_ids=acc_ids)
-        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}" + (
-            "" if acc is None else f" and the accelerometers of {_devices_of(acc, fmt, None)}")
+        text, report, what = _calibration(source, accel, fmt, device, instance, device_id,
+                                          accel_device_id, force)
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
     _emit(text, out, source, what)
+
+
+def _calibration(source: Path, accel: Path | None, fmt: str, device, instance, device_id,
+                 accel_device_id, force: bool) -> tuple[str, list[str], str]:
+    """The file of a calibration (and an accelerometer's beside it), its report lines, and
+    what it holds."""
+    from diffgyro import calibration
+    from diffgyro.export import render
+
+    cal = calibration.load(source)
+    acc = None if accel is None else calibration.load(accel)
+    ids = None if device_id is None else _ids(device_id)
+    acc_ids = None if accel_device_id is None else _ids(accel_device_id)
+    text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
+                          force=force, accel=acc, accel_ids=acc_ids)
+    what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}" + (
+        "" if acc is None else f" and the accelerometers of {_devices_of(acc, fmt, None)}")
+    return text, report, what
 
 
 def _devices_of(cal, fmt: str, device: str | None) -> str:
