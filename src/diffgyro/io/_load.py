@@ -128,10 +128,12 @@ def load_batch(
     length: int | None = None,
     bucket: bool = True,
     check_units: bool = True,
+    channel: str = "gyro",
 ) -> Batch:
     """:func:`load`, then :meth:`Batch.from_recordings` (padded to a bucket length)."""
     recs = load(paths, columns, units, drop_invalid, sampling_rate, device,
-                min_samples=min_samples, report=report, check_units=check_units)
+                min_samples=min_samples, report=report, check_units=check_units,
+                channel=channel)
     return Batch.from_recordings(recs, length=length, bucket=bucket)
 
 

@@ -150,14 +150,17 @@ def _accel_devices(ulog, prefix: str, file: str) -> tuple[list[dict], dict, list
     devices, meta, warnings = [], {}, []
     for d in accels:
         t = _seconds(d)
+        ids = np.asarray(d.data.get("device_id", []))
+        what = f"sensor_accel instance {d.multi_id}" + (f" (device_id {int(ids[-1])})"
+                                                        if ids.size else "")
         if _rate(t) < MIN_RATE:
-            warnings.append(f"warning: file {file}: sensor_accel instance {d.multi_id} is logged "
-                            f"at {_rate(t):.3g} samples/s (< {MIN_RATE:g}); it is left out")
+            warnings.append(f"warning: file {file}: {what} is logged at {_rate(t):.3g} "
+                            f"samples/s (< {MIN_RATE:g}); it is left out")
             continue
         g = gyros.get(d.multi_id, next(iter(gyros.values()), None))
         if g is None:
-            warnings.append(f"warning: file {file}: sensor_accel instance {d.multi_id} is left "
-                            f"out: no sensor_gyro at rate shows whether the board was at rest")
+            warnings.append(f"warning: file {file}: {what} is left out: no sensor_gyro at rate "
+                            "shows whether the board was at rest")
             continue
         name = f"{prefix}/accel{d.multi_id}"
         dev = {"device": name, "t": t, "accel": _xyz(d, "xyz"),
@@ -256,9 +259,8 @@ def read(path: Path, file: str, prefix: str, channel: str = "gyro") -> LogTable:
     if channel == "accel":
         devices, meta, warnings = _accel_devices(ulog, prefix, file)
         if not devices:
-            raise DataError("no accelerometer to calibrate in the log (no sensor_accel "
-                            f"instance logged at {MIN_RATE:g} samples/s or more beside a "
-                            "sensor_gyro)", file=file,
+            why = "; ".join(w.split(": ", 2)[-1] for w in warnings) or "no sensor_accel logged"
+            raise DataError(f"no accelerometer to calibrate in the log ({why})", file=file,
                             hint="log sensor_accel and sensor_gyro at rate (SDLOG_PROFILE: "
                                  "thermal calibration)")
         if cut is not None:

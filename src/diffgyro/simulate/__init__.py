@@ -155,7 +155,8 @@ def simulate(
     accelerometer's thermal offset, with ``accel_params`` as its coefficients (m/s² per
     unit regressor, same temperature norm; default: drawn like the gyro's and
     :data:`ACCEL_PER_GYRO` times larger); the truth keeps them in ``truth.accel``
-    (``thermal_beta``, ``thermal_theta``) and the spec in ``truth.info["accel_effects"]``.
+    (``thermal_beta``, ``thermal_theta``) and the spec in ``truth.info["accel_effects"]``
+    (with ``keep_components``, the offset itself in ``truth.env["accel_thermal"]``).
     ``keep_components`` stores the deterministic error, the true specific
     force and each noise part in ``truth.env``. Other keywords are plan
     options (see :mod:`.plans`), e.g. ``sample_rate``, ``duration``.
@@ -203,8 +204,9 @@ def simulate(
     temp_out, ext_out, accel, mag = _other_sensors(env, levels, acc, temp, chamber, force, seed)
     info = dict(env.info)
     if accel_effects:
-        accel = accel + _accel_thermal(accel_effects, accel_params, acc, preset_obj, d, seed, norm,
-                                       env, temp, dtemp, chamber, force)
+        accel_thermal = _accel_thermal(accel_effects, accel_params, acc, preset_obj, d, seed,
+                                       norm, env, temp, dtemp, chamber, force)
+        accel = accel + accel_thermal
         info["accel_effects"] = ErrorModel.from_spec(accel_effects).spec
 
     # 4. recordings, batch, truth
@@ -214,6 +216,8 @@ def simulate(
     batch = Batch.from_recordings(recs)
     env_arrays = {"t": env.t, "temp": temp, "dtemp": dtemp, "chamber": env.chamber,
                   "power_state": heat_state}
+    if keep_components and accel_effects:
+        env_arrays["accel_thermal"] = accel_thermal
     if keep_components:
         env_arrays.update({"error": error, "specific_force": np.array(force), "rate": np.array(rate),
                            **{f"noise_{k}": v for k, v in parts.items()}})
