@@ -158,7 +158,8 @@ def _render(cal: Calibration | None, fmt: str, device: str | None = None,
                                   "--device-id")
         if accel is not None:
             names = select_devices(accel, device if cal is None else None, fmt, len(px4.SLOTS))
-            ids, more = _ids(accel, names, accel_ids, "sensor_accel.device_id",
+            given = accel_ids if cal is not None or accel_ids is not None else device_ids
+            ids, more = _ids(accel, names, given, "sensor_accel.device_id",
                              "--accel-device-id" if cal is not None else "--device-id")
             sensors = px4.Sensors(accel, names, _slots(fmt, instance, len(names), px4.SLOTS), ids)
             warn += more
