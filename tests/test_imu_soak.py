@@ -338,3 +338,25 @@ def test_accel_channel_refuses_what_it_cannot_hold(soak, capsys):
         from diffgyro.channel import resolve
 
         resolve("accel: bias_poly(3)", "gyro")
+
+
+def test_tilt_between_runs_is_refused_with_the_turn(soak):
+    """Board 0 turned by 30° about x halfway through the soak (the gyro sees the turn,
+    gravity moves between axes): the accelerometer fit is in_motion, named by the IMU's
+    motion check, and export refuses it with that reason."""
+    import dataclasses
+
+    one = soak[0].select([0])
+    n = int(one.n_valid[0])
+    gyro, acc = np.array(one.gyro), np.array(one.accel)
+    k0, k1 = n // 2, n // 2 + 20  # 2 s at 10 Hz
+    gyro[0, k0:k1, 0] += np.radians(30.0) / 2.0
+    c, s = np.cos(np.radians(30.0)), np.sin(np.radians(30.0))
+    acc[0, k1:n] = acc[0, k1:n] @ np.array([[1, 0, 0], [0, c, -s], [0, s, c]]).T
+    tilted = dataclasses.replace(one, gyro=gyro, accel=acc)
+    result = fit(MODEL, tilted, channel="accel")
+    rec = result.records()[0]
+    assert rec["status"] == "in_motion" and "turns up to 30°" in rec["status_detail"]
+    cal = calibration.from_fit(result)
+    with pytest.raises(DataError, match="turns up to 30°"):
+        render(cal, "px4")

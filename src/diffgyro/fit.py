@@ -581,7 +581,8 @@ def judge_motion(result, batch: Batch, motion: Motion | None = None, recorded=No
             moved = motion.moved_all()
         # (a random walk's smoothed bias follows a turn: only a deterministic model's
         # residual tells a thermal transient from motion)
-        if (not static_only and isinstance(result, FitResult)
+        # (the accelerometer channel keeps the IMU's verdict: its residual is in m/s²)
+        if (not static_only and isinstance(result, FitResult) and result.channel == "gyro"
                 and np.any(moved & (np.asarray(status) == OK))):
             motion = _unexplained(result, batch, motion, moved)
             moved = motion.moved_all()
