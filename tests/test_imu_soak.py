@@ -162,7 +162,7 @@ def test_ardupilot_parameters_leave_each_channel_at_its_noise(soak):
 
 def test_dtdt_board_is_named_and_refused(soak):
     batch, _, _, _, _, _ = soak
-    diag = diagnose(MODEL, batch, ["gradient", "thermal_lag"], channel="accel", greedy=False,
+    diag = diagnose(MODEL, batch, ["gradient", "temp_diff"], channel="accel", greedy=False,
                     synthesis=False, noise=False)
     verdicts = {d.device: d for d in diag.devices}
     dev2 = verdicts[batch.devices[2]]
