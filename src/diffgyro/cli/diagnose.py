@@ -63,7 +63,9 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
                      _fmt(d.best.heldout_rms) if d.best else "",
                      escape(", ".join(c.term or c.effect for c in d.alternatives)),
                      *((judged[i]["limits"]["result"],) if judged else ())])
-    table = tables.table(f"diagnosis of {diag.spec} (rates in rad/s)", [
+    channel = getattr(diag.fit, "channel", "gyro")
+    what = "rates in rad/s" if channel == "gyro" else "accelerometer, in m/s²"
+    table = tables.table(f"diagnosis of {diag.spec} ({what})", [
         ("device", TEXT), ("verdict", TEXT), ("rms", NUMBER), ("held-out", NUMBER),
         ("floor", NUMBER), ("add", TEXT), ("held-out with it", NUMBER),
         ("close alternatives", TEXT), *((("limits", TEXT),) if judged else ())], rows,

@@ -23,7 +23,7 @@ from .. import allan as allan_mod
 from .._jit import filter_jit, release_compiled_if_crowded
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
-from ..channel import as_channel, check_channel
+from ..channel import UNITS, as_channel, check_channel
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
 from ..errors import SpecError
@@ -384,6 +384,14 @@ def _nested(*args, **kwargs) -> Diagnosis:
     return diagnose(*args, noise=False, **kwargs)
 
 
+def _in_units(devices, channel: str) -> None:
+    """The explanations in the channel's unit (the accelerometer's measurement is in m/s²,
+    where the wording is the gyro's rad/s)."""
+    if channel != "gyro":
+        for d in devices:
+            d.explanation = d.explanation.replace("rad/s", UNITS[channel])
+
+
 def _base_fit(model, batch: Batch, base_fit, channel: str, fit_options: dict):
     """The fit the diagnosis starts from and the batch its candidates are scored on (the
     accelerometer less its gravity reference, on that channel)."""
@@ -483,9 +491,9 @@ def diagnose(
         fl[i] = floor_axes
         return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
                        unsupported, skips[i])[0]
-
     say("identifying the residual's noise")
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
+    _in_units(devices, getattr(res, "channel", "gyro"))
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
