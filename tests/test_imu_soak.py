@@ -360,3 +360,37 @@ def test_tilt_between_runs_is_refused_with_the_turn(soak):
     cal = calibration.from_fit(result)
     with pytest.raises(DataError, match="turns up to 30°"):
         render(cal, "px4")
+
+
+def test_spec_names_its_channel():
+    from diffgyro.channel import resolve, split_spec
+    from diffgyro.errors import SpecError
+
+    assert split_spec("accel: bias_poly(3)") == ("accel", "bias_poly(3)")
+    assert split_spec("bias_poly(3)+term(temp*az)") == (None, "bias_poly(3)+term(temp*az)")
+    assert resolve("bias_poly(3)") == ("gyro", "bias_poly(3)")
+    assert resolve("bias_poly(3)", "accel") == ("accel", "bias_poly(3)")
+    assert resolve("gyro:bias_poly(1)", "gyro") == ("gyro", "bias_poly(1)")
+    with pytest.raises(SpecError, match="unknown channel 'mag'"):
+        resolve("bias_poly(1)", "mag")
+
+
+def test_calibration_file_keeps_channel_reference_and_id(soak):
+    from diffgyro.errors import SpecError
+
+    accel = soak[5]
+    doc = accel.to_json()
+    assert doc["channel"] == "accel" and len(doc["devices"][0]["reference"]) == 3
+    back = calibration.from_json(doc)
+    assert back.channel == "accel" and back.devices[1].reference == accel.devices[1].reference
+    assert "channel" not in soak[4].to_json()  # a gyro file reads as before
+    with_id = dict(doc, devices=[dict(doc["devices"][0], device_id=ACCEL_IDS[0])])
+    assert calibration.from_json(with_id).devices[0].device_id == ACCEL_IDS[0]
+    for bad, what in ((dict(doc, channel="mag"), "channel must be one of"),
+                      (dict(doc, devices=[dict(doc["devices"][0], device_id=-1)]), "device_id"),
+                      (dict(doc, devices=[{k: v for k, v in doc["devices"][0].items()
+                                           if k != "reference"}]), "needs each device's reference")):
+        with pytest.raises(SpecError, match=what):
+            calibration.from_json(bad)
+    with pytest.raises(SpecError, match="compensation applies gyro calibrations"):
+        calibration.compensate(accel, soak[0].select([0, 1]))
