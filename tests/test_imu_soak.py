@@ -332,6 +332,8 @@ def test_accel_channel_refuses_what_it_cannot_hold(soak, capsys):
     batch = soak[0]
     with pytest.raises(Exception, match="cannot be fitted on the accelerometer channel"):
         fit("bias_poly(1)+g_sens", batch, channel="accel")
+    with pytest.raises(Exception, match="random_walk cannot be fitted on the accelerometer"):
+        fit("bias_poly(1)+random_walk", batch, channel="accel")
     with pytest.raises(Exception, match="static_only"):
         fit(MODEL, batch, channel="accel", static_only=True)
     with pytest.raises(Exception, match="names channel accel"):

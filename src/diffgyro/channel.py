@@ -72,6 +72,9 @@ def check_model(model, channel: str) -> None:
     """A SpecError naming the first term the channel cannot hold (``model``: an ErrorModel)."""
     if check_channel(channel) == "gyro":
         return
+    if getattr(model, "noise", None) is not None:
+        raise SpecError(f"{model.noise.spec} cannot be fitted on the accelerometer channel yet",
+                        hint="diagnose --channel accel names it where the residual wanders")
     for term in model.parts:
         for sig, why in _NOT_ON_ACCEL.items():
             if sig in term.requires():
