@@ -302,12 +302,18 @@ def test_dataflash_imus_calibrated_by_instance(soak, tmp_path):
                         "accel": np.asarray(batch.accel[i, :n:2]),
                         "temp": np.asarray(batch.temp[i, :n:2])})
     log = tmp_path / "soak.bin"
-    write_dataflash(log, devices, text=False)
+    ids = {"INS_GYR_ID": GYRO_IDS[0], "INS_GYR2_ID": GYRO_IDS[1], "INS_ACC_ID": ACCEL_IDS[0],
+           "INS_ACC2_ID": ACCEL_IDS[1]}
+    write_dataflash(log, devices, text=False, params=ids)
     cal_g, cal_a, out = tmp_path / "g.json", tmp_path / "a.json", tmp_path / "tcal.param"
     assert main(["fit", str(log), "-m", MODEL, "--out", str(cal_g)]) == 0
     assert main(["fit", str(log), "-m", MODEL, "--channel", "accel", "--out", str(cal_a)]) == 0
     assert main(["export", str(cal_g), "--accel", str(cal_a), "--format", "ardupilot",
                  "--out", str(out)]) == 0
+    # each sensor's id from the log's INS_GYRn_ID / INS_ACCn_ID, and said beside its slot
+    assert [d.device_id for d in calibration.load(cal_g).devices] == GYRO_IDS[:2]
+    assert [d.device_id for d in calibration.load(cal_a).devices] == ACCEL_IDS[:2]
+    assert f"INS_TCAL2 ACC (device_id {ACCEL_IDS[1]})" in out.read_text()
     p = _ardupilot_params(out.read_text())
     for i in range(2):
         n = i + 1

@@ -121,6 +121,12 @@ def _pairs(cal, devices, accel) -> list[tuple[ThermalPoly | None, ThermalPoly | 
     return out
 
 
+def _id(cal: Calibration, name: str) -> str:
+    """`` (device_id N)`` where the calibration knows the sensor's id (from the log)."""
+    dev_id = cal.device(name).device_id
+    return "" if dev_id is None else f" (device_id {dev_id})"
+
+
 def write(cal: Calibration | None, devices: list[str], first_slot: int,
           accel: tuple[Calibration, list[str]] | None = None) -> tuple[str, list[str]]:
     """The .param file's text and its report lines (float32 error per device): the gyros
@@ -147,13 +153,15 @@ def write(cal: Calibration | None, devices: list[str], first_slot: int,
             params = accel_parameters(a, n)
             values = {key: float(f32(v)) for key, v in params}
             err = float32_error(a, lambda temp, v=values, s=n: evaluate_accel(v, s, temp))
-            report.append(f"device {a_name} -> INS_TCAL{n} ACC: " + error_line(err, a))
+            report.append(f"device {a_name} -> INS_TCAL{n} ACC{_id(accel[0], a_name)}: "
+                          + error_line(err, a))
             rows += params
         if g is not None:
             params = parameters(g, n, shared=a is not None)
             values = {key: float(f32(v)) for key, v in (params + _range(g, n))}
             err = float32_error(g, lambda temp, v=values, s=n: evaluate(v, s, temp))
-            report.append(f"device {g_name} -> INS_TCAL{n}: " + error_line(err, g))
+            report.append(f"device {g_name} -> INS_TCAL{n}{_id(cal, g_name)}: "
+                          + error_line(err, g))
             rows += params
     lines += ["# " + msg for msg in report]
     lines += [f"{key},{fmt_f32(v)}" for key, v in rows]

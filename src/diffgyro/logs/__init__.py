@@ -75,8 +75,9 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
         topic: ROS bags: the Imu topic(s) to read, comma-separated.
         temp_topic: ROS bags: the Temperature topic joined to them.
         channel: ``accel``: a PX4 ULog gives one device per ``sensor_accel`` instance
-            (its own times, temperature and device id); DataFlash and ROS logs hold the
-            accelerometer beside the gyro of the same IMU, and read the same either way.
+            (its own times, temperature and device id); a DataFlash log's IMU instances
+            keep the accelerometer's id (``INS_ACCn_ID``) instead of the gyro's; ROS logs
+            read the same either way.
     """
     path = Path(path)
     file = str(path) if file is None else file
@@ -96,4 +97,4 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
         return rosbag.read(path, file, prefix, topic, temp_topic)
     from . import _dataflash as dataflash
 
-    return dataflash.read(path, file, prefix)
+    return dataflash.read(path, file, prefix, channel)
