@@ -8,6 +8,7 @@ board 2's accelerometer a dT/dt term as well (which no autopilot parameter holds
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -266,6 +267,16 @@ def test_ulog_accelerometers_matched_to_their_device_ids(soak, tmp_path, capsys)
     assert main(["fit", str(log), "-m", f"accel: {MODEL}", "--out", str(cal_a)]) == 0
     a = calibration.load(cal_a)
     assert a.channel == "accel" and [d.device_id for d in a.devices] == ACCEL_IDS
+    capsys.readouterr()
+    # the command line names the hidden dT/dt on board 2's accelerometer (instance 0)
+    assert main(["diagnose", str(log), "-m", MODEL, "--channel", "accel", "--json",
+                 "--candidates", "gradient,temp_diff", "--no-synthesis"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    verdicts = {d["device"]: d for d in doc["devices"]}
+    assert doc["channel"] == "accel" and verdicts["soak/accel0"]["verdict"] == "missing_effect"
+    assert verdicts["soak/accel0"]["candidates"][0]["effect"] == "gradient"
+    assert verdicts["soak/accel0"]["candidates"][0]["significant"]
+    assert {verdicts[f"soak/accel{k}"]["verdict"] for k in (1, 2)} == {"adequate"}
     out = tmp_path / "tc.params"
     # board 2's accelerometer (instance 0) keeps its dT/dt residual: written with a warning
     assert main(["export", str(cal_g), "--accel", str(cal_a), "--format", "px4",
