@@ -41,7 +41,6 @@ import numpy as np
 import pyulog
 
 import diffgyro
-from diffgyro import calibration
 from diffgyro.cli import main
 from diffgyro.diagnose import diagnose
 from diffgyro.io import LoadReport, load_batch
