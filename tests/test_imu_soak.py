@@ -381,6 +381,14 @@ def test_tilt_between_runs_is_refused_with_the_turn(soak):
         render(cal, "px4")
 
 
+def test_export_accel_only_where_the_format_has_a_table(tmp_path, capsys):
+    for name in ("g.json", "a.json"):
+        (tmp_path / name).write_text("{}")
+    assert main(["export", str(tmp_path / "g.json"), "--accel", str(tmp_path / "a.json"),
+                 "--format", "kalibr"]) == 2
+    assert "--accel is for px4 and ardupilot" in capsys.readouterr().err
+
+
 def test_spec_names_its_channel():
     from diffgyro.channel import resolve, split_spec
     from diffgyro.errors import SpecError

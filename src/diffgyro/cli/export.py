@@ -78,8 +78,7 @@ def export_command(
     from diffgyro.export import FORMATS
 
     fmt = fmt.lower()
-    if fmt not in FORMATS:
-        raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
+    _check_format(fmt, FORMATS, accel)
     if fmt in ("px4-ekf", "ardupilot-ekf"):
         from diffgyro.export import ekf_noise
 
@@ -114,6 +113,15 @@ def export_command(
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
     _emit(text, out, source, what)
+
+
+def _check_format(fmt: str, formats, accel: Path | None) -> None:
+    """One line (exit 2) for an unknown format, or --accel where the format has no
+    accelerometer table."""
+    if fmt not in formats:
+        raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(formats)}")
+    if accel is not None and fmt not in ("px4", "ardupilot"):
+        raise DataError(f"--accel is for px4 and ardupilot (their accelerometer tables), not {fmt}")
 
 
 def _calibration(source: Path, accel: Path | None, fmt: str, device, instance, device_id,
