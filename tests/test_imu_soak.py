@@ -349,6 +349,10 @@ def test_accel_channel_refuses_what_it_cannot_hold(soak, capsys):
     batch = soak[0]
     with pytest.raises(Exception, match="cannot be fitted on the accelerometer channel"):
         fit("bias_poly(1)+g_sens", batch, channel="accel")
+    import dataclasses
+
+    with pytest.raises(DataError, match="needs ax, ay, az, which the data lack"):
+        fit(MODEL, dataclasses.replace(batch.select([0]), accel=None), channel="accel")
     with pytest.raises(Exception, match="random_walk cannot be fitted on the accelerometer"):
         fit("bias_poly(1)+random_walk", batch, channel="accel")
     with pytest.raises(Exception, match="static_only"):
