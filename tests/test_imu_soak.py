@@ -425,3 +425,18 @@ def test_calibration_file_keeps_channel_reference_and_id(soak):
             calibration.from_json(bad)
     with pytest.raises(SpecError, match="compensation applies gyro calibrations"):
         calibration.compensate(accel, soak[0].select([0, 1]))
+
+
+def test_ardupilot_shared_range_is_the_overlap_and_said(soak):
+    """One INS_TCALn_TMIN/TMAX serves both sensors of IMU n: the overlap of their ranges."""
+    gyro, accel = soak[4], soak[5]
+    doc = accel.to_json()
+    lo, hi = doc["devices"][0]["temp_range"]
+    doc["devices"][0]["temp_range"] = [lo + 2.0, hi]
+    narrowed = calibration.from_json(doc)
+    two = calibration.from_json(gyro.to_json() | {"devices": gyro.to_json()["devices"][:2]})
+    text, report = render(two, "ardupilot", accel=narrowed)
+    p = _ardupilot_params(text)
+    assert p["INS_TCAL1_TMIN"] == pytest.approx(lo + 2.0, abs=1e-4)
+    assert any(line.startswith("INS_TCAL1 TMIN/TMAX") and "the gyro's" in line for line in report)
+    assert not any(line.startswith("INS_TCAL2 TMIN/TMAX") for line in report)

@@ -121,6 +121,19 @@ def _pairs(cal, devices, accel) -> list[tuple[ThermalPoly | None, ThermalPoly | 
     return out
 
 
+def _shared_range(cal, g_name, acc_cal, a_name, shared: ThermalPoly, n: int) -> list[str]:
+    """A line where IMU n's shared TMIN/TMAX is narrower than either sensor's own range."""
+    own = {"gyro": cal.device(g_name).temp_range, "accelerometer": acc_cal.device(a_name).temp_range}
+    cut = [f"the {what}'s {lo:.2f}..{hi:.2f} °C" for what, (lo, hi) in
+           ((w, r) for w, r in own.items() if r is not None)
+           if lo < shared.t_lo - 0.01 or hi > shared.t_hi + 0.01]
+    if not cut:
+        return []
+    return [f"INS_TCAL{n} TMIN/TMAX {shared.t_lo:.2f}..{shared.t_hi:.2f} °C is the overlap of the "
+            f"two sensors' calibrated ranges (narrower than {' and '.join(cut)}): each is "
+            "clamped to it"]
+
+
 def _id(cal: Calibration, name: str) -> str:
     """`` (device_id N)`` where the calibration knows the sensor's id (from the log)."""
     dev_id = cal.device(name).device_id
@@ -149,6 +162,8 @@ def write(cal: Calibration | None, devices: list[str], first_slot: int,
                                 len(accel[1]) if accel is not None else 0))]
     for k, ((g, a), (g_name, a_name)) in enumerate(zip(_pairs(cal, devices, accel), names)):
         n = first_slot + k
+        if g is not None and a is not None:
+            report += _shared_range(cal, g_name, accel[0], a_name, g, n)
         if a is not None:
             params = accel_parameters(a, n)
             values = {key: float(f32(v)) for key, v in params}
