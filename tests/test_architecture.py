@@ -311,7 +311,7 @@ def test_each_public_name_exported_once():
 #: The rows of docs/architecture.md, bottom up: a top-level module or package imports
 #: only from its own row and the rows below.
 LAYERS = (
-    ("errors", "data", "_jit", "_xla_options", "_program_cache", "_jsonio"),
+    ("errors", "data", "channel", "_jit", "_xla_options", "_program_cache", "_jsonio"),
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
      "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass"),

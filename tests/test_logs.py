@@ -151,24 +151,30 @@ _IMU_FMT = ("QBffffffIIf", "TimeUS,I,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T")
 _OLD_IMU_FMT = ("QffffffIIf", "TimeUS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,EG,EA,T")
 
 
-def write_dataflash(path: Path, devices: list[dict], text: bool) -> list[dict]:
+def write_dataflash(path: Path, devices: list[dict], text: bool,
+                    params: dict[str, float] | None = None) -> list[dict]:
     """IMU messages from the DataFlash definition (pymavlink reads but does not write).
 
     Binary: ``A3 95 type`` then the packed fields, with FMT messages first;
     ``IMU`` carries its instance in ``I``. Text: the same messages as comma-
     separated lines, in the older style ``IMU``/``IMU2``/``IMU3`` without ``I``.
+    ``params`` (binary only): ``PARM`` messages (``TimeUS, Name, Value``) before the samples.
     """
     out = bytearray()
     lines = []
     fmts = [(128, "FMT", *_FMT_FMT)]
     fmts += ([(129 + k, "IMU" if k == 0 else f"IMU{k + 1}", *_OLD_IMU_FMT)
               for k in range(len(devices))] if text else [(129, "IMU", *_IMU_FMT)])
+    if params and not text:
+        fmts.append((140, "PARM", "QNf", "TimeUS,Name,Value"))
     sizes = {"Q": 8, "B": 1, "f": 4, "I": 4, "n": 4, "N": 16, "Z": 64}
     length = {t: 3 + sum(sizes[c] for c in f) for t, _, f, _ in fmts}
     for t, name, f, cols in fmts:
         out += b"\xa3\x95\x80" + struct.pack("<BB4s16s64s", t, length[t], name.encode(),
                                              f.encode(), cols.encode())
         lines.append(f"FMT, {t}, {length[t]}, {name}, {f}, {cols}")
+    for name, value in (params or {}).items() if not text else ():
+        out += b"\xa3\x95\x8c" + struct.pack("<Q16sf", 1000, name.encode(), value)
     events = sorted((int(us), k, i) for k, d in enumerate(devices)
                     for i, us in enumerate(d["us"].tolist()))
     for us, k, i in events:

@@ -72,7 +72,7 @@ from .errors import DataError, SpecError  # noqa: E402  (no JAX: the CLI's error
 #: source tree). Every other module is private: a leading underscore, or inside one.
 PUBLIC_MODULES = (
     "diffgyro", "diffgyro.allan", "diffgyro.apply", "diffgyro.calibration", "diffgyro.carry",
-    "diffgyro.data", "diffgyro.detect", "diffgyro.diagnose", "diffgyro.effects",
+    "diffgyro.channel", "diffgyro.data", "diffgyro.detect", "diffgyro.diagnose", "diffgyro.effects",
     "diffgyro.errors", "diffgyro.export", "diffgyro.export.ardupilot", "diffgyro.export.c_header",
     "diffgyro.export.ekf_noise", "diffgyro.export.kalibr", "diffgyro.export.px4", "diffgyro.fit",
     "diffgyro.io", "diffgyro.kalman", "diffgyro.limits", "diffgyro.logs", "diffgyro.model",

@@ -51,7 +51,9 @@ def judge_motion(result: AbstractFitResult, batch: Batch, motion: Motion | None 
             moved = motion.moved_all()
         # (a random walk's smoothed bias follows a turn: only a deterministic model's
         # residual tells a thermal transient from motion)
+        # (the accelerometer channel keeps the IMU's verdict: its residual is in m/s²)
         if (not static_only and result.residual_tells_motion
+                and getattr(result, "channel", "gyro") == "gyro"
                 and np.any(moved & (np.asarray(status) == OK))):
             motion = _unexplained(result, batch, motion, moved)
             moved = motion.moved_all()

@@ -37,6 +37,7 @@ from ._aux import aux_names
 from ._fit_result import AbstractFitResult
 from ._jsonio import atomic_write_text, dumps, to_json_safe
 from ._signal_builder import batch_signals
+from .channel import CHANNELS, UNITS
 from .data import Batch, Recording
 from .errors import SpecError
 from .model import ErrorModel, Params
@@ -74,6 +75,11 @@ class DeviceCalibration:
     motion: dict = field(default_factory=dict)
     #: Fitted from the detected static intervals only.
     static_only: bool = False
+    #: Accelerometer channel: the gravity reference subtracted before the fit (m/s², the
+    #: median reading at rest; :mod:`diffgyro.channel`), None for the gyro.
+    reference: list[float] | None = None
+    #: The sensor's id where the log gives one (PX4's ``device_id``), else None.
+    device_id: int | None = None
 
 
 @dataclass
@@ -91,6 +97,8 @@ class Calibration:
     format_version: int = FORMAT_VERSION
     #: The batch's pass/fail summary (:func:`diffgyro.limits.summary`), when checked.
     limits: dict = field(default_factory=dict)
+    #: The sensor calibrated: ``gyro`` or ``accel`` (:mod:`diffgyro.channel`).
+    channel: str = "gyro"
 
     @property
     def error_model(self) -> ErrorModel:
@@ -110,14 +118,16 @@ class Calibration:
             "created": self.created, "diffgyro_version": self.diffgyro_version,
             "input_hash": self.input_hash, "units": self.units,
             "devices": [entry_json(d.__dict__) for d in self.devices],
-        } | ({"limits": self.limits} if self.limits else {})
+        } | ({"limits": self.limits} if self.limits else {}) | (
+            {"channel": self.channel} if self.channel != "gyro" else {})
 
 
 def entry_json(fields: dict) -> dict:
     """A device entry as written: JSON-safe, without an empty ``aux``, ``limits`` or ``motion``
     block and without ``static_only`` when false."""
     return to_json_safe({k: v for k, v in fields.items()
-                         if k not in ("aux", "limits", "motion", "static_only") or v})
+                         if k not in ("aux", "limits", "motion", "static_only", "reference",
+                                      "device_id") or v is not None and v is not False and v != {}})
 
 
 def data_hash(batch: Batch) -> str:
@@ -136,10 +146,15 @@ def data_hash(batch: Batch) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def units_of(model: ErrorModel) -> dict:
-    """The unit of each term's coefficients, and of tau, rates and temperature."""
-    return {t.spec: t.unit for t in model.terms} | {"tau": "s", "rates": "rad/s",
-                                                    "temperature": "°C"}
+def units_of(model: ErrorModel, channel: str = "gyro") -> dict:
+    """The unit of each term's coefficients, and of tau, rates and temperature (the
+    accelerometer channel's measurement is in m/s² where the gyro's is in rad/s)."""
+    def unit(text: str) -> str:
+        return text if channel == "gyro" else text.replace("rad/s", UNITS[channel])
+
+    out = {t.spec: unit(t.unit) for t in model.terms} | {"tau": "s", "rates": "rad/s",
+                                                          "temperature": "°C"}
+    return out if channel == "gyro" else out | {"measurement": UNITS[channel]}
 
 
 def aux_entries(result: AbstractFitResult, i: int) -> dict:
@@ -149,8 +164,12 @@ def aux_entries(result: AbstractFitResult, i: int) -> dict:
             for k, nm in result.aux_norm.items()}
 
 
-def from_fit(result: AbstractFitResult, batch: Batch | None = None) -> Calibration:
-    """A calibration file's content from a fit (``batch`` adds the input hash)."""
+def from_fit(result: AbstractFitResult, batch: Batch | None = None,
+             device_ids: dict[str, int] | None = None) -> Calibration:
+    """A calibration file's content from a fit (``batch`` adds the input hash;
+    ``device_ids``: the sensors' ids by device, as a log gives them)."""
+    ref = getattr(result, "reference", None)
+    ids = device_ids or {}
 
     devices = []
     for i in range(result.n_devices):
@@ -165,12 +184,15 @@ def from_fit(result: AbstractFitResult, batch: Batch | None = None) -> Calibrati
             quality={k: s[k] for k in ("rms", "heldout_rms", "noise_floor", "n_samples", "steps")},
             params=s["params"],
             aux=aux_entries(result, i), motion=s.get("motion") or {},
-            static_only=bool(s.get("static_only", False))))
+            static_only=bool(s.get("static_only", False)),
+            reference=None if ref is None else np.asarray(ref[i], float).tolist(),
+            device_id=ids.get(result.devices[i])))
     return Calibration(
         model=result.model.spec, devices=devices, dtemp_window=float(result.options.dtemp_window),
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         diffgyro_version=__version__, input_hash=None if batch is None else data_hash(batch),
-        units=units_of(result.model))
+        units=units_of(result.model, getattr(result, "channel", "gyro")),
+        channel=getattr(result, "channel", "gyro"))
 
 
 def save(cal: Calibration, path: str | os.PathLike) -> None:
@@ -221,10 +243,11 @@ def _finite(x, where: str, allow_nan: bool = False) -> float:
 
 
 _FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
-                        "diffgyro_version", "input_hash", "units", "devices", "limits"})
+                        "diffgyro_version", "input_hash", "units", "devices", "limits",
+                        "channel"})
 _DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
                           "temp_range", "quality", "params", "status_detail", "aux", "limits",
-                          "motion", "static_only"})
+                          "motion", "static_only", "reference", "device_id"})
 MAX_THETA = 700.0        # |log τ|: beyond this exp() overflows
 MAX_DTEMP_WINDOW = 1e6   # s
 MAX_NAME = 1000
@@ -302,6 +325,31 @@ def _device_name(name: str, where: str) -> str:
     return name
 
 
+def _channel(obj: dict, devices: list[DeviceCalibration]) -> str:
+    """The file's channel, validated (an accelerometer's devices each need a reference)."""
+    channel = obj.get("channel", "gyro")
+    if channel not in CHANNELS:
+        raise SpecError(f"calibration file: channel must be one of {', '.join(CHANNELS)}")
+    if channel != "gyro" and any(d.reference is None for d in devices):
+        raise SpecError("calibration file: an accelerometer calibration needs each device's "
+                        "reference")
+    return channel
+
+
+def _sensor_fields(d: dict, where: str) -> tuple[list[float] | None, int | None]:
+    """A device entry's gravity reference and sensor id, validated (None where absent)."""
+    ref = d.get("reference")
+    if ref is not None:
+        ref = _floats(ref, (3,), f"{where}.reference")
+        if not all(math.isfinite(x) for x in ref):
+            raise SpecError(f"calibration file: {where}.reference must be finite")
+    dev_id = d.get("device_id")
+    if dev_id is not None and (isinstance(dev_id, bool) or not isinstance(dev_id, int)
+                               or not 0 <= dev_id < 2**32):
+        raise SpecError(f"calibration file: {where}.device_id must be an integer 0..2^32-1")
+    return ref, dev_id
+
+
 def from_json(obj) -> Calibration:
     """Validate a parsed calibration file against the schema; SpecError on anything odd."""
     if not isinstance(obj, dict):
@@ -354,6 +402,7 @@ def from_json(obj) -> Calibration:
         if not isinstance(params, dict) or len(params) > 16:
             raise SpecError(f"calibration file: {where}.params must be an object of groups")
         params = {g: _flat_numbers(v, f"{where}.params.{str(g)[:40]}") for g, v in params.items()}
+        ref, dev_id = _sensor_fields(d, where)
         out.append(DeviceCalibration(device=name, status=status, beta=beta, theta=theta,
                                      temp_centre=centre, temp_scale=scale, temp_range=tr,
                                      quality=quality, params=params,
@@ -361,7 +410,8 @@ def from_json(obj) -> Calibration:
                                      aux=_aux_entries(d.get("aux", {}), model, where),
                                      limits=_limits_entry(d.get("limits", {}), where),
                                      motion=_motion_record(d.get("motion", {}), f"{where}.motion"),
-                                     static_only=_flag(d, "static_only", where)))
+                                     static_only=_flag(d, "static_only", where),
+                                     reference=ref, device_id=dev_id))
     window = _req(obj, "dtemp_window", float, "file")
     if not (0 < window <= MAX_DTEMP_WINDOW):
         raise SpecError(f"calibration file: dtemp_window must be a positive number of seconds "
@@ -377,6 +427,7 @@ def from_json(obj) -> Calibration:
     if not isinstance(lim, dict):
         raise SpecError("calibration file: limits must be an object")
     return Calibration(model=model.spec, devices=out, dtemp_window=window,
+                       channel=_channel(obj, out),
                        created=_text(obj, "created", "file"),
                        diffgyro_version=_text(obj, "diffgyro_version", "file"),
                        input_hash=ih, units=dict(units), limits=lim)
@@ -459,6 +510,10 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     """
     batch = data if isinstance(data, Batch) else Batch.from_recordings(
         [data] if isinstance(data, Recording) else list(data))
+    if cal.channel != "gyro":
+        raise SpecError(f"this is a calibration of the {cal.channel} channel; compensation "
+                        "applies gyro calibrations", hint="export it to the autopilot "
+                        "(diffgyro export CAL --format px4|ardupilot), which applies it")
     model = cal.error_model
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:

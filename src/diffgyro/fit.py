@@ -12,6 +12,7 @@ bad device never sinks the batch.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from typing import ClassVar
 
@@ -29,6 +30,7 @@ from ._jit import release_compiled_if_crowded
 from ._motion_judge import judge_motion
 from ._options import FitOptions
 from ._signal_builder import batch_signals
+from .channel import as_channel, check_channel, check_model
 from .data import Batch, Recording, as_batch, pad_devices
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
@@ -76,6 +78,10 @@ class FitResult(AbstractFitResult):
     motion: Motion | None = None
     static_only: bool = eqx.field(static=True, default=False)
     n_recorded: Float[Array, " d"] | None = None
+    #: The sensor fitted (:mod:`diffgyro.channel`): ``gyro``, or ``accel`` with its
+    #: gravity reference (m/s², the reading the offsets are relative to).
+    channel: str = eqx.field(static=True, default="gyro")
+    reference: Float[np.ndarray, "d 3"] | None = None
 
     def status_detail(self, i: int) -> str:
         """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
@@ -117,6 +123,7 @@ def fit(
     aux_norm: dict[str, TempNorm] | None = None,
     static_only: bool = False,
     check_motion: bool = True,
+    channel: str = "gyro",
     **option_overrides,
 ) -> AbstractFitResult:
     """Calibrate every device of ``data`` with ``model``.
@@ -134,6 +141,7 @@ def fit(
     - ``static_only``: fit the detected static samples only (the moving ones, and a
       window either side, masked out).
     - ``check_motion``: check every recording for motion (below); False skips it.
+    - ``channel``: the sensor fitted, ``"gyro"`` or ``"accel"`` (below).
 
     **Returns:** an :class:`AbstractFitResult`: a :class:`FitResult`, or for a model with
     a noise component the result of its registered fit (a
@@ -144,10 +152,30 @@ def fit(
     that moved (:meth:`diffgyro.motion.Motion.moved_all`: more than 2 % of its recording,
     turns of at least ten times the threshold)
     gets status ``in_motion`` instead of ``ok``.
+
+    ``channel="accel"`` fits the accelerometer's thermal offset relative to its gravity
+    reference (:func:`diffgyro.channel.as_channel`); the motion check is still the IMU's,
+    of the gyro and accelerometer as loaded. ``static_only`` is refused there: the rest
+    either side of a move may hold another orientation, so another gravity reference.
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
-    batch = as_batch(data)
+    imu = as_batch(data)
+    channel = check_channel(channel)
+    check_model(model, channel)
+    if channel != "gyro" and static_only:
+        raise DataError("static_only is not available on the accelerometer channel: each "
+                        "stretch of rest may hold another orientation (another gravity "
+                        "reference)", hint="record the soak in one orientation, at rest")
+    batch, reference = as_channel(imu, channel)
+    if channel != "gyro":
+        result = fit(model, batch, norm=norm, options=options, theta0=theta0, aux_norm=aux_norm,
+                     check_motion=False, **option_overrides)
+        if isinstance(result, AbstractFitResult):
+            result = dataclasses.replace(result, channel=channel, reference=reference)
+            if check_motion:
+                result = judge_motion(result, batch, motion_check(imu))
+        return result
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
@@ -156,15 +184,13 @@ def fit(
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     else:  # the check's program compiles while the fit's are traced
-        ahead = compile_check(batch)
+        ahead = compile_check(imu)
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
         ahead.join()
-        motion = motion_check(batch)
+        motion = motion_check(imu)
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
     return judge_motion(result, batch, motion, recorded, static_only)
-
-
 
 
 @register_noise_fit(RandomWalk)

@@ -53,6 +53,7 @@ def load_from_cli(
     topic: str | None = None,
     temp_topic: str | None = None,
     report=None,
+    channel: str = "gyro",
 ):
     """Load data files from command-line options; report dropped rows, warnings and the
     units read from headers on stderr (and in ``report``, a :class:`LoadReport`, if given).
@@ -68,7 +69,7 @@ def load_from_cli(
                       units_from_cli(gyro_unit, acc_unit, temp_unit, time_unit),
                       drop_invalid=drop_invalid, sampling_rate=sampling_rate,
                       min_samples=min_samples, report=report, topic=topic,
-                      temp_topic=temp_topic)
+                      temp_topic=temp_topic, channel=channel)
     for line in report.lines():
         print(f"diffgyro: {line}", file=sys.stderr)
     return Batch.from_recordings(recordings) if batch else recordings
@@ -83,7 +84,7 @@ def units_json(report) -> list[dict]:
 
 def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                    sampling_rate, drop_invalid, *, topic=None, temp_topic=None, batch=True,
-                   report=None):
+                   report=None, channel="gyro"):
     """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
     the recordings, not padded into a batch). Unit notes go to ``report`` if given."""
     from diffgyro.io import check_min_samples
@@ -91,7 +92,7 @@ def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_un
 
     recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                         batch=False, report=report)
+                         batch=False, report=report, channel=channel)
     need = min_samples(model.n_params + model.n_nonlinear)
     if all(r.n < need for r in recs):
         check_min_samples(recs[0], need, f"model {model.spec!r}")

@@ -88,6 +88,13 @@ StaticOnly = Annotated[
                                        "(the motion check's static intervals; moving samples "
                                        "and a window either side are left out)."),
 ]
+Channel = Annotated[
+    str | None,
+    typer.Option("--channel", help="The sensor to calibrate: gyro (default) or accel, the "
+                                   "accelerometer's thermal offset relative to its gravity "
+                                   "reference (one orientation at rest; docs/imu.md). A spec "
+                                   "may name it instead: 'accel: bias_poly(3)'."),
+]
 JsonOut = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
 FigureReport = Annotated[
     Path | None,
@@ -105,3 +112,24 @@ def motion_notes(records: list[dict]) -> list[str]:
     notes = (residual_note(r["device"], r.get("heldout_rms"), r.get("noise_floor"))
              for r in records if r.get("status") == "ok")
     return lines + [n for n in notes if n]
+
+
+def refuse_on_accel(channel: str, static_only: bool = False, streamed: bool = False,
+                    **others) -> None:
+    """One line (exit 2) for the options the accelerometer channel does not take
+    (``others``: option name -> whether it was given, e.g. ``{"--limits": True}``)."""
+    if channel == "gyro":
+        return
+    for name, given in others.items():
+        if given:
+            raise typer.BadParameter("is not available on the accelerometer channel yet "
+                                     "(it reads the gyro's columns)", param_hint=name)
+    if static_only:
+        raise typer.BadParameter("is not available on the accelerometer channel: each stretch "
+                                 "of rest may hold another orientation, so another gravity "
+                                 "reference; record the soak in one orientation",
+                                 param_hint="--static-only")
+    if streamed:
+        raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
+                                 "files, --chunk-devices, --dask); fit the files directly",
+                                 param_hint="--channel accel")

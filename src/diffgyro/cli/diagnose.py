@@ -18,6 +18,7 @@ from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import MIN_SAMPLES, load_for_model, longest_static, streamed_dir
 from ._options import (
     AccUnit,
+    Channel,
     Columns,
     DataFiles,
     DropInvalid,
@@ -29,6 +30,7 @@ from ._options import (
     TempUnit,
     TimeUnit,
     Topic,
+    refuse_on_accel,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_diagnose
 from ._tables import NUMBER, TEXT
@@ -61,7 +63,9 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
                      _fmt(d.best.heldout_rms) if d.best else "",
                      escape(", ".join(c.term or c.effect for c in d.alternatives)),
                      *((judged[i]["limits"]["result"],) if judged else ())])
-    table = tables.table(f"diagnosis of {diag.spec} (rates in rad/s)", [
+    channel = getattr(diag.fit, "channel", "gyro")
+    what = "rates in rad/s" if channel == "gyro" else "accelerometer, in m/s²"
+    table = tables.table(f"diagnosis of {diag.spec} ({what})", [
         ("device", TEXT), ("verdict", TEXT), ("rms", NUMBER), ("held-out", NUMBER),
         ("floor", NUMBER), ("add", TEXT), ("held-out with it", NUMBER),
         ("close alternatives", TEXT), *((("limits", TEXT),) if judged else ())], rows,
@@ -114,13 +118,14 @@ def wide_console():
     return tables.console(140)
 
 
-def _write_calibration(diag, batch, path: Path, err, judged=None) -> None:
+def _write_calibration(diag, batch, path: Path, err, judged=None, device_ids=None) -> None:
     """The calibration of ``diag``'s model from the fit it holds (no second fit), atomically;
-    ``judged``: (records, summary) of --limits, kept in the file."""
+    ``judged``: (records, summary) of --limits, kept in the file; ``device_ids``: the
+    sensors' ids a log gave."""
     from diffgyro import calibration
 
 
-    cal = calibration.from_fit(diag.fit, batch)
+    cal = calibration.from_fit(diag.fit, batch, device_ids=device_ids)
     calibration.save(cal if judged is None else attach(cal, *judged), path)
     err.print(f"calibration of {diag.spec} written to {path}", markup=False, highlight=False)
 
@@ -155,6 +160,7 @@ def diagnose_command(
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
     static_only: StaticOnly = False,
+    channel: Channel = None,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -168,8 +174,15 @@ def diagnose_command(
     top-level "limits" with the yield), in the text, --json, the report and --out.
     A device that moved (no rate reference in MODEL) gets status in_motion and no
     verdict; --static-only diagnoses each device's longest static interval.
+    --channel accel (or a spec 'accel: ...') diagnoses the accelerometer's thermal offset
+    relative to its gravity reference (docs/imu.md).
     """
+    from diffgyro.channel import resolve
+
     streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
+    channel, model = resolve(model, channel)
+    refuse_on_accel(channel, static_only=static_only, streamed=streamed,
+                    **{"--report": report is not None, "--limits": limits is not None})
     _refuse_combinations(limits is not None and auto, streamed and static_only,
                          streamed and not synthesis)
     if streamed:
@@ -190,13 +203,14 @@ def diagnose_command(
 
     lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
-        | ({} if synthesis else {"synthesis": False})
+        | ({} if synthesis else {"synthesis": False}) \
+        | ({} if channel == "gyro" else {"channel": channel})
     err = Console(stderr=True)
     with _progress.steps(f"loading {len(data)} file(s)") as step:
-        spec, batch, names, partial = _load_checked(model, data, candidates, columns, gyro_unit,
-                                                    acc_unit, temp_unit, time_unit,
-                                                    sampling_rate, drop_invalid, topic,
-                                                    temp_topic)
+        spec, batch, names, partial, ids = _load_checked(model, data, candidates, columns,
+                                                         gyro_unit, acc_unit, temp_unit,
+                                                         time_unit, sampling_rate, drop_invalid,
+                                                         topic, temp_topic, channel)
         if static_only:
             step("finding each device's longest static interval")
         batch, static = _static_only(batch) if static_only else (batch, None)
@@ -204,7 +218,7 @@ def diagnose_command(
     if partial and (names is None or "aux" in {n.split("(")[0].strip() for n in names}):
         for d in [*diag.devices, *([] if ladder is None else ladder.final.devices)]:
             d.skipped.update(partial)
-    _outputs(diag, ladder, batch, lim, report, out, as_json, err, static)
+    _outputs(diag, ladder, batch, lim, report, out, as_json, err, static, ids)
 
 
 def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
@@ -236,7 +250,7 @@ def _diagnosis(spec, batch, names, auto: bool, max_steps: int, opts: dict, step)
 
 
 def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as_json: bool,
-             err, static=None) -> None:
+             err, static=None, device_ids=None) -> None:
     """Judge the devices against the limits file (``lim``), then the report, the calibration
     file and the printed result (``static``: what --static-only kept, per device)."""
     judged = None
@@ -249,7 +263,8 @@ def _outputs(diag, ladder, batch, lim, report: Path | None, out: Path | None, as
         with _progress.steps(f"writing the report to {report}"):
             write_report(diag, batch, report, ladder=ladder, limits=judged)
     if out is not None:
-        _write_calibration(ladder.final if ladder is not None else diag, batch, out, err, judged)
+        _write_calibration(ladder.final if ladder is not None else diag, batch, out, err, judged,
+                           device_ids)
     _print_result(diag, ladder, as_json, report, judged, static)
 
 
@@ -268,18 +283,23 @@ def _static_only(batch):
 
 
 def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                  sampling_rate, drop_invalid, topic, temp_topic):
-    """The parsed model, the loaded batch, the candidate names and the extra columns some
-    devices lack (:func:`partial_columns`); a DataError (exit 2) for a bad spec, an unknown
-    candidate or a signal the model needs that the data lacks."""
+                  sampling_rate, drop_invalid, topic, temp_topic, channel="gyro"):
+    """The parsed model, the loaded batch, the candidate names, the extra columns some
+    devices lack (:func:`partial_columns`) and the sensors' ids a log gave; a DataError
+    (exit 2) for a bad spec, an unknown candidate or a signal the model needs that the data
+    lacks."""
+    from diffgyro.channel import check_model
     from diffgyro.data import Batch
+    from diffgyro.io import LoadReport
     from diffgyro.model import ErrorModel
 
 
     spec = ErrorModel.from_spec(model)
+    check_model(spec, channel)
+    report = LoadReport()
     recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                          batch=False)
+                          batch=False, report=report, channel=channel)
     batch = Batch.from_recordings(recs)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:
@@ -295,7 +315,7 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
 
         raise DataError(f"model {spec.spec!r} needs {', '.join(sorted(missing))}, not in the data",
                         file=batch.sources[0] if batch.sources else None)
-    return spec, batch, names, partial_columns(recs)
+    return spec, batch, names, partial_columns(recs), report.device_ids
 
 
 def partial_columns(recs) -> dict[str, str]:

@@ -39,7 +39,16 @@ def export_command(
                                                  "(px4, 0-3, default 0), INS_TCAL<N> (ardupilot, 1-3, default 1).")] = None,
     out: Annotated[str | None, typer.Option("--out", "-o", help="File to write; '-' or none: stdout.")] = None,
     device_id: Annotated[str | None, typer.Option("--device-id", help="px4: the sensors' device_id "
-                                                  "(TC_G<N>_ID), comma-separated for several devices.")] = None,
+                                                  "(TC_G<N>_ID), comma-separated for several devices "
+                                                  "(default: the ids the log gave, kept in the "
+                                                  "calibration file).")] = None,
+    accel: Annotated[Path | None, typer.Option("--accel", help="px4, ardupilot: an accelerometer "
+                                               "calibration ('fit --channel accel --out') written "
+                                               "beside the gyro's: TC_A<N>_* or "
+                                               "INS_TCAL<N>_ACC*.")] = None,
+    accel_device_id: Annotated[str | None, typer.Option(
+        "--accel-device-id", help="px4: the accelerometers' device_id (TC_A<N>_ID), "
+                                  "comma-separated (default: from the calibration file).")] = None,
     rate: Annotated[float | None, typer.Option("--rate", help="kalibr: update_rate in Hz "
                                                "(default: the recording's).")] = None,
     topic: Annotated[str, typer.Option("--topic", help="kalibr: rostopic.")] = "/imu0",
@@ -66,11 +75,10 @@ def export_command(
     moved), or a noise parameter the model does not identify (px4-ekf, ardupilot-ekf,
     kalibr from 'noise --json'), is refused with the reason, unless --force.
     """
-    from diffgyro.export import FORMATS, render
+    from diffgyro.export import FORMATS
 
     fmt = fmt.lower()
-    if fmt not in FORMATS:
-        raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(FORMATS)}")
+    _check_format(fmt, FORMATS, accel)
     if fmt in ("px4-ekf", "ardupilot-ekf"):
         from diffgyro.export import ekf_noise
 
@@ -93,7 +101,6 @@ def export_command(
 
         noise, report = _kalibr_noise(source, device, rate, (columns, gyro_unit, acc_unit, temp_unit,
                                       time_unit, sampling_rate, drop_invalid), force)
-
         if accel_noise_density is not None:
             noise = replace(noise, accel_noise_density=accel_noise_density)
         if accel_random_walk is not None:
@@ -101,16 +108,38 @@ def export_command(
         text = kalibr.write(noise, topic, [ln for ln in report if ln.startswith("WARNING: written")])
         what = f"kalibr IMU noise of device {noise.device}"
     else:
-        from diffgyro import calibration
-
-        cal = calibration.load(source)
-        ids = None if device_id is None else _ids(device_id)
-        text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
-                              force=force)
-        what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}"
+        text, report, what = _calibration(source, accel, fmt, device, instance, device_id,
+                                          accel_device_id, force)
     for line in report:
         print(f"diffgyro: {line}", file=sys.stderr)
     _emit(text, out, source, what)
+
+
+def _check_format(fmt: str, formats, accel: Path | None) -> None:
+    """One line (exit 2) for an unknown format, or --accel where the format has no
+    accelerometer table."""
+    if fmt not in formats:
+        raise DataError(f"unknown export format {fmt!r}", hint=f"one of {', '.join(formats)}")
+    if accel is not None and fmt not in ("px4", "ardupilot"):
+        raise DataError(f"--accel is for px4 and ardupilot (their accelerometer tables), not {fmt}")
+
+
+def _calibration(source: Path, accel: Path | None, fmt: str, device, instance, device_id,
+                 accel_device_id, force: bool) -> tuple[str, list[str], str]:
+    """The file of a calibration (and an accelerometer's beside it), its report lines, and
+    what it holds."""
+    from diffgyro import calibration
+    from diffgyro.export import render
+
+    cal = calibration.load(source)
+    acc = None if accel is None else calibration.load(accel)
+    ids = None if device_id is None else _ids(device_id)
+    acc_ids = None if accel_device_id is None else _ids(accel_device_id)
+    text, report = render(cal, fmt, device=device, instance=instance, device_ids=ids,
+                          force=force, accel=acc, accel_ids=acc_ids)
+    what = f"{fmt} calibration of {_devices_of(cal, fmt, device)}" + (
+        "" if acc is None else f" and the accelerometers of {_devices_of(acc, fmt, None)}")
+    return text, report, what
 
 
 def _devices_of(cal, fmt: str, device: str | None) -> str:

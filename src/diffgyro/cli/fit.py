@@ -15,6 +15,7 @@ from ._limits import LimitsOpt, attach, judge, load_limits, print_lines
 from ._load import load_for_model, streamed_dir, units_json
 from ._options import (
     AccUnit,
+    Channel,
     Columns,
     DataFiles,
     DropInvalid,
@@ -27,6 +28,7 @@ from ._options import (
     TimeUnit,
     Topic,
     motion_notes,
+    refuse_on_accel,
 )
 from ._stream import ChunkDevices, DaskOpt, ResultsOpt, Resume, WorkDirOpt, stream_fit
 from ._tables import NUMBER, TEXT
@@ -52,8 +54,13 @@ def fit_command(
     chunk_devices: ChunkDevices = None, work_dir: WorkDirOpt = None, resume: Resume = True,
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
     static_only: StaticOnly = False,
+    channel: Channel = None,
 ) -> None:
     """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
+
+    --channel accel (or a spec 'accel: ...') fits the accelerometer's thermal offset
+    relative to its gravity reference: one device per accelerometer, the motion check
+    still the IMU's (docs/imu.md).
 
     --limits FILE.toml: each device passes or fails the limits, with the limits it
     broke and by how much; the batch gets its yield and the rejected units (in the
@@ -64,10 +71,15 @@ def fit_command(
     """
     from diffgyro import calibration
     from diffgyro._jsonio import dumps
+    from diffgyro.channel import resolve
     from diffgyro.fit import fit
     from diffgyro.io import LoadReport
     from diffgyro.model import ErrorModel
 
+    channel, model = resolve(model, channel)
+    refuse_on_accel(channel, static_only=static_only,
+                     streamed=chunk_devices is not None or dask is not None
+                     or any(streamed_dir(p) for p in data), **{"--limits": limits is not None})
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
 
         if static_only:
@@ -86,24 +98,39 @@ def fit_command(
     with _progress.steps(f"loading {len(data)} file(s)") as step:
         batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                                sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
-                               report=report)
+                               report=report, channel=channel)
         if dtemp_window is None:
             from diffgyro._temperature import suggest_dtemp_window
 
             dtemp_window = suggest_dtemp_window(batch)
         step(f"fitting {em.spec} on {batch.n_devices} device(s)")
-        result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only)
+        result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only,
+                     channel=channel)
     records = result.records()
     summary = None
     if lim is not None:
         records, summary = judge(lim, records, result, batch)
     if out is not None:
-        cal = calibration.from_fit(result, batch)
+        cal = calibration.from_fit(result, batch, device_ids=report.device_ids)
         calibration.save(cal if summary is None else attach(cal, records, summary), out)
     if as_json:
         print(dumps({"model": em.spec, "devices": records, "units": units_json(report)}
-                    | ({} if summary is None else {"limits": summary})))
+                    | ({} if summary is None else {"limits": summary})
+                    | ({} if channel == "gyro" else {"channel": channel})))
         return
+
+    _print_table(records, em.spec, channel, summary)
+    for line in motion_notes(records):
+        print(line)
+    if summary is not None:
+        print_lines(records, summary)
+    if out is not None:
+        print(f"calibration written to {out}", file=sys.stderr)
+
+
+def _print_table(records: list[dict], spec: str, channel: str, summary) -> None:
+    """The devices' table (``summary``: the --limits result, a column of pass/fail)."""
+    from diffgyro.channel import UNITS
 
     static = any(r.get("static_only") for r in records)
     rows = []
@@ -113,18 +140,14 @@ def fit_command(
         rows.append([r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
                      _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
                      *((r["limits"]["result"],) if summary else ())])
-    table = tables.table(f"fit {em.spec}  (rates in rad/s)", [
+    what = "rates in rad/s" if channel == "gyro" else \
+        f"accelerometer, relative to its gravity reference, in {UNITS[channel]}"
+    table = tables.table(f"fit {spec}  ({what})", [
         ("device", TEXT), ("status", TEXT), ("rms", NUMBER), ("held-out rms", NUMBER),
         ("noise floor", NUMBER), ("moving", NUMBER),
         ("samples (static only)" if static else "samples", NUMBER),
         *((("limits", TEXT),) if summary else ())], rows, (con := Console()).width)
     con.print(table)
-    for line in motion_notes(records):
-        print(line)
-    if summary is not None:
-        print_lines(records, summary)
-    if out is not None:
-        print(f"calibration written to {out}", file=sys.stderr)
 
 
 def _fmt(x) -> str:

@@ -162,9 +162,11 @@ class Diagnosis:
                    for i, d in enumerate(self.devices)]
         for d, params in zip(devices, self._params()):
             d["params"] = params
+        channel = getattr(self.fit, "channel", "gyro")
         return to_json_safe({"model": self.spec, "devices": devices,
                        "thresholds": asdict(self.thresholds),
-                       "dtemp_window": self.options.get("dtemp_window")})
+                       "dtemp_window": self.options.get("dtemp_window")}
+                            | ({} if channel == "gyro" else {"channel": channel}))
 
     def _params(self) -> list[dict]:
         """Every device's base-fit coefficients as ``fit --json`` writes them (``params``)."""

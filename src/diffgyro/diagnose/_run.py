@@ -23,6 +23,7 @@ from .. import allan as allan_mod
 from .._jit import filter_jit, release_compiled_if_crowded
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
+from ..channel import UNITS, as_channel, check_channel
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
 from ..errors import SpecError
@@ -383,6 +384,24 @@ def _nested(*args, **kwargs) -> Diagnosis:
     return diagnose(*args, noise=False, **kwargs)
 
 
+def _in_units(devices, channel: str) -> None:
+    """The explanations in the channel's unit (the accelerometer's measurement is in m/s²,
+    where the wording is the gyro's rad/s)."""
+    if channel != "gyro":
+        for d in devices:
+            d.explanation = d.explanation.replace("rad/s", UNITS[channel])
+
+
+def _base_fit(model, batch: Batch, base_fit, channel: str, fit_options: dict):
+    """The fit the diagnosis starts from and the batch its candidates are scored on (the
+    accelerometer less its gravity reference, on that channel)."""
+    extra = {} if channel == "gyro" else {"channel": channel}
+    res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options, **extra)
+    if channel != "gyro":
+        batch, _ = as_channel(batch, channel, getattr(res, "reference", None))
+    return res, batch
+
+
 def diagnose(
     model: ErrorModel | str,
     batch: Batch | Recording | list[Recording],
@@ -394,6 +413,7 @@ def diagnose(
     synthesis: bool = True,
     noise="auto",
     progress=None,
+    channel: str = "gyro",
     **fit_options,
 ) -> Diagnosis:
     """Diagnose every device of ``batch`` against ``model``.
@@ -409,6 +429,9 @@ def diagnose(
     residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
     ``progress`` is called with a line of text before each stage (the base fit, the
     candidates' ranges, each chunk of devices scored, the pairs, synthesis, noise).
+    ``channel="accel"`` diagnoses the accelerometer's thermal offset (relative to its
+    gravity reference, :mod:`diffgyro.channel`): the base fit judges rest on the IMU as
+    loaded, and the candidates are scored on the accelerometer less its reference.
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
     """
@@ -417,7 +440,6 @@ def diagnose(
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
     if model.noise is not None:
-
         raise SpecError(f"diagnose takes a deterministic model, not {model.spec!r}",
                         hint=f"drop {model.noise.spec} from --model: it is tried as a candidate")
     batch = as_batch(batch)
@@ -427,7 +449,7 @@ def diagnose(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     if base_fit is None:
         say(f"fitting {model.spec} on {batch.n_devices} device(s)")
-    res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options)
+    res, batch = _base_fit(model, batch, base_fit, check_channel(channel), fit_options)
     every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
                                                                          candidates)
     say(f"checking which of {len(every)} candidate(s) the data support")
@@ -469,9 +491,9 @@ def diagnose(
         fl[i] = floor_axes
         return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
                        unsupported, skips[i])[0]
-
     say("identifying the residual's noise")
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
+    _in_units(devices, getattr(res, "channel", "gyro"))
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,
                      thresholds=th, options={"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,

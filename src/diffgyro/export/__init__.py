@@ -91,39 +91,92 @@ def _with_note(text: str, lines: list[str], fmt: str) -> str:
 
 
 def render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
-           device_ids: list[int] | None = None, force: bool = False) -> tuple[str, list[str]]:
+           device_ids: list[int] | None = None, force: bool = False,
+           accel: Calibration | None = None,
+           accel_ids: list[int] | None = None) -> tuple[str, list[str]]:
     """Text of the ``fmt`` file for ``cal`` and report lines (not part of the file).
 
+    ``accel``: an accelerometer calibration written beside the gyro's (px4: TC_A slots,
+    ardupilot: INS_TCALn_ACC*); ``cal`` may itself be an accelerometer calibration.
     A device whose status is not ``ok`` is refused (a DataError naming it and why);
     ``force`` writes it anyway, with a comment in the file that says so."""
+    gyro, acc = _channels(cal, accel, fmt)
     if fmt in ("px4", "ardupilot", "c-header"):
-
         max_devices = {"px4": len(px4.SLOTS), "ardupilot": len(ardupilot.SLOTS), "c-header": 1}[fmt]
-        names = select_devices(cal, device, fmt, max_devices)
-        cal, lines = _forced(cal, names, force)
-        text, report = _render(cal, fmt, device, instance, device_ids)
+        lines = []
+        if gyro is not None:
+            gyro, lines = _forced(gyro, select_devices(gyro, device, fmt, max_devices), force)
+        if acc is not None:
+            acc, more = _forced(acc, select_devices(acc, device if gyro is None else None, fmt,
+                                                    max_devices), force)
+            lines += more
+        text, report = _render(gyro, fmt, device, instance, device_ids, acc, accel_ids)
         return _with_note(text, lines, fmt), lines + report
-    return _render(cal, fmt, device, instance, device_ids)
+    return _render(gyro, fmt, device, instance, device_ids)
 
 
-def _render(cal: Calibration, fmt: str, device: str | None = None, instance: int | None = None,
-            device_ids: list[int] | None = None) -> tuple[str, list[str]]:
+def _channels(cal: Calibration, accel: Calibration | None, fmt: str):
+    """(gyro calibration or None, accelerometer calibration or None), each checked."""
+    gyro, acc = (cal, accel) if cal.channel == "gyro" else (None, cal)
+    if accel is not None and (cal.channel != "gyro" or accel.channel != "accel"):
+        raise DataError("--accel takes an accelerometer calibration beside a gyro one "
+                        f"(got {cal.channel} and {accel.channel})")
+    if acc is not None and fmt not in ("px4", "ardupilot"):
+        raise DataError(f"an accelerometer calibration cannot be written as {fmt}",
+                        hint="export it with --format px4 or ardupilot")
+    return gyro, acc
+
+
+def _ids(cal: Calibration, names: list[str], given: list[int] | None, what: str,
+         option: str) -> tuple[list[int], list[str]]:
+    """The sensors' device ids: given, else the calibration's (from the log), else 0 with a
+    warning line."""
+    if given is not None:
+        if len(given) != len(names):
+            raise DataError(f"{option} gives {len(given)} id(s) for {len(names)} device(s)")
+        return list(given), []
+    ids = [cal.device(n).device_id for n in names]
+    if all(i is not None for i in ids):
+        return ids, []
+    letter = "G" if cal.channel == "gyro" else "A"
+    return [0 if i is None else i for i in ids], [
+        f"warning: TC_{letter}n_ID written as 0 for a device without a logged id: PX4 applies a "
+        f"TC_{letter}n slot only to the sensor whose device_id equals it; pass {option} ({what})"]
+
+
+def _render(cal: Calibration | None, fmt: str, device: str | None = None,
+            instance: int | None = None, device_ids: list[int] | None = None,
+            accel: Calibration | None = None,
+            accel_ids: list[int] | None = None) -> tuple[str, list[str]]:
 
     if fmt == "px4":
-        names = select_devices(cal, device, fmt, len(px4.SLOTS))
-        first = _slots(fmt, instance, len(names), px4.SLOTS)
-        warn = []
-        if device_ids is None:
-            device_ids = [0] * len(names)
-            warn.append("warning: TC_Gn_ID written as 0: PX4 applies a TC_Gn slot only to the sensor "
-                        "whose device_id equals it; pass --device-id (sensor_gyro.device_id)")
-        elif len(device_ids) != len(names):
-            raise DataError(f"--device-id gives {len(device_ids)} id(s) for {len(names)} device(s)")
-        text, report = px4.write(cal, names, first, device_ids)
+        warn, gyro_names, first, gyro_ids, sensors = [], [], 0, [], None
+        if cal is not None:
+            gyro_names = select_devices(cal, device, fmt, len(px4.SLOTS))
+            first = _slots(fmt, instance, len(gyro_names), px4.SLOTS)
+            gyro_ids, warn = _ids(cal, gyro_names, device_ids, "sensor_gyro.device_id",
+                                  "--device-id")
+        if accel is not None:
+            names = select_devices(accel, device if cal is None else None, fmt, len(px4.SLOTS))
+            given = accel_ids if cal is not None or accel_ids is not None else device_ids
+            ids, more = _ids(accel, names, given, "sensor_accel.device_id",
+                             "--accel-device-id" if cal is not None else "--device-id")
+            sensors = px4.Sensors(accel, names, _slots(fmt, instance, len(names), px4.SLOTS), ids)
+            warn += more
+        text, report = px4.write(cal, gyro_names, first, gyro_ids, accel=sensors)
         return text, warn + report
     if fmt == "ardupilot":
-        names = select_devices(cal, device, fmt, len(ardupilot.SLOTS))
-        return ardupilot.write(cal, names, _slots(fmt, instance, len(names), ardupilot.SLOTS))
+        names = select_devices(cal, device, fmt, len(ardupilot.SLOTS)) if cal is not None else []
+        acc = None
+        if accel is not None:
+            acc = (accel, select_devices(accel, device if cal is None else None, fmt,
+                                         len(ardupilot.SLOTS)))
+            if cal is not None and len(acc[1]) != len(names):
+                raise DataError(f"the gyro calibration has {len(names)} device(s), the "
+                                f"accelerometer's {len(acc[1])}: ArduPilot pairs them IMU by IMU",
+                                hint="export each IMU's pair with --device, or both alone")
+        count = max(len(names), len(acc[1]) if acc else 0)
+        return ardupilot.write(cal, names, _slots(fmt, instance, count, ardupilot.SLOTS), acc)
     if fmt == "c-header":
         names = select_devices(cal, device, fmt, 1)
         return c_header.write(cal, names[0]), []

@@ -14,12 +14,14 @@ by :func:`float32_error`.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..calibration import Calibration, DeviceCalibration
+from ..channel import UNITS
 from ..errors import DataError
 
 #: Highest polynomial order PX4's TC_* and ArduPilot's INS_TCAL* parameters hold.
@@ -37,6 +39,7 @@ class ThermalPoly:
     t_lo: float
     t_hi: float
     noise_floor: float   # rad/s per sample (fit quality), NaN if unknown
+    unit: str = "rad/s"  # the measurement's (m/s² for the accelerometer)
 
     def about(self, t_ref: float) -> np.ndarray:
         """Coefficients (3, 4) of powers 0..3 of ``T − t_ref`` (exact binomial expansion)."""
@@ -47,6 +50,17 @@ class ThermalPoly:
             for m in range(j + 1):
                 out[:, m] += self.coef[:, j] * math.comb(j, m) * delta ** (j - m) / self.scale**j
         return out
+
+    def narrowed(self, t_lo: float, t_hi: float) -> ThermalPoly:
+        """The same polynomial clamped to ``[t_lo, t_hi]`` (a range shared with another sensor)."""
+        return dataclasses.replace(self, t_lo=float(t_lo), t_hi=float(t_hi))
+
+    def relative(self, t_ref: float) -> ThermalPoly:
+        """``b(T) − b(t_ref)``: the change from the reference temperature, what an
+        accelerometer's thermal parameters hold (its constant is the offset calibration's)."""
+        coef = np.array(self.coef, float)
+        coef[:, 0] -= self.bias(np.array([t_ref]))[0]
+        return dataclasses.replace(self, coef=coef)
 
     def bias(self, temp: np.ndarray) -> np.ndarray:
         """b(T) (n, 3) in float64, T clamped to the calibrated range (the reference)."""
@@ -82,7 +96,8 @@ def thermal_poly(cal: Calibration, dev: DeviceCalibration, fmt: str) -> ThermalP
     floor = dev.quality.get("noise_floor")
     return ThermalPoly(device=dev.device, coef=np.asarray(dev.beta, float), centre=dev.temp_centre,
                        scale=dev.temp_scale, t_lo=lo, t_hi=hi,
-                       noise_floor=float("nan") if floor is None else float(floor))
+                       noise_floor=float("nan") if floor is None else float(floor),
+                       unit=UNITS[cal.channel])
 
 
 def float32_error(poly: ThermalPoly, evaluate, n: int = 2001) -> float:
@@ -107,8 +122,9 @@ def fmt_f32(x) -> str:
 
 def error_line(err: float, poly: ThermalPoly) -> str:
     """One sentence: the float32 error against the device's noise floor."""
+    u = poly.unit
     if math.isfinite(poly.noise_floor) and poly.noise_floor > 0:
-        return (f"float32 rounding of these parameters changes the bias by at most {err:.3g} rad/s "
+        return (f"float32 rounding of these parameters changes the bias by at most {err:.3g} {u} "
                 f"over the calibrated range, {err / poly.noise_floor:.2g} × the noise floor "
-                f"{poly.noise_floor:.3g} rad/s")
-    return f"float32 rounding of these parameters changes the bias by at most {err:.3g} rad/s"
+                f"{poly.noise_floor:.3g} {u}")
+    return f"float32 rounding of these parameters changes the bias by at most {err:.3g} {u}"

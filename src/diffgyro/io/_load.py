@@ -45,6 +45,7 @@ def load(
     topic: str | None = None,
     temp_topic: str | None = None,
     check_units: bool = True,
+    channel: str = "gyro",
 ) -> list[Recording]:
     """Read recordings from CSV / Parquet / NPZ files in the standard schema, or logs.
 
@@ -68,6 +69,10 @@ def load(
         temp_topic: ROS bags: the ``sensor_msgs/msg/Temperature`` topic.
         check_units: check that the numbers of each signal whose unit nobody
             stated are plausible in SI (:mod:`diffgyro.io._plausible`).
+        channel: the sensor to be calibrated (:mod:`diffgyro.channel`): a PX4 ULog read
+            for ``accel`` gives one device per ``sensor_accel`` instance, with its own
+            times, temperature and device id (:mod:`diffgyro.logs`); other files load
+            the same either way.
 
     A table's headers may carry units, ``Gyroscope X (deg/s)`` or
     ``acc_x[g]`` (:mod:`diffgyro.io._headers`): they are converted like
@@ -96,7 +101,7 @@ def load(
         raise DataError("device id given is empty")
     recordings: list[Recording] = []
     owner: dict[str, str] = {}
-    log_options = {"topic": topic, "temp_topic": temp_topic}
+    log_options = {"topic": topic, "temp_topic": temp_topic, "channel": channel}
     for path in _as_paths(paths):
         for rec in _load_file(path, columns, units, drop_invalid, sampling_rate, device,
                               min_samples, report, log_options, check_units):
@@ -123,10 +128,12 @@ def load_batch(
     length: int | None = None,
     bucket: bool = True,
     check_units: bool = True,
+    channel: str = "gyro",
 ) -> Batch:
     """:func:`load`, then :meth:`Batch.from_recordings` (padded to a bucket length)."""
     recs = load(paths, columns, units, drop_invalid, sampling_rate, device,
-                min_samples=min_samples, report=report, check_units=check_units)
+                min_samples=min_samples, report=report, check_units=check_units,
+                channel=channel)
     return Batch.from_recordings(recs, length=length, bucket=bucket)
 
 
@@ -183,6 +190,9 @@ def _open(path: Path, device, log_options, report) -> Source:
     src = Source(path, file, log_options)
     for line in src.log.warnings if src.log is not None else []:
         _tell(report, report.warnings if report is not None else None, line)
+    if src.log is not None and report is not None:
+        report.device_ids.update({dev: int(meta["device_id"]) for dev, meta in
+                                  src.log.metadata.items() if "device_id" in meta})
     return src
 
 

@@ -51,6 +51,8 @@ class LoadReport:
     ignored: list[str] = field(default_factory=list)
     #: Units read from headers and unit warnings (:class:`UnitNote`), one line each.
     units: list[UnitNote] = field(default_factory=list)
+    #: The sensor id of each device a log names one for (PX4's ``device_id``).
+    device_ids: dict[str, int] = field(default_factory=dict)
 
     @property
     def n_dropped(self) -> int:

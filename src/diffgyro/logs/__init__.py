@@ -64,7 +64,7 @@ def _check_magic(path: Path, fmt: str, file: str) -> None:
 
 def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = None,
              prefix: str | None = None, topic: str | None = None,
-             temp_topic: str | None = None) -> LogTable:
+             temp_topic: str | None = None, channel: str = "gyro") -> LogTable:
     """Read one log as a :class:`LogTable`.
 
     Args:
@@ -74,6 +74,10 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
         prefix: device ids start with this (default: the file stem).
         topic: ROS bags: the Imu topic(s) to read, comma-separated.
         temp_topic: ROS bags: the Temperature topic joined to them.
+        channel: ``accel``: a PX4 ULog gives one device per ``sensor_accel`` instance
+            (its own times, temperature and device id); a DataFlash log's IMU instances
+            keep the accelerometer's id (``INS_ACCn_ID``) instead of the gyro's; ROS logs
+            read the same either way.
     """
     path = Path(path)
     file = str(path) if file is None else file
@@ -86,11 +90,11 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
     if fmt == "ulog":
         from . import _ulog as ulog
 
-        return ulog.read(path, file, prefix)
+        return ulog.read(path, file, prefix, channel)
     if fmt == "rosbag":
         from . import _rosbag as rosbag
 
         return rosbag.read(path, file, prefix, topic, temp_topic)
     from . import _dataflash as dataflash
 
-    return dataflash.read(path, file, prefix)
+    return dataflash.read(path, file, prefix, channel)

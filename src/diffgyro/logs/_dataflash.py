@@ -15,6 +15,11 @@ without ``ACC``, ``IMU`` instance k's accelerometer) and the temperature of
 sampler's gyro bursts (``ISBH``/``ISBD``) of instance k are the device
 ``<stem>/gyro_batch<k>``, beside ``IMU`` instance k's accelerometer and
 temperature, interpolated. Samples are kept as logged.
+
+The sensors' ids come from the log's parameters (``PARM``): ``INS_GYR_ID``,
+``INS_GYR2_ID``, ... for the gyro of IMU k, ``INS_ACC_ID``, ``INS_ACC2_ID``, ... for its
+accelerometer (``channel="accel"``), kept in :attr:`LogTable.metadata` where non-zero.
+ArduPilot applies ``INS_TCALn`` by IMU instance; the id says which sensor that was.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import contextlib
 import io
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -31,7 +37,8 @@ from ._table import LogTable, cut_at, interp_join, require, table, truncated
 
 _IMU = ("IMU", "IMU2", "IMU3")
 _RAW = {"GYR": ("GyrX", "GyrY", "GyrZ"), "ACC": ("AccX", "AccY", "AccZ")}
-_TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3")), "ISBH", "ISBD"]
+_TYPES = [*_IMU, *(f"{kind}{s}" for kind in _RAW for s in ("", "1", "2", "3")), "ISBH", "ISBD",
+          "PARM"]
 _HEAD = b"\xa3\x95"  # every binary message starts with these
 _GYRO, _ACCEL = ("GyrX", "GyrY", "GyrZ"), ("AccX", "AccY", "AccZ")
 _TEMP = ("T", "Temp")  # the IMU temperature field: ``T`` now, ``Temp`` in firmware of 2014-2016
@@ -160,11 +167,12 @@ class _Batches:
         return out
 
 
-def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, bool]],
-                                              int | None, list[str]]:
+def _messages(path: Path, file: str, params: dict | None = None
+              ) -> tuple[dict[tuple[str, int], tuple[list, bool]], int | None, list[str]]:
     """The rows of each (kind, instance): kind ``imu``, ``GYR`` or ``ACC`` (and ``ISB``:
     the gyro batches, as (t, rad/s) arrays); where the log is cut off; and the message
-    types that could not be read, with why."""
+    types that could not be read, with why. ``params`` receives the log's parameters."""
+    params = {} if params is None else params
     dfreader = require("pymavlink.DFReader", "pymavlink", file)
     with open(path, "rb") as fh:  # by content: a binary log may be named .log and back
         text = not fh.read(2).startswith(_HEAD)
@@ -182,6 +190,9 @@ def _messages(path: Path, file: str) -> tuple[dict[tuple[str, int], tuple[list, 
                 str(path), zero_time_base=False)
             while (m := log.recv_match(type=_TYPES)) is not None:
                 kind = m.get_type()
+                if kind == "PARM":
+                    params[str(getattr(m, "Name", ""))] = getattr(m, "Value", None)
+                    continue
                 if kind in ("ISBH", "ISBD"):
                     (batches.header if kind == "ISBH" else batches.data)(m)
                     continue
@@ -221,9 +232,22 @@ def _from_imu(t: np.ndarray, imu, cols: slice) -> np.ndarray:
     return interp_join(t, *_increasing(imu[:, 0], imu[:, cols]))
 
 
-def read(path: Path, file: str, prefix: str) -> LogTable:
+def _sensor_ids(params: dict, devices: list[dict], channel: str) -> dict[str, dict]:
+    """Each device's sensor id from ``INS_GYRn_ID`` / ``INS_ACCn_ID`` (where non-zero)."""
+    stem = "INS_ACC" if channel == "accel" else "INS_GYR"
+    out = {}
+    for dev in devices:
+        k = int(re.search(r"(\d+)$", dev["device"]).group(1))  # imu<k>, gyro<k>, ...
+        value = params.get(f"{stem}_ID" if k == 0 else f"{stem}{k + 1}_ID")
+        if isinstance(value, (int, float)) and value and value == value:
+            out[dev["device"]] = {"device_id": int(value) & 0xFFFFFFFF}
+    return out
+
+
+def read(path: Path, file: str, prefix: str, channel: str = "gyro") -> LogTable:
     """Read ``path`` (a DataFlash log) as a :class:`LogTable`; see the module docstring."""
-    found, cut, problems = _messages(path, file)
+    params: dict = {}
+    found, cut, problems = _messages(path, file, params)
     size = path.stat().st_size
     if not any(kind in ("imu", "GYR", "ISB") for kind, _ in found):
         end = "".join(f"; {p}" for p in problems)
@@ -261,4 +285,6 @@ def read(path: Path, file: str, prefix: str) -> LogTable:
     warnings = [f"warning: file {file}: {p}; they are left out" for p in problems]
     if cut is not None:
         warnings.append(truncated(file, cut, size, devices))
-    return table(devices, file, warnings)
+    out = table(devices, file, warnings)
+    out.metadata = _sensor_ids(params, devices, channel)
+    return out

@@ -24,6 +24,14 @@ so reading n is at ``timestamp_sample - (N - 1 - n)·dt``. ``sensor_accel_fifo``
 k is unpacked the same way (m/s²) and interpolated at the gyro's times; the
 temperature is ``sensor_gyro`` k's, interpolated (it is logged at 1 Hz or
 more, and changes far slower).
+
+Read for the accelerometer channel (``channel="accel"``), each ``sensor_accel``
+instance k logged at rate is the device ``<stem>/accel<k>`` on its own: ``x, y, z``
+(m/s²) → ``ax, ay, az`` at its own times, its own ``temperature`` and its own
+``device_id`` (PX4 matches ``TC_A`` slots by it; an accelerometer's instance number
+need not be its gyro's). The gyro columns, which judge whether the board was at rest,
+are ``sensor_gyro`` instance k's (else the first instance logged at rate),
+interpolated at the accelerometer's times.
 """
 
 from __future__ import annotations
@@ -133,6 +141,38 @@ def _gyro_devices(ulog, prefix: str) -> tuple[list[dict], dict, list]:
     return devices, meta, slow
 
 
+def _accel_devices(ulog, prefix: str, file: str) -> tuple[list[dict], dict, list[str]]:
+    """One device per ``sensor_accel`` instance at rate, its ``device_id``, and warnings."""
+    accels = sorted((d for d in ulog.data_list if d.name == "sensor_accel"),
+                    key=lambda d: d.multi_id)
+    gyros = {d.multi_id: d for d in ulog.data_list
+             if d.name == "sensor_gyro" and _rate(_seconds(d)) >= MIN_RATE}
+    devices, meta, warnings = [], {}, []
+    for d in accels:
+        t = _seconds(d)
+        ids = np.asarray(d.data.get("device_id", []))
+        what = f"sensor_accel instance {d.multi_id}" + (f" (device_id {int(ids[-1])})"
+                                                        if ids.size else "")
+        if _rate(t) < MIN_RATE:
+            warnings.append(f"warning: file {file}: {what} is logged at {_rate(t):.3g} "
+                            f"samples/s (< {MIN_RATE:g}); it is left out")
+            continue
+        g = gyros.get(d.multi_id, next(iter(gyros.values()), None))
+        if g is None:
+            warnings.append(f"warning: file {file}: {what} is left out: no sensor_gyro at rate "
+                            "shows whether the board was at rest")
+            continue
+        name = f"{prefix}/accel{d.multi_id}"
+        dev = {"device": name, "t": t, "accel": _xyz(d, "xyz"),
+               "gyro": interp_join(t, _seconds(g), _xyz(g, "xyz"))}
+        if "temperature" in d.data:
+            dev["temp"] = np.asarray(d.data["temperature"], dtype=np.float64)
+        if "device_id" in d.data and len(d.data["device_id"]):
+            meta[name] = {"device_id": int(d.data["device_id"][-1])}
+        devices.append(dev)
+    return devices, meta, warnings
+
+
 def _unpack_fifo(d) -> tuple[np.ndarray, np.ndarray]:
     """The samples packed in a ``sensor_*_fifo`` topic: times (s) and values (SI), in order.
 
@@ -212,10 +252,22 @@ def _combined(ulog, prefix: str) -> dict | None:
     return dev
 
 
-def read(path: Path, file: str, prefix: str) -> LogTable:
+def read(path: Path, file: str, prefix: str, channel: str = "gyro") -> LogTable:
     """Read ``path`` (a ULog) as a :class:`LogTable`; see the module docstring."""
     ulog, cut = _open(path, file)
     size = path.stat().st_size
+    if channel == "accel":
+        devices, meta, warnings = _accel_devices(ulog, prefix, file)
+        if not devices:
+            why = "; ".join(w.split(": ", 2)[-1] for w in warnings) or "no sensor_accel logged"
+            raise DataError(f"no accelerometer to calibrate in the log ({why})", file=file,
+                            hint="log sensor_accel and sensor_gyro at rate (SDLOG_PROFILE: "
+                                 "thermal calibration)")
+        if cut is not None:
+            warnings.append(truncated(file, cut, size, devices))
+        out = table(devices, file, warnings)
+        out.metadata = meta
+        return out
     devices, meta, slow = _gyro_devices(ulog, prefix)
     fifo, fifo_meta, warnings = _fifo_devices(ulog, prefix, file)
     devices, meta = devices + fifo, {**meta, **fifo_meta}

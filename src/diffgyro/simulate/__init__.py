@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._aux import aux_names
+from ..channel import check_model
 from ..data import Batch, Recording
 from ..errors import DataError, SpecError
 from ..model import ErrorModel, Params
@@ -133,6 +134,8 @@ def simulate(
     params: Params | None = None,
     temp_norm: TempNorm | None = None,
     accel_errors: bool | None = None,
+    accel_effects: str | None = None,
+    accel_params: Params | None = None,
     keep_components: bool = False,
     device_prefix: str = "dev",
     aux: dict | None = None,
@@ -148,6 +151,12 @@ def simulate(
     beta (3, P) or (d, 3, P), theta (Q,) or (d, Q)); ``temp_norm`` the
     normalisation they refer to (default: the plan's). ``accel_errors``
     turns accelerometer bias/scale/misalignment on (default: the plan's).
+    ``accel_effects`` (a spec of bias terms: ``bias_poly(3)+gradient``) adds the
+    accelerometer's thermal offset, with ``accel_params`` as its coefficients (m/s² per
+    unit regressor, same temperature norm; default: drawn like the gyro's and
+    :data:`ACCEL_PER_GYRO` times larger); the truth keeps them in ``truth.accel``
+    (``thermal_beta``, ``thermal_theta``) and the spec in ``truth.info["accel_effects"]``
+    (with ``keep_components``, the offset itself in ``truth.env["accel_thermal"]``).
     ``keep_components`` stores the deterministic error, the true specific
     force and each noise part in ``truth.env``. Other keywords are plan
     options (see :mod:`.plans`), e.g. ``sample_rate``, ``duration``.
@@ -193,6 +202,12 @@ def simulate(
     use_accel_errors = plan_obj.default_accel_errors if accel_errors is None else bool(accel_errors)
     acc = draw_accel_errors(preset_obj, d, seed, use_accel_errors)
     temp_out, ext_out, accel, mag = _other_sensors(env, levels, acc, temp, chamber, force, seed)
+    info = dict(env.info)
+    if accel_effects:
+        accel_thermal = _accel_thermal(accel_effects, accel_params, acc, preset_obj, d, seed,
+                                       norm, env, temp, dtemp, chamber, force)
+        accel = accel + accel_thermal
+        info["accel_effects"] = ErrorModel.from_spec(accel_effects).spec
 
     # 4. recordings, batch, truth
     devices = tuple(f"{device_prefix}{i:03d}" for i in range(d))
@@ -201,6 +216,8 @@ def simulate(
     batch = Batch.from_recordings(recs)
     env_arrays = {"t": env.t, "temp": temp, "dtemp": dtemp, "chamber": env.chamber,
                   "power_state": heat_state}
+    if keep_components and accel_effects:
+        env_arrays["accel_thermal"] = accel_thermal
     if keep_components:
         env_arrays.update({"error": error, "specific_force": np.array(force), "rate": np.array(rate),
                            **{f"noise_{k}": v for k, v in parts.items()}})
@@ -208,8 +225,28 @@ def simulate(
         plan=plan_obj.name, options=plan_obj.resolved(), spec=model.spec, preset=preset_obj.name,
         seed=int(seed), devices=devices, params=params, norm=norm, noise=levels,
         thermal=thermal, accel=acc, outputs=tuple(sorted(env.outputs)), segments=env.segments,
-        info=env.info, env=env_arrays, aux_norm=aux_norm)
+        info=info, env=env_arrays, aux_norm=aux_norm)
     return batch, truth
+
+
+#: A MEMS accelerometer's thermal offsets in m/s² per °C are roughly this many times its
+#: gyro's in rad/s per °C (about 0.5 mg/°C against 0.01 °/s/°C).
+ACCEL_PER_GYRO = 20.0
+
+
+def _accel_thermal(spec: str, params, acc: dict, preset_obj, d: int, seed: int, norm, env, temp,
+                   dtemp, chamber, force) -> np.ndarray:
+    """The accelerometer's thermal offset (devices, n, 3) of ``spec``; its coefficients are
+    written into ``acc`` (``thermal_beta``, ``thermal_theta``)."""
+    model = ErrorModel.from_spec(spec)
+    check_model(model, "accel")
+    if params is None:
+        drawn = draw_params(model, preset_obj, d, seed + 7919, float(norm.scale))
+        params = Params(beta=np.asarray(drawn.beta) * ACCEL_PER_GYRO, theta=drawn.theta)
+    params = _device_params(params, model, d)
+    acc["thermal_beta"], acc["thermal_theta"] = np.array(params.beta), np.array(params.theta)
+    zero = np.zeros((d, env.n, 3))
+    return model_error(model, params, norm, env.t, zero, temp, dtemp, chamber, force)
 
 
 def _other_sensors(env, levels: NoiseLevels, acc: dict, temp, chamber, force, seed: int):
