@@ -723,9 +723,9 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     sampled at rates far apart are checked in windows of their own).
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
-    accelerometer (the referenced turns tilt gravity); no status follows from that check
-    (the fit's residual rule judges what the model leaves), so a long recording's first
-    look in long windows stands."""
+    accelerometer (the referenced turns tilt gravity); a fit's status does not follow from
+    that check (the residual rule judges what the model leaves), so a long recording's
+    first look in long windows stands where it found motion."""
     read, use_accel = _reads(batch)
     # the batch's arrays as stored: the pass reads each device's rows in place, and
     # subtracts the rate reference as it reads (what it does not explain)
@@ -759,9 +759,11 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     # rate: whether and how it moved, in the detail of its rate
     with np.errstate(invalid="ignore"):
         again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST) | loud)
-    # (with a rate reference the check is of what the reference leaves, which no status
-    # follows from: its first look stands)
-    again &= rate is None
+    # (with a rate reference the check is of what the reference leaves, and a first look
+    # in motion stands: the fit's status does not follow from it, and its rate's windows
+    # would find the same motion in more detail)
+    if rate is not None:
+        again &= _verdicts(num) == UNVERIFIED
     if again.any():
         idx = np.flatnonzero(again)
         check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()}, final=True)
