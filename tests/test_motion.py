@@ -513,3 +513,15 @@ def test_a_long_recording_at_rest_is_shown_in_long_windows_and_a_knock_in_its_ra
     assert m.window[1] == own and m.window[2] == own and m.window[3] == own
     moving = ~np.asarray(m.static[1, :t.size])
     assert moving[on].all() and moving.sum() <= 8 * own  # the knock, within a few seconds
+
+
+def test_a_spin_for_the_whole_recording_is_not_a_bias():
+    """A steady 0.9 rad/s roll from start to end: a bias term absorbs it (the fit's
+    residual is white), but no gyro's bias is that large, so the fit stays in_motion and
+    says why."""
+    t, g, a = _quiet(int(150 * 50.0), 50.0, seed=2)
+    g = g.copy()
+    g[:, 2] += 0.9
+    r = fit("bias_poly(0)", Recording(t=t, gyro=g, accel=a, device="spin")).records()[0]
+    assert r["status"] == "in_motion"
+    assert "turns steadily at 0.9 rad/s" in r["status_detail"]

@@ -22,7 +22,7 @@ from jaxtyping import Array, Float
 
 from ._fit_result import AbstractFitResult
 from .data import Batch
-from .motion import PAD_SAMPLES, Motion, motion_check, rest_kept
+from .motion import MAX_BIAS, PAD_SAMPLES, Motion, motion_check, rest_kept
 from .status import IN_MOTION, OK, REST_UNVERIFIED
 
 __all__ = ["judge_motion"]
@@ -70,7 +70,8 @@ def _unexplained(result: AbstractFitResult, batch: Batch, motion: Motion, moved)
     """The motion check of what the fitted model leaves unexplained (its residual), for the
     devices whose recording moved; the others keep ``motion``. A fast thermal transient the
     model follows is not motion; a turn no model without a rate reference can follow
-    stays in the residual."""
+    stays in the residual; a spin (a rate held beyond :data:`~diffgyro.motion.MAX_BIAS`),
+    which a bias absorbs, keeps the recording's verdict."""
     d, n = np.shape(batch.mask)
     # a large batch: only the devices that moved (a residual and a check of the whole batch
     # cost more than the fit itself); a small one whole (its check program is compiled
@@ -86,7 +87,11 @@ def _unexplained(result: AbstractFitResult, batch: Batch, motion: Motion, moved)
     if len(idx) == d:
         idx = np.flatnonzero(moved)
         again = again.select(idx)
-    return motion.put(idx, again)
+    # a rate held beyond any bias is a spin, which a bias term absorbs: the residual of
+    # such a fit shows nothing, and the recording's verdict stands
+    with np.errstate(invalid="ignore"):
+        keep = ~(np.asarray(motion.rest_rate, float)[idx] > MAX_BIAS)
+    return motion.put(idx[keep], again.select(np.flatnonzero(keep)))
 
 
 def _replace(result, **changes):
