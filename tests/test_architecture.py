@@ -201,7 +201,7 @@ DEFERRED = {
     "diffgyro.report": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
-    "diffgyro.motion": {"diffgyro._window_pass"},  # numba
+    "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
                       "diffgyro.logs._dataflash"},
@@ -314,7 +314,8 @@ LAYERS = (
     ("errors", "data", "channel", "_jit", "_xla_options", "_program_cache", "_jsonio"),
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
-     "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass"),
+     "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
+     "_window_stats"),
     ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
     ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),

@@ -14,7 +14,7 @@ import pytest
 import scipy.io
 
 from diffgyro import calibration
-from diffgyro._window_pass import window_stats
+from diffgyro._window_stats import window_stats
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit

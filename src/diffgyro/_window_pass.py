@@ -1,10 +1,7 @@
-"""The motion check's one pass over the samples (numba): window statistics.
-
-:mod:`diffgyro.motion` judges a recording from statistics of its windows. They are
-formed here in one read of each device's samples (the three axes side by side), on the
-host's cores in parallel over devices: XLA on a CPU reduces short windows several times
-slower than one compiled loop does, and the check would then cost more than the fit it
-guards. Sums accumulate in float64; the statistics are stored in float32 (what the
+"""The motion check's compiled pass over a large batch's samples (numba): window
+statistics (:mod:`diffgyro._window_stats` says what they are), formed in one read of each
+device's samples (the three axes side by side), on the host's cores in parallel over
+devices. Sums accumulate in float64; the statistics are stored in float32 (what the
 judgement reads).
 
 Compiled on first use and cached on disk (``cache=True``); imported only when a check
@@ -127,35 +124,11 @@ def _rest_noise(stats, valid, quanta, w, quantiles, limit, noise):  # pragma: no
         noise[1, a] = mean_noise if u else math.nan
 
 
-def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
-                 rows: Int[np.ndarray, " r"], windows: int, quantiles: tuple[float, ...],
-                 limit: int, out_rows: int | None = None,
-                 rate: Float[np.ndarray, "d n 3"] | None = None
-                 ) -> tuple[Float[np.ndarray, "R K 3 3"], Float[np.ndarray, "R K"],
-                            Bool[np.ndarray, "R K"], Float[np.ndarray, "R 2 3"]]:
-    """Window statistics of devices ``rows`` of ``x − rate`` (``rate`` where given), in
-    windows of ``w`` valid-masked samples: per window and axis the mean, the local noise
-    (``√(mean Δ²/2)`` over successive valid pairs inside the window) and the difference of
-    the means of its two halves; per window the valid samples and whether it is valid
-    (half its samples, two pairs, both halves, every value finite). And per device the
-    rest noise per axis, of one sample (σ) and of a window mean, from the ``quantiles``
-    (the local noise's, the half differences', and the normal quantiles that correct
-    them, :func:`diffgyro.motion.noise_quantiles`) of at most ``limit`` valid windows
-    spread evenly over the device's, and the quantum (the smallest nonzero change
-    between neighbouring valid samples); NaN where it has no valid window. The outputs hold
-    ``out_rows`` devices (default ``len(rows)``) and ``windows`` windows: those past the
-    data are empty (invalid)."""
-    rows = np.ascontiguousarray(rows, np.int64)
-    total = len(rows) if out_rows is None else out_rows
-    stats = np.zeros((total, windows, 3, 3), np.float32)
-    count = np.zeros((total, windows), np.float32)
-    valid = np.zeros((total, windows), bool)
-    noise = np.full((total, 2, 3), np.nan, np.float32)
-    x = np.asarray(x)
-    rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
-    _pass(x, np.asarray(mask, bool), rate, rows, int(w), stats, count, valid, noise,
-          np.asarray(quantiles, np.float64), int(limit))
-    return stats, count, valid, noise
+def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quantiles,
+                  limit: int) -> None:
+    """:func:`diffgyro._window_stats.window_stats` of a large batch, into its outputs
+    (``rate`` of shape (0, 1, 3) where there is none)."""
+    _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles, limit)
 
 
-__all__ = ["window_stats"]
+__all__ = ["compiled_pass"]

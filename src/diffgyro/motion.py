@@ -36,8 +36,9 @@ raises ``s_k`` and averages out of ``m_k``, so it is not motion.
 A moving window marks its samples and one window either side (the transitions)
 as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
 
-The samples are read once, by a compiled pass on the host's cores
-(:mod:`diffgyro._window_pass`: every window statistic and the rest noise); the
+The samples are read once (:mod:`diffgyro._window_stats`: every window statistic and
+the rest noise; numpy for a small batch, a compiled pass on the host's cores for a large
+one); the
 judgement on the windows is JAX, vmapped over chunks of devices and compiled once per
 shape and window sizes. A long recording is first judged in longer windows (at most
 :data:`MAX_WINDOWS`), and again in its rate's where anything moved or shook, or the long
@@ -60,6 +61,7 @@ from jaxtyping import Bool, Float, Int
 from ._jit import filter_jit
 from ._jsonio import number
 from ._xla_options import FAST_COMPILE
+from ._window_stats import window_stats
 from .data import device_bucket
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.
@@ -385,7 +387,7 @@ def _spread(has, limit: int):
 
 def noise_quantiles() -> tuple[float, float, float, float]:
     """The quantiles that give a device's rest noise per axis, of one sample (σ) and of a
-    window mean (:mod:`diffgyro._window_pass` forms them in its pass).
+    window mean (:mod:`diffgyro._window_stats` forms them as it reads the samples).
 
     σ is the :data:`REST_QUANTILE` of the valid windows' local noise, divided by that
     quantile of the χ distribution of a window's estimate (≈ normal: the normal quantile
@@ -488,7 +490,7 @@ class _Windows(NamedTuple):
 
 
 def _windows(stats, w: int, floor: float) -> _Windows:
-    """A signal's :class:`_Windows` from its window statistics (:mod:`diffgyro._window_pass`)."""
+    """A signal's :class:`_Windows` from its window statistics (:mod:`diffgyro._window_stats`)."""
     wins, c, valid, noise = stats
     mean, local = wins[:, 0], wins[:, 1]
     sigma, mean_noise = noise[0], noise[1]
@@ -784,8 +786,6 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
     rows, k = lay.shape
     referenced = rate is not None
-    from ._window_pass import window_stats  # numba: imported when a check runs
-
     q = noise_quantiles()
     stats = window_stats(gyro, mask, w, idx, k, q, QUANTILE_WINDOWS, rows, rate)
     acc = window_stats(accel, mask, w, idx, k, q, QUANTILE_WINDOWS, rows) if use_accel else None

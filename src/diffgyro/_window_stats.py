@@ -1,0 +1,119 @@
+"""The motion check's window statistics: one read of each device's samples.
+
+:mod:`diffgyro.motion` judges a recording from statistics of its windows (their means,
+local noise and half-window differences) and a rest noise from their quantiles. A large
+batch is read by a compiled pass (:mod:`diffgyro._window_pass`, numba, on the host's
+cores): XLA on a CPU reduces short windows several times slower than one compiled loop
+does, and the check would then cost more than the fit it guards. A small batch is read by
+numpy here, which costs milliseconds where numba's import and the load of its compiled
+pass cost a command half a second. Both give the same numbers (sums in float64, the
+statistics stored in float32).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+#: Batches of at least this many samples (devices × samples) are read by the compiled pass.
+COMPILED_SAMPLES = 1 << 21
+
+
+def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
+                 rows: Int[np.ndarray, " r"], windows: int, quantiles: tuple[float, ...],
+                 limit: int, out_rows: int | None = None,
+                 rate: Float[np.ndarray, "d n 3"] | None = None
+                 ) -> tuple[Float[np.ndarray, "R K 3 3"], Float[np.ndarray, "R K"],
+                            Bool[np.ndarray, "R K"], Float[np.ndarray, "R 2 3"]]:
+    """Window statistics of devices ``rows`` of ``x − rate`` (``rate`` where given), in
+    windows of ``w`` valid-masked samples: per window and axis the mean, the local noise
+    (``√(mean Δ²/2)`` over successive valid pairs inside the window) and the difference of
+    the means of its two halves; per window the valid samples and whether it is valid
+    (half its samples, two pairs, both halves, every value finite). And per device the
+    rest noise per axis, of one sample (σ) and of a window mean, from the ``quantiles``
+    (the local noise's, the half differences', and the normal quantiles that correct
+    them, :func:`diffgyro.motion.noise_quantiles`) of at most ``limit`` valid windows
+    spread evenly over the device's, and the quantum (the smallest nonzero change
+    between neighbouring valid samples); NaN where it has no valid window. The outputs hold
+    ``out_rows`` devices (default ``len(rows)``) and ``windows`` windows: those past the
+    data are empty (invalid)."""
+    rows = np.ascontiguousarray(rows, np.int64)
+    total = len(rows) if out_rows is None else out_rows
+    stats = np.zeros((total, windows, 3, 3), np.float32)
+    count = np.zeros((total, windows), np.float32)
+    valid = np.zeros((total, windows), bool)
+    noise = np.full((total, 2, 3), np.nan, np.float32)
+    x = np.asarray(x)
+    mask = np.asarray(mask, bool)
+    q = np.asarray(quantiles, np.float64)
+    if len(rows) * x.shape[1] >= COMPILED_SAMPLES:
+        from ._window_pass import compiled_pass  # numba: imported for a large batch only
+
+        rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
+        compiled_pass(x, mask, rate, rows, int(w), stats, count, valid, noise, q, int(limit))
+    elif len(rows):
+        _numpy_pass(x, mask, rate, rows, int(w), stats, count, valid, noise, q, int(limit))
+    return stats, count, valid, noise
+
+
+def _numpy_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, q, limit: int) -> None:
+    """:func:`window_stats` of a small batch, into its outputs (the compiled pass's numbers)."""
+    r, k, n = len(rows), stats.shape[1], x.shape[1]
+    m = np.zeros((r, k * w), bool)
+    v = np.zeros((r, k * w, 3))
+    used = min(n, k * w)
+    m[:, :used] = mask[rows, :used]
+    v[:, :used] = x[rows, :used]
+    if rate is not None:
+        v[:, :used] -= rate[rows, :used]
+    v = np.where(m[..., None], v, 0.0).reshape(r, k, w, 3)
+    m = m.reshape(r, k, w)
+    h = w // 2
+    first, total = v[:, :, :h].sum(axis=2), v.sum(axis=2)
+    c1, c = m[:, :, :h].sum(axis=2).astype(float), m.sum(axis=2).astype(float)
+    pair = m[:, :, 1:] & m[:, :, :-1]
+    d = np.where(pair[..., None], v[:, :, 1:] - v[:, :, :-1], 0.0)
+    cp = pair.sum(axis=2).astype(float)
+    with np.errstate(invalid="ignore", over="ignore"):
+        mean = total / np.maximum(c, 1.0)[..., None]
+        half = first / np.maximum(c1, 1.0)[..., None] - (total - first) / np.maximum(c - c1, 1.0)[..., None]
+        local = np.sqrt((d * d).sum(axis=2) / (2.0 * np.maximum(cp, 1.0))[..., None])
+        stats[:r, :, 0], stats[:r, :, 1], stats[:r, :, 2] = mean, local, half
+        count[:r] = c
+        finite = np.all(np.isfinite(mean) & np.isfinite(local), axis=2)
+        valid[:r] = (c >= max(h, 2)) & (cp >= 2) & (c1 > 0) & (c > c1) & finite
+        step = np.where(pair[..., None] & (d != 0.0), np.abs(d), np.inf)
+        quantum = step.reshape(r, -1, 3).min(axis=1) if step.size else np.full((r, 3), np.inf)
+    quantum = np.where(np.isfinite(quantum), quantum, 0.0)
+    _rest_noise(stats[:r], valid[:r], quantum, w, q, limit, noise[:r])
+
+
+def _rest_noise(stats, valid, quantum, w: int, q, limit: int, noise) -> None:
+    """Every device's rest noise (the compiled pass's ``_rest_noise``), into ``noise``."""
+    rest_q, half_q, z, zh = q
+    chi = max(1.0 - z / np.sqrt(2.0 * max(w - 1, 1)), 0.5)
+    k = valid.shape[1]
+    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)
+    for i in range(len(valid)):  # a small batch: a few devices
+        m = min(int(span[i]), limit)
+        at = (np.arange(m) * span[i]) // limit if span[i] > limit else np.arange(m)
+        at = at[valid[i, at]]
+        if not at.size:
+            continue
+        for a in range(3):
+            sigma = max(_quantile(stats[i, at, 1, a], rest_q) / chi, quantum[i, a] / np.sqrt(12.0))
+            mean_noise = max(sigma / np.sqrt(w), _quantile(np.abs(stats[i, at, 2, a]), half_q) / zh / 2.0)
+            noise[i, 0, a], noise[i, 1, a] = sigma, mean_noise
+
+
+def _quantile(values: Float[np.ndarray, " u"], q: float) -> float:
+    """The compiled pass's ``_quantile`` of float32 ``values`` (none empty)."""
+    u = len(values)
+    h = q * (u - 1)
+    lo = int(np.floor(h))
+    hi = min(lo + 1, u - 1)
+    s = np.sort(values)
+    return float(s[lo]) + float(np.float32(s[hi] - s[lo])) * (h - lo)
+
+
+__all__ = ["window_stats", "COMPILED_SAMPLES"]

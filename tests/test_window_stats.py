@@ -1,0 +1,68 @@
+"""The motion check's window statistics (:mod:`diffgyro._window_stats`): closed-form
+values, and the compiled pass of a large batch equal to numpy's of a small one."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diffgyro._window_pass import compiled_pass
+from diffgyro._window_stats import _numpy_pass, window_stats
+from diffgyro.motion import noise_quantiles
+
+Q = np.asarray(noise_quantiles())
+
+
+def test_window_statistics_in_closed_form():
+    """A ramp of slope 1 per sample on x, a constant on y, an alternating ±1 on z, in
+    windows of 8: means, half differences and local noise are known exactly; a window
+    with one valid sample is invalid."""
+    n, w = 64, 8
+    x = np.zeros((1, n, 3))
+    x[0, :, 0] = np.arange(n)
+    x[0, :, 1] = 2.5
+    x[0, :, 2] = np.where(np.arange(n) % 2, 1.0, -1.0)
+    mask = np.ones((1, n), bool)
+    mask[0, 57:] = False  # the last window holds one sample
+    stats, count, valid, _ = window_stats(x, mask, w, np.arange(1), n // w, tuple(Q), 512)
+    k = np.arange(7)
+    np.testing.assert_allclose(stats[0, k, 0, 0], 8 * k + 3.5)
+    np.testing.assert_allclose(stats[0, k, 0, 1], 2.5)
+    np.testing.assert_allclose(stats[0, k, 2, 0], -4.0)  # first half's mean less the second's
+    np.testing.assert_allclose(stats[0, k, 1], np.tile([np.sqrt(0.5), 0.0, np.sqrt(2.0)], (7, 1)),
+                               rtol=1e-6)
+    assert count[0].tolist() == [8.0] * 7 + [1.0]
+    assert valid[0].tolist() == [True] * 7 + [False]
+
+
+@pytest.mark.parametrize("w,windows,limit,referenced", [(4, 800, 512, False), (32, 100, 16, True),
+                                                         (16, 188, 512, False)])
+def test_the_compiled_pass_gives_numpys_numbers(w, windows, limit, referenced):
+    """Gaps, a NaN sample, a quantised device, a device with no valid sample and a rate
+    reference: the same statistics to float32 rounding (sums in another order) and the
+    same validity and rest noise."""
+    rng = np.random.default_rng(0)
+    d, n = 5, 3001
+    x = rng.normal(size=(d, n, 3)) * 1e-3 + 0.01
+    x[2, 50] = np.nan
+    x[3] = np.round(x[3] * 1e4) / 1e4
+    mask = rng.random((d, n)) > 0.05
+    mask[4] = False
+    rate = rng.normal(size=(d, n, 3)) * 1e-4 if referenced else None
+    rows = np.array([4, 0, 2, 3, 1])
+    outs = []
+    for compiled in (True, False):
+        out = (np.zeros((6, windows, 3, 3), np.float32), np.zeros((6, windows), np.float32),
+               np.zeros((6, windows), bool), np.full((6, 2, 3), np.nan, np.float32))
+        if compiled:
+            compiled_pass(x, mask, np.zeros((0, 1, 3)) if rate is None else rate, rows, w, *out, Q,
+                          limit)
+        else:
+            _numpy_pass(x, mask, rate, rows, w, *out, Q, limit)
+        outs.append(out)
+    (s1, c1, v1, n1), (s2, c2, v2, n2) = outs
+    np.testing.assert_allclose(s1, s2, rtol=1e-6, atol=1e-15)
+    np.testing.assert_array_equal(c1, c2)
+    np.testing.assert_array_equal(v1, v2)
+    np.testing.assert_allclose(n1, n2, rtol=1e-6)
+    assert np.isnan(n1[0]).all() and not v1[0].any()  # the device with no valid sample
