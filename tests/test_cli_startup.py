@@ -1,6 +1,8 @@
 """The command line answers ``--help``, usage errors and a missing file without JAX:
-the engine is imported inside the command bodies, and float64 is turned on only once
-a command's options have parsed (benchmarks/cli_help.py times it)."""
+the engine is imported inside the command bodies, and float64 and the compilation
+cache are set only once a command's options have parsed, for when JAX starts (a
+command whose code never imports JAX never starts it); ``export`` and ``effects`` load
+no pandas (benchmarks/cli_help.py and cli_latency.py time these)."""
 
 from __future__ import annotations
 
@@ -132,22 +134,27 @@ def test_a_command_starts_jax_only_when_its_code_does(tmp_path):
     assert after == {"code": 0, "jax": True, "env": []}
 
 
-def test_export_loads_no_pandas(tmp_path):
-    """``export`` reads a calibration file: no DataFrame, so no pandas (nor numba,
-    matplotlib); the file it writes holds the device's parameters."""
+def test_export_and_effects_load_no_pandas(tmp_path):
+    """``export`` reads a calibration file and ``effects`` lists the terms: no DataFrame,
+    so no pandas (nor numba, matplotlib); the file export writes holds the device's
+    parameters."""
     cal = {"format": "diffgyro-calibration", "format_version": 1, "model": "bias_poly(1)",
            "dtemp_window": 60.0, "devices": [{
                "device": "imu0", "status": "ok", "beta": [[1e-3, 2e-4], [-1e-3, 0.0], [0.0, 5e-5]],
                "theta": [], "temp_centre": 25.0, "temp_scale": 10.0, "temp_range": [15.0, 35.0],
                "quality": {"heldout_rms": 3e-4, "noise_floor": 3e-4}}]}
     (tmp_path / "cal.json").write_text(json.dumps(cal))
-    code = ("import json, sys; from diffgyro.cli import main; "
-            "code = main(['export', 'cal.json', '--format', 'px4', '--device-id', '7', "
-            "'--out', 'px4.params']); "
+    code = ("import json, sys; from diffgyro.cli import main; code = main({argv!r}); "
             "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib') "
             "if m in sys.modules)]))")
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         cwd=tmp_path, timeout=120, check=True)
-    assert json.loads(run.stdout.splitlines()[-1]) == [0, []]
+
+    def run(argv):
+        return subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=120, check=True).stdout
+
+    out = run(["export", "cal.json", "--format", "px4", "--device-id", "7", "--out", "px4.params"])
+    assert json.loads(out.splitlines()[-1]) == [0, []]
     written = (tmp_path / "px4.params").read_text()
     assert "TC_G0_ID\t7\t6" in written and "TC_G0_TREF\t25\t9" in written
+    out = run(["effects"])
+    assert "bias_poly" in out and json.loads(out.splitlines()[-1]) == [0, []]
