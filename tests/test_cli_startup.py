@@ -1,6 +1,8 @@
 """The command line answers ``--help``, usage errors and a missing file without JAX:
-the engine is imported inside the command bodies, and float64 is turned on only once
-a command's options have parsed (benchmarks/cli_help.py times it)."""
+the engine is imported inside the command bodies, and float64 and the compilation
+cache are set only once a command's options have parsed, for when JAX starts (a
+command whose code never imports JAX never starts it); ``export`` and ``effects`` load
+no pandas (benchmarks/cli_help.py and cli_latency.py time these)."""
 
 from __future__ import annotations
 
@@ -92,3 +94,67 @@ def test_version_answers_without_jax(tmp_path):
     seen, out, _ = _probe(["--version"], tmp_path)
     assert seen == {"code": 0, "jax": False, "equinox": False}
     assert out.strip() == f"diffgyro {version('diffgyro')}"
+
+
+#: A command added for the test: it starts JAX only when asked, and says how JAX runs.
+COMMAND_PROBE = """
+import json, os, sys
+from diffgyro.cli import app, main
+
+@app.command("probe")
+def probe(start: bool = False):
+    if start:
+        import jax
+        print(json.dumps({"x64": bool(jax.config.jax_enable_x64),
+                          "cache": jax.config.jax_compilation_cache_dir}))
+
+code = main(["probe", *sys.argv[1:]])
+print(json.dumps({"code": code, "jax": "jax" in sys.modules,
+                  "env": sorted(k for k in os.environ if k.startswith("JAX_"))}))
+"""
+
+
+def test_a_command_starts_jax_only_when_its_code_does(tmp_path):
+    """The command line's wrapper starts no JAX itself; where a command's code imports
+    JAX it runs in float64 with the persistent cache in ``$DIFFGYRO_CACHE_DIR``, and
+    JAX's variables leave the environment with the command."""
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_")}
+    env["DIFFGYRO_CACHE_DIR"] = str(tmp_path / "cache")
+
+    def run(*argv):
+        out = subprocess.run([sys.executable, "-c", COMMAND_PROBE, *argv], capture_output=True,
+                             text=True, cwd=tmp_path, env=env, timeout=120, check=True).stdout
+        return [json.loads(line) for line in out.splitlines()]
+
+    assert run() == [{"code": 0, "jax": False, "env": []}]
+    started, after = run("--start")
+    assert started == {"x64": True, "cache": str(tmp_path / "cache")}
+    assert after == {"code": 0, "jax": True, "env": []}
+
+
+def test_export_and_effects_load_no_pandas(tmp_path):
+    """``export`` reads a calibration file and ``effects`` lists the terms: no DataFrame,
+    so no pandas (nor numba, matplotlib); the file export writes holds the device's
+    parameters."""
+    cal = {"format": "diffgyro-calibration", "format_version": 1, "model": "bias_poly(1)",
+           "dtemp_window": 60.0, "devices": [{
+               "device": "imu0", "status": "ok", "beta": [[1e-3, 2e-4], [-1e-3, 0.0], [0.0, 5e-5]],
+               "theta": [], "temp_centre": 25.0, "temp_scale": 10.0, "temp_range": [15.0, 35.0],
+               "quality": {"heldout_rms": 3e-4, "noise_floor": 3e-4}}]}
+    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    code = ("import json, sys; from diffgyro.cli import main; code = main({argv!r}); "
+            "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib') "
+            "if m in sys.modules)]))")
+
+    def run(argv):
+        return subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True,
+                              text=True, cwd=tmp_path, timeout=120, check=True).stdout
+
+    out = run(["export", "cal.json", "--format", "px4", "--device-id", "7", "--out", "px4.params"])
+    assert json.loads(out.splitlines()[-1]) == [0, []]
+    written = (tmp_path / "px4.params").read_text()
+    assert "TC_G0_ID\t7\t6" in written and "TC_G0_TREF\t25\t9" in written
+    out = run(["effects"])
+    assert "bias_poly" in out and json.loads(out.splitlines()[-1]) == [0, []]

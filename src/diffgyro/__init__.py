@@ -11,6 +11,8 @@ import importlib
 import os
 from importlib.metadata import PackageNotFoundError, version
 
+from ._jax_setup import FLOAT64, cache_settings
+
 try:
     __version__ = version("diffgyro")
 except PackageNotFoundError:  # running from a source tree
@@ -21,7 +23,8 @@ def enable_x64() -> None:
     """Turn on JAX float64 (a process-wide setting; calibration needs it)."""
     import jax
 
-    jax.config.update("jax_enable_x64", True)
+    for name, value in FLOAT64.items():
+        jax.config.update(name, value)
 
 
 def enable_compilation_cache(path: str | None = None) -> None:
@@ -29,13 +32,9 @@ def enable_compilation_cache(path: str | None = None) -> None:
 
     import jax
 
-    path = path or os.environ.get("DIFFGYRO_CACHE_DIR") or os.path.join(
-        os.path.expanduser("~"), ".cache", "diffgyro", "jax")
     try:
-        os.makedirs(path, exist_ok=True)
-        jax.config.update("jax_compilation_cache_dir", path)
-        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.2)
-        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+        for name, value in cache_settings(path).items():
+            jax.config.update(name, value)
     except Exception:  # a read-only home must not stop a calibration
         pass
 

@@ -37,6 +37,7 @@ import jax
 import jaxlib
 import numpy
 
+from . import _jax_setup
 from ._jsonio import atomic_write_bytes
 
 #: Top-level modules whose classes and functions may appear in a key (by reference).
@@ -45,10 +46,6 @@ TRUSTED = frozenset({"diffgyro", "builtins", "numpy", "jax", "jaxlib", "equinox"
                      "dataclasses", "enum", "copyreg", "types"})
 
 _loaded: dict[str, Callable | None] = {}  # key -> program (None: traced as usual)
-
-#: Called (no arguments) before a program not stored yet is traced, compiled and stored:
-#: the command line's "compiling programs for this model" notice (None: nothing).
-on_new_program: Callable[[], None] | None = None
 
 
 class _Untrusted(Exception):
@@ -138,8 +135,8 @@ def program(fun: Callable, treedef, static, dynamic, body: Callable) -> Callable
         if path.exists():
             found = jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call)
         elif not failed.exists():
-            if on_new_program is not None:
-                on_new_program()
+            if _jax_setup.on_new_program is not None:  # the command line's notice
+                _jax_setup.on_new_program()
             found = _export(fun, body, dynamic, path, failed)
     except Exception:  # noqa: BLE001 - a damaged or foreign file: trace as usual
         logging.getLogger("diffgyro").debug("stored program %s not used", key, exc_info=True)

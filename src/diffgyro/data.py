@@ -20,7 +20,6 @@ from collections.abc import Sequence
 
 import equinox as eqx
 import numpy as np
-import pandas as pd
 from jaxtyping import Bool, Float, Int
 
 from .errors import DataError
@@ -87,6 +86,7 @@ class Recording(eqx.Module):
 
     def to_frame(self):
         """This recording as a pandas DataFrame in the standard schema."""
+        import pandas as pd  # a slow import that only a table needs
 
         cols: dict[str, np.ndarray | str] = {"device": self.device, "t": self.t}
         for sig, names in SIGNALS.items():
@@ -305,6 +305,8 @@ class Batch(eqx.Module):
                      aux={k: np.asarray(v)[idx] for k, v in self.aux.items()})
 
     def to_frame(self):
+        """Every device's recording as one pandas DataFrame in the standard schema."""
+        import pandas as pd
 
         return pd.concat([r.to_frame() for r in self.recordings()], ignore_index=True)
 

@@ -60,8 +60,8 @@ from jaxtyping import Bool, Float, Int
 
 from ._jit import filter_jit
 from ._jsonio import number
-from ._xla_options import FAST_COMPILE
 from ._window_stats import window_stats
+from ._xla_options import FAST_COMPILE
 from .data import device_bucket
 
 #: Earth's rotation rate (rad/s): the gyro's floor on a window-mean deviation.

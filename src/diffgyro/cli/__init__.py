@@ -20,6 +20,7 @@ from typing import Annotated
 import typer
 
 import diffgyro
+from diffgyro import _jax_setup
 from diffgyro.errors import DataError
 
 from . import _progress
@@ -101,8 +102,9 @@ def error_json(err: Exception) -> dict:
 
 def _engine_first(command):
     """``command``'s callback with its input files checked, then float64 and the
-    compilation cache turned on: JAX starts only when a command runs, after its
-    options parsed (``--help`` and usage errors answer without it). Under ``--json``
+    compilation cache set for when JAX starts: JAX starts only when a command's code
+    needs it, after its options parsed (``--help``, usage errors and the commands that
+    compile nothing answer without it). Under ``--json``
     an error is also its JSON object on stdout (the one line still goes to stderr)."""
 
     callback = command.callback
@@ -112,13 +114,10 @@ def _engine_first(command):
     def run_command(*args, **kwargs):
         try:
             _check_inputs(command, kwargs)
-            diffgyro.enable_x64()
-            diffgyro.enable_compilation_cache()
             if _progress.shown():  # a first run says once that it compiles
-                from diffgyro import _program_cache
-
-                _program_cache.on_new_program = _progress.compiling
-            return callback(*args, **kwargs)
+                _jax_setup.on_new_program = _progress.compiling
+            with _jax_setup.when_jax_starts({**_jax_setup.FLOAT64, **_jax_setup.cache_settings()}):
+                return callback(*args, **kwargs)
         except Exception as err:
             usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2
             if flag is not None and kwargs.get(flag) and (isinstance(err, DataError) or usage):

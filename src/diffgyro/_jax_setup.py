@@ -1,0 +1,75 @@
+"""JAX's process-wide settings (float64, the persistent compilation cache) applied when JAX
+starts, not before, and who hears that a program is compiled for the first time.
+
+A command that needs no compiled program (``export``, ``effects``, an error) should not
+pay JAX's import (half a second and more). :func:`when_jax_starts` gives JAX the
+settings through its own environment variables (``JAX_ENABLE_X64``, ...; JAX reads them
+when it is imported) while a block runs, or sets them at once if JAX is already
+running, so whichever code imports JAX first gets them. No JAX here.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import contextmanager
+
+#: Float64 on: calibration needs it.
+FLOAT64 = {"jax_enable_x64": True}
+
+#: Called (no arguments) before a program not stored on disk yet is traced, compiled and
+#: stored (:mod:`diffgyro._program_cache`): the command line's "compiling programs for
+#: this model" notice (None: nothing). Kept here, JAX-free, so that setting it does not
+#: start JAX.
+on_new_program: Callable[[], None] | None = None
+
+
+def cache_dir(path: str | None = None) -> str:
+    """The persistent cache's folder: ``path``, else ``$DIFFGYRO_CACHE_DIR``, else
+    ``~/.cache/diffgyro/jax``."""
+    return path or os.environ.get("DIFFGYRO_CACHE_DIR") or os.path.join(
+        os.path.expanduser("~"), ".cache", "diffgyro", "jax")
+
+
+def cache_settings(path: str | None = None) -> dict:
+    """JAX's settings of a persistent compilation cache in :func:`cache_dir` (made if
+    missing): every program compiled in 0.2 s or more is kept. Empty where the folder
+    cannot be made (a read-only home must not stop a calibration)."""
+    folder = cache_dir(path)
+    try:
+        os.makedirs(folder, exist_ok=True)
+    except OSError:
+        return {}
+    return {"jax_compilation_cache_dir": folder,
+            "jax_persistent_cache_min_compile_time_secs": 0.2,
+            "jax_persistent_cache_min_entry_size_bytes": 0}
+
+
+def _env_value(value) -> str:
+    return ("1" if value else "0") if isinstance(value, bool) else str(value)
+
+
+@contextmanager
+def when_jax_starts(settings: Mapping[str, object]) -> Iterator[None]:
+    """JAX runs with ``settings`` (config name -> value) inside the block: set now if JAX
+    is imported already, else given as its environment variables, which JAX reads when
+    it is imported; the environment is restored afterwards (a setting JAX read stays)."""
+    if "jax" in sys.modules:
+        import jax
+
+        for name, value in settings.items():
+            jax.config.update(name, value)
+        yield
+        return
+    names = {name.upper(): _env_value(value) for name, value in settings.items()}
+    saved = {name: os.environ.get(name) for name in names}
+    os.environ.update(names)
+    try:
+        yield
+    finally:
+        for name, old in saved.items():
+            if old is None:
+                os.environ.pop(name, None)
+            else:
+                os.environ[name] = old
