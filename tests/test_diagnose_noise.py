@@ -119,20 +119,19 @@ GM_SIGMA, GM_TAU, FS = 1.5e-4, 400.0, 0.5  # rad/s, s, Hz: the bias noise as lar
 
 @pytest.fixture(scope="module")
 def thermal_gm():
-    """A simulated thermal run (4.6 h at 0.5 Hz: N samples, as the runs above, the default
-    chamber profile stretched) whose model is
-    right (bias_poly(2)), with white noise of 1.5e-4 rad/s per sample and a Gauss–Markov bias
-    of the same σ and τ = 400 s on every axis; the diagnosis by default, as `--noise` does
-    it, and the text output."""
+    """A simulated thermal run (the default chamber profile stretched to N samples at 0.5 Hz,
+    4.6 h, the length of the runs above) whose model is right (bias_poly(2)), with white noise
+    of 1.5e-4 rad/s per sample and a Gauss–Markov bias of the same σ and τ = 400 s on every
+    axis; and its diagnosis with the default options."""
     import dataclasses
 
     import diffgyro
     from diffgyro.simulate import simulate
 
     diffgyro.enable_x64()
-    batch, _ = simulate("thermal", 1, effects="bias_poly(2)", seed=3, sample_rate=FS, duration=N / FS,
-                        noise={"arw": GM_SIGMA / np.sqrt(FS), "rrw": 0.0, "bias_instability": 0.0,
-                               "quantum": 0.0})
+    batch, _ = simulate("thermal", 1, effects="bias_poly(2)", seed=3, sample_rate=FS,
+                        duration=N / FS, noise={"arw": GM_SIGMA / np.sqrt(FS), "rrw": 0.0,
+                                                "bias_instability": 0.0, "quantum": 0.0})
     rec = batch.recording(0)
     keys = jax.random.split(jax.random.PRNGKey(5), 3)
     gm = np.stack([np.asarray(simulate_noise(k, rec.n, 1 / FS, gm=((GM_SIGMA, GM_TAU),)))
