@@ -164,9 +164,8 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
     """Identify the residual noise of the devices ``mode`` selects and set each device's
     ``noise`` (the ``noise --json`` entry), ``noise_process`` and, where a Gauss–Markov
     process explains what no term closes, the verdict (module docstring). ``rescore(i,
-    floor_axes, synthesis_only)``: device i's decision with the per-axis floor given, a
-    synthesised term tried where no built-in term closes the gap (None: not re-run; with
-    ``synthesis_only``, None unless a synthesised term is proposed);
+    floor_axes)``: device i's decision with the per-axis floor given, a synthesised term
+    tried where no built-in term closes the gap (None: not re-run);
     ``excess_min``: the auto rule's excess (:func:`not_white`)."""
 
     if mode is False or mode is None:
@@ -198,11 +197,9 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
         n = int(nv[k])
         total = float(tt[k, n - 1] - tt[k, 0])
         gm = gauss_markov_power(entry, total)
-        if rescore is not None and gm.any():
-            # a residual that follows a logged signal closely keeps its white-floor decision
-            # unless a term synthesised from the signals closes the gap (:mod:`.synthesis`)
-            alt = rescore(i, np.sqrt(np.square(d.white_noise_axes) + gm), _follows_a_signal(d))
-            if alt is not None and alt.best is not None and not alt.best.stochastic:
+        if rescore is not None and gm.any() and not _follows_a_signal(d):
+            alt = rescore(i, np.sqrt(np.square(d.white_noise_axes) + gm))
+            if alt.best is not None and not alt.best.stochastic:
                 devices[i] = d = _against_noise(d, alt)
                 d.noise = entry
         d.noise_process = process

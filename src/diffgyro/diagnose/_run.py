@@ -466,16 +466,17 @@ def diagnose(
     if synthesis:
         say("proposing terms built from the recording's signals")
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
-    def rescore(i, floor_axes, synthesis_only=False):  # against another floor (noise_model)
+    def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
         fl = np.array(floors, copy=True)
         fl[i] = floor_axes
         alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
                       unsupported, skips[i])[0]
         alt.noise_floor, alt.noise_axes = reported[i]
-        proposed = synthesis and synthesise_one(
-            i, alt, batch, res, model, cands, ranges <= 0, th, devices[i].white_noise_rms,
-            lambda k, e: residual_floor(e, batch.t[k], floors[k])) is not None
-        return alt if proposed or not synthesis_only else None
+        if synthesis:
+            synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
+                           devices[i].white_noise_rms,
+                           lambda k, e: residual_floor(e, batch.t[k], floors[k]))
+        return alt
 
     say("identifying the residual's noise")
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore, th.excess_min)

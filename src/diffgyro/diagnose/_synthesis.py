@@ -253,10 +253,16 @@ def reached(sse_base: np.ndarray, sse: np.ndarray, cnt: np.ndarray, floor2: floa
             th: Thresholds) -> bool:
     """A set whose held-out MSE is within the thresholds' ``excess_min`` of ``floor2`` or
     that closes their ``rw_prefer`` of the base's gap to it."""
+    mse = sse.sum() / (3.0 * cnt.sum())
+    return bool(mse <= floor2 * (1.0 + th.excess_min)
+                or _closure(sse_base, sse, cnt, floor2) >= th.rw_prefer)
+
+
+def _closure(sse_base: np.ndarray, sse: np.ndarray, cnt: np.ndarray, floor2: float) -> float:
+    """The share of the base's held-out gap to ``floor2`` that a set closes."""
     denom = 3.0 * cnt.sum()
     mse, mse_base = sse.sum() / denom, sse_base.sum() / denom
-    closure = (mse_base - mse) / (mse_base - floor2) if mse_base > floor2 else 0.0
-    return bool(mse <= floor2 * (1.0 + th.excess_min) or closure >= th.rw_prefer)
+    return (mse_base - mse) / (mse_base - floor2) if mse_base > floor2 else 0.0
 
 
 def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
@@ -430,8 +436,11 @@ def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor
     the forward path is taken as against the white floor ``floor2`` (each step consistent
     and material against it), then the noise of the residual the whole path leaves is
     identified (``residual_floor``) and the shortest prefix that reaches that floor (white
-    + Gauss–Markov, or closes ``rw_prefer`` of the gap to it) is chosen. Identified after
-    the terms, the process' power is not inflated by the effect they take out."""
+    + Gauss–Markov, or closes ``rw_prefer`` of the gap to it) and closes the thresholds'
+    ``closure_min`` of the gap to the white floor (as a built-in term must) is chosen.
+    Identified after the terms, the process' power is not inflated by the effect they take
+    out; the closure keeps a term that takes a sliver off an effect whose rest reads as a
+    process of seconds out."""
     path, sses = forward(zz, zy, yy, cnt, list(range(p)), groups, floor2, th, vocabulary=vocab)
     if not path:
         return [], sses[0], None
@@ -440,7 +449,8 @@ def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor
     e = y - np.einsum("nik,ik->ni", z[:, :, cols], beta)
     noise2 = max(float(np.mean(residual_floor(e))), floor2)
     for k in range(1, len(path) + 1):
-        if reached(sses[0], sses[k], cnt, noise2, th):
+        if reached(sses[0], sses[k], cnt, noise2, th) and \
+                _closure(sses[0], sses[k], cnt, floor2) >= th.closure_min:
             return path[:k], sses[k], noise2
     return [], sses[-1], None
 
