@@ -379,6 +379,26 @@ def _skips(every, all_ranges, problems, batch, dead, unscored, unnamed) -> list[
     return skips
 
 
+def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+              unsupported, skips, reported, synthesis: bool):
+    """``rescore(i, floor_axes)``: device i's decision against another per-axis floor (the
+    white level + the identified Gauss–Markov power, :mod:`.noise_model`), then, where no
+    built-in term closes the gap, the synthesis judged against the noise its terms leave."""
+    def rescore(i, floor_axes):
+        fl = np.array(floors, copy=True)
+        fl[i] = floor_axes
+        alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
+                      unsupported, skips[i])[0]
+        alt.noise_floor, alt.noise_axes = reported[i]
+        if synthesis:
+            synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
+                           devices[i].white_noise_rms,
+                           lambda k, e: residual_floor(e, batch.t[k], floors[k]))
+        return alt
+
+    return rescore
+
+
 def _nested(*args, **kwargs) -> Diagnosis:
     """The greedy pair's nested diagnosis: its residual's noise is not reported."""
     return diagnose(*args, noise=False, **kwargs)
@@ -466,18 +486,8 @@ def diagnose(
     if synthesis:
         say("proposing terms built from the recording's signals")
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
-    def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
-        fl = np.array(floors, copy=True)
-        fl[i] = floor_axes
-        alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
-                      unsupported, skips[i])[0]
-        alt.noise_floor, alt.noise_axes = reported[i]
-        if synthesis:
-            synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
-                           devices[i].white_noise_rms,
-                           lambda k, e: residual_floor(e, batch.t[k], floors[k]))
-        return alt
-
+    rescore = _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                        unsupported, skips, reported, synthesis)
     say("identifying the residual's noise")
     attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore, th.excess_min)
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
