@@ -186,3 +186,29 @@ def test_temperature_dependent_g_sensitivity_on_a_thermal_run_is_a_term():
         errors[spec] = math.sqrt(float(np.mean(e**2)))
     assert errors[TG_SPEC] <= 0.5 * TG_SIGMA, errors
     assert errors["bias_poly(1)+g_sens"] >= 3 * errors[TG_SPEC], errors
+
+
+def test_a_lag_term_enters_once():
+    """A bias ∝ duty·lag(duty) of a logged duty on top of ``aux(duty)``: in the centred columns
+    it is ¼(h·lag(h) + h + lag(h) + 1), so the selection wants ``lag(heater)`` next to
+    ``heater*lag(heater)``, and one lag term at two of its grid's time constants fitted the
+    rest better: the proposal named ``term(lag(heater))`` twice, a spec fit refuses. A term
+    enters once; the proposal is a spec ``fit`` reads."""
+    from grammar_catalogue import FS, N, _lag, _steps
+
+    from diffgyro.data import Recording
+
+    rng, noise = np.random.default_rng(11), np.random.default_rng(99)
+    t = np.arange(N) / FS
+    temp = 25.0 + 0.8 * np.sin(2 * math.pi * t / t[-1]) + 0.01 * noise.standard_normal(N)
+    duty = _steps(rng, N, 0.0, 1.0, 450.0)
+    err = np.array([1e-3, -2e-3, 5e-4]) + np.outer((temp - 30) / 10, [2e-4, -1e-4, 1.5e-4])
+    err = err + np.array([1.2e-2, -9e-3, 9e-3]) * (duty * _lag(duty, 300.0, 1 / FS))[:, None]
+    rec = Recording(t=t, gyro=err + SIGMA * noise.standard_normal((N, 3)), temp=temp,
+                    accel=np.tile([0.0, 0.0, 9.80665], (N, 1)), aux={"heater": duty}, device="u")
+    (prop,) = propose_all("bias_poly(1)+aux(heater)", Batch.from_recordings([rec])).values()
+    assert len(set(prop.terms)) == len(prop.terms), prop.terms
+    assert "term(heater*lag(heater))" in prop.terms, prop.terms
+    assert ErrorModel.from_spec(prop.spec).spec == prop.spec
+    assert describe("heater*lag(heater)").endswith("a signal times its own lagged value "
+                                                   "(its present and its thermal history)")

@@ -237,13 +237,14 @@ def _full_sse(zz, zy, yy, cols: list[int]) -> float:
 
 def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
            th: Thresholds, max_terms: int = MAX_TERMS,
-           vocabulary: frozenset = frozenset()) -> tuple[list[int], np.ndarray]:
+           vocabulary: frozenset = frozenset(), keys: list | None = None) -> tuple[list[int], np.ndarray]:
     """Forward selection of candidate groups (column indices) on top of ``base``; returns
     the chosen groups' indices (empty when no set reaches the floor or closes the thresholds'
     ``rw_prefer`` of the gap to it) and the held-out SSE per block of the final set. Groups
     in ``vocabulary`` (built-in terms) need the thresholds' ``gain_min``, synthesised ones
-    :data:`GAIN_MIN`."""
-    chosen, sses = forward(zz, zy, yy, cnt, base, groups, floor2, th, max_terms, vocabulary)
+    :data:`GAIN_MIN`. ``keys``: per group, the term it is (one lag term on a grid of time
+    constants is several groups); a term enters once."""
+    chosen, sses = forward(zz, zy, yy, cnt, base, groups, floor2, th, max_terms, vocabulary, keys)
     # the floor reached, or the gap closed as a built-in term must close it to be preferred
     # to the random walk (flicker and read-out quantisation stay above the white floor)
     return (chosen if reached(sses[0], sses[-1], cnt, floor2, th) else []), sses[-1]
@@ -267,10 +268,12 @@ def _closure(sse_base: np.ndarray, sse: np.ndarray, cnt: np.ndarray, floor2: flo
 
 def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
             th: Thresholds, max_terms: int = MAX_TERMS,
-            vocabulary: frozenset = frozenset()) -> tuple[list[int], list[np.ndarray]]:
+            vocabulary: frozenset = frozenset(), keys: list | None = None,
+            ) -> tuple[list[int], list[np.ndarray]]:
     """The forward path of :func:`select`: the groups added in order, each improving the
     held-out error consistently and materially against ``floor2``, until it reaches the
     floor; and the held-out SSE per block before the first and after each step."""
+    keys = list(range(len(groups))) if keys is None else keys
     cur = list(base)
     sse_cur = _heldout(zz, zy, yy, cur)
     sses = [sse_cur]
@@ -280,8 +283,9 @@ def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: f
         if sse_cur.sum() / denom.sum() <= floor2 * (1.0 + th.excess_min):
             break
         best, best_sse = None, None
+        taken = {keys[c] for c in chosen}
         for j, g in enumerate(groups):
-            if j in chosen:
+            if keys[j] in taken:
                 continue
             s = _heldout(zz, zy, yy, cur + g)
             if np.all(np.isfinite(s)) and (best_sse is None or s.sum() < best_sse.sum()):
@@ -406,12 +410,14 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
     floor2 = max(floor ** 2, 1e-300)
     vocab = frozenset(k for k, j in enumerate(usable) if not isinstance(terms[j], Term))
     grouped = [groups[j] for j in usable]
+    keys = [labels[j] for j in usable]
     noise2 = None
     if residual_floor is None:
-        chosen, sse = select(zz, zy, yy, cnt, list(range(p)), grouped, floor2, th, vocabulary=vocab)
+        chosen, sse = select(zz, zy, yy, cnt, list(range(p)), grouped, floor2, th, vocabulary=vocab,
+                             keys=keys)
     else:
         chosen, sse, noise2 = _against_noise(z, y, zz, zy, yy, cnt, p, grouped, floor2, th, vocab,
-                                             residual_floor)
+                                             residual_floor, keys)
     chosen = [usable[k] for k in chosen]
     new = [labels[j] for j in chosen if isinstance(terms[j], Term)]
     if not new:
@@ -431,7 +437,7 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
 
 
 def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor2: float,
-                   th: Thresholds, vocab: frozenset, residual_floor):
+                   th: Thresholds, vocab: frozenset, residual_floor, keys: list):
     """:func:`select` where the residual holds a Gauss–Markov process that no term predicts:
     the forward path is taken as against the white floor ``floor2`` (each step consistent
     and material against it), then the noise of the residual the whole path leaves is
@@ -441,7 +447,8 @@ def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor
     Identified after the terms, the process' power is not inflated by the effect they take
     out; the closure keeps a term that takes a sliver off an effect whose rest reads as a
     process of seconds out."""
-    path, sses = forward(zz, zy, yy, cnt, list(range(p)), groups, floor2, th, vocabulary=vocab)
+    path, sses = forward(zz, zy, yy, cnt, list(range(p)), groups, floor2, th, vocabulary=vocab,
+                         keys=keys)
     if not path:
         return [], sses[0], None
     cols = list(range(p)) + [q for k in path for q in groups[k]]
@@ -488,6 +495,10 @@ def describe(expr: str) -> str:
         reading = ": a rate-squared (cross-coupling) error"
     elif lagged and len(fs) == 1:
         reading = ": a signal reaching the gyro through its own thermal path (first-order lag)"
+    elif lagged and len(fs) == 2 and len(names) == 1:
+        reading = ": a signal times its own lagged value (its present and its thermal history)"
+    elif lagged and len(fs) == 2 and len(names) == 1:
+        reading = ": a signal times its own lagged value (its present and its thermal history)"
     elif "temp" in names and len(fs) == 2:
         reading = ": a sensitivity that changes with temperature"
     return f"the bias follows {words}{reading}"
