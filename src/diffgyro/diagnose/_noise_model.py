@@ -27,7 +27,8 @@ walk is best, ``missing_effect``): its smoother is scored on held-out folds.
 
 The deterministic candidates, and where none closes the gap the terms synthesised
 from the recording's signals (:mod:`.synthesis`), are then scored against the
-identified noise, not the white floor alone: no deterministic term predicts a Gauss–Markov bias whose
+identified noise, not the white floor alone (on a device read ``adequate`` against the
+white floor, the synthesised terms only): no deterministic term predicts a Gauss–Markov bias whose
 correlation time is far shorter than a fold block, so the held-out error of the right
 model is the white floor plus the process' stationary variance σ². The decision is
 re-run with that floor (per axis, white² + Σσ² of the Gauss–Markov processes inside
@@ -164,8 +165,9 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
     """Identify the residual noise of the devices ``mode`` selects and set each device's
     ``noise`` (the ``noise --json`` entry), ``noise_process`` and, where a Gauss–Markov
     process explains what no term closes, the verdict (module docstring). ``rescore(i,
-    floor_axes)``: device i's decision with the per-axis floor given, a synthesised term
-    tried where no built-in term closes the gap (None: not re-run);
+    floor_axes, builtin)``: device i's decision with the per-axis floor given, a synthesised
+    term tried where no built-in term closes the gap (None: not re-run; ``builtin`` False
+    for a device read adequate: its decision kept unless a term is synthesised, else None);
     ``excess_min``: the auto rule's excess (:func:`not_white`)."""
 
     if mode is False or mode is None:
@@ -193,13 +195,17 @@ def attach_noise(devices: list[DeviceDiagnosis], residuals, n_valid, t, mode="au
         d.noise = entry
         if entry["status"] != "ok":
             continue
+        # read adequate against the white floor: the built-in terms are not scored again (on
+        # noise-only devices a raised floor let a term of the thermal family through), only
+        # a synthesised product judged against the noise it leaves can replace the verdict
+        builtin = d.verdict != "adequate"
         process, tau, tau_hi = _process(entry)
         n = int(nv[k])
         total = float(tt[k, n - 1] - tt[k, 0])
         gm = gauss_markov_power(entry, total)
         if rescore is not None and gm.any() and not _follows_a_signal(d):
-            alt = rescore(i, np.sqrt(np.square(d.white_noise_axes) + gm))
-            if alt.best is not None and not alt.best.stochastic:
+            alt = rescore(i, np.sqrt(np.square(d.white_noise_axes) + gm), builtin)
+            if alt is not None and alt.best is not None and not alt.best.stochastic:
                 devices[i] = d = _against_noise(d, alt)
                 d.noise = entry
         d.noise_process = process

@@ -381,20 +381,25 @@ def _skips(every, all_ranges, problems, batch, dead, unscored, unnamed) -> list[
 
 def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
               unsupported, skips, reported, synthesis: bool):
-    """``rescore(i, floor_axes)``: device i's decision against another per-axis floor (the
-    white level + the identified Gauss–Markov power, :mod:`.noise_model`), then, where no
-    built-in term closes the gap, the synthesis judged against the noise its terms leave."""
-    def rescore(i, floor_axes):
-        fl = np.array(floors, copy=True)
-        fl[i] = floor_axes
-        alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
-                      unsupported, skips[i])[0]
-        alt.noise_floor, alt.noise_axes = reported[i]
-        if synthesis:
-            synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
-                           devices[i].white_noise_rms,
-                           lambda k, e: residual_floor(e, batch.t[k], floors[k]))
-        return alt
+    """``rescore(i, floor_axes, builtin)``: device i's decision against another per-axis
+    floor (the white level + the identified Gauss–Markov power, :mod:`.noise_model`), then,
+    where no built-in term closes the gap, the synthesis judged against the noise its terms
+    leave. Without ``builtin`` the white-floor decision is kept and only the synthesis runs
+    (None unless it proposes a term)."""
+    def rescore(i, floor_axes, builtin=True):
+        if builtin:
+            fl = np.array(floors, copy=True)
+            fl[i] = floor_axes
+            alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
+                          unsupported, skips[i])[0]
+            alt.noise_floor, alt.noise_axes = reported[i]
+        else:
+            alt = devices[i]
+        prop = synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
+                              devices[i].white_noise_rms,
+                              lambda k, e: residual_floor(e, batch.t[k], floors[k])) \
+            if synthesis else None
+        return alt if builtin or prop is not None else None
 
     return rescore
 
