@@ -25,6 +25,12 @@ reaches the floor (or closes ``rw_prefer`` of the gap to it, as a built-in term 
 preferred to the random walk) is proposed, the smallest found: a residual of correlated noise (a
 random walk, flicker) is not closed by any product of the logged signals, so it gets no
 invented term.
+
+Where the residual holds a Gauss–Markov process (:mod:`.noise_model`), the white floor
+cannot be reached by any set: the steps are taken as above, then the noise of the
+residual the set leaves is identified and the set judged against that floor (white +
+the process' σ², :func:`apply_one`), so that a product the identification alone would
+read as noise is proposed as a term.
 """
 
 from __future__ import annotations
