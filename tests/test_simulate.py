@@ -231,6 +231,27 @@ def test_thermal_profile_rates_and_power_step(thermal_quiet):
     assert power[:, 1].tolist() == [1.0, 1.6, 1.0]
 
 
+def test_thermal_on_a_fixture_holds_every_face_at_every_soak():
+    """``faces``: each soak is shared among the faces (turned between them), the ramps keep
+    the last one, and the temperature path is that of the static plan; a ``term(...)`` truth
+    is drawn from the population."""
+    kw = dict(seed=2, noise="none", sample_rate=0.2, duration=5400.0)
+    batch, truth = simulate("thermal", 1, effects="bias_poly(1)+term(temp*az)",
+                            faces="+z,+x,-y", **kw)
+    still, _ = simulate("thermal", 1, effects="bias_poly(1)", **kw)
+    np.testing.assert_allclose(batch.temp_ext[0], still.temp_ext[0])
+    up = {"+z": [0, 0, 1], "+x": [1, 0, 0], "-y": [0, -1, 0]}
+    soaks = [s for s in truth.segments if s["label"] == "soak"]
+    assert len(soaks) == 3 * (1 + len(truth.options["profile"]))
+    for k in range(0, len(soaks), 3):
+        assert sorted(s["face"] for s in soaks[k:k + 3]) == sorted(up)
+        assert len({s["temp"] for s in soaks[k:k + 3]}) == 1
+    for s in soaks:
+        f = batch.accel[0, s["start"]:s["end"]] / 9.80665
+        np.testing.assert_allclose(f, np.broadcast_to(up[s["face"]], f.shape), atol=1e-9)
+    assert np.all(np.asarray(truth.params.beta)[0, :, -1] != 0)
+
+
 def test_truth_is_in_the_model_basis(thermal_quiet):
     """Least squares on the model's own design (true signals, truth's norm) gives
     back the true coefficients exactly: the simulator speaks the model's language."""

@@ -482,11 +482,36 @@ def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits
     ]
     if skipped:
         body.append(f"<p>Not tried:</p><ul>{skipped}</ul>")
+    body.append(_noise_html(d.noise))
     for title, png in device_figures(diagnosis, batch, i, ladder, named).items():
         body.append(f"<h2>{html.escape(title)}</h2><img alt='{html.escape(title)}' "
                     f"src='data:image/png;base64,{png}'>")
     body.append("<p><a href='index.html'>batch summary</a></p>")
     return _page(f"diffgyro diagnosis: {d.device}", "".join(body))
+
+
+def _noise_html(entry: dict | None) -> str:
+    """The residual's noise model as ``diagnose --json``'s ``noise`` holds it: per axis each
+    component's parameters with their intervals (nothing where it was not identified)."""
+    if not entry or entry.get("status") != "ok" or not entry.get("axes"):
+        return ""
+    level = entry.get("interval_level")
+    rows = []
+    for ax, axis in entry["axes"].items():
+        for c in axis["components"]:
+            for name, par in c["params"].items():
+                lo, hi = par.get("ci") or (None, None)
+                ci = "—" if lo is None or hi is None else f"[{_fmt(lo)}, {_fmt(hi)}]"
+                rows.append(f"<tr><td class=l>{html.escape(ax)}</td><td class=l>"
+                            f"{html.escape(c['kind'].replace('_', '-'))}</td><td class=l>"
+                            f"{html.escape(name)}</td><td>{_fmt(par.get('value'))}</td>"
+                            f"<td>{ci}</td><td class=l>{html.escape(str(par.get('unit', '')))}</td></tr>")
+    head = (f"<h2>Noise model of the residual</h2><p>Identified on the base model's residual "
+            f"(as <code>diffgyro noise</code>); intervals at "
+            f"{'—' if level is None else f'{level:.0%}'}.</p>")
+    return (head + "<table><tr><th class=l>axis</th><th class=l>component</th>"
+            "<th class=l>parameter</th><th>value</th><th>interval</th><th class=l>unit</th></tr>"
+            + "".join(rows) + "</table>")
 
 
 def _coefficients(fit) -> dict[str, np.ndarray]:

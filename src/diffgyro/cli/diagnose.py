@@ -51,6 +51,11 @@ def _add(d) -> str:
     return text + (f", then {d.next.term}" if d.next is not None else "")
 
 
+#: The residual's noise process in the table (the explanation gives σ and τ).
+NOISE_SHORT = {"white": "white", "gauss_markov": "GM", "random_walk": "RW",
+               "gauss_markov+random_walk": "GM+RW"}
+
+
 def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
     """A rich table of the devices, then each device's explanation (``judged``: the records
     with their --limits result, a column of pass/fail)."""
@@ -62,13 +67,15 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
                      _fmt(d.heldout_rms), _fmt(d.noise_floor), escape(_add(d)),
                      _fmt(d.best.heldout_rms) if d.best else "",
                      escape(", ".join(c.term or c.effect for c in d.alternatives)),
+                     NOISE_SHORT.get(d.noise_process or "", ""),
                      *((judged[i]["limits"]["result"],) if judged else ())])
     channel = getattr(diag.fit, "channel", "gyro")
     what = "rates in rad/s" if channel == "gyro" else "accelerometer, in m/s²"
     table = tables.table(f"diagnosis of {diag.spec} ({what})", [
         ("device", TEXT), ("verdict", TEXT), ("rms", NUMBER), ("held-out", NUMBER),
         ("floor", NUMBER), ("add", TEXT), ("held-out with it", NUMBER),
-        ("close alternatives", TEXT), *((("limits", TEXT),) if judged else ())], rows,
+        ("close alternatives", TEXT), ("noise", TEXT),
+        *((("limits", TEXT),) if judged else ())], rows,
         console.width, justify={"limits": "right"})
     console.print(table)
     for d in diag.devices:
@@ -144,6 +151,10 @@ def diagnose_command(
         "--synthesis/--no-synthesis",
         help="When no built-in term closes the gap, propose terms built from the recording's "
              "signals (term(...), see docs/effects.md).")] = True,
+    noise: Annotated[bool, typer.Option(
+        "--noise", help="Identify the residual's noise model (white, Gauss–Markov σ and τ, "
+                        "random walk, with intervals) for every device; by default only where "
+                        "the residual is not white and no term explains it.")] = False,
     candidates: Annotated[str | None, typer.Option(
         "--candidates", help="Comma-separated effects to try (default: every registered effect "
                              "the data supports).")] = None,
@@ -184,7 +195,7 @@ def diagnose_command(
     refuse_on_accel(channel, static_only=static_only, streamed=streamed,
                     **{"--report": report is not None, "--limits": limits is not None})
     _refuse_combinations(limits is not None and auto, streamed and static_only,
-                         streamed and not synthesis)
+                         streamed and not synthesis, streamed and noise)
     if streamed:
 
         if out is not None:
@@ -203,7 +214,7 @@ def diagnose_command(
 
     lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
-        | ({} if synthesis else {"synthesis": False}) \
+        | ({} if synthesis else {"synthesis": False}) | ({"noise": True} if noise else {}) \
         | ({} if channel == "gyro" else {"channel": channel})
     err = Console(stderr=True)
     with _progress.steps(f"loading {len(data)} file(s)") as step:
@@ -222,7 +233,7 @@ def diagnose_command(
 
 
 def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
-                         streamed_without_synthesis: bool) -> None:
+                         streamed_without_synthesis: bool, streamed_noise: bool = False) -> None:
     """One line (exit 2) for options that do not go together."""
     if limits_with_auto:
 
@@ -236,6 +247,9 @@ def _refuse_combinations(limits_with_auto: bool, streamed_static_only: bool,
     if streamed_without_synthesis:
         raise typer.BadParameter("is not available for streamed runs; diagnose the files "
                                  "directly", param_hint="--no-synthesis")
+    if streamed_noise:
+        raise typer.BadParameter("is not available for streamed runs; diagnose the files "
+                                 "directly", param_hint="--noise")
 
 
 def _diagnosis(spec, batch, names, auto: bool, max_steps: int, opts: dict, step):

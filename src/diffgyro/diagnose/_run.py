@@ -35,7 +35,7 @@ from ._decision import allan_slope, decide, not_judged
 from ._evidence import evidence
 from ._floor import white_noise_rms
 from ._greedy import pairs as greedy_pairs
-from ._noise_model import attach_noise
+from ._noise_model import attach_noise, residual_floor
 from ._random_walk import random_walk_scores, segment_length
 from ._results import AllanCurves, Diagnosis
 from ._scoring import (
@@ -49,6 +49,7 @@ from ._scoring import (
 )
 from ._scoring import segment_length as search_length
 from ._synthesis import apply as synthesise
+from ._synthesis import apply_one as synthesise_one
 from ._thresholds import Thresholds
 from ._unsupported import reason as unsupported_reason
 
@@ -379,6 +380,31 @@ def _skips(every, all_ranges, problems, batch, dead, unscored, unnamed) -> list[
     return skips
 
 
+def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+              unsupported, skips, reported, synthesis: bool):
+    """``rescore(i, floor_axes, builtin)``: device i's decision against another per-axis
+    floor (the white level + the identified Gauss–Markov power, :mod:`.noise_model`), then,
+    where no built-in term closes the gap, the synthesis judged against the noise its terms
+    leave. Without ``builtin`` the white-floor decision is kept and only the synthesis runs
+    (None unless it proposes a term)."""
+    def rescore(i, floor_axes, builtin=True):
+        if builtin:
+            fl = np.array(floors, copy=True)
+            fl[i] = floor_axes
+            alt = _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
+                          unsupported, skips[i])[0]
+            alt.noise_floor, alt.noise_axes = reported[i]
+        else:
+            alt = devices[i]
+        prop = synthesise_one(i, alt, batch, res, model, cands, ranges <= 0, th,
+                              devices[i].white_noise_rms,
+                              lambda k, e: residual_floor(e, batch.t[k], floors[k])) \
+            if synthesis else None
+        return alt if builtin or prop is not None else None
+
+    return rescore
+
+
 def _nested(*args, **kwargs) -> Diagnosis:
     """The greedy pair's nested diagnosis: its residual's noise is not reported."""
     return diagnose(*args, noise=False, **kwargs)
@@ -425,8 +451,9 @@ def diagnose(
     ``greedy``: before a random walk is named, try the best term followed by the
     best second term (:mod:`.greedy`). ``synthesis``: where no built-in term closes the
     gap, propose a term built from the recording's signals (:mod:`.synthesis`).
-    ``noise``: identify the residual's stochastic model ("auto": where no term explains a
-    residual that is not white; True: every judged device; False: none; :mod:`.noise_model`).
+    ``noise``: identify the residual's stochastic model ("auto": where the residual is not
+    white and no term explains it, ``adequate`` included; True: every judged device; False:
+    none; :mod:`.noise_model`).
     ``progress`` is called with a line of text before each stage (the base fit, the
     candidates' ranges, each chunk of devices scored, the pairs, synthesis, noise).
     ``channel="accel"`` diagnoses the accelerometer's thermal offset (relative to its
@@ -486,13 +513,10 @@ def diagnose(
     if synthesis:
         say("proposing terms built from the recording's signals")
         synthesise(devices, batch, res, model, cands, ranges <= 0, th)
-    def rescore(i, floor_axes):  # device i's decision against another floor (noise_model)
-        fl = np.array(floors, copy=True)
-        fl[i] = floor_axes
-        return _device(i, batch, res, out, cands, ranges, fl, al, rw_spec, th, model,
-                       unsupported, skips[i])[0]
+    rescore = _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+                        unsupported, skips, reported, synthesis)
     say("identifying the residual's noise")
-    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore)
+    attach_noise(devices, out["residual"], batch.n_valid, batch.t, noise, rescore, th.excess_min)
     _in_units(devices, getattr(res, "channel", "gyro"))
     raw = {k: v for k, v in out.items() if k not in ("residual", "dtemp", "heating")}
     return Diagnosis(model=model, devices=devices, fit=res, residuals=out["residual"], allan=al,

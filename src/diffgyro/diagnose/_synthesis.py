@@ -8,7 +8,8 @@ leaves the gap open, a candidate library is built from the term grammar
   temperature, dT/dt, heating state, specific force, reference rates, the axis' own
   rate, extra columns), less those a built-in term already is (T², Ω·T);
 - lags of the extra columns and of the external temperature, on a grid of time
-  constants (the fit then learns τ);
+  constants (the fit then learns τ), and each of them, and the temperature, times its own
+  lag (a signal × its lag);
 - "the thermal version" of every grammar term already in the model (its product
   times temperature);
 - the linear built-in candidates the diagnosis found significant, so that a synthesised
@@ -24,6 +25,12 @@ reaches the floor (or closes ``rw_prefer`` of the gap to it, as a built-in term 
 preferred to the random walk) is proposed, the smallest found: a residual of correlated noise (a
 random walk, flicker) is not closed by any product of the logged signals, so it gets no
 invented term.
+
+Where the residual holds a Gauss–Markov process (:mod:`.noise_model`), the white floor
+cannot be reached by any set: the steps are taken as above, then the noise of the
+residual the set leaves is identified and the set judged against that floor (white +
+the process' σ², :func:`apply_one`), so that a product the identification alone would
+read as noise is proposed as a term.
 """
 
 from __future__ import annotations
@@ -75,6 +82,9 @@ class Proposal:
     rms: float
     t: float
     folds_improved: int
+    #: The floor (rad/s) the set reached when judged against the identified noise of the
+    #: residual it leaves (white + Gauss–Markov, :func:`_against_noise`); None: the white one.
+    noise_floor: float | None = None
 
 
 def qualifies(d, th: Thresholds) -> bool:
@@ -131,7 +141,9 @@ def library(model: ErrorModel, names: list[str]) -> list[str]:
             exprs.append(f"{a}*{b}")
     for a in names:
         if a not in STANDARD or a == "temp_ext":
-            exprs.append(f"lag({a})")
+            exprs += [f"lag({a})", f"{a}*lag({a})"]
+        elif a == "temp":
+            exprs.append("temp*lag(temp)")  # lag(temp) alone is thermal_lag's
     for t in model.terms:
         if isinstance(t, Term) and "temp" in names:
             exprs.append(f"temp*{t.expr}")
@@ -225,29 +237,61 @@ def _heldout(zz, zy, yy, cols: list[int]) -> np.ndarray:
 def _full_sse(zz, zy, yy, cols: list[int]) -> float:
     ix = np.asarray(cols)
     g, r = zz.sum(0)[:, ix[:, None], ix[None, :]], zy.sum(0)[:, ix]
-    d = np.sqrt(np.maximum(np.einsum("ikk->ik", g), 1e-300))
-    beta = np.linalg.solve(g / (d[..., :, None] * d[..., None, :]) + 1e-10 * np.eye(len(ix)),
-                           (r / d)[..., None])[..., 0] / d
+    beta = _full_beta(zz, zy, cols)
     return float(yy.sum() - 2.0 * np.sum(beta * r) + np.einsum("ik,ikl,il->", beta, g, beta))
 
 
 def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
            th: Thresholds, max_terms: int = MAX_TERMS,
-           vocabulary: frozenset = frozenset()) -> tuple[list[int], np.ndarray]:
+           vocabulary: frozenset = frozenset(), keys: list | None = None) -> tuple[list[int], np.ndarray]:
     """Forward selection of candidate groups (column indices) on top of ``base``; returns
     the chosen groups' indices (empty when no set reaches the floor or closes the thresholds'
-    ``rw_prefer`` of the gap to it) and the held-out SSE per block of the final set. Groups in ``vocabulary`` (built-in terms) need the
-    thresholds' ``gain_min``, synthesised ones :data:`GAIN_MIN`."""
+    ``rw_prefer`` of the gap to it) and the held-out SSE per block of the final set. Groups
+    in ``vocabulary`` (built-in terms) need the thresholds' ``gain_min``, synthesised ones
+    :data:`GAIN_MIN`. ``keys``: per group, the term it is (one lag term on a grid of time
+    constants is several groups); a term enters once."""
+    chosen, sses = forward(zz, zy, yy, cnt, base, groups, floor2, th, max_terms, vocabulary, keys)
+    # the floor reached, or the gap closed as a built-in term must close it to be preferred
+    # to the random walk (flicker and read-out quantisation stay above the white floor)
+    return (chosen if reached(sses[0], sses[-1], cnt, floor2, th) else []), sses[-1]
+
+
+def reached(sse_base: np.ndarray, sse: np.ndarray, cnt: np.ndarray, floor2: float,
+            th: Thresholds) -> bool:
+    """A set whose held-out MSE is within the thresholds' ``excess_min`` of ``floor2`` or
+    that closes their ``rw_prefer`` of the base's gap to it."""
+    mse = sse.sum() / (3.0 * cnt.sum())
+    return bool(mse <= floor2 * (1.0 + th.excess_min)
+                or _closure(sse_base, sse, cnt, floor2) >= th.rw_prefer)
+
+
+def _closure(sse_base: np.ndarray, sse: np.ndarray, cnt: np.ndarray, floor2: float) -> float:
+    """The share of the base's held-out gap to ``floor2`` that a set closes."""
+    denom = 3.0 * cnt.sum()
+    mse, mse_base = sse.sum() / denom, sse_base.sum() / denom
+    return (mse_base - mse) / (mse_base - floor2) if mse_base > floor2 else 0.0
+
+
+def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: float,
+            th: Thresholds, max_terms: int = MAX_TERMS,
+            vocabulary: frozenset = frozenset(), keys: list | None = None,
+            ) -> tuple[list[int], list[np.ndarray]]:
+    """The forward path of :func:`select`: the groups added in order, each improving the
+    held-out error consistently and materially against ``floor2``, until it reaches the
+    floor; and the held-out SSE per block before the first and after each step."""
+    keys = list(range(len(groups))) if keys is None else keys
     cur = list(base)
-    sse_cur = sse_base = _heldout(zz, zy, yy, cur)
+    sse_cur = _heldout(zz, zy, yy, cur)
+    sses = [sse_cur]
     chosen: list[int] = []
     denom = 3.0 * cnt
     for _ in range(max_terms):
         if sse_cur.sum() / denom.sum() <= floor2 * (1.0 + th.excess_min):
             break
         best, best_sse = None, None
+        taken = {keys[c] for c in chosen}
         for j, g in enumerate(groups):
-            if j in chosen:
+            if keys[j] in taken:
                 continue
             s = _heldout(zz, zy, yy, cur + g)
             if np.all(np.isfinite(s)) and (best_sse is None or s.sum() < best_sse.sum()):
@@ -265,12 +309,8 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
         chosen.append(best)
         cur = cur + groups[best]
         sse_cur = best_sse
-    mse, mse_base = sse_cur.sum() / denom.sum(), sse_base.sum() / denom.sum()
-    closure = (mse_base - mse) / (mse_base - floor2) if mse_base > floor2 else 0.0
-    # the floor reached, or the gap closed as a built-in term must close it to be preferred
-    # to the random walk (flicker and read-out quantisation stay above the white floor)
-    reached = mse <= floor2 * (1.0 + th.excess_min) or closure >= th.rw_prefer
-    return (chosen if reached else []), sse_cur
+        sses.append(sse_cur)
+    return chosen, sses
 
 
 def _inputs(batch, res, idx: np.ndarray, aux: dict) -> dict:
@@ -294,9 +334,13 @@ def propose(i: int, floor: float, batch, res, model: ErrorModel, aux: dict, buil
 
 
 def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorModel, aux: dict,
-                 builtins: list[list], th: Thresholds) -> dict[int, Proposal]:
+                 builtins: list[list], th: Thresholds,
+                 residual_floor=None) -> dict[int, Proposal]:
     """:func:`propose` for the devices ``idx`` (their floors and built-in rivals), their
-    library columns computed :data:`CHUNK` devices at a time."""
+    library columns computed :data:`CHUNK` devices at a time. ``residual_floor(i, e)``: the
+    floor² per axis (3,) of device i's residual ``e`` (n, 3) after a synthesised set, from
+    its identified noise (white + Gauss–Markov); given, a set is proposed when it reaches
+    that floor (:func:`_against_noise`), not the white one."""
     if not idx:
         return {}
     recs = {i: batch.recording(i) for i in idx}
@@ -354,15 +398,16 @@ def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorMo
             usable = [j for j, t in enumerate(terms)
                       if (isinstance(t, Term) and {n for n, _, _ in t.factors} <= allowed)
                       or (not isinstance(t, Term) and labels[j] in mine)]
+            check = None if residual_floor is None else (lambda e, i=i: residual_floor(i, e))
             prop = _select_device(np.asarray(xs[r])[:n], cols, np.asarray(ys[r])[:n], n, fl, p,
-                                  terms, labels, groups, usable, rivals, model, th)
+                                  terms, labels, groups, usable, rivals, model, th, check)
             if prop is not None:
                 out[i] = prop
     return out
 
 
 def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, model,
-                   th) -> Proposal | None:
+                   th, residual_floor=None) -> Proposal | None:
     z = np.concatenate([x, c], axis=-1)[:n]
     y = y[:n]
     ok = np.all(np.isfinite(z), axis=(1, 2)) & np.all(np.isfinite(y), axis=1)
@@ -370,8 +415,15 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
     zz, zy, yy, cnt = _block_sums(z, y, N_BLOCKS)
     floor2 = max(floor ** 2, 1e-300)
     vocab = frozenset(k for k, j in enumerate(usable) if not isinstance(terms[j], Term))
-    chosen, sse = select(zz, zy, yy, cnt, list(range(p)), [groups[j] for j in usable], floor2, th,
-                         vocabulary=vocab)
+    grouped = [groups[j] for j in usable]
+    keys = [labels[j] for j in usable]
+    noise2 = None
+    if residual_floor is None:
+        chosen, sse = select(zz, zy, yy, cnt, list(range(p)), grouped, floor2, th, vocabulary=vocab,
+                             keys=keys)
+    else:
+        chosen, sse, noise2 = _against_noise(z, y, zz, zy, yy, cnt, p, grouped, floor2, th, vocab,
+                                             residual_floor, keys)
     chosen = [usable[k] for k in chosen]
     new = [labels[j] for j in chosen if isinstance(terms[j], Term)]
     if not new:
@@ -386,7 +438,43 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
     return Proposal(terms=new, spec=_canonical(model, kept, new),
                     heldout_rms=math.sqrt(float(sse.sum()) / (3.0 * cnt.sum())),
                     rms=math.sqrt(max(_full_sse(zz, zy, yy, cols), 0.0) / (3.0 * cnt.sum())),
-                    t=t, folds_improved=int(np.sum(diff > 0)))
+                    t=t, folds_improved=int(np.sum(diff > 0)),
+                    noise_floor=None if noise2 is None else math.sqrt(noise2))
+
+
+def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor2: float,
+                   th: Thresholds, vocab: frozenset, residual_floor, keys: list):
+    """:func:`select` where the residual holds a Gauss–Markov process that no term predicts:
+    the forward path is taken as against the white floor ``floor2`` (each step consistent
+    and material against it), then the noise of the residual the whole path leaves is
+    identified (``residual_floor``) and the shortest prefix that reaches that floor (white
+    + Gauss–Markov, or closes ``rw_prefer`` of the gap to it) and closes the thresholds'
+    ``closure_min`` of the gap to the white floor (as a built-in term must) is chosen.
+    Identified after the terms, the process' power is not inflated by the effect they take
+    out; the closure keeps a term that takes a sliver off an effect whose rest reads as a
+    process of seconds out."""
+    path, sses = forward(zz, zy, yy, cnt, list(range(p)), groups, floor2, th, vocabulary=vocab,
+                         keys=keys)
+    if not path:
+        return [], sses[0], None
+    cols = list(range(p)) + [q for k in path for q in groups[k]]
+    beta = _full_beta(zz, zy, cols)                       # (3, k)
+    e = y - np.einsum("nik,ik->ni", z[:, :, cols], beta)
+    noise2 = max(float(np.mean(residual_floor(e))), floor2)
+    for k in range(1, len(path) + 1):
+        if reached(sses[0], sses[k], cnt, noise2, th) and \
+                _closure(sses[0], sses[k], cnt, floor2) >= th.closure_min:
+            return path[:k], sses[k], noise2
+    return [], sses[-1], None
+
+
+def _full_beta(zz, zy, cols: list[int]) -> np.ndarray:
+    """Per axis, the coefficients (3, k) of the columns ``cols`` fitted on every block."""
+    ix = np.asarray(cols)
+    g, r = zz.sum(0)[:, ix[:, None], ix[None, :]], zy.sum(0)[:, ix]
+    d = np.sqrt(np.maximum(np.einsum("ikk->ik", g), 1e-300))
+    return np.linalg.solve(g / (d[..., :, None] * d[..., None, :]) + 1e-10 * np.eye(len(ix)),
+                           (r / d)[..., None])[..., 0] / d
 
 
 def _canonical(model: ErrorModel, kept: list, new: list[str]) -> str:
@@ -413,6 +501,10 @@ def describe(expr: str) -> str:
         reading = ": a rate-squared (cross-coupling) error"
     elif lagged and len(fs) == 1:
         reading = ": a signal reaching the gyro through its own thermal path (first-order lag)"
+    elif lagged and len(fs) == 2 and len(names) == 1:
+        reading = ": a signal times its own lagged value (its present and its thermal history)"
+    elif lagged and len(fs) == 2 and len(names) == 1:
+        reading = ": a signal times its own lagged value (its present and its thermal history)"
     elif "temp" in names and len(fs) == 2:
         reading = ": a sensitivity that changes with temperature"
     return f"the bias follows {words}{reading}"
@@ -437,11 +529,7 @@ def apply(devices: list, batch, res, model: ErrorModel, cands: list, ok: np.ndar
     its best candidate, verdict and explanation); returns the proposals by device index.
     ``cands``: diagnose's scored candidates, ``ok`` (devices, candidates) where supported."""
     idx = [i for i, d in enumerate(devices) if qualifies(d, th)]
-    rivals = []
-    for i in idx:
-        sig_names = {c.spec for c in devices[i].candidates if c.significant and not c.stochastic}
-        rivals.append([c for j, c in enumerate(cands) if c.term.n_nonlinear == 0
-                       and c.spec in sig_names and (ok.size == 0 or ok[i, j])])
+    rivals = [_rivals(devices[i], i, cands, ok) for i in idx]
     if not idx:
         return {}
     out = propose_many(idx, [devices[i].white_noise_rms for i in idx], batch, res, model,
@@ -451,8 +539,35 @@ def apply(devices: list, batch, res, model: ErrorModel, cands: list, ok: np.ndar
     return out
 
 
-def _record(d, prop: Proposal) -> None:
-    f2 = max(d.white_noise_rms ** 2, 1e-300)
+def apply_one(i: int, d, batch, res, model: ErrorModel, cands: list, ok: np.ndarray,
+              th: Thresholds, floor: float, residual_floor) -> Proposal | None:
+    """:func:`apply` for device ``i`` alone, its diagnosis ``d`` (decided against the
+    residual's identified noise) qualifying: the steps taken against the white ``floor``
+    (rad/s), the set judged against the noise the residual holds once the terms are taken
+    out (``residual_floor(i, e)``: floor² per axis, :func:`propose_many`). Any verdict
+    qualifies but a built-in term that closes ``rw_prefer`` of the gap: against a floor
+    raised by a process that absorbed the effect, the gap may look closed already."""
+    b = d.best
+    if b is not None and not b.stochastic and b.closure >= th.rw_prefer:
+        return None
+    prop = propose_many([i], [floor], batch, res, model, extra_columns(batch, model, res),
+                        [_rivals(d, i, cands, ok)], th, residual_floor).get(i)
+    if prop is not None:
+        _record(d, prop, floor)
+    return prop
+
+
+def _rivals(d, i: int, cands: list, ok: np.ndarray) -> list:
+    """The linear built-in candidates significant on device ``i`` (``d``) that compete with
+    the synthesised terms."""
+    sig_names = {c.spec for c in d.candidates if c.significant and not c.stochastic}
+    return [c for j, c in enumerate(cands) if c.term.n_nonlinear == 0
+            and c.spec in sig_names and (ok.size == 0 or ok[i, j])]
+
+
+def _record(d, prop: Proposal, floor: float | None = None) -> None:
+    floor = d.white_noise_rms if floor is None else floor
+    f2 = max((prop.noise_floor or floor) ** 2, 1e-300)
     hb2, hc2 = d.heldout_rms ** 2, prop.heldout_rms ** 2
     gap = hb2 - f2
     cand = Candidate(effect="term", spec=prop.spec, heldout_rms=prop.heldout_rms, significant=True,
@@ -466,30 +581,40 @@ def _record(d, prop: Proposal) -> None:
         d.random_walk.significant = False
     d.verdict = "missing_effect"
     words = "; ".join(describe(t[len("term("):-1]) for t in prop.terms)
+    against = (f"a white-noise floor of {floor:.3g}" if prop.noise_floor is None else
+               f"the noise the residual holds without it, {prop.noise_floor:.3g} (white "
+               f"{floor:.3g} + Gauss–Markov, identified after the term: a product of logged "
+               f"signals, not a noise process)")
     d.explanation = (
         f"{d.device}: no built-in term closes the gap; a term built from the recording's signals "
         f"does: {words} ({', '.join(prop.terms)}). Held-out RMS {d.heldout_rms:.3g} → "
-        f"{prop.heldout_rms:.3g} rad/s against a white-noise floor of {d.white_noise_rms:.3g} "
-        f"(selected on held-out time blocks). Fit it: diffgyro fit --model '{prop.spec}', then "
+        f"{prop.heldout_rms:.3g} rad/s against {against} (selected on held-out time blocks). "
+        f"Fit it: diffgyro fit --model '{prop.spec}', then "
         f"carry the calibration to a second recording (diffgyro compensate --json).")
 
 
 def propose_all(model: ErrorModel | str, batch, res=None, th: Thresholds | None = None,
-                **fit_options) -> dict[int, Proposal]:
+                residual_floor=None, **fit_options) -> dict[int, Proposal]:
     """The synthesis on every device of ``batch``, as if no built-in term closed its gap:
     fits ``model`` (unless ``res`` is its fit), scales the extra columns as diagnose does
-    and returns the proposals by device index (a device without one is left out)."""
+    and returns the proposals by device index (a device without one is left out).
+    ``residual_floor(e, t, white_axes)`` (:func:`.noise_model.residual_floor`): every device
+    as if its residual held a Gauss–Markov process, each set judged against the noise of
+    the residual it leaves (:func:`_against_noise`)."""
 
     model = ErrorModel.from_spec(model) if isinstance(model, str) else model
     res = res if res is not None else fit_fn(model, batch, **fit_options)
     th = th or Thresholds()
     aux = extra_columns(batch, model, res)
-    floors = []
+    floors, white = [], []
     for i in range(batch.n_devices):
         n = int(batch.n_valid[i])
         rate = None if batch.rate is None else np.asarray(batch.rate[i, :n], np.float64)
         gyro = np.asarray(batch.gyro[i, :n], np.float64)
         axes = white_noise_rms(gyro if rate is None else gyro - rate, np.ones(n, bool), rate)
+        white.append(np.asarray(axes, np.float64))
         floors.append(float(np.sqrt(np.mean(np.asarray(axes) ** 2))))
     idx = list(range(batch.n_devices))
-    return propose_many(idx, floors, batch, res, model, aux, [[] for _ in idx], th)
+    check = None if residual_floor is None else (
+        lambda k, e: residual_floor(e, batch.t[k], white[k]))
+    return propose_many(idx, floors, batch, res, model, aux, [[] for _ in idx], th, check)

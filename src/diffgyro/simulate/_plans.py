@@ -143,6 +143,11 @@ class Thermal(Plan):
     the run, level), ...), ``face`` (axis up), ``duration`` (s: stretches or
     compresses every ramp and soak of the profile by the same factor, so ramp
     rates scale inversely; default: the profile's own length, ≈ 3.9 h).
+    ``faces`` (e.g. ``"+z,+x,-y"``; default none: ``face`` throughout) turns the
+    device on a fixture inside the chamber: every soak is shared equally among
+    the faces, each held in turn after a ``move_time`` (s) rotation, and the
+    ramps keep the last face, so the specific force changes at every soak
+    temperature (a g-sensitivity that changes with temperature is then seen).
     """
 
     name = "thermal"
@@ -150,7 +155,7 @@ class Thermal(Plan):
     default_effects = "bias_poly(2)"
     defaults = {"sample_rate": 2.0, "duration": None, "start_temp": 25.0, "initial_soak": 10.0,
                 "profile": THERMAL_PROFILE, "power_steps": ((0.43, 1.6), (0.75, 1.0)),
-                "face": "+z"}
+                "face": "+z", "faces": None, "move_time": 5.0}
 
     def natural_minutes(self) -> float:
         o = self.options
@@ -163,12 +168,14 @@ class Thermal(Plan):
     def build(self, n_devices, seed):
         o = self.options
         f = 1.0 if o["duration"] is None else float(o["duration"]) / (60.0 * self.natural_minutes())
-        tl = Timeline(start_temp=float(o["start_temp"]), pose=_face(o["face"]))
-        tl.hold(60.0 * f * o["initial_soak"], "soak", temp=float(o["start_temp"]))
+        faces = _faces(o["faces"]) if o["faces"] else [o["face"]]
+        tl = Timeline(start_temp=float(o["start_temp"]), pose=_face(faces[0]))
+        move = float(o["move_time"])
+        faces = self._soak(tl, 60.0 * f * o["initial_soak"], faces, float(o["start_temp"]), move)
         for target, rate, soak in o["profile"]:
             sign = 1.0 if target > tl.temp else -1.0
             tl.ramp(float(target), float(rate) / f, "ramp", ramp_rate=sign * float(rate) / f)
-            tl.hold(60.0 * f * soak, "soak", temp=float(target))
+            faces = self._soak(tl, 60.0 * f * soak, faces, float(target), move)
         total = tl.now
         for frac, level in o["power_steps"]:
             tl.power.append((float(frac) * total, float(level)))
@@ -176,6 +183,26 @@ class Thermal(Plan):
         info = {"chamber_breakpoints": [list(p) for p in tl.chamber],
                 "power_steps": [list(p) for p in tl.power]}
         return self._from_timeline(tl, settled=False, outputs=self.outputs(), info=info)
+
+    @staticmethod
+    def _soak(tl: Timeline, duration: float, faces: list[str], temp: float, move: float) -> list[str]:
+        """A soak of ``duration`` s shared among ``faces``, from the face held (the first);
+        returns the faces in the order the next soak takes them (the last held first)."""
+        move = move if len(faces) > 1 else 0.0
+        share = max(duration - move * (len(faces) - 1), 0.0) / len(faces)
+        for k, face in enumerate(faces):
+            if k:
+                tl.move(move, _face(face), "move")
+            tl.hold(share, "soak", temp=temp, face=face)
+        return faces[-1:] + faces[:-1]
+
+
+def _faces(faces) -> list[str]:
+    """The ``faces`` option as a list (``"+z,+x"`` or a sequence), each face checked."""
+    out = [f.strip() for f in faces.split(",")] if isinstance(faces, str) else list(faces)
+    for f in out:
+        _face(f)
+    return out
 
 
 # ----------------------------------------------------------------------------- rate tables

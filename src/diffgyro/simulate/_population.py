@@ -35,6 +35,7 @@ from ..effects import (
     ScaleNonlin,
     ScalePoly,
     TempDiff,
+    Term,
     ThermalLag,
     Warmup,
 )
@@ -223,6 +224,10 @@ def _draw_term(term: AbstractEffect, p: Preset, d: int, seed: int, scale: float,
             return _normal(seed, term.name, d, term.n_params, sigma), none
     if isinstance(term, Aux):  # about the linear temperature term's size over the range
         return _normal(seed, term.spec, d, term.n_params, p.bias_edges[1] / 3.0), none
+    if isinstance(term, Term):  # a product of centred signals: sized like aux(NAME)
+        theta = (np.log(_log_uniform(seed, f"{term.spec}.tau", d, p.lag_tau))[:, None]
+                 if term.n_nonlinear else none)
+        return _normal(seed, term.spec, d, term.n_params, p.bias_edges[1] / 3.0), theta
     raise SpecError(f"the simulator has no population for effect {term.spec!r}",
                     hint="pass params=Params(beta, theta) to simulate() to set its coefficients")
 
