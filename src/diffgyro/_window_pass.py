@@ -1,7 +1,7 @@
 """The motion check's compiled pass over a large batch's samples (numba): window
 statistics (:mod:`diffgyro._window_stats` says what they are), formed in one read of each
-device's samples (the three axes side by side), on the host's cores in parallel over
-devices. Sums accumulate in float64; the statistics are stored in float32 (what the
+device's samples (the three axes side by side), on the host's cores (chunks of devices
+on threads, one per core). Sums accumulate in float64; the statistics are stored in float32 (what the
 judgement reads).
 
 Compiled on first use and cached on disk (``cache=True``); imported only when a check
@@ -11,9 +11,12 @@ runs.
 from __future__ import annotations
 
 import math
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
+
+from ._jit import available_cores
 
 
 @njit(cache=True, nogil=True)
@@ -28,12 +31,12 @@ def _quantile(values, n, q):  # pragma: no cover - compiled
     return part[lo] + (part[hi] - part[lo]) * (h - lo)
 
 
-@njit(cache=True, parallel=True, nogil=True)
+@njit(cache=True, nogil=True)
 def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
           limit):  # pragma: no cover - compiled
     h = w // 2
     need = max(h, 2)
-    for r in prange(rows.shape[0]):
+    for r in range(rows.shape[0]):
         i = rows[r]
         n = x.shape[1]
         k = (n + w - 1) // w
@@ -126,8 +129,21 @@ def _rest_noise(stats, valid, quanta, w, quantiles, limit, noise):  # pragma: no
 def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quantiles,
                   limit: int) -> None:
     """:func:`diffgyro._window_stats.window_stats` of a large batch, into its outputs
-    (``rate`` of shape (0, 1, 3) where there is none)."""
-    _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles, limit)
+    (``rate`` of shape (0, 1, 3) where there is none): chunks of devices side by side on
+    threads, one per core (the pass holds no GIL)."""
+    parts = min(available_cores(), len(rows))
+    cuts = np.linspace(0, len(rows), parts + 1).astype(int)
+
+    def run(a: int, b: int) -> None:
+        _pass(x, mask, rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
+              quantiles, limit)
+
+    if parts <= 1:
+        run(0, len(rows))
+        return
+    with ThreadPoolExecutor(parts, thread_name_prefix="diffgyro-windows") as pool:
+        for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
+            job.result()
 
 
 __all__ = ["compiled_pass"]
