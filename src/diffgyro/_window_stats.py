@@ -5,8 +5,8 @@ local noise and half-window differences) and a rest noise from their quantiles. 
 batch is read by a compiled pass (:mod:`diffgyro._window_pass`, numba, on the host's
 cores): XLA on a CPU reduces short windows several times slower than one compiled loop
 does, and the check would then cost more than the fit it guards. A small batch is read by
-numpy here, which costs milliseconds where numba's import and the load of its compiled
-pass cost a command half a second. Both give the same numbers (sums in float64, the
+numpy here (about 0.25 µs a sample, against 0.02 µs compiled), which costs a command
+less than numba's import and the load of its compiled pass (half a second). Both give the same numbers (sums in float64, the
 statistics stored in float32).
 """
 
@@ -16,7 +16,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 #: Batches of at least this many samples (devices × samples) are read by the compiled pass.
-COMPILED_SAMPLES = 1 << 21
+COMPILED_SAMPLES = 1 << 19
 
 
 def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
