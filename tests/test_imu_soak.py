@@ -380,6 +380,7 @@ def test_tilt_between_runs_is_refused_with_the_turn(soak):
     result = fit(MODEL, tilted, channel="accel")
     rec = result.records()[0]
     assert rec["status"] == "in_motion" and "turns up to 30°" in rec["status_detail"]
+    assert "one orientation" in rec["status_detail"] and "--static-only" not in rec["status_detail"]
     cal = calibration.from_fit(result)
     with pytest.raises(DataError, match="turns up to 30°"):
         render(cal, "px4")

@@ -89,7 +89,8 @@ class FitResult(AbstractFitResult):
                        collinear=self.collinear[i],
                        temp_range=None if self.temp_range is None else self.temp_range[i],
                        n_samples=self.n_samples[i], steps=self.steps[i],
-                       motion=None if self.motion is None else self.motion.record(i))
+                       motion=None if self.motion is None else self.motion.record(i),
+                       channel=self.channel)
 
     def stderr(self, i: int) -> Params:
         """Standard errors of device ``i``'s parameters, shaped like its Params."""

@@ -114,8 +114,9 @@ def _range_reason(term, temp_range) -> str:
 
 
 def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=None,
-            n_samples=None, steps=None, motion=None) -> str:
-    """``status_detail``: the status name, and for a device not ``ok`` why, in plain words."""
+            n_samples=None, steps=None, motion=None, channel: str = "gyro") -> str:
+    """``status_detail``: the status name, and for a device not ``ok`` why, in plain words
+    (``channel``: the sensor fitted, whose remedies differ)."""
     terms = model.terms
     if name == "ok":
         return name
@@ -141,7 +142,9 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
         return (f"{name}: the time-constant solve stopped{after} without converging "
                 f"(or short of the best start point); the coefficients are not trusted")
     if name == "in_motion":
-
+        if channel != "gyro":  # gravity is the reference: one orientation, at rest
+            return (f"{name}: {describe(motion or {})}; record the soak at rest in one "
+                    f"orientation (the accelerometer's gravity reference holds only there)")
         return (f"{name}: {describe(motion or {})}; record at rest, give a rate reference "
                 f"(rx, ry, rz), or fit the static intervals only with --static-only")
     if name == "rest_unverified":
