@@ -647,34 +647,33 @@ _check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
 
 class _Layout(NamedTuple):
     """How a group of devices is checked: window and block sizes, the shape of its window
-    sums (devices, windows; padded for a small batch), whether the accelerometer is read,
-    and the sampling interval."""
+    sums (devices, windows; padded for a small batch) and whether the accelerometer is
+    read."""
 
     w: int
     b: int
     shape: tuple[int, int]
     accel: bool
     padded: bool
-    dt: float
 
     @property
     def check(self):
         return _check_small if self.padded else _check
 
 
-def _layout(devices: int, samples: int, w: int, b: int, accel: bool, dt: float) -> _Layout:
+def _layout(devices: int, samples: int, w: int, b: int, accel: bool) -> _Layout:
     """The layout of ``devices`` holding up to ``samples`` samples each, in windows of
     ``w`` samples and blocks of ``b`` windows."""
     k = -(-samples // w)
     if devices * samples > PAD_SAMPLES:  # devices in whole chunks
         rows = devices if devices <= CHECK_CHUNK else -(-devices // CHECK_CHUNK) * CHECK_CHUNK
-        return _Layout(w, b, (rows, k), accel, False, dt)
+        return _Layout(w, b, (rows, k), accel, False)
     # small batches share a compiled check: devices to a bucket, windows to a power of
     # two of blocks
     blocks = 1 << (-(-k // b) - 1).bit_length()
     rows = device_bucket(devices, minimum=1)
     rows = rows if rows <= CHECK_CHUNK else -(-rows // CHECK_CHUNK) * CHECK_CHUNK
-    return _Layout(w, b, (rows, blocks * b), accel, True, dt)
+    return _Layout(w, b, (rows, blocks * b), accel, True)
 
 
 def _intervals(batch) -> np.ndarray:
@@ -690,6 +689,14 @@ def _intervals(batch) -> np.ndarray:
     lo, hi = np.maximum(count - 1, 0) // 2, np.maximum(count, 1) // 2
     out = 0.5 * (dt[rows, lo] + dt[rows, np.minimum(hi, dt.shape[1] - 1)])
     return np.where((count > 0) & np.isfinite(out) & (out > 0), out, 0.01)
+
+
+def _device_intervals(batch, dt: float | None) -> np.ndarray:
+    """Each device's sampling interval: ``dt`` where given (finite, positive), else its own
+    (:func:`_intervals`)."""
+    if dt is None or not (math.isfinite(dt) and dt > 0):
+        return _intervals(batch)
+    return np.full(np.shape(batch.mask)[0], float(dt))
 
 
 def _spans(mask) -> np.ndarray:
@@ -736,8 +743,7 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     accel = np.asarray(batch.accel) if use_accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
-    dts = (_intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0)
-           else np.full(d, float(dt)))
+    dts = _device_intervals(batch, dt)
     spans = _spans(mask)
     num = {k: np.zeros(d, read) for k in _NUMBERS}
     static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
@@ -759,13 +765,14 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     # moved or shook, or the long windows cannot show a degree (a noisy gyro, or
     # correlated noise that averages slowly), it is judged again in the windows of its
     # rate: whether and how it moved, in the detail of its rate
+    verdict = _verdicts(num)
     with np.errstate(invalid="ignore"):
-        again = (window > own) & ((num["moving_fraction"] > 0) | (_verdicts(num) != AT_REST) | loud)
+        again = (window > own) & ((num["moving_fraction"] > 0) | (verdict != AT_REST) | loud)
     # (with a rate reference the check is of what the reference leaves, and a first look
     # in motion stands: the fit's status does not follow from it, and its rate's windows
     # would find the same motion in more detail)
     if rate is not None:
-        again &= _verdicts(num) == UNVERIFIED
+        again &= verdict == UNVERIFIED
     if again.any():
         idx = np.flatnonzero(again)
         check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()}, final=True)
@@ -783,7 +790,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     stretches of rest."""
     n = mask.shape[1]
     d = len(idx)
-    lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel, float(np.median(dts)))
+    lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel)
     rows, k = lay.shape
     referenced = rate is not None
     q = noise_quantiles()
@@ -960,14 +967,11 @@ def compile_check(batch, dt: float | None = None) -> threading.Thread:
     programs to trace (a fit) overlaps the two, and joins the thread before its
     :func:`motion_check`, which then finds the program compiled."""
     mask = np.asarray(batch.mask)
-    d = mask.shape[0]
-    dts = (_intervals(batch) if dt is None or not (math.isfinite(dt) and dt > 0)
-           else np.full(d, float(dt)))
+    dts = _device_intervals(batch, dt)
     spans = _spans(mask)
     (w, b), idx = max(_groups(dts, spans).items(), key=lambda kv: len(kv[1]))
     _, use_accel = _reads(batch)
-    lay = _layout(len(idx), int(max(spans[idx].max(initial=0), 1)), w, b, use_accel,
-                  float(np.median(dts[idx])))
+    lay = _layout(len(idx), int(max(spans[idx].max(initial=0), 1)), w, b, use_accel)
 
     def spec(*shape, dtype=np.float32):
         return jax.ShapeDtypeStruct(shape, dtype)
