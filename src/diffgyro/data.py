@@ -330,10 +330,12 @@ def pad_devices(batch: Batch) -> Batch:
 
 
 def sampling_intervals(batch: Batch) -> np.ndarray:
-    """Median sampling interval of each device's valid samples (s)."""
+    """Median interval between each device's first ``n_valid`` samples (s; 1 where it
+    has fewer than two). Devices of one length share one vectorised median."""
     out = np.ones(batch.n_devices)
-    for i in range(batch.n_devices):
-        n = int(batch.n_valid[i])
-        if n >= 2:
-            out[i] = float(np.median(np.diff(np.asarray(batch.t[i, :n]))))
+    n_valid = np.asarray(batch.n_valid, int)
+    t = np.asarray(batch.t)
+    for n in np.unique(n_valid[n_valid >= 2]):
+        rows = np.flatnonzero(n_valid == n)
+        out[rows] = np.median(np.diff(t[rows, :n], axis=1), axis=1)
     return out

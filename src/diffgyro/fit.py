@@ -184,11 +184,12 @@ def fit(
         motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    else:  # the check's program compiles while the fit's are traced
+    else:  # the check's program compiles while the fit's are traced; the check then
+        # judges what the fitted model leaves (judge_motion)
         ahead = compile_check(imu)
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
         ahead.join()
-        motion = motion_check(imu)
+        motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
     return judge_motion(result, batch, motion, recorded, static_only)

@@ -48,6 +48,7 @@ windows cannot show a turn of :data:`MAX_RESOLUTION`.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import threading
 from typing import NamedTuple
@@ -60,6 +61,7 @@ from jaxtyping import Bool, Float, Int
 
 from ._jit import filter_jit
 from ._jsonio import number
+from ._window_explain import Explanation, explain_windows
 from ._window_stats import window_stats
 from ._xla_options import FAST_COMPILE
 from .data import device_bucket
@@ -726,10 +728,15 @@ def _reads(batch) -> tuple[type, bool]:
     return read, batch.accel is not None and batch.rate is None
 
 
-def motion_check(batch, dt: float | None = None) -> Motion:
+def motion_check(batch, dt: float | None = None, explain: Explanation | None = None) -> Motion:
     """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
     module docstring); ``dt`` the sampling interval (default: each device's own; devices
     sampled at rates far apart are checked in windows of their own).
+    ``explain``: a fitted model (no rate reference), by whose residual a device whose
+    windows left the baseline is judged again (:mod:`diffgyro._window_explain`): a
+    thermal change it follows is not motion; a turn no such model can follow stays. A
+    rate held beyond :data:`MAX_BIAS` (a spin, which a bias term would absorb) keeps the
+    recording's verdict.
     Where the batch holds a rate reference (``rx, ry, rz``), the check reads the gyro
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity); a fit's status does not follow from
@@ -748,12 +755,14 @@ def motion_check(batch, dt: float | None = None) -> Motion:
     num = {k: np.zeros(d, read) for k in _NUMBERS}
     static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
     loud = np.zeros(d, bool)
+    if explain is not None:
+        explain = functools.partial(explain_windows, batch, explain)
 
     def check(groups, final):
         for (w, b), idx in groups.items():
             pn, static[idx], window[idx], loud[idx] = _check_group(
                 gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
-                final=final | (w <= own[idx]))
+                final=final | (w <= own[idx]), explain=explain)
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
 
@@ -782,12 +791,14 @@ def motion_check(batch, dt: float | None = None) -> Motion:
 
 
 def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel,  # noqa: C901
-                 final=True):
+                 final=True, explain=None):
     """The numbers (float32), static mask, window length (samples) and whether a window
     was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
     of ``w`` samples and blocks of ``b`` windows. A device not ``final`` (per device: a
     first look in long windows, judged again where anything moved) is not sought for its
-    stretches of rest."""
+    stretches of rest. ``explain``: the window statistics of what a fitted model leaves
+    (:func:`diffgyro._window_explain.explain_windows`, bound to the batch), by which a
+    device that moved is judged again."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel)
@@ -796,8 +807,22 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     q = noise_quantiles()
     stats = window_stats(gyro, mask, w, idx, k, q, QUANTILE_WINDOWS, rows, rate)
     acc = window_stats(accel, mask, w, idx, k, q, QUANTILE_WINDOWS, rows) if use_accel else None
-    out = lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
-                      for x in (stats, acc)), w, b)
+
+    def judged(stats):
+        return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
+                           for x in (stats, acc)), w, b)
+
+    out = judged(stats)
+    if explain is not None:  # judged again by what the model leaves, where anything moved
+        with np.errstate(invalid="ignore"):  # (a spin's rate no bias reaches: not a model's)
+            todo = ((np.asarray(out["moving_fraction"])[:d] > 0)
+                    & ~(np.asarray(out["rest_rate"])[:d] > MAX_BIAS))
+        if todo.any():
+            pad = np.minimum(np.arange(rows), d - 1)  # the layout's rows: one shape
+            left, noise = explain(idx[pad], w, stats[0], stats[3], stats[2],
+                                  np.r_[todo, np.zeros(rows - d, bool)], q, QUANTILE_WINDOWS)
+            stats = (left, stats[1], stats[2], noise)
+            out = judged(stats)
     # a judgement the host reads: numpy, unpadded on the host (no program per shape)
     num = {k: np.array(out[k])[:d] for k in _NUMBERS if k != "resolution"}
     recorded = mask[idx]

@@ -1,0 +1,173 @@
+"""What a fitted model explains of a recording, at the motion check's windows.
+
+A chamber's ramps and their kinks, or a fast thermal transient, change a bias faster than
+the check's baseline (block medians) follows, and a recording at rest then shows windows
+off the baseline. The fitted model follows them. The check judges what the model leaves
+(its residual) from the window statistics it already holds: the model is evaluated at the
+means of the samples over each half window (time, every signal it reads, and the gyro),
+which gives the residual's window means and half-window differences. The local noise
+(successive differences) stays the recording's: a model smooth over a window adds nothing
+to it. The noise of a window mean is formed again from the residual's half-window
+differences (a ramp inflates the recording's).
+
+A model of the window means of its signals is the window mean of the model where it is
+linear in them; otherwise they differ by its curvature times the signals' spread within a
+window (for temperature over a window, far below any threshold). A model with state (a
+lag, dT/dt) is evaluated at the half windows' spacing: in long windows that may leave a
+transient unexplained, and such a recording is judged again in its rate's windows
+(:func:`diffgyro.motion.motion_check`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+from jaxtyping import Bool, Float, Int
+
+from .data import Batch
+
+
+class Explanation(NamedTuple):
+    """A fitted model, as the motion check reads it: ``residual`` maps (rows of the batch,
+    a batch of those devices at their means over windows) to the model's residual there
+    (rows, windows, 3); ``reads`` names the data signals it reads (``requires()``)."""
+
+    residual: Callable[[Int[np.ndarray, " r"], Batch], Float[np.ndarray, "r m 3"]]
+    reads: frozenset[str]
+
+
+def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
+            fill: Bool[np.ndarray, " r"], mean: Float[np.ndarray, "r k 3"],
+            reads: frozenset[str]) -> Batch:
+    """The devices ``rows`` of ``batch`` as the means of their valid samples over each of
+    ``k`` windows of ``w`` samples: time, the signals in ``reads`` (a model's
+    ``requires()``: ``temp``, ``accel``, ``aux:name`` ...) and the gyro (given: its
+    windows' ``mean``). Only the devices ``fill`` are read (the others hold their first sample: the
+    shape stays the batch's). A window with no valid sample is masked and holds its
+    neighbour's values."""
+    n_dev, n = np.shape(batch.mask)
+    m = min(n, k * w)
+    read = np.asarray(rows)[fill]
+    whole = len(read) == n_dev and np.array_equal(read, np.arange(n_dev))
+    valid = np.asarray(batch.mask)[:, :m] if whole else np.asarray(batch.mask)[read, :m]
+    every = bool(valid.all())
+    counts = (_sums(valid, w, k) if not every else
+              np.broadcast_to(_sums(np.ones((1, m), bool), w, k), (len(read), k)))
+    mask = np.zeros((len(rows), k), bool)
+    mask[fill] = counts > 0
+    safe = np.maximum(counts, 1.0)
+
+    def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
+        x = np.asarray(x)
+        out = np.broadcast_to(x[rows, :1], (len(rows), k) + x.shape[2:]).copy()
+        part = (x if whole else x[read])[:, :m]
+        if not every:
+            part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
+        s = _sums(part, w, k)
+        out[fill] = _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
+        return out
+
+    def times(t):  # a window's time: its first sample's, plus half its span
+        t = np.asarray(t)
+        if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
+            return means(t)
+        out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
+        start = (t if whole else t[read])[:, :m:w]
+        step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
+        out[fill, :start.shape[1]] = start + 0.5 * (w - 1) * step
+        out[fill] = _held(out[fill], counts > 0)
+        return out
+
+    kw = {f: None if getattr(batch, f) is None or f not in reads else
+          means(getattr(batch, f)) for f in ("temp", "temp_ext", "accel", "mag")}
+    return Batch(t=times(batch.t), gyro=mean.astype(float), mask=mask, n_valid=mask.sum(axis=1),
+                 devices=tuple(batch.devices[i] for i in rows) if batch.devices else (),
+                 aux={a: means(v) for a, v in batch.aux.items() if f"aux:{a}" in reads}, **kw)
+
+
+def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray, " r"], w: int,
+                    stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2 3"],
+                    valid: Bool[np.ndarray, "r k"], todo: Bool[np.ndarray, " r"],
+                    quantiles: tuple[float, ...], limit: int
+                    ) -> tuple[Float[np.ndarray, "r k 3 3"], Float[np.ndarray, "r 2 3"]]:
+    """The window ``stats`` and rest ``noise`` of devices ``rows`` of ``batch`` (in windows
+    of ``w`` samples) with those of the devices ``todo`` taken from what ``explanation``
+    leaves at the means of each half window (:func:`windows`, :func:`explained`); the
+    gyro's half-window means are the window mean ± half the half-window difference."""
+    r, k = stats.shape[:2]
+    mean, half = stats[:, :, 0].astype(float), stats[:, :, 2].astype(float)
+    gyro = np.stack([mean + half / 2, mean - half / 2], axis=2).reshape(r, 2 * k, 3)
+    at = windows(batch, rows, w // 2, 2 * k, todo, gyro, explanation.reads)
+    residual = np.asarray(explanation.residual(rows, at), float).reshape(r, k, 2, 3)
+    return explained(stats, noise, valid, residual, todo, w, quantiles, limit)
+
+
+def _sums(x, h: int, k: int):
+    """Sums over windows of ``h`` samples along axis 1, ``k`` of them (those past the
+    samples empty; a boolean ``x`` counts)."""
+    d, n = x.shape[:2]
+    whole = n // h
+    out = np.zeros((d, k) + x.shape[2:])
+    out[:, :whole] = x[:, :whole * h].reshape((d, whole, h) + x.shape[2:]).sum(
+        axis=2, dtype=np.int32 if x.dtype == bool else None)
+    if n > whole * h:
+        out[:, whole] = x[:, whole * h:].sum(axis=1)
+    return out
+
+
+def _held(x, has):
+    """``x`` (rows, m, ...) with the entries without ``has`` holding the nearest earlier
+    one (the first one, before any)."""
+    at = np.where(has, np.arange(has.shape[1]), -1)
+    at = np.maximum.accumulate(at, axis=1)
+    first = np.argmax(has, axis=1)[:, None]
+    at = np.where(at < 0, first, at)
+    return np.take_along_axis(x, at.reshape(at.shape + (1,) * (x.ndim - 2)), axis=1)
+
+
+def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2 3"],
+              valid: Bool[np.ndarray, "r k"], residual: Float[np.ndarray, "r k 2 3"],
+              rows: Bool[np.ndarray, " r"], w: int, quantiles: tuple[float, ...], limit: int
+              ) -> tuple[Float[np.ndarray, "r k 3 3"], Float[np.ndarray, "r 2 3"]]:
+    """Window ``stats`` and rest ``noise`` of the model's ``residual`` at the means of each
+    window's two halves, for the devices ``rows`` (the others as given): the residual's
+    window mean and half-window difference, the local noise as recorded, and a window
+    mean's noise from those differences. A device whose residual is not finite keeps the
+    recording's."""
+    ok = rows & np.all(np.isfinite(residual) | ~valid[:, :, None, None], axis=(1, 2, 3))
+    stats, noise = stats.copy(), noise.copy()
+    stats[ok, :, 0] = 0.5 * (residual[ok, :, 0] + residual[ok, :, 1])
+    stats[ok, :, 2] = residual[ok, :, 0] - residual[ok, :, 1]
+    _, half_q, _, zh = quantiles
+    sigma = noise[ok, 0].astype(float)
+    half = _spread_quantile(np.abs(stats[ok, :, 2]), valid[ok], half_q, limit)
+    noise[ok, 1] = np.maximum(sigma / np.sqrt(w), half / zh / 2.0)
+    return stats, noise
+
+
+def _spread_quantile(x: Float[np.ndarray, "r k 3"], valid: Bool[np.ndarray, "r k"], q: float,
+                     limit: int) -> Float[np.ndarray, "r 3"]:
+    """The ``q`` quantile (linear between order statistics) per device and axis of ``x``
+    over its valid windows among at most ``limit`` spread evenly over its span (the rest
+    noise's rule, :mod:`diffgyro._window_stats`); NaN where none."""
+    k = valid.shape[1]
+    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)[:, None]
+    j = np.arange(min(k, limit))[None]
+    at = np.where(span > limit, (j * span) // limit, j)
+    use = np.take_along_axis(valid, np.minimum(at, k - 1), axis=1) & (j < span)
+    v = np.take_along_axis(x, np.minimum(at, k - 1)[..., None], axis=1)
+    v = np.sort(np.where(use[..., None], v, np.inf), axis=1)
+    u = use.sum(axis=1)[:, None]
+    pos = q * np.maximum(u - 1, 0)
+    lo = np.floor(pos).astype(int)
+    hi = np.minimum(lo + 1, np.maximum(u - 1, 0))
+    a = np.take_along_axis(v, lo[..., None].repeat(3, axis=2), axis=1)[:, 0]
+    b = np.take_along_axis(v, hi[..., None].repeat(3, axis=2), axis=1)[:, 0]
+    with np.errstate(invalid="ignore"):
+        out = a + (b - a) * (pos - lo)
+    return np.where(u > 0, out, np.nan)
+
+
+__all__ = ["Explanation", "explain_windows", "windows", "explained"]
