@@ -21,7 +21,7 @@ from jaxtyping import Array, Float, Int
 from . import _aux as aux_cols
 from ._jsonio import number
 from ._options import FitOptions
-from ._signal_builder import batch_signals
+from ._signal_builder import signal_inputs, stacked_signals
 from .data import Batch
 from .model import ErrorModel, Params
 from .motion import Motion
@@ -146,10 +146,14 @@ class AbstractFitResult(eqx.Module):
     def signals(self, batch: Batch) -> Signals:
         """Derived signals of ``batch`` with this fit's temperature centring (and the
         extra columns' centring)."""
+        return stacked_signals(*self._signal_inputs(batch), self.options.dtemp_window)
+
+    def _signal_inputs(self, batch: Batch) -> tuple:
+        """What :func:`~diffgyro._signal_builder.stacked_signals` reads of ``batch``, with
+        this fit's centring of the temperature and the extra columns."""
         names = aux_cols.aux_names(self.model.requires())
         aux_cols.check_columns(batch, names, vary=False)
-        return batch_signals(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
-                             dtemp_window=self.options.dtemp_window,
+        return signal_inputs(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
                              aux=aux_cols.scaled(batch, self.aux_norm) if names else None)
 
     def _axis_noise(self, i: int, axis: int) -> dict:

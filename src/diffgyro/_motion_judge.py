@@ -20,8 +20,8 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from ._fit_result import AbstractFitResult
-from .data import Batch
 from ._window_explain import Explanation
+from .data import Batch
 from .motion import Motion, motion_check, rest_kept
 from .status import IN_MOTION, OK, REST_UNVERIFIED
 

@@ -36,6 +36,14 @@ def batch_signals(
     ``aux`` holds the extra columns the model reads, centred and scaled
     (:func:`diffgyro._aux.scaled`, (devices, n) each).
     """
+    return stacked_signals(*signal_inputs(batch, norm, dtype, aux), dtemp_window)
+
+
+def signal_inputs(batch: Batch, norm: TempNorm | None = None, dtype=jnp.float64,
+                  aux: dict | None = None) -> tuple:
+    """What :func:`stacked_signals` reads of ``batch`` (after ``dtemp_window``, its last
+    argument), as :func:`batch_signals` describes them: a program that derives the
+    signals inside (a prediction, a residual) takes the same inputs."""
 
     def arr(x):
         return None if x is None else jnp.asarray(x, dtype)
@@ -44,10 +52,9 @@ def batch_signals(
     if norm is not None:
         norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
                         scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))
-
-    return stacked_signals(arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
-                           arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
-                           {k: arr(v) for k, v in (aux or {}).items()}, dtemp_window)
+    return (arr(batch.t), arr(batch.gyro), jnp.asarray(batch.mask), arr(batch.rate),
+            arr(batch.temp), arr(batch.temp_ext), arr(batch.accel), norm, dt,
+            {k: arr(v) for k, v in (aux or {}).items()})
 
 
 @eqx.filter_jit

@@ -29,14 +29,14 @@ from ._fit_sums import solve_sums
 from ._jit import release_compiled_if_crowded
 from ._motion_judge import judge_motion
 from ._options import FitOptions
-from ._signal_builder import batch_signals
+from ._signal_builder import batch_signals, stacked_signals
 from .channel import as_channel, check_channel, check_model
 from .data import Batch, Recording, as_batch, pad_devices
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
 from .motion import Motion, compile_check, motion_check
-from .signals import Signals, TempNorm
+from .signals import TempNorm
 from .status import explain, residual_verdict
 
 __all__ = ["fit", "FitResult", "AbstractFitResult", "FitOptions", "solve_device"]
@@ -100,18 +100,20 @@ class FitResult(AbstractFitResult):
 
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
-        sig = self.signals(batch)
-        pred = _predict_batch(self.model, self.params, sig)
-        return (sig.gyro - pred) * sig.mask[..., None]
+        return _residual_batch(self.model, self.params, self._signal_inputs(batch),
+                               self.options.dtemp_window)
 
     def _verdict(self, i: int) -> dict:
         return {"residual_ratio": residual_verdict(self.heldout_rms[i], self.noise_floor[i])[1]}
 
 
 @eqx.filter_jit
-def _predict_batch(model: ErrorModel, params: Params, sig: Signals) -> Float[Array, "d n 3"]:
-    """Predicted rate of every device, compiled once per model and shape."""
-    return jax.vmap(model.predict)(params, sig)
+def _residual_batch(model: ErrorModel, params: Params, inputs: tuple,
+                    dtemp_window: float) -> Float[Array, "d n 3"]:
+    """Every device's residual (padding zeroed) from its signals' inputs
+    (:func:`~diffgyro._signal_builder.signal_inputs`): one program, signals derived inside."""
+    sig = stacked_signals(*inputs, dtemp_window)
+    return (sig.gyro - jax.vmap(model.predict)(params, sig)) * sig.mask[..., None]
 
 
 def fit(
