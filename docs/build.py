@@ -78,6 +78,7 @@ def execute(path: Path, quick: bool, cell_timeout: int) -> None:
     os.environ["PYTHONPATH"] = _with_src(saved.get("PYTHONPATH"))
     try:  # the kernel inherits this environment: this checkout's src first on the path
         NotebookClient(nb, timeout=cell_timeout, kernel_name="python3",
+                       extra_arguments=["--IPKernelApp.log_level=ERROR"],  # no start-up chatter
                        resources={"metadata": {"path": str(path.parent)}}).execute()
     finally:
         os.environ.clear()
