@@ -110,7 +110,7 @@ def test_docs_build_runs_a_notebook_and_the_page_shows_its_figure(tmp_path, monk
     monkeypatch.setenv("DIFFGYRO_NOTEBOOK_OUTPUTS", str(tmp_path / "kept"))
     nb = tmp_path / "nb" / "tiny.py"
     nb.parent.mkdir()
-    nb.write_text("# # A tiny notebook\n\n# %%\nimport os\n\nimport matplotlib.pyplot as plt\n\n"
+    nb.write_text("# %% [markdown]\n# # A tiny notebook\n\n# %%\nimport os\n\nimport matplotlib.pyplot as plt\n\n"
                   "plt.plot([0, 1], [1, 0])\nplt.show()\n"
                   "print('quick' if os.environ.get('DIFFGYRO_NOTEBOOK_QUICK') else 'full',"
                   " os.getcwd())\n", encoding="utf-8")
@@ -122,5 +122,9 @@ def test_docs_build_runs_a_notebook_and_the_page_shows_its_figure(tmp_path, monk
     assert f"quick {nb.parent}" in page  # ran in quick mode, from the notebook's folder
     assert list(images) == ["cell1_0.png"] and images["cell1_0.png"][:4] == b"\x89PNG"
     assert "![figure of cell 1](tiny/cell1_0.png)" in page
+    assert "output below is from its last run in quick mode" in page
     nb.write_text(nb.read_text(encoding="utf-8") + "\n# %%\n1\n", encoding="utf-8")
     assert not build.is_current(nb, quick=True)
+    page, images = hooks.notebook_page(nb)  # a stale run is not shown: the source alone
+    assert images == {} and f"quick {nb.parent}" not in page
+    assert "once it has been run for this source: `python docs/build.py`" in page
