@@ -1,29 +1,68 @@
-"""``diagnose``'s table in an 80-column terminal: no number split and no word cut. The
-columns the output gives elsewhere (the close alternatives and the residual's noise in
-each device's explanation, the in-sample RMS in --json) are left out, in that order,
-with one line saying so; a wide terminal shows every column and no such line."""
+"""Two of the command line's conventions on the README walkthrough's batch (two gyros whose
+bias follows temperature and dT/dt):
+
+* ``fit`` says in one line when a device's held-out RMS stands several times above its
+  noise floor, and points to ``diagnose``; a model that holds every effect gets no such
+  line, and ``--json`` keeps stdout pure (the ratio is a field there);
+* ``diagnose``'s table in an 80-column terminal splits no number and cuts no word: the
+  columns the output gives elsewhere (the close alternatives and the residual's noise in
+  each device's explanation, the in-sample RMS in --json) are left out, in that order,
+  with one line saying so; a wide terminal shows every column and no such line.
+"""
 
 from __future__ import annotations
 
 import io
+import json
 import re
 
 import pytest
 from rich.console import Console
 
-from diffgyro.cli import _tables
+from diffgyro.cli import _tables, main
 from diffgyro.cli.diagnose import print_diagnosis
+
+NOTE = re.compile(r"^(dev\d{3}): held-out RMS ([\d.]+)x its noise floor: .*diffgyro diagnose",
+                  re.M)
 
 
 @pytest.fixture(scope="module")
-def diagnosis():
-    """The README walkthrough's diagnose: two gyros whose bias follows dT/dt, bias_poly(2)."""
-    from diffgyro.diagnose import diagnose
+def walkthrough(tmp_path_factory):
+    """The walkthrough's batch (``diffgyro simulate --plan thermal --devices 2 --duration
+    3600 --rate 2 --effects 'bias_poly(2)+gradient'``) and its CSV file."""
+    from diffgyro.io import save
     from diffgyro.simulate import simulate
 
     batch, _ = simulate("thermal", 2, effects="bias_poly(2)+gradient", seed=0, duration=3600.0,
                         sample_rate=2.0)
-    return diagnose("bias_poly(2)", batch)
+    return batch, save(batch, tmp_path_factory.mktemp("conventions") / "x.csv")
+
+
+@pytest.fixture(scope="module")
+def diagnosis(walkthrough):
+    from diffgyro.diagnose import diagnose
+
+    return diagnose("bias_poly(2)", walkthrough[0])
+
+def test_fit_names_a_residual_above_the_floor_and_points_to_diagnose(walkthrough, capsys,
+                                                                      monkeypatch):
+    _, walkthrough = walkthrough
+    monkeypatch.setenv("COLUMNS", "80")
+    assert main(["fit", str(walkthrough), "-m", "bias_poly(2)"]) == 0
+    out = capsys.readouterr().out
+    notes = NOTE.findall(out)
+    assert len([line for line in out.splitlines() if "noise floor:" in line]) == len(notes)
+
+    assert main(["fit", str(walkthrough), "-m", "bias_poly(2)", "--json"]) == 0
+    doc = json.loads(capsys.readouterr().out)  # stdout is the JSON object alone
+    above = [(d["device"], f"{d['residual_ratio']:.3g}") for d in doc["devices"]
+             if d["residual_ratio"] > 3.0]
+    # a line for each device above three times its floor (dev000, 4.7x), none for the other
+    assert notes == above and [d for d, _ in notes] == ["dev000"], (notes, above)
+    assert all(float(r) <= 10.0 for _, r in notes)  # several times: written, not refused
+
+    assert main(["fit", str(walkthrough), "-m", "bias_poly(2)+gradient"]) == 0
+    assert not NOTE.search(capsys.readouterr().out)  # the right model: nothing to say
 
 
 def _printed(diag, width: int) -> str:
