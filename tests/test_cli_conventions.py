@@ -44,6 +44,7 @@ def diagnosis(walkthrough):
 
     return diagnose("bias_poly(2)", walkthrough[0])
 
+
 def test_fit_names_a_residual_above_the_floor_and_points_to_diagnose(walkthrough, capsys,
                                                                       monkeypatch):
     _, walkthrough = walkthrough
