@@ -10,9 +10,10 @@
   usage, help, arguments and options (defaults and units as its ``--help`` gives them),
   read from the command objects themselves.
 * ``notebooks/*.md``: every notebook of notebooks/ as a page, with the printed output
-  and figures of its last run by the test suite (tests/notebook_runner.py keeps them in
-  .notebook-outputs/, or ``DIFFGYRO_NOTEBOOK_OUTPUTS``) when that run is of the current
-  source; the code and text alone otherwise.
+  and figures of its last run (kept in .notebook-outputs/, or
+  ``DIFFGYRO_NOTEBOOK_OUTPUTS``, by docs/build.py or by the test suite's
+  tests/notebook_runner.py) when that run is of the current source; the code and text
+  alone otherwise.
 * :class:`SphinxRoles`, a griffe extension (``extensions:`` in mkdocs.yml): docstrings'
   Sphinx roles (``:func:`x` ``) become links, and each module's members are ordered
   public-first for its API page.
@@ -156,11 +157,11 @@ def notebook_page(path: Path) -> tuple[str, dict[str, bytes]]:
     quick = executed and nb.metadata.get("diffgyro", {}).get("quick")
     note = (f"*Source: `notebooks/{path.name}` (Jupytext; `jupytext --to ipynb` makes a "
             "Jupyter notebook of it).* " + (
-                "The output below is from its run by the test suite"
+                "The output below is from its last run"
                 + (" in quick mode (`DIFFGYRO_NOTEBOOK_QUICK=1`: smaller batches, the same "
                    "steps)" if quick else "") + "." if executed else
-                "Its output appears here once the test suite has run it "
-                "(`pytest tests/test_notebooks.py`)."))
+                "Its output appears here once it has been run for this source: "
+                "`python docs/build.py` runs it and builds the site."))
     parts, images = [], {}
     for i, cell in enumerate(nb.cells):
         if cell.cell_type == "markdown":

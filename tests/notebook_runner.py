@@ -57,6 +57,8 @@ def run_notebook(path: Path, monkeypatch) -> str:
 
     from diffgyro.effects import _base as base
 
+    plt.close("all")  # a figure an earlier test left open is not this notebook's output
+
     registered = dict(base._REGISTRY)
     monkeypatch.chdir(path.parent)
     figures: list[dict] = []

@@ -1,7 +1,7 @@
-"""The README's custom-effect example: defined here, then fitted, diagnosed as a
+"""The custom-effect example of docs/effects.md: defined here, then fitted, diagnosed as a
 candidate, written to a calibration file and applied, like any built-in term.
 
-The README registers with ``@register`` at import; here registration happens in a
+The page registers with ``@register`` at import; here registration happens in a
 fixture and is undone afterwards, so other tests in the same process see the
 built-in vocabulary only."""
 

@@ -54,6 +54,30 @@ def table(title: str, columns: list[tuple[str, str]], rows: list[list[str]], wid
     return out
 
 
+def fit_columns(columns: list[tuple[str, str]], rows: list[list[str]], width: int,
+                optional: tuple[str, ...] = ()) -> tuple[list, list, list[str]]:
+    """The columns and rows to show ``width`` columns wide: a text column empty in every
+    row is left out, then the ``optional`` headings in their order while the table is
+    wider than ``width`` (each a column whose content the output gives elsewhere, so a
+    narrow terminal folds no word of the others). Returns the columns, the rows and the
+    headings of the optional columns left out."""
+    def natural(keep):
+        return sum(max(max((_width(r[k]) for r in rows), default=1), _width(columns[k][0])) + 3
+                   for k in keep) + 1
+
+    keep = [k for k, (_, kind) in enumerate(columns)
+            if kind != TEXT or not rows or any(_width(r[k]) for r in rows)]
+    dropped = []
+    for head in optional:
+        if natural(keep) <= width:
+            break
+        k = next((k for k in keep if columns[k][0] == head), None)
+        if k is not None:
+            keep.remove(k)
+            dropped.append(head)
+    return [columns[k] for k in keep], [[r[k] for k in keep] for r in rows], dropped
+
+
 def console(width: int) -> Console:
     """A console as wide as the terminal (or ``COLUMNS``); ``width`` columns when stdout
     is not a terminal and ``COLUMNS`` is not set (pipes, logs, tests)."""

@@ -56,6 +56,12 @@ NOISE_SHORT = {"white": "white", "gauss_markov": "GM", "random_walk": "RW",
                "gauss_markov+random_walk": "GM+RW"}
 
 
+#: Columns left out, in this order, where the table would not fit the terminal: each
+#: device's explanation names the close alternatives and the residual's noise process,
+#: and --json holds the in-sample RMS.
+NARROW = ("close alternatives", "noise", "rms")
+
+
 def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
     """A rich table of the devices, then each device's explanation (``judged``: the records
     with their --limits result, a column of pass/fail)."""
@@ -71,13 +77,16 @@ def print_diagnosis(diag, console, judged: list[dict] | None = None) -> None:
                      *((judged[i]["limits"]["result"],) if judged else ())])
     channel = getattr(diag.fit, "channel", "gyro")
     what = "rates in rad/s" if channel == "gyro" else "accelerometer, in m/s²"
-    table = tables.table(f"diagnosis of {diag.spec} ({what})", [
+    columns, rows, dropped = tables.fit_columns([
         ("device", TEXT), ("verdict", TEXT), ("rms", NUMBER), ("held-out", NUMBER),
         ("floor", NUMBER), ("add", TEXT), ("held-out with it", NUMBER),
         ("close alternatives", TEXT), ("noise", TEXT),
-        *((("limits", TEXT),) if judged else ())], rows,
-        console.width, justify={"limits": "right"})
-    console.print(table)
+        *((("limits", TEXT),) if judged else ())], rows, console.width, optional=NARROW)
+    console.print(tables.table(f"diagnosis of {diag.spec} ({what})", columns, rows,
+                               console.width, justify={"limits": "right"}))
+    if dropped:
+        console.print(f"(at {console.width} columns: {', '.join(dropped)} left out; see below "
+                      "and --json)", markup=False, highlight=False, soft_wrap=True)
     for d in diag.devices:
         console.print(d.explanation, markup=False, highlight=False, soft_wrap=True)
     for line in skipped_lines(diag):
