@@ -441,3 +441,47 @@ def test_ardupilot_shared_range_is_the_overlap_and_said(soak):
     assert p["INS_TCAL1_TMIN"] == pytest.approx(lo + 2.0, abs=1e-4)
     assert any(line.startswith("INS_TCAL1 TMIN/TMAX") and "the gyro's" in line for line in report)
     assert not any(line.startswith("INS_TCAL2 TMIN/TMAX") for line in report)
+
+
+def test_compensate_corrects_the_accelerometer_as_px4_does(soak, tmp_path, capsys):
+    """``compensate`` with the accelerometer's calibration file (numpy only,
+    apply.compensate_accel) removes the offset's change from the calibration's centre
+    temperature: on the unseen soak it is PX4's TC_A correction (TREF the same centre),
+    it leaves each cubic board at its noise, and the gyro columns are written as read."""
+    from diffgyro import apply, io
+
+    _, _, unseen, ut, gyro, accel = soak
+    text, _ = render(gyro, "px4", device_ids=GYRO_IDS, accel=accel, accel_ids=ACCEL_IDS[:2])
+    p = _px4_params(text)
+    two = unseen.select([0, 1])
+    io.save(two, tmp_path / "unseen.csv")
+    calibration.save(accel, tmp_path / "accel.json")
+    code = main(["compensate", str(tmp_path / "unseen.csv"), "--cal", str(tmp_path / "accel.json"),
+                 "--out", str(tmp_path / "out.csv")])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "accelerometer samples corrected by bias_poly(3)" in out.out
+    written = load_batch([tmp_path / "out.csv"])
+    for i in range(2):
+        raw_g, raw_a, temp, _, _, a_noise = _noise(unseen, ut, i)
+        n = len(temp)
+        got = np.asarray(written.accel[i, :n])
+        doc = accel.to_json()
+        np.testing.assert_allclose(got, apply.compensate_accel(
+            doc, accel.devices[i].device, np.asarray(unseen.t[i, :n]), raw_a, temp), atol=1e-9)
+        px4 = raw_a - _px4_offset(p, _slot(p, "A", ACCEL_IDS[i]), temp)
+        assert np.abs(got - px4).max() < 1e-4, i  # float32 parameters
+        assert _rms(got - got.mean(0)) <= 1.05 * _rms(a_noise - a_noise.mean(0)), i
+        np.testing.assert_allclose(np.asarray(written.gyro[i, :n]), raw_g, atol=1e-9)
+
+
+def test_compensate_refuses_a_device_the_accelerometer_file_lacks(soak, tmp_path, capsys):
+    _, _, unseen, _, _, accel = soak
+    from diffgyro import io
+
+    io.save(unseen.select([2]), tmp_path / "board2.csv")
+    calibration.save(accel, tmp_path / "accel.json")
+    code = main(["compensate", str(tmp_path / "board2.csv"), "--cal", str(tmp_path / "accel.json"),
+                 "--out", str(tmp_path / "out.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and unseen.devices[2] in err and "not in the calibration" in err
