@@ -16,6 +16,7 @@ from conftest import DATA
 
 from diffgyro import apply, calibration
 from diffgyro.channel import faces
+from diffgyro.diagnose import diagnose
 from diffgyro.errors import DataError
 from diffgyro.fit import fit
 from diffgyro.io import load_batch, parse_columns
@@ -188,3 +189,16 @@ def test_compensation_of_several_orientations_leaves_the_noise(faces_soak):
         floor = float(np.sqrt(np.mean(noise[still] ** 2)))
         assert rms <= 1.05 * floor, (i, rms, floor)
         assert float(np.sqrt(np.mean((raw - force)[still] ** 2))) > 20 * floor
+
+
+def test_diagnose_names_the_missing_order_on_the_faces(faces_soak):
+    """The discovery loop runs on several orientations too: scored on the rests with gravity
+    their input, a linear thermal offset where the truth is cubic is found short, and the
+    next order named."""
+    batch, _, _ = faces_soak
+    diag = diagnose("bias_poly(1)+scale_poly(0)+misalignment", batch, channel="accel",
+                    candidates=["bias_poly"], synthesis=False, noise=False, greedy=False)
+    for d in diag.devices:
+        assert d.verdict == "missing_effect", d.device
+        assert d.candidates[0].spec == "bias_poly(2)+scale_poly(0)+misalignment"
+        assert d.candidates[0].significant
