@@ -161,7 +161,7 @@ def test_ardupilot_parameters_leave_each_channel_at_its_noise(soak):
         assert _rms(a - a.mean(0)) <= 1.05 * _rms(a_noise - a_noise.mean(0)), i
 
 
-def test_dtdt_board_is_named_and_refused(soak):
+def test_dtdt_board_is_named_and_refused(soak, tmp_path):
     batch, _, _, _, _, _ = soak
     diag = diagnose(MODEL, batch, ["gradient", "temp_diff"], channel="accel", greedy=False,
                     synthesis=False, noise=False)
@@ -170,6 +170,16 @@ def test_dtdt_board_is_named_and_refused(soak):
     assert dev2.verdict == "missing_effect" and dev2.best.effect == "gradient"
     assert all(verdicts[batch.devices[i]].verdict == "adequate" for i in (0, 1))
     assert diag.to_json()["channel"] == "accel"
+    # the report draws the accelerometer in m/s²: the named term refitted on what was fitted
+    # (the accelerometer less its reference) leaves board 2 at its noise floor
+    from diffgyro.report import channel_batch, named_term_residuals, write_report
+
+    spec, e_new = named_term_residuals(diag, channel_batch(diag.fit, batch))[2]
+    assert spec == ACCEL
+    assert 0.8 < _rms(e_new) / np.sqrt(np.mean(np.square(dev2.noise_axes))) < 1.2
+    write_report(diag, batch, tmp_path)
+    page = (tmp_path / f"{batch.devices[2]}.html").read_text()
+    assert "m/s²" in page and "rad/s" not in page and "with gradient" in page
     # the cubic alone leaves board 2's dT/dt residual: written with a warning that says so
     cubic = calibration.from_fit(fit(MODEL, batch.select([2]), channel="accel"))
     text, report = render(cubic, "px4", device_ids=[ACCEL_IDS[0]])
@@ -270,8 +280,11 @@ def test_ulog_accelerometers_matched_to_their_device_ids(soak, tmp_path, capsys)
     capsys.readouterr()
     # the command line names the hidden dT/dt on board 2's accelerometer (instance 0)
     assert main(["diagnose", str(log), "-m", MODEL, "--channel", "accel", "--json",
-                 "--candidates", "gradient,temp_diff", "--no-synthesis"]) == 0
+                 "--candidates", "gradient,temp_diff", "--no-synthesis",
+                 "--report", str(tmp_path / "report")]) == 0
     doc = json.loads(capsys.readouterr().out)
+    index = (tmp_path / "report" / "index.html").read_text()
+    assert "m/s²" in index and "rad/s" not in index
     verdicts = {d["device"]: d for d in doc["devices"]}
     assert doc["channel"] == "accel" and verdicts["soak/accel0"]["verdict"] == "missing_effect"
     assert verdicts["soak/accel0"]["candidates"][0]["effect"] == "gradient"

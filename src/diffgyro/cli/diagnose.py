@@ -193,7 +193,7 @@ def diagnose_command(
     streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only, streamed=streamed,
-                    **{"--report": report is not None, "--limits": limits is not None})
+                    **{"--limits": limits is not None})
     _refuse_combinations(limits is not None and auto, streamed and static_only,
                          streamed and not synthesis, streamed and noise)
     if streamed:
