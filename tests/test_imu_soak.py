@@ -172,9 +172,10 @@ def test_dtdt_board_is_named_and_refused(soak, tmp_path):
     assert diag.to_json()["channel"] == "accel"
     # the report draws the accelerometer in m/s²: the named term refitted on what was fitted
     # (the accelerometer less its reference) leaves board 2 at its noise floor
-    from diffgyro.report import channel_batch, named_term_residuals, write_report
+    from diffgyro.channel import fitted_batch
+    from diffgyro.report import named_term_residuals, write_report
 
-    spec, e_new = named_term_residuals(diag, channel_batch(diag.fit, batch))[2]
+    spec, e_new = named_term_residuals(diag, fitted_batch(diag.fit, batch))[2]
     assert spec == ACCEL
     assert 0.8 < _rms(e_new) / np.sqrt(np.mean(np.square(dev2.noise_axes))) < 1.2
     write_report(diag, batch, tmp_path)
@@ -498,3 +499,40 @@ def test_compensate_refuses_a_device_the_accelerometer_file_lacks(soak, tmp_path
                  "--out", str(tmp_path / "out.csv")])
     err = capsys.readouterr().err
     assert code == 2 and unseen.devices[2] in err and "not in the calibration" in err
+
+
+def test_limits_judge_the_accelerometer_in_its_units(soak, tmp_path, capsys):
+    """``fit --channel accel --limits``: the records' numbers are the accelerometer's (m/s²),
+    bounds may be written in mg or mg/K, a rate unit is refused naming its key; the
+    temperature coefficient the limits compute is the true cubic's (per board), so a bound
+    between the two boards passes one and fails the other."""
+    from diffgyro import io
+
+    batch, truth = soak[0], soak[1]
+    io.save(batch.select([0, 1]), tmp_path / "soak.csv")
+    slopes = []
+    for board in (0, 1):
+        temp = np.linspace(*np.percentile(batch.temp[board, :int(batch.n_valid[board])],
+                                          [0, 100]), 2001)
+        curve = _true_accel_cubic(truth, board, temp)
+        slopes.append(np.abs(np.gradient(curve, temp, axis=0)).max() / 9.80665e-3)  # mg/K
+    bound = float(np.mean(slopes))
+    (tmp_path / "lim.toml").write_text(
+        "[limits]\nstatus = \"ok\"\nheldout_rms = { max = 1, unit = \"mg\" }\n"
+        f"\"bias_tempco.worst\" = {{ max = {bound!r}, unit = \"mg/K\" }}\n")
+    code = main(["fit", str(tmp_path / "soak.csv"), "-m", MODEL, "--channel", "accel",
+                 "--limits", str(tmp_path / "lim.toml"), "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    doc = json.loads(out.out)
+    assert sorted(r["limits"]["result"] for r in doc["devices"]) == ["fail", "pass"]
+    for rec, slope in zip(doc["devices"], slopes, strict=True):
+        got = rec["bias_tempco"]["worst"] / 9.80665e-3
+        assert abs(got - slope) < 0.02 * slope, (got, slope)
+        assert rec["limits"]["result"] == ("pass" if slope <= bound else "fail")
+        assert rec["heldout_rms"] < 9.80665e-3  # the 1 mg bound, in m/s²
+    (tmp_path / "rate.toml").write_text("[limits]\nheldout_rms = { max = 1, unit = \"deg/s\" }\n")
+    code = main(["fit", str(tmp_path / "soak.csv"), "-m", MODEL, "--channel", "accel",
+                 "--limits", str(tmp_path / "rate.toml")])
+    err = capsys.readouterr().err
+    assert code == 2 and "heldout_rms.unit" in err and "not the accelerometer's" in err

@@ -41,7 +41,7 @@ from .errors import DataError, SpecError
 
 __all__ = ["CHANNELS", "UNITS", "GRAVITY", "FACE_TOLERANCE", "check_channel", "split_spec",
            "resolve", "check_model", "reads_gravity", "gravity_reference", "faces",
-           "as_channel"]
+           "as_channel", "fitted_batch"]
 
 #: The channels, the first the default.
 CHANNELS = ("gyro", "accel")
@@ -196,6 +196,20 @@ def as_channel(data: Batch | Recording | list[Recording], channel: str = "gyro",
     meas = np.where(np.asarray(batch.mask, bool)[..., None], meas, 0.0)
     out = dataclasses.replace(batch, gyro=meas, accel=None, rate=None, quat=None, mag=None)
     return out, ref
+
+
+def fitted_batch(result, batch: Batch, gravity: float = GRAVITY) -> Batch:
+    """The batch a fit ``result`` was fitted on: ``batch`` as loaded for the gyro; for the
+    accelerometer its channel batch (:func:`as_channel`: less the result's gravity
+    reference, or the rests its motion check kept with gravity their input); a batch
+    already of the channel (no accelerometer left in it) as it is."""
+    channel = getattr(result, "channel", "gyro")
+    if channel == "gyro" or batch.accel is None:
+        return batch
+    static = result.motion.static if reads_gravity(result.model) else None
+    out, _ = as_channel(batch, channel, getattr(result, "reference", None), static=static,
+                        gravity=gravity)
+    return out
 
 
 def _oriented(batch: Batch, static: np.ndarray, gravity: float) -> tuple[Batch, np.ndarray]:

@@ -35,7 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ._jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
-from .channel import GRAVITY, UNITS, as_channel, reads_gravity
+from .channel import UNITS, fitted_batch
 from .data import Batch
 from .effects import product_of
 from .fit import fit
@@ -752,7 +752,7 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     channel = getattr(diagnosis.fit, "channel", "gyro")
-    batch = channel_batch(diagnosis.fit, batch)
+    batch = fitted_batch(diagnosis.fit, batch)
     token = _CHANNEL.set(channel)
     try:
         paths = []
@@ -773,21 +773,7 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     return paths
 
 
-def channel_batch(result, batch: Batch, gravity: float = GRAVITY) -> Batch:
-    """The batch ``result`` (a fit) was fitted on: ``batch`` as loaded for the gyro, the
-    accelerometer's channel batch (:func:`diffgyro.channel.as_channel`: less its gravity
-    reference, or the rests with gravity their input) for the accelerometer; a batch
-    already of the channel (no accelerometer left in it) as it is."""
-    channel = getattr(result, "channel", "gyro")
-    if channel == "gyro" or batch.accel is None:
-        return batch
-    static = result.motion.static if reads_gravity(result.model) else None
-    out, _ = as_channel(batch, channel, getattr(result, "reference", None), static=static,
-                        gravity=gravity)
-    return out
-
-
-__all__ = ["coefficient_unit", "coefficients_figure", "channel_batch", "device_figures",
+__all__ = ["coefficient_unit", "coefficients_figure", "device_figures",
            "device_page", "figure_png", "followed_signal", "in_units", "ladder_png",
            "named_term_residuals", "outliers", "residual_drop_figure", "summary_page",
            "write_atomic", "write_report"]

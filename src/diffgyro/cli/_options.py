@@ -131,5 +131,8 @@ def refuse_on_accel(channel: str, static_only: bool = False, streamed: bool = Fa
                                  param_hint="--static-only")
     if streamed:
         raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
-                                 "files, --chunk-devices, --dask); fit the files directly",
-                                 param_hint="--channel accel")
+                                 "files, --chunk-devices, --dask) yet: the pipeline reads, "
+                                 "fits and merges the gyro's columns, and carries no gravity "
+                                 "reference or faces from chunk to merge; fit the files "
+                                 "directly (a chunk holds whole devices, so the result is "
+                                 "the same)", param_hint="--channel accel")

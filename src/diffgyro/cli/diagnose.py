@@ -192,8 +192,7 @@ def diagnose_command(
 
     streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
     channel, model = resolve(model, channel)
-    refuse_on_accel(channel, static_only=static_only, streamed=streamed,
-                    **{"--limits": limits is not None})
+    refuse_on_accel(channel, static_only=static_only, streamed=streamed)
     _refuse_combinations(limits is not None and auto, streamed and static_only,
                          streamed and not synthesis, streamed and noise)
     if streamed:
@@ -212,7 +211,7 @@ def diagnose_command(
     from diffgyro.model import ErrorModel
 
 
-    lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
+    lim = load_limits(limits, ErrorModel.from_spec(model), channel) if limits is not None else None
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
         | ({} if synthesis else {"synthesis": False}) | ({"noise": True} if noise else {}) \
         | ({} if channel == "gyro" else {"channel": channel})

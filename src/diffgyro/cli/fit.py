@@ -79,7 +79,7 @@ def fit_command(
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only,
                      streamed=chunk_devices is not None or dask is not None
-                     or any(streamed_dir(p) for p in data), **{"--limits": limits is not None})
+                     or any(streamed_dir(p) for p in data))
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
 
         if static_only:
@@ -93,7 +93,7 @@ def fit_command(
         return
 
     em = ErrorModel.from_spec(model)
-    lim = load_limits(limits, em)
+    lim = load_limits(limits, em, channel)
     report = LoadReport()
     with _progress.steps(f"loading {len(data)} file(s)") as step:
         batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -109,7 +109,9 @@ def fit_command(
     records = result.records()
     summary = None
     if lim is not None:
-        records, summary = judge(lim, records, result, batch)
+        from diffgyro.channel import fitted_batch
+
+        records, summary = judge(lim, records, result, fitted_batch(result, batch))
     if out is not None:
         cal = calibration.from_fit(result, batch, device_ids=report.device_ids)
         calibration.save(cal if summary is None else attach(cal, records, summary), out)
