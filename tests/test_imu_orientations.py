@@ -150,22 +150,27 @@ def test_one_temperature_is_the_six_position_recipe():
     np.testing.assert_allclose(recipe.accel_matrix, matrix, atol=2e-4)
 
 
-def test_real_ferraris_session_agrees_with_the_recipe():
-    """imucal's real six-position session (hand-held faces, 102.4 Hz): the fit over every
-    rest agrees with the recipe over its sections to 0.02 m/s² and 2e-3 (the faces are not
-    held exactly level, which each method weighs differently)."""
+def test_real_ferraris_session_agrees_with_the_recipe(tmp_path, capsys):
+    """imucal's real six-position session (hand-held faces, 102.4 Hz) through the command
+    line: the fit over every rest agrees with the recipe over its sections to 0.02 m/s² and
+    2e-3 (the faces are not held exactly level, which each method weighs differently)."""
+    from diffgyro.cli import main
+
     path = DATA / "imucal" / "example_ferraris_session.csv"
-    batch = load_batch([path], parse_columns("gx=gyr_x,gy=gyr_y,gz=gyr_z,ax=acc_x,ay=acc_y,"
-                                             "az=acc_z"), {"gyro": "deg/s"}, sampling_rate=102.4)
+    cols = "gx=gyr_x,gy=gyr_y,gz=gyr_z,ax=acc_x,ay=acc_y,az=acc_z"
+    batch = load_batch([path], parse_columns(cols), {"gyro": "deg/s"}, sampling_rate=102.4)
     sections = {k: (v["start"], v["end"]) for k, v in
                 json.loads(path.with_name(path.stem + "_list.json").read_text()).items()}
     rec = batch.recording(0)
     recipe = six_position(rec.gyro, rec.accel, sections, t=rec.t, rotation_angle=-2 * math.pi,
                           gravity=9.81)
-    result = fit("bias_poly(0)+scale_poly(0)+misalignment", batch, channel="accel",
-                 gravity=9.81)
-    assert result.status_detail(0) == "ok"
-    beta = np.asarray(result.params.beta[0])
+    assert main(["fit", str(path), "--columns", cols, "--gyro-unit", "deg/s", "--sampling-rate",
+                 "102.4", "-m", "accel: bias_poly(0)+scale_poly(0)+misalignment",
+                 "--gravity", "9.81", "--out", str(tmp_path / "cal.json")]) == 0
+    assert "ok" in capsys.readouterr().out
+    cal = calibration.load(tmp_path / "cal.json")
+    assert cal.channel == "accel" and cal.devices[0].status == "ok"
+    beta = np.asarray(cal.devices[0].beta, float)
     np.testing.assert_allclose(beta[:, 0], recipe.accel_bias, atol=0.02)
     np.testing.assert_allclose(np.linalg.inv(_matrix(beta)), recipe.accel_matrix, atol=2e-3)
 
@@ -202,3 +207,15 @@ def test_diagnose_names_the_missing_order_on_the_faces(faces_soak):
         assert d.verdict == "missing_effect", d.device
         assert d.candidates[0].spec == "bias_poly(2)+scale_poly(0)+misalignment"
         assert d.candidates[0].significant
+
+
+def test_command_line_takes_gravity_and_refuses_what_it_cannot_stream(tmp_path, capsys):
+    from diffgyro.cli import main
+
+    csv = DATA / "imucal" / "example_ferraris_session.csv"
+    assert main(["fit", str(csv), "-m", "bias_poly(0)", "--gravity", "9.81"]) == 2
+    assert "--gravity" in capsys.readouterr().err
+    (tmp_path / "parts").mkdir()
+    assert main(["fit", str(tmp_path / "parts"), "-m", "accel: bias_poly(3)"]) == 2
+    err = capsys.readouterr().err
+    assert "streamed runs" in err and "carries no gravity reference" in err

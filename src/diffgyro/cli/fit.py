@@ -19,6 +19,7 @@ from ._options import (
     Columns,
     DataFiles,
     DropInvalid,
+    Gravity,
     GyroUnit,
     JsonOut,
     SamplingRate,
@@ -55,6 +56,7 @@ def fit_command(
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
     static_only: StaticOnly = False,
     channel: Channel = None,
+    gravity: Gravity = None,
 ) -> None:
     """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
 
@@ -79,7 +81,7 @@ def fit_command(
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only,
                      streamed=chunk_devices is not None or dask is not None
-                     or any(streamed_dir(p) for p in data))
+                     or any(streamed_dir(p) for p in data), **{"--gravity": gravity is not None})
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
 
         if static_only:
@@ -105,7 +107,7 @@ def fit_command(
             dtemp_window = suggest_dtemp_window(batch)
         step(f"fitting {em.spec} on {batch.n_devices} device(s)")
         result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only,
-                     channel=channel)
+                     channel=channel, **({} if gravity is None else {"gravity": gravity}))
     records = result.records()
     summary = None
     if lim is not None:
