@@ -87,10 +87,8 @@ def _plt():
 
 def figure_png(fig) -> str:
     """A matplotlib figure as a base64 PNG string (the figure is closed)."""
-    if _CHANNEL.get() != "gyro":
-        from matplotlib.text import Text
-
-        for text in fig.findobj(Text):
+    if _CHANNEL.get() != "gyro":  # every text artist: labels, titles, legends, ticks
+        for text in fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "set_text")):
             text.set_text(in_units(text.get_text()))
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -94,8 +95,6 @@ def compensate_command(
 def _accel(calib, cal: Path, batch, data: Path, out: Path, as_json: bool) -> None:
     """``compensate`` with an accelerometer calibration: every device's accelerometer
     corrected with :func:`diffgyro.apply.compensate_accel`, the rest written as read."""
-    import dataclasses
-
     import numpy as np
 
     from diffgyro import apply, io
