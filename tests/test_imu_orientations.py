@@ -219,3 +219,11 @@ def test_command_line_takes_gravity_and_refuses_what_it_cannot_stream(tmp_path, 
     assert main(["fit", str(tmp_path / "parts"), "-m", "accel: bias_poly(3)"]) == 2
     err = capsys.readouterr().err
     assert "streamed runs" in err and "carries no gravity reference" in err
+
+
+def test_simulated_accelerometer_thermal_offset_is_bias_terms_only():
+    from diffgyro.errors import SpecError
+
+    with pytest.raises(SpecError, match="thermal offset is bias terms only"):
+        simulate("thermal", 1, accel_effects="bias_poly(1)+scale_poly(0)", sample_rate=1.0,
+                 duration=600.0)

@@ -511,9 +511,10 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     batch = data if isinstance(data, Batch) else Batch.from_recordings(
         [data] if isinstance(data, Recording) else list(data))
     if cal.channel != "gyro":
-        raise SpecError(f"this is a calibration of the {cal.channel} channel; compensation "
-                        "applies gyro calibrations", hint="export it to the autopilot "
-                        "(diffgyro export CAL --format px4|ardupilot), which applies it")
+        raise SpecError(f"this is a calibration of the {cal.channel} channel; this "
+                        "compensation applies gyro calibrations", hint="apply it with "
+                        "diffgyro.apply.compensate_accel ('diffgyro compensate' does), or export "
+                        "it to the autopilot (diffgyro export CAL --format px4|ardupilot)")
     model = cal.error_model
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:
