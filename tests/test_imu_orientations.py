@@ -227,3 +227,14 @@ def test_simulated_accelerometer_thermal_offset_is_bias_terms_only():
     with pytest.raises(SpecError, match="thermal offset is bias terms only"):
         simulate("thermal", 1, accel_effects="bias_poly(1)+scale_poly(0)", sample_rate=1.0,
                  duration=600.0)
+
+
+def test_faces_that_leave_an_axis_level_say_what_the_scale_needs():
+    """+z, +x and −x: gravity never lies along y, so y's scale is not determined; the device
+    is insufficient_range, naming the terms and the faces they need."""
+    batch, _ = simulate("thermal", 1, effects="bias_poly(0)", seed=3, accel_errors=True,
+                        accel_effects="bias_poly(3)", faces="+z,+x,-x", sample_rate=1.0,
+                        duration=3600.0)
+    detail = fit(ORIENTED, batch, channel="accel").status_detail(0)
+    assert detail.startswith("insufficient_range: scale_poly(0) needs gravity along every axis")
+    assert "misalignment needs" in detail and "each axis up, and down" in detail
