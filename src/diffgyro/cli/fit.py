@@ -144,8 +144,13 @@ def _print_table(records: list[dict], spec: str, channel: str, summary) -> None:
         rows.append([r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
                      _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
                      *((r["limits"]["result"],) if summary else ())])
-    what = "rates in rad/s" if channel == "gyro" else \
-        f"accelerometer, relative to its gravity reference, in {UNITS[channel]}"
+    from diffgyro.channel import reads_gravity
+    from diffgyro.model import ErrorModel
+
+    what = "rates in rad/s" if channel == "gyro" else (
+        f"accelerometer on its faces: absolute offset and scale, in {UNITS[channel]}"
+        if reads_gravity(ErrorModel.from_spec(spec)) else
+        f"accelerometer, relative to its gravity reference, in {UNITS[channel]}")
     table = tables.table(f"fit {spec}  ({what})", [
         ("device", TEXT), ("status", TEXT), ("rms", NUMBER), ("held-out rms", NUMBER),
         ("noise floor", NUMBER), ("moving", NUMBER),
