@@ -169,7 +169,7 @@ def test_real_ferraris_session_agrees_with_the_recipe(tmp_path, capsys):
                  "--gravity", "9.81", "--out", str(tmp_path / "cal.json")]) == 0
     assert "accelerometer on its faces" in capsys.readouterr().out
     cal = calibration.load(tmp_path / "cal.json")
-    assert cal.channel == "accel" and cal.devices[0].status == "ok"
+    assert cal.channel == "accel" and cal.devices[0].status == "ok" and cal.gravity == 9.81
     beta = np.asarray(cal.devices[0].beta, float)
     np.testing.assert_allclose(beta[:, 0], recipe.accel_bias, atol=0.02)
     np.testing.assert_allclose(np.linalg.inv(_matrix(beta)), recipe.accel_matrix, atol=2e-3)
@@ -181,6 +181,9 @@ def test_compensation_of_several_orientations_leaves_the_noise(faces_soak):
     offset, its thermal change and the scale stood well above it."""
     batch, truth, result = faces_soak
     doc = calibration.from_fit(result, batch).to_json()
+    assert doc["gravity"] == G0 and calibration.from_json(doc).gravity == G0
+    with pytest.raises(Exception, match="gravity must be"):
+        calibration.from_json(doc | {"gravity": -1.0})
     for i in range(2):
         n = int(batch.n_valid[i])
         still = np.asarray(result.motion.static[i, :n])

@@ -198,17 +198,18 @@ def as_channel(data: Batch | Recording | list[Recording], channel: str = "gyro",
     return out, ref
 
 
-def fitted_batch(result, batch: Batch, gravity: float = GRAVITY) -> Batch:
+def fitted_batch(result, batch: Batch) -> Batch:
     """The batch a fit ``result`` was fitted on: ``batch`` as loaded for the gyro; for the
     accelerometer its channel batch (:func:`as_channel`: less the result's gravity
-    reference, or the rests its motion check kept with gravity their input); a batch
-    already of the channel (no accelerometer left in it) as it is."""
+    reference, or the rests its motion check kept with the result's gravity their input);
+    a batch already of the channel (no accelerometer left in it) as it is."""
     channel = getattr(result, "channel", "gyro")
     if channel == "gyro" or batch.accel is None:
         return batch
     static = result.motion.static if reads_gravity(result.model) else None
+    gravity = getattr(result, "gravity", None)
     out, _ = as_channel(batch, channel, getattr(result, "reference", None), static=static,
-                        gravity=gravity)
+                        gravity=GRAVITY if gravity is None else gravity)
     return out
 
 

@@ -82,6 +82,9 @@ class FitResult(AbstractFitResult):
     #: gravity reference (m/s², the reading the offsets are relative to).
     channel: str = eqx.field(static=True, default="gyro")
     reference: Float[np.ndarray, "d 3"] | None = None
+    #: The gravity (m/s²) an accelerometer fit in several orientations took as its input
+    #: (its scale is relative to it); None otherwise.
+    gravity: float | None = eqx.field(static=True, default=None)
 
     def status_detail(self, i: int) -> str:
         """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
@@ -187,7 +190,8 @@ def fit(
                      check_motion=False, **option_overrides)
         if not isinstance(result, AbstractFitResult):
             return result
-        result = dataclasses.replace(result, channel=channel, reference=reference)
+        result = dataclasses.replace(result, channel=channel, reference=reference,
+                                     gravity=float(gravity) if oriented else None)
         if not (check_motion or oriented):
             return result
         recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
