@@ -339,12 +339,12 @@ def _channel(obj: dict, devices: list[DeviceCalibration]) -> str:
     return channel
 
 
-def _gravity(obj: dict, channel: str) -> float | None:
+def _gravity(obj: dict) -> float | None:
     """The file's gravity (an accelerometer's in several orientations), validated."""
     if "gravity" not in obj:
         return None
     g = _req(obj, "gravity", float, "file")
-    if channel != "accel" or not (math.isfinite(g) and 1.0 < g < 30.0):
+    if obj.get("channel") != "accel" or not (math.isfinite(g) and 1.0 < g < 30.0):
         raise SpecError("calibration file: gravity must be an accelerometer calibration's "
                         "local gravity in m/s² (between 1 and 30)")
     return g
@@ -440,9 +440,8 @@ def from_json(obj) -> Calibration:
     lim = obj.get("limits", {})
     if not isinstance(lim, dict):
         raise SpecError("calibration file: limits must be an object")
-    channel = _channel(obj, out)
     return Calibration(model=model.spec, devices=out, dtemp_window=window,
-                       channel=channel, gravity=_gravity(obj, channel),
+                       channel=_channel(obj, out), gravity=_gravity(obj),
                        created=_text(obj, "created", "file"),
                        diffgyro_version=_text(obj, "diffgyro_version", "file"),
                        input_hash=ih, units=dict(units), limits=lim)
