@@ -161,7 +161,7 @@ def test_ardupilot_parameters_leave_each_channel_at_its_noise(soak):
         assert _rms(a - a.mean(0)) <= 1.05 * _rms(a_noise - a_noise.mean(0)), i
 
 
-def test_dtdt_board_is_named_and_refused(soak):
+def test_dtdt_board_is_named_and_refused(soak, tmp_path):
     batch, _, _, _, _, _ = soak
     diag = diagnose(MODEL, batch, ["gradient", "temp_diff"], channel="accel", greedy=False,
                     synthesis=False, noise=False)
@@ -170,6 +170,17 @@ def test_dtdt_board_is_named_and_refused(soak):
     assert dev2.verdict == "missing_effect" and dev2.best.effect == "gradient"
     assert all(verdicts[batch.devices[i]].verdict == "adequate" for i in (0, 1))
     assert diag.to_json()["channel"] == "accel"
+    # the report draws the accelerometer in m/s²: the named term refitted on what was fitted
+    # (the accelerometer less its reference) leaves board 2 at its noise floor
+    from diffgyro.channel import fitted_batch
+    from diffgyro.report import named_term_residuals, write_report
+
+    spec, e_new = named_term_residuals(diag, fitted_batch(diag.fit, batch))[2]
+    assert spec == ACCEL
+    assert 0.8 < _rms(e_new) / np.sqrt(np.mean(np.square(dev2.noise_axes))) < 1.2
+    write_report(diag, batch, tmp_path)
+    page = (tmp_path / f"{batch.devices[2]}.html").read_text()
+    assert "m/s²" in page and "rad/s" not in page and "with gradient" in page
     # the cubic alone leaves board 2's dT/dt residual: written with a warning that says so
     cubic = calibration.from_fit(fit(MODEL, batch.select([2]), channel="accel"))
     text, report = render(cubic, "px4", device_ids=[ACCEL_IDS[0]])
@@ -270,8 +281,11 @@ def test_ulog_accelerometers_matched_to_their_device_ids(soak, tmp_path, capsys)
     capsys.readouterr()
     # the command line names the hidden dT/dt on board 2's accelerometer (instance 0)
     assert main(["diagnose", str(log), "-m", MODEL, "--channel", "accel", "--json",
-                 "--candidates", "gradient,temp_diff", "--no-synthesis"]) == 0
+                 "--candidates", "gradient,temp_diff", "--no-synthesis",
+                 "--report", str(tmp_path / "report")]) == 0
     doc = json.loads(capsys.readouterr().out)
+    index = (tmp_path / "report" / "index.html").read_text()
+    assert "m/s²" in index and "rad/s" not in index
     verdicts = {d["device"]: d for d in doc["devices"]}
     assert doc["channel"] == "accel" and verdicts["soak/accel0"]["verdict"] == "missing_effect"
     assert verdicts["soak/accel0"]["candidates"][0]["effect"] == "gradient"
@@ -441,3 +455,84 @@ def test_ardupilot_shared_range_is_the_overlap_and_said(soak):
     assert p["INS_TCAL1_TMIN"] == pytest.approx(lo + 2.0, abs=1e-4)
     assert any(line.startswith("INS_TCAL1 TMIN/TMAX") and "the gyro's" in line for line in report)
     assert not any(line.startswith("INS_TCAL2 TMIN/TMAX") for line in report)
+
+
+def test_compensate_corrects_the_accelerometer_as_px4_does(soak, tmp_path, capsys):
+    """``compensate`` with the accelerometer's calibration file (numpy only,
+    apply.compensate_accel) removes the offset's change from the calibration's centre
+    temperature: on the unseen soak it is PX4's TC_A correction (TREF the same centre),
+    it leaves each cubic board at its noise, and the gyro columns are written as read."""
+    from diffgyro import apply, io
+
+    _, _, unseen, ut, gyro, accel = soak
+    text, _ = render(gyro, "px4", device_ids=GYRO_IDS, accel=accel, accel_ids=ACCEL_IDS[:2])
+    p = _px4_params(text)
+    two = unseen.select([0, 1])
+    io.save(two, tmp_path / "unseen.csv")
+    calibration.save(accel, tmp_path / "accel.json")
+    code = main(["compensate", str(tmp_path / "unseen.csv"), "--cal", str(tmp_path / "accel.json"),
+                 "--out", str(tmp_path / "out.csv")])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    assert "accelerometer samples corrected by bias_poly(3)" in out.out
+    written = load_batch([tmp_path / "out.csv"])
+    for i in range(2):
+        raw_g, raw_a, temp, _, _, a_noise = _noise(unseen, ut, i)
+        n = len(temp)
+        got = np.asarray(written.accel[i, :n])
+        doc = accel.to_json()
+        np.testing.assert_allclose(got, apply.compensate_accel(
+            doc, accel.devices[i].device, np.asarray(unseen.t[i, :n]), raw_a, temp), atol=1e-9)
+        px4 = raw_a - _px4_offset(p, _slot(p, "A", ACCEL_IDS[i]), temp)
+        assert np.abs(got - px4).max() < 1e-4, i  # float32 parameters
+        assert _rms(got - got.mean(0)) <= 1.05 * _rms(a_noise - a_noise.mean(0)), i
+        np.testing.assert_allclose(np.asarray(written.gyro[i, :n]), raw_g, atol=1e-9)
+
+
+def test_compensate_refuses_a_device_the_accelerometer_file_lacks(soak, tmp_path, capsys):
+    _, _, unseen, _, _, accel = soak
+    from diffgyro import io
+
+    io.save(unseen.select([2]), tmp_path / "board2.csv")
+    calibration.save(accel, tmp_path / "accel.json")
+    code = main(["compensate", str(tmp_path / "board2.csv"), "--cal", str(tmp_path / "accel.json"),
+                 "--out", str(tmp_path / "out.csv")])
+    err = capsys.readouterr().err
+    assert code == 2 and unseen.devices[2] in err and "not in the calibration" in err
+
+
+def test_limits_judge_the_accelerometer_in_its_units(soak, tmp_path, capsys):
+    """``fit --channel accel --limits``: the records' numbers are the accelerometer's (m/s²),
+    bounds may be written in mg or mg/K, a rate unit is refused naming its key; the
+    temperature coefficient the limits compute is the true cubic's (per board), so a bound
+    between the two boards passes one and fails the other."""
+    from diffgyro import io
+
+    batch, truth = soak[0], soak[1]
+    io.save(batch.select([0, 1]), tmp_path / "soak.csv")
+    slopes = []
+    for board in (0, 1):
+        temp = np.linspace(*np.percentile(batch.temp[board, :int(batch.n_valid[board])],
+                                          [0, 100]), 2001)
+        curve = _true_accel_cubic(truth, board, temp)
+        slopes.append(np.abs(np.gradient(curve, temp, axis=0)).max() / 9.80665e-3)  # mg/K
+    bound = float(np.mean(slopes))
+    (tmp_path / "lim.toml").write_text(
+        "[limits]\nstatus = \"ok\"\nheldout_rms = { max = 1, unit = \"mg\" }\n"
+        f"\"bias_tempco.worst\" = {{ max = {bound!r}, unit = \"mg/K\" }}\n")
+    code = main(["fit", str(tmp_path / "soak.csv"), "-m", MODEL, "--channel", "accel",
+                 "--limits", str(tmp_path / "lim.toml"), "--json"])
+    out = capsys.readouterr()
+    assert code == 0, out.err
+    doc = json.loads(out.out)
+    assert sorted(r["limits"]["result"] for r in doc["devices"]) == ["fail", "pass"]
+    for rec, slope in zip(doc["devices"], slopes, strict=True):
+        got = rec["bias_tempco"]["worst"] / 9.80665e-3
+        assert abs(got - slope) < 0.02 * slope, (got, slope)
+        assert rec["limits"]["result"] == ("pass" if slope <= bound else "fail")
+        assert rec["heldout_rms"] < 9.80665e-3  # the 1 mg bound, in m/s²
+    (tmp_path / "rate.toml").write_text("[limits]\nheldout_rms = { max = 1, unit = \"deg/s\" }\n")
+    code = main(["fit", str(tmp_path / "soak.csv"), "-m", MODEL, "--channel", "accel",
+                 "--limits", str(tmp_path / "rate.toml")])
+    err = capsys.readouterr().err
+    assert code == 2 and "heldout_rms.unit" in err and "not the accelerometer's" in err

@@ -42,6 +42,20 @@ For one device with calibration record ``dev`` (an entry of the file's
 
 4. ``gyro_i = Ω_i + columns_i · beta_i``; compensation solves this for Ω
    with Newton steps (one step is exact when no term is nonlinear in Ω).
+
+An accelerometer calibration (the file's ``channel`` is ``accel``) is applied by
+:func:`compensate_accel` to the accelerometer's columns (m/s²), in one of two ways:
+
+* several orientations (the model reads a reference input, ``scale_poly`` or
+  ``misalignment``: there it was gravity): ``a = f + columns · beta`` with ``f`` the
+  specific force in place of Ω, solved for ``f`` as in step 4; the result is the
+  calibrated specific force (absolute offset, its thermal change and scale removed);
+* one orientation (bias terms only): the soak determined the offset's *change* with
+  temperature, so ``a − (columns · beta − columns_ref · beta)``, ``columns_ref`` being the
+  columns at the reference state: ``T = temp_centre`` held steady (dT/dt = 0, no
+  heating or cooling, ``T_ext = T``, extra columns at their centres). The result is the
+  accelerometer as it reads at ``temp_centre``; its absolute offset is the accelerometer
+  calibration's to remove, as both autopilots' parameters leave it.
 """
 
 from __future__ import annotations
@@ -50,8 +64,8 @@ import re
 
 import numpy as np
 
-__all__ = ["compensate", "environment", "columns", "local_slope",
-           "HEATING_THRESHOLD", "G", "SIGNALS"]
+__all__ = ["compensate", "compensate_accel", "environment", "columns", "local_slope",
+           "reads_input", "HEATING_THRESHOLD", "G", "SIGNALS"]
 
 HEATING_THRESHOLD = 0.05 / 60.0
 _OTHERS = ((1, 2), (0, 2), (0, 1))
@@ -249,11 +263,57 @@ def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window
     return env
 
 
+def _device(calibration: dict, device: str) -> dict:
+    """The file's entry of ``device`` (a ValueError naming it where absent)."""
+    for d in calibration["devices"]:
+        if d["device"] == device:
+            return d
+    raise ValueError(f"device {device!r} is not in the calibration")
+
+
+#: Terms (and ``term(...)`` signals) that read the reference input: a rate on the gyro,
+#: gravity on the accelerometer's faces.
+_INPUT_TERMS = {"scale_poly", "scale_asym", "scale_nonlin", "misalignment"}
+_INPUT_SIGNALS = {"rx", "ry", "rz", "w"}
+
+
+def reads_input(spec: str) -> bool:
+    """Whether the model ``spec`` reads the reference input (rate, or gravity on a face)."""
+    for name, k in _terms(spec):
+        if name in _INPUT_TERMS or (name == "term" and any(f[0] in _INPUT_SIGNALS for f in k)):
+            return True
+    return False
+
+
+def compensate_accel(calibration: dict, device: str, t, accel, temp=None, temp_ext=None,
+                     iterations: int = 4, aux=None) -> np.ndarray:
+    """Corrected accelerometer (n, 3), m/s², from measured ``accel`` (n, 3) with a parsed
+    accelerometer calibration file (the module docstring: the specific force where the
+    calibration read several orientations, the reading at ``temp_centre`` where one)."""
+    if calibration.get("channel", "gyro") != "accel":
+        raise ValueError("not an accelerometer calibration (its channel is "
+                         f"{calibration.get('channel', 'gyro')!r})")
+    spec = calibration["model"]
+    if reads_input(spec):
+        return compensate(calibration, device, t, accel, temp, temp_ext, None, iterations, aux)
+    dev = _device(calibration, device)
+    beta = np.asarray(dev["beta"], float)
+    acc = np.asarray(accel, float)
+    env = environment(dev, t, temp, temp_ext, None, calibration.get("dtemp_window", 60.0), aux)
+    offset = np.einsum("nip,ip->ni", columns(spec, dev, np.zeros_like(acc), env), beta)
+    centre = np.array([float(dev["temp_centre"])])
+    steady = {"t": np.array([np.inf]), "accel": None, "temp": centre, "temp_raw": centre,
+              "temp_ext": centre, "temp_s": np.zeros(1), "dtemp": np.zeros(1),
+              "heating": np.zeros(1), "aux_s": {k: np.zeros(1) for k in env["aux_s"]}}
+    ref = np.einsum("nip,ip->ni", columns(spec, dev, np.zeros((1, 3)), steady), beta)[0]
+    return acc - (offset - ref)
+
+
 def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None, accel=None,
                iterations: int = 4, aux=None) -> np.ndarray:
     """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file;
     ``aux`` maps extra column names to samples (n,) for ``aux(NAME)`` terms."""
-    dev = next(d for d in calibration["devices"] if d["device"] == device)
+    dev = _device(calibration, device)
     spec = calibration["model"]
     beta = np.asarray(dev["beta"], float)
     env = environment(dev, t, temp, temp_ext, accel, calibration.get("dtemp_window", 60.0), aux)

@@ -99,6 +99,8 @@ class Calibration:
     limits: dict = field(default_factory=dict)
     #: The sensor calibrated: ``gyro`` or ``accel`` (:mod:`diffgyro.channel`).
     channel: str = "gyro"
+    #: Accelerometer in several orientations: the gravity (m/s²) its scale is relative to.
+    gravity: float | None = None
 
     @property
     def error_model(self) -> ErrorModel:
@@ -119,7 +121,8 @@ class Calibration:
             "input_hash": self.input_hash, "units": self.units,
             "devices": [entry_json(d.__dict__) for d in self.devices],
         } | ({"limits": self.limits} if self.limits else {}) | (
-            {"channel": self.channel} if self.channel != "gyro" else {})
+            {"channel": self.channel} if self.channel != "gyro" else {}) | (
+            {"gravity": self.gravity} if self.gravity is not None else {})
 
 
 def entry_json(fields: dict) -> dict:
@@ -192,7 +195,7 @@ def from_fit(result: AbstractFitResult, batch: Batch | None = None,
         created=_dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         diffgyro_version=__version__, input_hash=None if batch is None else data_hash(batch),
         units=units_of(result.model, getattr(result, "channel", "gyro")),
-        channel=getattr(result, "channel", "gyro"))
+        channel=getattr(result, "channel", "gyro"), gravity=getattr(result, "gravity", None))
 
 
 def save(cal: Calibration, path: str | os.PathLike) -> None:
@@ -244,7 +247,7 @@ def _finite(x, where: str, allow_nan: bool = False) -> float:
 
 _FILE_KEYS = frozenset({"format", "format_version", "model", "dtemp_window", "created",
                         "diffgyro_version", "input_hash", "units", "devices", "limits",
-                        "channel"})
+                        "channel", "gravity"})
 _DEVICE_KEYS = frozenset({"device", "status", "beta", "theta", "temp_centre", "temp_scale",
                           "temp_range", "quality", "params", "status_detail", "aux", "limits",
                           "motion", "static_only", "reference", "device_id"})
@@ -334,6 +337,17 @@ def _channel(obj: dict, devices: list[DeviceCalibration]) -> str:
         raise SpecError("calibration file: an accelerometer calibration needs each device's "
                         "reference")
     return channel
+
+
+def _gravity(obj: dict) -> float | None:
+    """The file's gravity (an accelerometer's in several orientations), validated."""
+    if "gravity" not in obj:
+        return None
+    g = _req(obj, "gravity", float, "file")
+    if obj.get("channel") != "accel" or not (math.isfinite(g) and 1.0 < g < 30.0):
+        raise SpecError("calibration file: gravity must be an accelerometer calibration's "
+                        "local gravity in m/s² (between 1 and 30)")
+    return g
 
 
 def _sensor_fields(d: dict, where: str) -> tuple[list[float] | None, int | None]:
@@ -427,7 +441,7 @@ def from_json(obj) -> Calibration:
     if not isinstance(lim, dict):
         raise SpecError("calibration file: limits must be an object")
     return Calibration(model=model.spec, devices=out, dtemp_window=window,
-                       channel=_channel(obj, out),
+                       channel=_channel(obj, out), gravity=_gravity(obj),
                        created=_text(obj, "created", "file"),
                        diffgyro_version=_text(obj, "diffgyro_version", "file"),
                        input_hash=ih, units=dict(units), limits=lim)
@@ -511,9 +525,10 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     batch = data if isinstance(data, Batch) else Batch.from_recordings(
         [data] if isinstance(data, Recording) else list(data))
     if cal.channel != "gyro":
-        raise SpecError(f"this is a calibration of the {cal.channel} channel; compensation "
-                        "applies gyro calibrations", hint="export it to the autopilot "
-                        "(diffgyro export CAL --format px4|ardupilot), which applies it")
+        raise SpecError(f"this is a calibration of the {cal.channel} channel; this "
+                        "compensation applies gyro calibrations", hint="apply it with "
+                        "diffgyro.apply.compensate_accel ('diffgyro compensate' does), or export "
+                        "it to the autopilot (diffgyro export CAL --format px4|ardupilot)")
     model = cal.error_model
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:

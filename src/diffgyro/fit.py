@@ -30,7 +30,7 @@ from ._jit import release_compiled_if_crowded
 from ._motion_judge import judge_motion
 from ._options import FitOptions
 from ._signal_builder import batch_signals, stacked_signals
-from .channel import as_channel, check_channel, check_model
+from .channel import GRAVITY, as_channel, check_channel, check_model, reads_gravity
 from .data import Batch, Recording, as_batch, pad_devices
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
@@ -82,6 +82,9 @@ class FitResult(AbstractFitResult):
     #: gravity reference (m/s², the reading the offsets are relative to).
     channel: str = eqx.field(static=True, default="gyro")
     reference: Float[np.ndarray, "d 3"] | None = None
+    #: The gravity (m/s²) an accelerometer fit in several orientations took as its input
+    #: (its scale is relative to it); None otherwise.
+    gravity: float | None = eqx.field(static=True, default=None)
 
     def status_detail(self, i: int) -> str:
         """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
@@ -127,6 +130,7 @@ def fit(
     static_only: bool = False,
     check_motion: bool = True,
     channel: str = "gyro",
+    gravity: float = GRAVITY,
     **option_overrides,
 ) -> AbstractFitResult:
     """Calibrate every device of ``data`` with ``model``.
@@ -145,6 +149,7 @@ def fit(
       window either side, masked out).
     - ``check_motion``: check every recording for motion (below); False skips it.
     - ``channel``: the sensor fitted, ``"gyro"`` or ``"accel"`` (below).
+    - ``gravity``: the local gravity (m/s²) of an accelerometer fit in several orientations.
 
     **Returns:** an :class:`AbstractFitResult`: a :class:`FitResult`, or for a model with
     a noise component the result of its registered fit (a
@@ -160,6 +165,10 @@ def fit(
     reference (:func:`diffgyro.channel.as_channel`); the motion check is still the IMU's,
     of the gyro and accelerometer as loaded. ``static_only`` is refused there: the rest
     either side of a move may hold another orientation, so another gravity reference.
+    A model that reads a reference input there (``scale_poly``, ``misalignment``) reads
+    gravity in several orientations: the samples at rest are fitted, each with gravity
+    along its face as the input, for the absolute offset, its thermal change and the
+    scale (:mod:`diffgyro.channel`).
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
@@ -169,16 +178,28 @@ def fit(
     if channel != "gyro" and static_only:
         raise DataError("static_only is not available on the accelerometer channel: each "
                         "stretch of rest may hold another orientation (another gravity "
-                        "reference)", hint="record the soak in one orientation, at rest")
-    batch, reference = as_channel(imu, channel)
-    if channel != "gyro":
+                        "reference)", hint="record the soak in one orientation, at rest, or "
+                        "in several and fit scale_poly(0) with the bias (docs/imu.md)")
+    if channel != "gyro":  # one orientation, or several where the model reads gravity
+        # (the IMU's motion check, without a turntable's reference rate: it explains a
+        # turn, not the gravity the turn tilts)
+        oriented = reads_gravity(model)
+        motion = motion_check(dataclasses.replace(imu, rate=None, quat=None)) \
+            if check_motion or oriented else None
+        batch, reference = as_channel(imu, channel, gravity=gravity,
+                                      static=motion.static if oriented else None)
         result = fit(model, batch, norm=norm, options=options, theta0=theta0, aux_norm=aux_norm,
                      check_motion=False, **option_overrides)
-        if isinstance(result, AbstractFitResult):
-            result = dataclasses.replace(result, channel=channel, reference=reference)
-            if check_motion:
-                result = judge_motion(result, batch, motion_check(imu))
-        return result
+        if not isinstance(result, AbstractFitResult):
+            return result
+        result = dataclasses.replace(result, channel=channel, reference=reference,
+                                     gravity=float(gravity) if oriented else None)
+        if not (check_motion or oriented):
+            return result
+        recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
+        return judge_motion(result, dataclasses.replace(batch, rate=None), motion, recorded,
+                            oriented)
+    batch = imu
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))

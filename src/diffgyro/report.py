@@ -14,11 +14,16 @@ coefficient across devices and the outlier devices.
 Images are embedded as base64 PNG, so each page is one file that can be
 mailed or archived; every file is written atomically (a temporary file in
 the same folder, then renamed).
+
+A diagnosis of the accelerometer channel (:mod:`diffgyro.channel`) is drawn on what was
+fitted (the accelerometer less its gravity reference, or its rests with gravity along each
+face the input), its pages and figures in m/s² and its axes ``ax, ay, az``.
 """
 
 from __future__ import annotations
 
 import base64
+import contextvars
 import html
 import io
 import math
@@ -30,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ._jsonio import atomic_write_text as write_atomic  # the one atomic write (jsonio)
+from .channel import UNITS, fitted_batch
 from .data import Batch
 from .effects import product_of
 from .fit import fit
@@ -42,7 +48,30 @@ COLORS = ("tab:blue", "tab:orange", "tab:green")
 MAX_POINTS = 3000
 
 
+#: The channel whose report is being written (its units and axis names in every text).
+_CHANNEL: contextvars.ContextVar[str] = contextvars.ContextVar("report_channel", default="gyro")
+_IMAGE = re.compile(r"(data:image/png;base64,[A-Za-z0-9+/=]*)")
+_GYRO_AXIS = re.compile(r"\bg([xyz])\b")
+
 # --------------------------------------------------------------------------- plumbing
+
+
+def in_units(text: str, channel: str | None = None) -> str:
+    """``text`` (a label or a page, its embedded images untouched) in the units of
+    ``channel`` (default: the report being written): the gyro's wording as it is, the
+    accelerometer's in m/s² with axes ``ax, ay, az`` and gravity as its input."""
+    channel = _CHANNEL.get() if channel is None else channel
+    if channel == "gyro":
+        return text
+    unit = UNITS[channel]
+
+    def words(part: str) -> str:
+        part = part.replace("rad/s²", "m/s³").replace("rad/s", unit)
+        part = part.replace("input rate", "input (gravity on the face)")
+        return _GYRO_AXIS.sub(r"a\1", part)
+
+    return "".join(p if i % 2 else words(p) for i, p in enumerate(_IMAGE.split(text)))
+
 
 
 def _plt():
@@ -58,6 +87,9 @@ def _plt():
 
 def figure_png(fig) -> str:
     """A matplotlib figure as a base64 PNG string (the figure is closed)."""
+    if _CHANNEL.get() != "gyro":  # every text artist: labels, titles, legends, ticks
+        for text in fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "set_text")):
+            text.set_text(in_units(text.get_text()))
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     _plt().close(fig)
@@ -717,21 +749,29 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    paths = []
-    seen: set[str] = set()
-    named = named_term_residuals(diagnosis, batch, ladder)
-    for i, d in enumerate(diagnosis.devices):
-        slug = _slug(d.device)
-        while slug in seen:
-            slug += "_"
-        seen.add(slug)
-        page = device_page(diagnosis, batch, i, ladder, named.get(i),
-                           None if limits is None else limits[0][i])
-        paths.append(write_atomic(directory / f"{slug}.html", page))
-    paths.insert(0, write_atomic(directory / "index.html", summary_page(diagnosis, ladder, limits)))
+    channel = getattr(diagnosis.fit, "channel", "gyro")
+    batch = fitted_batch(diagnosis.fit, batch)
+    token = _CHANNEL.set(channel)
+    try:
+        paths = []
+        seen: set[str] = set()
+        named = named_term_residuals(diagnosis, batch, ladder)
+        for i, d in enumerate(diagnosis.devices):
+            slug = _slug(d.device)
+            while slug in seen:
+                slug += "_"
+            seen.add(slug)
+            page = device_page(diagnosis, batch, i, ladder, named.get(i),
+                               None if limits is None else limits[0][i])
+            paths.append(write_atomic(directory / f"{slug}.html", in_units(page)))
+        paths.insert(0, write_atomic(directory / "index.html",
+                                     in_units(summary_page(diagnosis, ladder, limits))))
+    finally:
+        _CHANNEL.reset(token)
     return paths
 
 
-__all__ = ["coefficient_unit", "coefficients_figure", "device_figures", "device_page",
-           "figure_png", "followed_signal", "ladder_png", "named_term_residuals", "outliers",
-           "residual_drop_figure", "summary_page", "write_atomic", "write_report"]
+__all__ = ["coefficient_unit", "coefficients_figure", "device_figures",
+           "device_page", "figure_png", "followed_signal", "in_units", "ladder_png",
+           "named_term_residuals", "outliers", "residual_drop_figure", "summary_page",
+           "write_atomic", "write_report"]

@@ -105,8 +105,10 @@ def _temperature_fact(temp_range) -> tuple[str, float] | None:
     return f"temperature spans only {hi - lo:.3g} °C ({lo:.1f} to {hi:.1f} °C)", hi - lo
 
 
-def _range_reason(term, temp_range) -> str:
+def _range_reason(term, temp_range, channel: str = "gyro") -> str:
     need = term.range_need()
+    if channel != "gyro" and "rate" in term.requires():  # its input is gravity on a face
+        need = "gravity along every axis: the faces held with each axis up, and down"
     fact = _temperature_fact(temp_range)
     if fact is not None and fact[1] < term.min_temp_span:
         return f"{fact[0]}: {term.spec} needs {need}"
@@ -127,7 +129,7 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
     if name == "insufficient_range":
         flags = np.asarray(range_flags if range_flags is not None else [], bool)
         bad = [t for t, f in zip(terms, flags) if f]
-        reasons = "; ".join(_range_reason(t, temp_range) for t in bad)
+        reasons = "; ".join(_range_reason(t, temp_range, channel) for t in bad)
         return f"{name}: {reasons or 'the data do not vary what the model needs'}"
     if name == "rank_deficient":
         flags = np.asarray(collinear if collinear is not None else [], bool)
@@ -144,7 +146,9 @@ def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=No
     if name == "in_motion":
         if channel != "gyro":  # gravity is the reference: one orientation, at rest
             return (f"{name}: {describe(motion or {})}; record the soak at rest in one "
-                    f"orientation (the accelerometer's gravity reference holds only there)")
+                    f"orientation (the accelerometer's gravity reference holds only there), "
+                    f"or hold it on several faces and fit scale_poly(0) with the bias "
+                    f"(gravity on each face the input)")
         return (f"{name}: {describe(motion or {})}; record at rest, give a rate reference "
                 f"(rx, ry, rz), or fit the static intervals only with --static-only")
     if name == "rest_unverified":

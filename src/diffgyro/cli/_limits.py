@@ -23,13 +23,14 @@ LimitsOpt = Annotated[
 ]
 
 
-def load_limits(path: Path | None, model):
-    """The checked limits file (None without --limits); a DataError naming file and key."""
+def load_limits(path: Path | None, model, channel: str = "gyro"):
+    """The checked limits file (None without --limits), its bounds in the units of
+    ``channel``'s records; a DataError naming file and key."""
     if path is None:
         return None
     from diffgyro.limits import check_model, load
 
-    limits = load(path)
+    limits = load(path, channel)
     check_model(limits, model)
     return limits
 

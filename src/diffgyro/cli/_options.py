@@ -95,6 +95,13 @@ Channel = Annotated[
                                    "reference (one orientation at rest; docs/imu.md). A spec "
                                    "may name it instead: 'accel: bias_poly(3)'."),
 ]
+Gravity = Annotated[
+    float | None,
+    typer.Option("--gravity", help="Local gravity, m/s², of an accelerometer fit in several "
+                                   "orientations (a model with scale_poly or misalignment on "
+                                   "--channel accel): the scale is relative to it (default: "
+                                   "standard gravity, 9.80665)."),
+]
 JsonOut = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
 FigureReport = Annotated[
     Path | None,
@@ -119,8 +126,13 @@ def refuse_on_accel(channel: str, static_only: bool = False, streamed: bool = Fa
     """One line (exit 2) for the options the accelerometer channel does not take
     (``others``: option name -> whether it was given, e.g. ``{"--limits": True}``)."""
     if channel == "gyro":
+        if others.get("--gravity"):
+            raise typer.BadParameter("is for the accelerometer channel (gravity is its input "
+                                     "in several orientations)", param_hint="--gravity")
         return
     for name, given in others.items():
+        if name == "--gravity":
+            continue
         if given:
             raise typer.BadParameter("is not available on the accelerometer channel yet "
                                      "(it reads the gyro's columns)", param_hint=name)
@@ -131,5 +143,8 @@ def refuse_on_accel(channel: str, static_only: bool = False, streamed: bool = Fa
                                  param_hint="--static-only")
     if streamed:
         raise typer.BadParameter("is not available for streamed runs (a folder of Parquet "
-                                 "files, --chunk-devices, --dask); fit the files directly",
-                                 param_hint="--channel accel")
+                                 "files, --chunk-devices, --dask) yet: the pipeline reads, "
+                                 "fits and merges the gyro's columns, and carries no gravity "
+                                 "reference or faces from chunk to merge; fit the files "
+                                 "directly (a chunk holds whole devices, so the result is "
+                                 "the same)", param_hint="--channel accel")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import warnings
 from pathlib import Path
@@ -41,13 +42,22 @@ def compensate_command(
                                           "against the recording's noise floor.")] = False,
 ) -> None:
     """Write DATA with gyro rates corrected by CAL (rad/s). Temperatures outside the
-    calibrated range are clamped to it, with a warning."""
+    calibrated range are clamped to it, with a warning.
+
+    An accelerometer calibration ('fit --channel accel') corrects the accelerometer's
+    columns instead (m/s², numpy only: diffgyro.apply.compensate_accel): to the reading
+    at the calibration's centre temperature where it was fitted in one orientation, to
+    the calibrated specific force where in several (docs/imu.md)."""
 
     from diffgyro import calibration, io
 
     calib = calibration.load(cal)
     batch = load_from_cli([data], columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic)
+                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
+                          channel=calib.channel)
+    if calib.channel == "accel":
+        _accel(calib, cal, batch, data, out, as_json)
+        return
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
@@ -80,3 +90,64 @@ def compensate_command(
                    f"{int(corrected.mask.sum())} samples corrected by {calib.model} (rad/s)"
                    + (f", {n_clamped} clamped to the calibrated temperature range"
                       if n_clamped else ""))
+
+
+def _accel(calib, cal: Path, batch, data: Path, out: Path, as_json: bool) -> None:
+    """``compensate`` with an accelerometer calibration: every device's accelerometer
+    corrected with :func:`diffgyro.apply.compensate_accel`, the rest written as read."""
+    import numpy as np
+
+    from diffgyro import apply, io
+
+    if batch.accel is None:
+        raise DataError("an accelerometer calibration corrects ax, ay, az, which the data "
+                        "lack", file=str(data), hint="load a file or log with the "
+                        "accelerometer's readings")
+    doc = calib.to_json()
+    acc = np.array(batch.accel, dtype=float)
+    clamped: dict[str, int] = {}
+    for i, name in enumerate(batch.devices):
+        dev = calib.device(name)
+        if dev.status != "ok":
+            why = dev.status_detail if dev.status_detail not in ("", dev.status) else dev.status
+            raise DataError(f"calibration of device {name!r} is not ok ({why}); refusing to "
+                            "apply it", file=str(cal), device=name)
+        n = int(batch.n_valid[i])
+        temp = None if batch.temp is None else np.asarray(batch.temp[i, :n], float)
+        if temp is None and "temp" in calib.error_model.requires():
+            raise DataError("the calibration's model needs temperature, which the data lack",
+                            file=str(data), device=name, column="temp")
+        if temp is not None and dev.temp_range is not None:
+            outside = int(((temp < dev.temp_range[0]) | (temp > dev.temp_range[1])).sum())
+            if outside:
+                clamped[name] = outside
+        ext = None if batch.temp_ext is None else np.asarray(batch.temp_ext[i, :n], float)
+        aux = {k: np.asarray(v[i, :n], float) for k, v in (batch.aux or {}).items()}
+        try:
+            acc[i, :n] = apply.compensate_accel(doc, name, np.asarray(batch.t[i, :n], float),
+                                                acc[i, :n], temp, ext, aux=aux or None)
+        except ValueError as err:
+            raise DataError(str(err), file=str(cal), device=name) from None
+    for dev_name, k in clamped.items():
+        print(f"diffgyro: warning: device {dev_name}: {k} samples outside the calibrated "
+              f"temperature range were clamped to it", file=sys.stderr)
+    if Path(out).resolve() == Path(data).resolve():
+        raise DataError("refusing to overwrite the input file", file=str(out),
+                        hint="choose another --out")
+    corrected = dataclasses.replace(batch, accel=acc)
+    io.save(corrected, out)
+    counts = [int(v) for v in np.asarray(batch.mask).sum(axis=1)]
+    if as_json:
+        from diffgyro._jsonio import dumps
+
+        typer.echo(dumps({"out": str(out), "model": calib.model, "channel": "accel",
+                          "devices": [{"device": d, "n_samples": n, "clamped": clamped.get(d, 0)}
+                                      for d, n in zip(batch.devices, counts, strict=True)]}))
+        return
+    what = ("specific force, offset and scale removed" if apply.reads_input(calib.model) else
+            "offset's thermal change removed, as read at the centre temperature")
+    n_clamped = sum(clamped.values())
+    typer.echo(f"wrote {out}: {len(batch.devices)} device(s), {sum(counts)} accelerometer "
+               f"samples corrected by {calib.model} (m/s², {what})"
+               + (f", {n_clamped} clamped to the calibrated temperature range"
+                  if n_clamped else ""))

@@ -22,6 +22,7 @@ from ._options import (
     Columns,
     DataFiles,
     DropInvalid,
+    Gravity,
     GyroUnit,
     JsonOut,
     SamplingRate,
@@ -181,6 +182,7 @@ def diagnose_command(
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
     static_only: StaticOnly = False,
     channel: Channel = None,
+    gravity: Gravity = None,
 ) -> None:
     """Diagnose MODEL on every device in DATA: held-out RMS against a model-free noise floor,
     the missing effect (if any) with the evidence, close alternatives.
@@ -202,7 +204,7 @@ def diagnose_command(
     streamed = chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data)
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only, streamed=streamed,
-                    **{"--report": report is not None, "--limits": limits is not None})
+                    **{"--gravity": gravity is not None})
     _refuse_combinations(limits is not None and auto, streamed and static_only,
                          streamed and not synthesis, streamed and noise)
     if streamed:
@@ -221,10 +223,11 @@ def diagnose_command(
     from diffgyro.model import ErrorModel
 
 
-    lim = load_limits(limits, ErrorModel.from_spec(model)) if limits is not None else None
+    lim = load_limits(limits, ErrorModel.from_spec(model), channel) if limits is not None else None
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
         | ({} if synthesis else {"synthesis": False}) | ({"noise": True} if noise else {}) \
-        | ({} if channel == "gyro" else {"channel": channel})
+        | ({} if channel == "gyro" else {"channel": channel}) \
+        | ({} if gravity is None else {"gravity": float(gravity)})
     err = Console(stderr=True)
     with _progress.steps(f"loading {len(data)} file(s)") as step:
         spec, batch, names, partial, ids = _load_checked(model, data, candidates, columns,

@@ -19,6 +19,7 @@ from ._options import (
     Columns,
     DataFiles,
     DropInvalid,
+    Gravity,
     GyroUnit,
     JsonOut,
     SamplingRate,
@@ -55,6 +56,7 @@ def fit_command(
     dask: DaskOpt = None, results: ResultsOpt = None, limits: LimitsOpt = None,
     static_only: StaticOnly = False,
     channel: Channel = None,
+    gravity: Gravity = None,
 ) -> None:
     """Fit MODEL to every device in DATA; per-device status, RMS and held-out RMS.
 
@@ -79,7 +81,7 @@ def fit_command(
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only,
                      streamed=chunk_devices is not None or dask is not None
-                     or any(streamed_dir(p) for p in data), **{"--limits": limits is not None})
+                     or any(streamed_dir(p) for p in data), **{"--gravity": gravity is not None})
     if chunk_devices is not None or dask is not None or any(streamed_dir(p) for p in data):
 
         if static_only:
@@ -93,7 +95,7 @@ def fit_command(
         return
 
     em = ErrorModel.from_spec(model)
-    lim = load_limits(limits, em)
+    lim = load_limits(limits, em, channel)
     report = LoadReport()
     with _progress.steps(f"loading {len(data)} file(s)") as step:
         batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
@@ -105,11 +107,13 @@ def fit_command(
             dtemp_window = suggest_dtemp_window(batch)
         step(f"fitting {em.spec} on {batch.n_devices} device(s)")
         result = fit(em, batch, dtemp_window=float(dtemp_window), static_only=static_only,
-                     channel=channel)
+                     channel=channel, **({} if gravity is None else {"gravity": gravity}))
     records = result.records()
     summary = None
     if lim is not None:
-        records, summary = judge(lim, records, result, batch)
+        from diffgyro.channel import fitted_batch
+
+        records, summary = judge(lim, records, result, fitted_batch(result, batch))
     if out is not None:
         cal = calibration.from_fit(result, batch, device_ids=report.device_ids)
         calibration.save(cal if summary is None else attach(cal, records, summary), out)
@@ -140,8 +144,13 @@ def _print_table(records: list[dict], spec: str, channel: str, summary) -> None:
         rows.append([r["device"], r["status"], _fmt(r["rms"]), _fmt(r["heldout_rms"]),
                      _fmt(r["noise_floor"]), "—" if mo is None else f"{100 * mo:.1f} %", n,
                      *((r["limits"]["result"],) if summary else ())])
-    what = "rates in rad/s" if channel == "gyro" else \
-        f"accelerometer, relative to its gravity reference, in {UNITS[channel]}"
+    from diffgyro.channel import reads_gravity
+    from diffgyro.model import ErrorModel
+
+    what = "rates in rad/s" if channel == "gyro" else (
+        f"accelerometer on its faces: absolute offset and scale, in {UNITS[channel]}"
+        if reads_gravity(ErrorModel.from_spec(spec)) else
+        f"accelerometer, relative to its gravity reference, in {UNITS[channel]}")
     table = tables.table(f"fit {spec}  ({what})", [
         ("device", TEXT), ("status", TEXT), ("rms", NUMBER), ("held-out rms", NUMBER),
         ("noise floor", NUMBER), ("moving", NUMBER),

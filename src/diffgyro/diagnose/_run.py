@@ -23,7 +23,7 @@ from .. import allan as allan_mod
 from .._jit import filter_jit, release_compiled_if_crowded
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
-from ..channel import UNITS, as_channel, check_channel
+from ..channel import GRAVITY, UNITS, as_channel, check_channel, reads_gravity
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
 from ..errors import SpecError
@@ -423,8 +423,10 @@ def _base_fit(model, batch: Batch, base_fit, channel: str, fit_options: dict):
     accelerometer less its gravity reference, on that channel)."""
     extra = {} if channel == "gyro" else {"channel": channel}
     res = base_fit if base_fit is not None else fit_fn(model, batch, **fit_options, **extra)
-    if channel != "gyro":
-        batch, _ = as_channel(batch, channel, getattr(res, "reference", None))
+    if channel != "gyro":  # several orientations: the rests the fit read, gravity their input
+        static = res.motion.static if reads_gravity(model) else None
+        batch, _ = as_channel(batch, channel, getattr(res, "reference", None), static=static,
+                              gravity=fit_options.get("gravity", GRAVITY))
     return res, batch
 
 

@@ -34,7 +34,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from ..errors import DataError
-from ._units import UNIT_HELP, unit_scale
+from ._units import ACCEL_UNIT_HELP, UNIT_HELP, unit_scale
 
 #: The fields a bound may hold.
 BOUND_KEYS = frozenset({"min", "max", "abs", "optional", "unit"})
@@ -102,9 +102,10 @@ def split_path(path: str) -> list[str]:
     return out
 
 
-def load(path: str | os.PathLike) -> Limits:
+def load(path: str | os.PathLike, channel: str = "gyro") -> Limits:
     """Read and check a limits file; :class:`~diffgyro.errors.DataError` naming the file and
-    the key for anything it cannot use."""
+    the key for anything it cannot use. ``channel``: the sensor whose records it judges (its
+    bounds' units: the gyro's rates, the accelerometer's m/s², :mod:`._units`)."""
     name = str(path)
     p = Path(path)
     try:
@@ -122,7 +123,7 @@ def load(path: str | os.PathLike) -> Limits:
         key = _key_at(text, str(err))
         at = f" at key {key!r}" if key else ""
         raise DataError(f"limits file is not valid TOML{at}: {err}", file=name) from None
-    return from_dict(doc, name)
+    return from_dict(doc, name, channel)
 
 
 def _key_at(text: str, message: str) -> str | None:
@@ -146,8 +147,9 @@ def fail(file: str, key: str, problem: str, hint: str | None = None) -> DataErro
     return DataError(f"limits file: key {key!r}: {problem}", file=file, hint=hint)
 
 
-def from_dict(doc: dict, file: str = "<limits>") -> Limits:
-    """The :class:`Limits` of a parsed TOML document (see the module notes)."""
+def from_dict(doc: dict, file: str = "<limits>", channel: str = "gyro") -> Limits:
+    """The :class:`Limits` of a parsed TOML document (see the module notes), its bounds in
+    the units of ``channel``'s records."""
     for key in doc:
         if key not in ("about", "limits"):
             raise fail(file, key, "unknown section", "a limits file holds [about] and [limits]")
@@ -159,23 +161,23 @@ def from_dict(doc: dict, file: str = "<limits>") -> Limits:
         raise fail(file, "limits", "missing or empty" if table is None or table == {} else
                     "must be a table", 'e.g. [limits] then heldout_rms = { max = 0.002 }')
     out: list[Limit] = []
-    _walk(table, "", file, out)
+    _walk(table, "", file, out, channel)
     return Limits(file=file, limits=tuple(out), about=dict(about))
 
 
-def _walk(table: dict, prefix: str, file: str, out: list[Limit]) -> None:
+def _walk(table: dict, prefix: str, file: str, out: list[Limit], channel: str) -> None:
     for key, val in table.items():
         path = f"{prefix}.{key}" if prefix else str(key)
         if not prefix and split_path(path)[0] not in ROOTS:
             raise fail(file, path, "unknown field", "fields: " + ", ".join(sorted(ROOTS)))
         if (isinstance(val, dict) and val and not (set(val) & BOUND_KEYS)
                 and any(isinstance(v, dict) for v in val.values())):
-            _walk(val, path, file, out)  # a table of deeper keys ([limits.allan])
+            _walk(val, path, file, out, channel)  # a table of deeper keys ([limits.allan])
             continue
-        out.append(_limit(path, val, file))
+        out.append(_limit(path, val, file, channel))
 
 
-def _limit(path: str, val, file: str) -> Limit:
+def _limit(path: str, val, file: str, channel: str) -> Limit:
     if any(not s for s in split_path(path)):
         raise fail(file, path, "empty segment in the path")
     if isinstance(val, str):
@@ -211,7 +213,10 @@ def _limit(path: str, val, file: str) -> Limit:
 
         if not isinstance(unit, str):
             raise fail(file, f"{path}.unit", "must be text")
-        scale = unit_scale(unit)
+        scale = unit_scale(unit, channel)
+        if scale is None and channel != "gyro":
+            raise fail(file, f"{path}.unit", f"unit {unit!r} is not the accelerometer's (the "
+                       f"{channel} channel's records are in m/s²)"[:160], ACCEL_UNIT_HELP)
         if scale is None:
 
             raise fail(file, f"{path}.unit", f"unknown unit {unit!r}"[:120], UNIT_HELP)
@@ -219,3 +224,4 @@ def _limit(path: str, val, file: str) -> Limit:
                  max=None if "max" not in bounds else bounds["max"] * scale,
                  abs=bool(val.get("abs", False)), optional=bool(val.get("optional", False)),
                  unit=unit, given=dict(val))
+

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._aux import aux_names
-from ..channel import check_model
+from ..channel import check_model, reads_gravity
 from ..data import Batch, Recording
 from ..errors import DataError, SpecError
 from ..model import ErrorModel, Params
@@ -240,6 +240,10 @@ def _accel_thermal(spec: str, params, acc: dict, preset_obj, d: int, seed: int, 
     written into ``acc`` (``thermal_beta``, ``thermal_theta``)."""
     model = ErrorModel.from_spec(spec)
     check_model(model, "accel")
+    if reads_gravity(model):
+        raise SpecError(f"accel_effects {spec!r} holds a term of the input; the accelerometer's "
+                        "thermal offset is bias terms only",
+                        hint="its scale and misalignment are drawn with accel_errors=True")
     if params is None:
         drawn = draw_params(model, preset_obj, d, seed + 7919, float(norm.scale))
         params = Params(beta=np.asarray(drawn.beta) * ACCEL_PER_GYRO, theta=drawn.theta)
