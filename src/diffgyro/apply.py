@@ -42,6 +42,12 @@ For one device with calibration record ``dev`` (an entry of the file's
 
 4. ``gyro_i = Ω_i + columns_i · beta_i``; compensation solves this for Ω
    with Newton steps (one step is exact when no term is nonlinear in Ω).
+
+A term registered outside diffgyro has no code here: its numpy columns are passed in
+``terms``, a mapping from its name to ``fn(order, dev, rate, env, theta) -> (columns,
+used)`` (``order`` the spec's whole-number argument or None, ``env`` from
+:func:`environment`, ``theta`` the log τ from this term's on, ``used`` how many of them
+it read); the term's class declares the same function as ``numpy_columns``.
 """
 
 from __future__ import annotations
@@ -161,8 +167,9 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
     return y
 
 
-def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
-    """Regressor columns (n, 3, p) of every term at true rate ``rate`` (n, 3)."""
+def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None) -> np.ndarray:
+    """Regressor columns (n, 3, p) of every term at true rate ``rate`` (n, 3); ``terms``
+    holds the numpy columns of terms registered outside diffgyro (see the module's notes)."""
     n = rate.shape[0]
     cols, q = [], 0
     theta = np.asarray(dev["theta"], float)
@@ -219,8 +226,13 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
             tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
             q += 1
             cols.append(np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1))
+        elif terms and name in terms:
+            c, used = terms[name](k, dev, rate, env, theta[q:])
+            q += int(used)
+            cols.append(np.asarray(c, float))
         else:
-            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}")
+            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}; "
+                             f"pass its numpy columns as terms={{{name!r}: fn}}")
     return np.concatenate(cols, axis=-1) if cols else np.zeros((n, 3, 0))
 
 
@@ -250,9 +262,10 @@ def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window
 
 
 def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None, accel=None,
-               iterations: int = 4, aux=None) -> np.ndarray:
+               iterations: int = 4, aux=None, terms=None) -> np.ndarray:
     """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file;
-    ``aux`` maps extra column names to samples (n,) for ``aux(NAME)`` terms."""
+    ``aux`` maps extra column names to samples (n,) for ``aux(NAME)`` terms, ``terms``
+    term names to the numpy columns of terms registered outside diffgyro."""
     dev = next(d for d in calibration["devices"] if d["device"] == device)
     spec = calibration["model"]
     beta = np.asarray(dev["beta"], float)
@@ -260,7 +273,7 @@ def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None
     gyro = np.asarray(gyro, float)
 
     def err(omega):
-        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env), beta)
+        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env, terms), beta)
 
     omega = gyro - err(np.zeros_like(gyro))
     eps = 1e-7

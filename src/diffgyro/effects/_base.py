@@ -148,6 +148,11 @@ class AbstractEffect(AbstractTerm):
     #: True when a time constant shorter than the window that estimates dT/dt is the
     #: ``gradient`` term at the data's resolution: diagnose searches τ from that window up.
     tau_from_dtemp_window: ClassVar[bool] = False
+    #: The term's columns in numpy, for :mod:`diffgyro.apply` (which holds the built-in
+    #: terms' own): a function ``(order, dev, rate, env, theta) -> (columns, used)``, given
+    #: to ``apply.compensate(..., terms={name: fn})``; ``used`` is how many of the log τ
+    #: in ``theta`` (this term's first) it read. None: apply.py cannot compensate the term.
+    numpy_columns: ClassVar[Callable | None] = None
 
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]:
