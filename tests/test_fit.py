@@ -18,6 +18,7 @@ from diffgyro._signal_builder import batch_signals
 from diffgyro.fit import FitOptions, fit, solve_device
 from diffgyro.simulate import simulate
 
+
 def _sim(plan, effects, n=4, seed=0, **kw):
     kw.setdefault("noise", WHITE)
     return simulate(plan, n, effects=effects, seed=seed, **kw)
