@@ -20,8 +20,8 @@ from dataclasses import dataclass
 import jax
 import numpy as np
 
-from diffgyro._signal_builder import batch_signals
 from diffgyro.effects import AbstractEffect, registry, spec_arguments
+from diffgyro.internal import batch_signals
 from diffgyro.model import ErrorModel, Params
 from diffgyro.simulate import simulate
 

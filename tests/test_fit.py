@@ -14,8 +14,8 @@ from effect_cases import WHITE, fit_cases, simulate_case
 
 from diffgyro import Batch, ErrorModel, calibration
 from diffgyro import apply as A
-from diffgyro._signal_builder import batch_signals
 from diffgyro.fit import FitOptions, fit, solve_device
+from diffgyro.internal import batch_signals
 from diffgyro.simulate import simulate
 
 

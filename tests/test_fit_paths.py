@@ -18,8 +18,8 @@ import pytest
 import diffgyro._fit_sums as fs
 from diffgyro import Batch, Recording
 from diffgyro.effects import AbstractEffect, register
-from diffgyro.effects._common import per_axis
 from diffgyro.fit import fit
+from diffgyro.internal import per_axis
 from diffgyro.simulate import simulate
 
 FIELDS = ("rms", "heldout_rms", "fold_mse", "cov", "sigma", "noise_floor", "noise_axes",
@@ -244,7 +244,7 @@ def test_layout_shares_products():
 def test_masked_median_equals_nanmedian(k):
     # the integer-sort median gives nanmedian's number exactly, signed zeros, infinities,
     # subnormals and NaN included (the noise floor's order statistics: tests/test_noise.py)
-    from diffgyro._noise_jax import masked_median
+    from diffgyro.internal import masked_median
 
     x = np.array([-3.0, -0.0, 0.0, 2.0, -1e300, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 7.0])
     got = float(masked_median(jnp.asarray(x[:k]), jnp.ones(k, bool)))
@@ -327,7 +327,7 @@ def test_valid_counts(n):
 
 
 def test_group_results_pack_into_one_array_and_back_exactly():
-    from diffgyro._fit_sums import pack, unpack_results
+    from diffgyro.internal import pack, unpack_results
 
     rng = np.random.default_rng(0)
     out = {"beta": rng.normal(size=(4, 3, 2)), "status": np.array([0, 3, 7, 2**20], np.int32),

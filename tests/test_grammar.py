@@ -16,9 +16,9 @@ from diffgyro import apply as A
 from diffgyro import calibration as C
 from diffgyro.data import Batch, Recording
 from diffgyro.effects import AbstractEffect, Term, parse_spec, register
-from diffgyro.effects._common import per_axis
 from diffgyro.errors import DataError, SpecError
 from diffgyro.fit import fit
+from diffgyro.internal import per_axis
 from diffgyro.model import ErrorModel
 
 
