@@ -118,7 +118,12 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
     """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models whose
     noise component is a ``cls``. :func:`diffgyro.fit.fit` dispatches through this table
     and registers the built-in ``RandomWalk``'s fit (:func:`diffgyro.kalman.fit_random_walk`)
-    itself, so every edge is an import the module graph shows."""
+    itself, so every edge is an import the module graph shows.
+
+    **Arguments:**
+
+    - ``cls``: the noise process's class (a subclass of :class:`AbstractNoise`).
+    """
     def add(fn: Callable) -> Callable:
         _NOISE_FITS[cls] = fn
         return fn
@@ -128,7 +133,12 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
 
 def noise_fit(noise: AbstractNoise) -> Callable:
     """The fit registered for the class of ``noise`` (or the nearest base class); the
-    built-in processes' fits are registered once :mod:`diffgyro.fit` is imported."""
+    built-in processes' fits are registered once :mod:`diffgyro.fit` is imported.
+
+    **Arguments:**
+
+    - ``noise``: a model's noise component.
+    """
     for cls in type(noise).__mro__:
         if cls in _NOISE_FITS:
             return _NOISE_FITS[cls]
@@ -233,6 +243,13 @@ def register(cls: type[AbstractTerm]) -> type[AbstractTerm]:
 
     Registering a name twice replaces the earlier class (so a notebook can be
     re-run); built-in names cannot be replaced by a different class.
+
+    **Arguments:**
+
+    - ``cls``: a subclass of :class:`AbstractEffect` or :class:`AbstractNoise` with a
+      lower_snake_case ``name``.
+
+    **Returns:** ``cls``, so that ``@register`` decorates it.
     """
     if not (isinstance(cls, type) and issubclass(cls, (AbstractEffect, AbstractNoise))):
         raise TypeError("register() takes a subclass of AbstractEffect or AbstractNoise")
@@ -260,7 +277,12 @@ MAX_SPEC_LENGTH = 1000
 
 
 def is_column_name(text: str) -> bool:
-    """Whether ``text`` can be written as a term's column argument (``aux(NAME)``)."""
+    """Whether ``text`` can be written as a term's column argument (``aux(NAME)``).
+
+    **Arguments:**
+
+    - ``text``: the candidate column name.
+    """
     return bool(_COLUMN.fullmatch(text))
 
 
@@ -271,7 +293,12 @@ def _did_you_mean(name: str) -> str:
 
 
 def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
-    """The (field, kind) arguments a term's spec takes, in order."""
+    """The (field, kind) arguments a term's spec takes, in order.
+
+    **Arguments:**
+
+    - ``cls``: a registered term's class.
+    """
     if cls.arguments:
         return tuple(cls.arguments)
     return (("order", "int"),) if cls.order_arg else ()
@@ -303,7 +330,12 @@ def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
 
 def parse_term(text: str) -> AbstractTerm:
     """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``, ``"aux(vdd,2)"`` -> ``Aux(column="vdd",
-    order=2)``; clear errors for bad text."""
+    order=2)``; clear errors for bad text.
+
+    **Arguments:**
+
+    - ``text``: one term of a spec.
+    """
     m = _TERM.match(text)
     valid = ", ".join(sorted(_REGISTRY))
     if m is None:
@@ -335,7 +367,12 @@ def parse_term(text: str) -> AbstractTerm:
 
 
 def parse_spec(spec: str) -> tuple[AbstractTerm, ...]:
-    """Split a spec on ``+`` and parse every term; a name may appear only once."""
+    """Split a spec on ``+`` and parse every term; a name may appear only once.
+
+    **Arguments:**
+
+    - ``spec``: the model spec (``"bias_poly(2)+gradient"``).
+    """
     if not isinstance(spec, str) or not spec.strip():
         raise SpecError("empty model spec", hint="e.g. bias_poly(2)+gradient")
     if len(spec) > MAX_SPEC_LENGTH:
@@ -350,5 +387,10 @@ def parse_spec(spec: str) -> tuple[AbstractTerm, ...]:
 
 
 def format_spec(terms) -> str:
-    """Canonical spec text of a sequence of terms."""
+    """Canonical spec text of a sequence of terms.
+
+    **Arguments:**
+
+    - ``terms``: the terms, in spec order.
+    """
     return "+".join(t.spec for t in terms)
