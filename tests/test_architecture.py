@@ -538,8 +538,8 @@ ARGUMENTS_TO_WRITE = {
     "diffgyro.allan", "diffgyro.channel",
     "diffgyro.detect", "diffgyro.export",
     "diffgyro.export.ardupilot", "diffgyro.export.c_header", "diffgyro.export.ekf_noise",
-    "diffgyro.export.kalibr", "diffgyro.export.px4", "diffgyro.io",
-    "diffgyro.limits", "diffgyro.logs", "diffgyro.motion", "diffgyro.pipeline",
+    "diffgyro.export.kalibr", "diffgyro.export.px4",
+    "diffgyro.limits", "diffgyro.motion",
     "diffgyro.plan_design", "diffgyro.recipes", "diffgyro.report", "diffgyro.sensitivity",
     "diffgyro.stochastic",
 }
