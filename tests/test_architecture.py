@@ -540,7 +540,7 @@ ARGUMENTS_TO_WRITE = {
     "diffgyro.export.ardupilot", "diffgyro.export.c_header", "diffgyro.export.ekf_noise",
     "diffgyro.export.kalibr", "diffgyro.export.px4",
     "diffgyro.motion",
-    "diffgyro.plan_design", "diffgyro.recipes", "diffgyro.report",
+    "diffgyro.recipes",
 
 }
 
