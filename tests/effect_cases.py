@@ -97,7 +97,8 @@ def derived_case(cls: type[AbstractEffect]) -> EffectCase:
     """The case of a term without an entry in :data:`BUILT_IN`, from its class: the plan
     that excites what it reads (a rate table for the true rate, six faces for the specific
     force, the thermal chamber for temperature, a warm-up for time alone), a bias
-    polynomial beside it, and its spec with its default arguments."""
+    polynomial beside it, and its spec with its default arguments. A term that reads an
+    extra column is not fitted here (no plan carries one); apply-parity still covers it."""
     args = []
     for fname, kind in spec_arguments(cls):
         if kind == "column":
@@ -110,6 +111,11 @@ def derived_case(cls: type[AbstractEffect]) -> EffectCase:
     alone = f"{cls.name}({','.join(args)})" if args else cls.name
     term = ErrorModel.from_spec(alone).terms[0]
     needs = term.requires()
+    if any(n.startswith("aux:") for n in needs):
+        # the simulator's plans carry no extra column a user term could read
+        return EffectCase(cls.name, None, alone, (LOG_TAU,) * term.n_nonlinear, built_in=False,
+                          numpy=cls.numpy_columns,
+                          fit_elsewhere="its own tests (it reads an extra column)")
     if "rate" in needs:
         fit = ("rate_table", f"bias_poly(1)+{alone}", {})
     elif "accel" in needs:

@@ -14,10 +14,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import registered
 
 import diffgyro._fit_sums as fs
 from diffgyro import Batch, Recording
-from diffgyro.effects import AbstractEffect, register
+from diffgyro.effects import AbstractEffect
 from diffgyro.fit import fit
 from diffgyro.internal import per_axis
 from diffgyro.simulate import simulate
@@ -129,7 +130,6 @@ def test_noise_floor_off_and_given_norm():
     assert_same(fit("bias_poly(2)", batch, norm=norm, path="direct"), full)
 
 
-@register
 class _RunningMeanTemp(AbstractEffect):
     """A test-only linear term whose column reads earlier samples (not pointwise)."""
 
@@ -144,7 +144,15 @@ class _RunningMeanTemp(AbstractEffect):
         return per_axis(jnp.cumsum(sig.temp_s) / jnp.arange(1, sig.temp_s.shape[0] + 1))
 
 
-def test_columns_that_read_other_samples():
+@pytest.fixture
+def running_mean_term():
+    """The test's own term in the registry while it runs (registered at import, it would be
+    in every test file's registry read after this one)."""
+    with registered(_RunningMeanTemp):
+        yield
+
+
+def test_columns_that_read_other_samples(running_mean_term):
     # such a column is formed once on the whole recording and its rows are gathered
     batch = Batch.from_recordings(_thermal_recordings([1500, 1600], seed=5))
     spec = "bias_poly(1)+test_running_mean_temp"
