@@ -98,8 +98,9 @@ def test_recovers_truth(fitted):
 
 def test_calibration_file_compensates(fitted, tmp_path):
     """The calibration file written from the fit holds its coefficients exactly, loads
-    again unchanged, and compensates the recordings to the white noise: with the numpy-only
-    ``apply`` where the term has a numpy form, else with ``calibration.compensate``."""
+    again unchanged, and compensates a recording to the white noise: with the numpy-only
+    ``apply`` where the term has a numpy form (the first device: apply is a reference, not
+    fast), else with ``calibration.compensate`` (every device)."""
     case, batch, truth, res = fitted
     path = tmp_path / "cal.json"
     calibration.save(calibration.from_fit(res, batch), path)
@@ -114,6 +115,8 @@ def test_calibration_file_compensates(fitted, tmp_path):
         np.testing.assert_array_equal(np.asarray(dev.beta), np.asarray(res.params.beta[d]))
         np.testing.assert_array_equal(np.asarray(dev.theta), np.asarray(res.params.theta[d]))
         rec = batch.recording(d)
+        if case.has_numpy_form and d > 0:
+            continue
         if case.has_numpy_form:
             rate = A.compensate(doc, dev.device, rec.t, rec.gyro, temp=rec.temp,
                                 temp_ext=rec.temp_ext, accel=rec.accel, aux=rec.aux,
