@@ -195,7 +195,9 @@ class AbstractEffect(AbstractTerm):
     def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         """Regressor columns per axis; ``theta`` holds this term's nonlinear parameters."""
 
-    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]):
+    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]
+                    ) -> tuple[Float[Array, "n 3 p"], Float[Array, "q n 3 p"],
+                               Float[Array, "q q n 3 p"]]:
         """Columns and their first and second derivatives in ``theta``: arrays (n, 3, p),
         (q, n, 3, p) and (q, q, n, 3, p). Forward mode by default; a term whose columns
         come from a recursion can give a cheaper exact form (one pass for all three)."""
