@@ -27,7 +27,7 @@ from pathlib import Path  # noqa: E402
 import pytest  # noqa: E402
 
 import diffgyro  # noqa: E402
-from diffgyro._jit import release_compiled_if_crowded  # noqa: E402
+from diffgyro import release_compiled_if_crowded  # noqa: E402
 
 pytest_plugins = ["_no_skips"]  # under CI=true an undocumented skip fails the run
 
@@ -43,15 +43,16 @@ ROOT = TESTS.parent
 def registered(*classes):
     """A test's own effect or noise classes in the registry while the block runs; taken out
     afterwards, as other tests expect."""
-    from diffgyro.effects import _base as base
+    from diffgyro.effects import register
+    from diffgyro.internal import REGISTRY
 
     for cls in classes:
-        base.register(cls)
+        register(cls)
     try:
         yield
     finally:
         for cls in classes:
-            base._REGISTRY.pop(cls.name, None)
+            REGISTRY.pop(cls.name, None)
 
 
 def pytest_runtest_teardown(item, nextitem):

@@ -333,8 +333,8 @@ def make_recording(plan: str, effect: str | None, base_spec: str, seed: int, *,
     column ``heater`` through a 300 s first-order lag) and ``"temp_x_vdd"`` (bias ∝ die
     temperature × the logged supply ``vdd``) are outside every built-in term.
     """
-    from diffgyro._signal_builder import batch_signals
     from diffgyro.data import Batch
+    from diffgyro.internal import batch_signals
     from diffgyro.model import ErrorModel
 
     rng = np.random.default_rng(seed)

@@ -170,7 +170,7 @@ def test_readouts_on_simulated_static_runs(walk_runs, method):
 def test_bias_instability_on_flicker_noise():
     """White noise + flicker (bias instability B) from the project's simulator: the floor is
     read within 10 % on every curve, ARW within 3 %, and no rate random walk is claimed."""
-    from diffgyro.simulate._noise import flicker
+    from diffgyro.internal import flicker
 
     rng = np.random.default_rng(13)
     dt, n = 0.1, int(3 * 3600 / 0.1)

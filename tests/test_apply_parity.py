@@ -1,5 +1,6 @@
 """apply.py (numpy only, the reference users port to firmware) against calibration.compensate,
-for every built-in effect alone and all together, on one recording that exercises each term:
+for every registered effect alone (read from the registry: tests/effect_cases.py) and the
+built-in ones all together, on one recording that exercises each term:
 rotation on every axis (scale, asymmetry, nonlinearity, misalignment), a changing specific
 force (g_sens), temperature ramps up and down with soaks (gradient, hysteresis, thermal lag),
 temperature and the extra column beyond their calibrated ranges (clamping), an external
@@ -7,10 +8,9 @@ temperature (temp_diff) and a warm-up from the first sample."""
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 import pytest
+from effect_cases import BUILT_IN, cases
 from recordings import turning_chamber_run
 
 from diffgyro import apply as A
@@ -19,23 +19,17 @@ from diffgyro.data import Recording
 from diffgyro.effects import registry
 from diffgyro.model import ErrorModel
 
-#: The spec each built-in effect is tried with (orders above one where the effect has them).
-ALONE = {
-    "aux": "aux(vdd,2)", "bias_poly": "bias_poly(3)", "g_sens": "g_sens",
-    "gradient": "gradient", "hysteresis": "hysteresis", "misalignment": "misalignment",
-    "random_walk": "bias_poly(1)+random_walk", "scale_asym": "scale_asym",
-    "scale_nonlin": "scale_nonlin", "scale_poly": "scale_poly(2)", "temp_diff": "temp_diff",
-    "thermal_lag": "thermal_lag(2)", "warmup": "warmup", "term": "term(temp*az*lag(vdd))",
-}
+#: Every registered term, read from the registry (effect_cases.py): its spec alone, its
+#: time constants, its numpy form. A term registered anywhere is covered here unedited.
+CASES = cases()
 ALL = ("bias_poly(2)+scale_poly(1)+scale_asym+scale_nonlin+misalignment+g_sens+gradient+"
        "temp_diff+hysteresis+thermal_lag(2)+warmup+aux(vdd,2)+term(temp*az*lag(vdd))+term(w^2*ax)")
-#: log τ of the time constants in spec order (thermal lag 300 s, warm-up 600 s)
-THETA = {"thermal_lag": math.log(300.0), "warmup": math.log(600.0), "term": math.log(200.0)}
 
 
-def test_every_built_in_effect_is_covered():
+def test_every_built_in_effect_has_a_hand_tuned_case():
     built_in = {k for k, cls in registry().items() if cls.__module__.startswith("diffgyro.effects.")}
-    assert built_in == set(ALONE)
+    assert built_in == set(BUILT_IN)
+    assert {t.name for t in ErrorModel.from_spec(ALL).terms} == built_in - {"random_walk"}
 
 
 @pytest.fixture(scope="module")
@@ -47,7 +41,8 @@ def recording() -> Recording:
 def _calibration(spec: str, seed: int) -> dict:
     model = ErrorModel.from_spec(spec)
     rng = np.random.default_rng(seed)
-    theta = [THETA[t.name] for t in model.terms for _ in range(t.n_nonlinear)]
+    tau = {c.name: c.theta for c in CASES}
+    theta = [tau[t.name][k] for t in model.terms for k in range(t.n_nonlinear)]
     dev = {"device": "imu0", "status": "ok",
            "beta": (rng.normal(size=(3, model.n_params)) * 0.02).tolist(), "theta": theta,
            "temp_centre": 28.0, "temp_scale": 16.0, "temp_range": [14.0, 45.0]}
@@ -57,7 +52,7 @@ def _calibration(spec: str, seed: int) -> dict:
             "dtemp_window": 60.0, "devices": [dev]}
 
 
-def _both(spec: str, rec: Recording, seed: int):
+def _both(spec: str, rec: Recording, seed: int, terms=None):
     doc = _calibration(spec, seed)
     cal = C.from_json(doc)
     if "temp" in cal.error_model.requires():  # beyond the calibrated range on both sides
@@ -66,15 +61,25 @@ def _both(spec: str, rec: Recording, seed: int):
         assert clamped["imu0"] > 0
     else:
         out, _ = C.compensate(cal, rec)
-    ours = np.asarray(out.gyro[0, : rec.n])
-    ref = A.compensate(doc, "imu0", rec.t, rec.gyro, temp=rec.temp, temp_ext=rec.temp_ext,
-                       accel=rec.accel, aux=rec.aux)
-    return ours, ref
+    return np.asarray(out.gyro[0, : rec.n]), _apply(doc, rec, terms)
 
 
-@pytest.mark.parametrize("name", sorted(ALONE))
-def test_apply_equals_compensate_for_each_effect(recording, name):
-    ours, ref = _both(ALONE[name], recording, seed=len(name))
+def _apply(doc: dict, rec: Recording, terms=None) -> np.ndarray:
+    return A.compensate(doc, "imu0", rec.t, rec.gyro, temp=rec.temp, temp_ext=rec.temp_ext,
+                        accel=rec.accel, aux=rec.aux, terms=terms)
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.name if c.has_numpy_form else
+                                             f"{c.name}-no-numpy-form" for c in CASES])
+def test_apply_equals_compensate_for_each_effect(recording, case):
+    """apply.py agrees with the fit's compensation on every term it has a numpy form of
+    (its own code, or the ``numpy_columns`` a term's class declares); a term without one
+    is refused by name, never silently left out of the firmware's formula."""
+    if not case.has_numpy_form:
+        with pytest.raises(ValueError, match=f"not {case.name!r}"):
+            _apply(_calibration(case.alone, seed=len(case.name)), recording)
+        return
+    ours, ref = _both(case.alone, recording, seed=len(case.name), terms=case.apply_terms)
     # each term really acts (a term both sides ignored would agree too)
     assert np.abs(ours - recording.gyro).max() > 1e-4
     np.testing.assert_allclose(ref, ours, rtol=0, atol=1e-10)

@@ -119,10 +119,17 @@ def test_no_import_cycle():
     assert _cycles(graph) == [], "import cycles (module-level or inside functions)"
 
 
+#: The one module that gathers private helpers for the tests (docs/architecture.md), and so
+#: may import any package's private modules and names.
+INTERNAL = "diffgyro.internal"
+
+
 def test_no_private_cross_imports():
     modules = _modules()
     found = set()
     for importer, target, name in _imports(modules):
+        if importer == INTERNAL:
+            continue
         parent = target.rsplit(".", 1)[0]
         private_module = _is_private(target.rsplit(".", 1)[-1])
         if private_module and not (importer == parent or importer.startswith(parent + ".")):
@@ -258,12 +265,13 @@ def test_cli_defers_only_the_engine():
 
 def _public_on_disk() -> set[str]:
     return {m for m in _modules() if not any(_is_private(p) for p in m.split("."))
-            and not m.startswith("diffgyro.cli") and m != "diffgyro.__main__"}
+            and not m.startswith("diffgyro.cli") and m not in ("diffgyro.__main__", INTERNAL)}
 
 
 def test_public_api_listed_in_one_place():
     """``diffgyro.PUBLIC_MODULES`` is every module without a private part (the command line
-    aside: its commands are its API); each lists its names in ``__all__``, and each name
+    aside: its commands are its API; and ``diffgyro.internal``, the tests' namespace); each
+    lists its names in ``__all__``, and each name
     there exists and, if a class or function, says what it is."""
     import importlib
 
@@ -322,7 +330,7 @@ LAYERS = (
     ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
     ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
-    ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__"),
+    ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__", "internal"),
 )
 #: Imports up a row, each for a reason: the random-walk fit runs the stochastic model's
 #: bias filter (a random walk alone is that filter).
@@ -415,9 +423,10 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     import diffgyro
     from diffgyro import apply
     from diffgyro._fit_sums.layout import INPUTS, _random_signals
-    from diffgyro._signal_catalogue import BUILT_IN, CATALOGUE, present
     from diffgyro.data import Recording
+    from diffgyro.effects import STANDARD as CATALOGUE
     from diffgyro.effects import product_of
+    from diffgyro.internal import BUILT_IN, present
     from diffgyro.model import ErrorModel, Params
     from diffgyro.plan_design import operating_signals
     from diffgyro.signals import TempNorm, make_signals
@@ -455,3 +464,141 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     words = set(re.findall(r"[a-z_]+", apply.__doc__))
     assert [s for s in BUILT_IN if s not in words] == [], "apply's docstring"
 
+
+
+TESTS = Path(__file__).resolve().parent
+#: Test files that test one private module itself and import it (or its private names)
+#: directly; every other test reaches the package through public names and
+#: ``diffgyro.internal``. The second group are files other work had open when the rule
+#: came, to be moved onto ``diffgyro.internal``.
+PRIVATE_UNDER_TEST = {
+    "test_architecture.py": {"diffgyro._fit_sums"},  # the sums path's signal probe
+    "test_jit.py": {"diffgyro._jit"},
+    "test_compile.py": {"diffgyro._jit"},
+    "test_program_cache.py": {"diffgyro._program_cache", "diffgyro._jit"},
+    "test_jsonio.py": {"diffgyro._jsonio"},
+    "test_demo.py": {"diffgyro._demo"},
+    "test_cli_progress.py": {"diffgyro.cli._progress"},
+    "test_stochastic.py": {"diffgyro.cli.noise"},  # the noise command's text table
+    "test_report.py": {"diffgyro.report"},  # the report's private text helpers
+    "test_diagnose_scoring.py": {"diffgyro.diagnose._scoring"},
+    "test_fit_sums.py": {"diffgyro._fit_sums"},
+    "test_fit_paths.py": {"diffgyro._fit_sums"},
+    "test_window_stats.py": {"diffgyro._window_pass", "diffgyro._window_stats"},
+    "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
+    # open elsewhere when diffgyro.internal came
+    "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
+    "test_diagnose_noise.py": {"diffgyro.stochastic._simulate"},
+    "test_noise_mpu6050.py": {"diffgyro.stochastic._devices"},
+    "test_noise_resolution.py": {"diffgyro.stochastic._devices"},
+    "test_motion.py": {"diffgyro._window_stats", "diffgyro.motion"},
+    "test_sharding.py": {"diffgyro.pipeline._chunkfit", "diffgyro._fit_sums"},
+    "notebook_runner.py": {"diffgyro.effects._base"},
+    "recipes/test_recipe_six_position.py": {"diffgyro.recipes._common"},
+}
+
+
+def _private_home(module: str, name: str | None, modules) -> str | None:
+    """The private module an import reaches into (``from diffgyro._fit_sums import pack``:
+    ``diffgyro._fit_sums``; ``from diffgyro.report import _text``: ``diffgyro.report``),
+    or None for a public import."""
+    parts = module.split(".")
+    private = [i for i, p in enumerate(parts) if _is_private(p)]
+    if private:
+        return ".".join(parts[:private[0] + 1])
+    if name and _is_private(name):
+        return f"{module}.{name}" if f"{module}.{name}" in modules else module
+    return None
+
+
+def test_tests_reach_private_code_through_internal():
+    """A test imports a private module or name only where it tests that module
+    (:data:`PRIVATE_UNDER_TEST`); the helpers other tests need come from
+    ``diffgyro.internal``."""
+    found, modules = {}, _modules()
+    for path in sorted(TESTS.rglob("*.py")):
+        rel = path.relative_to(TESTS).as_posix()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith("diffgyro"):
+                targets = [(node.module, a.name) for a in node.names]
+            elif isinstance(node, ast.Import):
+                targets = [(a.name, None) for a in node.names if a.name.startswith("diffgyro")]
+            else:
+                continue
+            for module, name in targets:
+                home = _private_home(module, name, modules)
+                if home is not None and home not in PRIVATE_UNDER_TEST.get(rel, ()):
+                    found.setdefault(rel, set()).add(home)
+    assert found == {}
+
+
+#: Public modules whose functions do not all document each argument yet: the rule came
+#: with issue 43, and a module leaves this set once its docstrings are written (these three
+#: were open in other work at the time: the motion judgement, the accelerometer channel
+#: and its recipes).
+ARGUMENTS_TO_WRITE = {"diffgyro.channel", "diffgyro.motion", "diffgyro.recipes"}
+
+
+def _undocumented_arguments(fn) -> list[str]:
+    """The parameters of ``fn`` its docstring's ``**Arguments:**`` section does not name
+    (as ``name``, or ``*name`` / ``**name``); all of them when there is no such section."""
+    import inspect
+
+    doc = inspect.getdoc(fn) or ""
+    params = [p for p in inspect.signature(fn).parameters.values()
+              if p.name not in ("self", "cls")]
+    if "**Arguments:**" not in doc:
+        return [p.name for p in params] or []
+    section = doc.split("**Arguments:**", 1)[1]
+    return [p.name for p in params
+            if not any(f"``{star}{p.name}``" in section for star in ("", "*", "**"))]
+
+
+def test_public_functions_document_each_argument():
+    """Every function of a public module's ``__all__`` documents each of its parameters in
+    an ``**Arguments:**`` section (as optimistix does), modules still being written aside
+    (:data:`ARGUMENTS_TO_WRITE`); a function without parameters needs none."""
+    import importlib
+    import inspect
+
+    import diffgyro
+
+    assert ARGUMENTS_TO_WRITE <= set(diffgyro.PUBLIC_MODULES)
+    missing = {}
+    for name in diffgyro.PUBLIC_MODULES:
+        if name in ARGUMENTS_TO_WRITE:
+            continue
+        module = importlib.import_module(name)
+        for attr in module.__all__:
+            fn = inspect.unwrap(getattr(module, attr))
+            if inspect.isfunction(fn) and fn.__module__.startswith("diffgyro"):
+                if gaps := _undocumented_arguments(fn):
+                    missing[f"{name}.{attr}"] = gaps
+    assert missing == {}
+
+
+def test_the_arguments_check_finds_a_missing_argument():
+    def documented(a, b=1, **extra):
+        """Add.
+
+        **Arguments:**
+
+        - ``a``: one.
+        - ``b``: another.
+        - ``**extra``: the rest.
+        """
+
+    def one_missing(a, b):
+        """Add.
+
+        **Arguments:**
+
+        - ``a``: one.
+        """
+
+    def none(a):
+        """Add ``a``."""
+
+    assert _undocumented_arguments(documented) == []
+    assert _undocumented_arguments(one_missing) == ["b"]
+    assert _undocumented_arguments(none) == ["a"]

@@ -137,7 +137,7 @@ def test_fit_widens_the_dtemp_window_for_a_coarse_read_out(tmp_path, capsys):
     """Without --dtemp-window, fit picks the window diagnose would (wider than 60 s for a
     0.5 °C read-out at 1 Hz); an explicit window is kept."""
     from diffgyro import Batch
-    from diffgyro._temperature import suggest_dtemp_window
+    from diffgyro.internal import suggest_dtemp_window
     from diffgyro.io import load, save
     from diffgyro.simulate import simulate
 

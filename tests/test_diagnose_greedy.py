@@ -74,7 +74,7 @@ def test_an_effect_outside_the_vocabulary_names_the_signal_not_a_term():
     assert d.evidence["temp_dtemp"]["explains"] >= 0.5
     assert "T·dT/dt" in d.explanation and "@register" in d.explanation, d.explanation
     assert d.record()["best"] is None and d.record()["next"] is None
-    from diffgyro.diagnose._synthesis import apply as synthesise
+    from diffgyro.internal import synthesise
 
     dg = diagnose(BASE, batch, greedy=False, synthesis=False)
     synthesise(dg.devices, batch, dg.fit, dg.model, dg.raw["candidates"], dg.raw["ok"],

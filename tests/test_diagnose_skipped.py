@@ -10,8 +10,8 @@ import numpy as np
 
 from diffgyro.cli import main
 from diffgyro.data import Recording
-from diffgyro.diagnose._unsupported import reason
 from diffgyro.effects import parse_term
+from diffgyro.internal import reason
 
 N = 200
 

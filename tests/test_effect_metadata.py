@@ -86,10 +86,15 @@ def user_terms():
 
 
 def test_diagnose_reads_family_phrase_and_lag_floor_from_the_class(user_terms):
-    from diffgyro.diagnose import explain, families, family_of
-    from diffgyro.diagnose._candidates import CandidateSpec
-    from diffgyro.diagnose._results import Candidate, DeviceDiagnosis
-    from diffgyro.diagnose._scoring import candidate_grid
+    from diffgyro.diagnose import (
+        Candidate,
+        CandidateSpec,
+        DeviceDiagnosis,
+        explain,
+        families,
+        family_of,
+    )
+    from diffgyro.internal import candidate_grid
     from diffgyro.model import ErrorModel
     from diffgyro.signals import make_signals
 

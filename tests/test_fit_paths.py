@@ -14,12 +14,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import registered
 
 import diffgyro._fit_sums as fs
 from diffgyro import Batch, Recording
-from diffgyro.effects import AbstractEffect, register
-from diffgyro.effects._common import per_axis
+from diffgyro.effects import AbstractEffect
 from diffgyro.fit import fit
+from diffgyro.internal import per_axis
 from diffgyro.simulate import simulate
 
 FIELDS = ("rms", "heldout_rms", "fold_mse", "cov", "sigma", "noise_floor", "noise_axes",
@@ -129,7 +130,6 @@ def test_noise_floor_off_and_given_norm():
     assert_same(fit("bias_poly(2)", batch, norm=norm, path="direct"), full)
 
 
-@register
 class _RunningMeanTemp(AbstractEffect):
     """A test-only linear term whose column reads earlier samples (not pointwise)."""
 
@@ -144,7 +144,15 @@ class _RunningMeanTemp(AbstractEffect):
         return per_axis(jnp.cumsum(sig.temp_s) / jnp.arange(1, sig.temp_s.shape[0] + 1))
 
 
-def test_columns_that_read_other_samples():
+@pytest.fixture
+def running_mean_term():
+    """The test's own term in the registry while it runs (registered at import, it would be
+    in every test file's registry read after this one)."""
+    with registered(_RunningMeanTemp):
+        yield
+
+
+def test_columns_that_read_other_samples(running_mean_term):
     # such a column is formed once on the whole recording and its rows are gathered
     batch = Batch.from_recordings(_thermal_recordings([1500, 1600], seed=5))
     spec = "bias_poly(1)+test_running_mean_temp"
@@ -244,7 +252,7 @@ def test_layout_shares_products():
 def test_masked_median_equals_nanmedian(k):
     # the integer-sort median gives nanmedian's number exactly, signed zeros, infinities,
     # subnormals and NaN included (the noise floor's order statistics: tests/test_noise.py)
-    from diffgyro._noise_jax import masked_median
+    from diffgyro.internal import masked_median
 
     x = np.array([-3.0, -0.0, 0.0, 2.0, -1e300, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 7.0])
     got = float(masked_median(jnp.asarray(x[:k]), jnp.ones(k, bool)))
@@ -327,7 +335,7 @@ def test_valid_counts(n):
 
 
 def test_group_results_pack_into_one_array_and_back_exactly():
-    from diffgyro._fit_sums import pack, unpack_results
+    from diffgyro.internal import pack, unpack_results
 
     rng = np.random.default_rng(0)
     out = {"beta": rng.normal(size=(4, 3, 2)), "status": np.array([0, 3, 7, 2**20], np.int32),

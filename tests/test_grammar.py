@@ -8,6 +8,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import registered
 from grammar_catalogue import CASES, SIGMA, make
 from recordings import turning_chamber_run
 
@@ -15,10 +16,10 @@ import diffgyro
 from diffgyro import apply as A
 from diffgyro import calibration as C
 from diffgyro.data import Batch, Recording
-from diffgyro.effects import AbstractEffect, Term, parse_spec, register
-from diffgyro.effects._common import per_axis
+from diffgyro.effects import AbstractEffect, Term, parse_spec
 from diffgyro.errors import DataError, SpecError
 from diffgyro.fit import fit
+from diffgyro.internal import per_axis
 from diffgyro.model import ErrorModel
 
 
@@ -160,7 +161,6 @@ def test_sensitivity_and_export_see_the_grammar_term(heater):
             render(cal, fmt, device_ids=[1])
 
 
-@register
 class SupplyStep(AbstractEffect):
     """A test-only user term: bias ∝ whether the extra column is above its centre."""
 
@@ -175,7 +175,15 @@ class SupplyStep(AbstractEffect):
         return per_axis((sig.aux["vdd"] > 0).astype(sig.gyro.dtype))
 
 
-def test_registered_term_composes_with_grammar_terms():
+@pytest.fixture
+def supply_step_term():
+    """The test's own term in the registry while it runs (registered at import, it would be
+    in every test file's registry read after this one)."""
+    with registered(SupplyStep):
+        yield
+
+
+def test_registered_term_composes_with_grammar_terms(supply_step_term):
     rec, _ = make("supply", 0)
     spec = "bias_poly(1)+aux(vdd)+supply_step+term(temp*vdd)"
     res = fit(spec, Batch.from_recordings([rec]))

@@ -477,7 +477,7 @@ def test_drop_invalid_reports_counts_per_device(tmp_path):
 
 
 def test_load_from_cli_prints_drop_report(tmp_path, capsys):
-    from diffgyro.cli._load import load_from_cli
+    from diffgyro.internal import load_from_cli
 
     path = write(tmp_path / "x.csv", "gyr_x,gyr_y,gyr_z\n1,2,3\n4,,6\n7,8,9\n")
     batch = load_from_cli([path], columns="gx=gyr_x,gy=gyr_y,gz=gyr_z", gyro_unit="deg/s",

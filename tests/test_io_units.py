@@ -12,8 +12,8 @@ import pandas as pd
 import pytest
 
 from diffgyro.errors import DataError
+from diffgyro.internal import header_units, merge_units, split_header
 from diffgyro.io import LoadReport, load, save
-from diffgyro.io._headers import header_units, merge_units, split_header
 from diffgyro.simulate import simulate
 
 DATA = Path(__file__).resolve().parent / "data"

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from diffgyro import calibration
-from diffgyro._signal_builder import batch_signals
 from diffgyro.data import Batch, Recording
 from diffgyro.effects import AbstractNoise, BiasPoly, RandomWalk
 from diffgyro.fit import fit
+from diffgyro.internal import batch_signals
 from diffgyro.kalman import (
     RandomWalkFit,
     fit_random_walk,
@@ -26,7 +26,7 @@ from diffgyro.kalman import (
     smooth_bias,
 )
 from diffgyro.model import ErrorModel
-from diffgyro.recipes._static_kalman import heading_errors
+from diffgyro.recipes import heading_errors
 
 
 def _small_problem(seed=0, n=60):
@@ -141,7 +141,8 @@ def walk_fit():
     """50 static devices, 3000 s at 1 Hz, noise from the project simulator: ARW 1e-3 rad/s/√Hz
     (σ = 1e-3 rad/s per sample, r = 1e-6) and RRW 1e-4 rad/s²/√Hz (q = 1e-8 (rad/s)²/s),
     on top of a constant bias per device."""
-    from diffgyro.simulate._noise import NoiseLevels, gyro_noise
+    from diffgyro.internal import gyro_noise
+    from diffgyro.simulate import NoiseLevels
 
     d, n, dt = 50, 3000, 1.0
     q, r = 1e-8, 1e-6

@@ -19,6 +19,7 @@ import pytest
 
 from diffgyro.cli import main
 from diffgyro.errors import DataError
+from diffgyro.internal import unit_scale
 from diffgyro.limits import (
     add_figures,
     bias_figures,
@@ -30,7 +31,6 @@ from diffgyro.limits import (
     split_path,
     summary,
 )
-from diffgyro.limits._units import unit_scale
 
 ROOT = Path(__file__).resolve().parents[1]
 EXAMPLE = ROOT / "examples" / "limits" / "bmi088.toml"

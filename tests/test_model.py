@@ -9,7 +9,7 @@ from conftest import registered
 
 from diffgyro import ErrorModel, kalman
 from diffgyro.data import Recording
-from diffgyro.diagnose._candidates import candidate_specs
+from diffgyro.diagnose import candidate_specs
 from diffgyro.effects import (
     AbstractNoise,
     BiasPoly,
@@ -72,11 +72,11 @@ class SlowWalk(RandomWalk):
 
 @pytest.fixture
 def user_noise():
-    from diffgyro.effects import _base as base
+    from diffgyro.internal import NOISE_FITS
 
     with registered(Flicker, SlowWalk):
         yield
-    base._NOISE_FITS.pop(Flicker, None)
+    NOISE_FITS.pop(Flicker, None)
 
 
 def test_a_registered_user_noise_process(user_noise, monkeypatch):

@@ -13,10 +13,9 @@ from pipeline_data import CHUNK, MODEL, add_bad_devices, load_outputs, make_data
 from diffgyro import calibration
 from diffgyro.errors import DataError
 from diffgyro.fit import fit
+from diffgyro.internal import ReadConfig, WorkDir, expand_inputs, index_dataset
 from diffgyro.io import load
 from diffgyro.pipeline import fit_dataset
-from diffgyro.pipeline._dataset import ReadConfig, expand_inputs, index_dataset
-from diffgyro.pipeline._workdir import WorkDir
 
 
 @pytest.fixture(scope="module")
@@ -201,8 +200,8 @@ def test_fast_calibration_entries_equal_from_fit():
     """The pipeline's entry builder gives exactly calibration.from_fit's entries, including
     time constants, non-ok statuses and non-finite numbers."""
     from diffgyro.fit import FitOptions, FitResult
+    from diffgyro.internal import calibration_entries
     from diffgyro.model import ErrorModel, Params
-    from diffgyro.pipeline._run import calibration_entries
     from diffgyro.signals import TempNorm
 
     model = ErrorModel.from_spec("bias_poly(1)+thermal_lag+gradient+aux(vdd)")

@@ -12,8 +12,7 @@ import pytest
 
 from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose, diagnose_auto
-from diffgyro.effects import registry
-from diffgyro.effects._gradient import Gradient
+from diffgyro.effects import Gradient, registry
 from diffgyro.report import (
     MAX_POINTS,
     named_term_residuals,

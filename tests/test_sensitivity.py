@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from scipy.signal import lfilter
 
-from diffgyro._signal_builder import batch_signals
 from diffgyro.fit import FitOptions, fit
+from diffgyro.internal import batch_signals
 from diffgyro.model import ErrorModel, Params
 from diffgyro.plan_design import (
     DEG,

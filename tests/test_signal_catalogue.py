@@ -13,11 +13,11 @@ from recordings import turning_chamber_run
 
 import diffgyro
 from diffgyro import apply as A
-from diffgyro._signal_builder import batch_signals
-from diffgyro._signal_catalogue import CATALOGUE, SignalInfo, register_signal
 from diffgyro.data import Batch, Recording
-from diffgyro.effects._base import registry
+from diffgyro.effects import STANDARD as CATALOGUE
+from diffgyro.effects import SignalInfo, register_signal, registry
 from diffgyro.fit import fit
+from diffgyro.internal import batch_signals
 from diffgyro.signals import TempNorm
 
 

@@ -12,11 +12,10 @@ import pytest
 
 from diffgyro.cli import main
 from diffgyro.errors import DataError, SpecError
+from diffgyro.internal import DEG, EARTH_RATE, G0, first_order_hold_lag, qconj, qlog, qmul
 from diffgyro.model import ErrorModel, Params
 from diffgyro.signals import TempNorm, make_signals
 from diffgyro.simulate import Truth, demo_batch, simulate, truth_path
-from diffgyro.simulate._motion import DEG, EARTH_RATE, G0, qconj, qlog, qmul
-from diffgyro.simulate._thermal import first_order_hold_lag
 
 QUIET = {"arw": 0.0, "rrw": 0.0, "bias_instability": 0.0, "quantum": 0.0, "temp_noise": 0.0,
          "accel_noise": 0.0}
@@ -456,7 +455,7 @@ def test_six_face_feeds_the_six_position_recipe_exactly():
     """At the pole Earth rate is vertical: the Ferraris recipe on noise-free six-face data
     returns the true accelerometer and gyro calibration, and g-sensitivity off by exactly
     (I + S + M)·Ω/g (Earth rate flips with the face, like gravity)."""
-    from diffgyro.recipes._six_position import six_position
+    from diffgyro.recipes import six_position
 
     batch, truth = simulate("six_face", 1, seed=0, latitude=90.0, tilt=0.0, noise="none", dwell=10.0)
     rec = batch.recording(0)
@@ -479,7 +478,7 @@ def test_population_spreads_match_the_presets():
     """Coefficients are drawn in the model basis with the stated physical spreads:
     bias 0.5 °/s and slope 0.01 °/s/°C (MEMS), 1 °/h and 0.02 °/h/°C (FOG), whatever
     the normalisation's half-range."""
-    from diffgyro.simulate._population import FOG, MEMS, draw_params
+    from diffgyro.internal import FOG, MEMS, draw_params
 
     model = ErrorModel.from_spec("bias_poly(1)+misalignment+g_sens+thermal_lag+warmup")
     d = 2000

@@ -14,10 +14,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from diffgyro.internal import avar_gauss_markov, dyadic_m, haar_wv, model_wv, psd, wv_covariance
 from diffgyro.stochastic import identify, label, simulate_noise, structure_mask
-from diffgyro.stochastic._components import avar_gauss_markov, model_wv
-from diffgyro.stochastic._covariance import psd, wv_covariance
-from diffgyro.stochastic._wavelet_variance import dyadic_m, haar_wv
 
 DT = 0.01
 #: Every identification test runs 12 series of this length and interval (655 s, as the
@@ -28,7 +26,7 @@ DT_ID = 0.02
 
 def _theta(**powers):
     """Log-parameter vector from {name: value} of the layout (others 0, masked off)."""
-    from diffgyro.stochastic._components import LAYOUT
+    from diffgyro.internal import LAYOUT
 
     th = np.zeros(len(LAYOUT))
     for k, v in powers.items():
@@ -295,7 +293,7 @@ def test_bias_filter_with_the_identified_model_is_calibrated():
     """A filter carrying white + Gauss–Markov + random walk: standardised innovations white with
     unit variance, and the bias error the size the filter states; a random-walk-only filter
     (the Gauss–Markov process as its equivalent walk) tracks it worse."""
-    from diffgyro.stochastic._bias_filter import bias_filter, state_space
+    from diffgyro.stochastic import bias_filter, state_space
 
     n, dt = 40_000, 0.01
     k1, k2 = jax.random.split(jax.random.PRNGKey(11))

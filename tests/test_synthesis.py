@@ -17,11 +17,9 @@ from diffgyro.carry import residuals
 from diffgyro.cli import main
 from diffgyro.data import Batch
 from diffgyro.diagnose import diagnose
-from diffgyro.diagnose._noise_model import residual_floor
-from diffgyro.diagnose._synthesis import describe, library, propose_all
-from diffgyro.effects import parse_spec
-from diffgyro.effects._grammar import Term
+from diffgyro.effects import Term, parse_spec
 from diffgyro.fit import fit
+from diffgyro.internal import describe, library, propose_all, residual_floor
 from diffgyro.model import ErrorModel
 
 

@@ -28,7 +28,13 @@ def enable_x64() -> None:
 
 
 def enable_compilation_cache(path: str | None = None) -> None:
-    """Keep compiled functions on disk between processes (on for the CLI and tests)."""
+    """Keep compiled functions on disk between processes (on for the CLI and tests).
+
+    **Arguments:**
+
+    - ``path``: the cache's folder (default: ``$DIFFGYRO_CACHE_DIR``, else
+      ``~/.cache/diffgyro/jax``).
+    """
 
     import jax
 
@@ -47,6 +53,10 @@ def use_cpu_cores(n: int | None = None) -> int:
     CPU devices only with ``shard=True``). Process-wide, and only possible before
     JAX's first operation; a device count the user set (``XLA_FLAGS`` or
     ``jax_num_cpu_devices``) is kept. Returns the number of CPU devices.
+
+    **Arguments:**
+
+    - ``n``: CPU devices to make (default: the cores this process may run on, at most 16).
     """
 
     import jax

@@ -74,7 +74,8 @@ def lm_converged(sol: optx.Solution) -> Bool[Array, ""]:
 
 
 def _full_lm(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Float[Array, " n"],
-             theta0: Float[Array, " q"], opts: FitOptions):
+             theta0: Float[Array, " q"], opts: FitOptions
+             ) -> tuple[Float[Array, "3 p"], Float[Array, " q"], Bool[Array, ""], Int[Array, ""]]:
     """Levenberg–Marquardt over every parameter at once (no projection).
 
     The reference path: for linear models it must agree with the closed form.
@@ -140,7 +141,7 @@ def _covariance(model: ErrorModel, sig: Signals, params: Params, w: Float[Array,
 
 
 def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
-                 theta0: Float[Array, " q"] | None = None) -> dict:
+                 theta0: Float[Array, " q"] | None = None) -> dict[str, Array]:
     """Fit one device: a pure JAX function (vmap it, or differentiate through it).
 
     **Arguments:**
@@ -223,7 +224,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
 
 @eqx.filter_jit
 def solve_batch(model: ErrorModel, sig: Signals, opts: FitOptions,
-                theta0: Float[Array, "d q"] | None) -> dict:
+                theta0: Float[Array, "d q"] | None) -> dict[str, Array]:
     """:func:`solve_device` of every device of ``sig`` (``theta0``: (d, q) starts or None),
     in groups of ``opts.chunk`` devices: one compiled program per model and shape."""
     TRACE_COUNTS["direct"] += 1

@@ -194,6 +194,13 @@ def release_compiled_if_crowded(fraction: float = MAP_HEADROOM, limit: int | Non
     materialize symbols") and jaxlib 0.10.2 segfaulted unwinding that error.
     Clearing JAX's caches unmaps them; later calls compile again, or load from the
     persistent compilation cache.
+
+    **Arguments:**
+
+    - ``fraction``: the share of the kernel's mapping limit above which the programs are
+      dropped.
+    - ``limit``: the limit (default: ``vm.max_map_count``).
+    - ``interval``: seconds within which a second check returns at once.
     """
     now = time.monotonic()
     if now - _last_check[0] < interval:

@@ -123,7 +123,13 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
 
 
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` whole or not at all."""
+    """Write ``text`` (UTF-8) to ``path`` whole or not at all.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``text``: its content.
+    """
     if not isinstance(text, str):
         raise TypeError(f"atomic_write_text needs str, not {type(text).__name__}")
     with AtomicFile(path, "w") as f:

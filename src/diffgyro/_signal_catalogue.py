@@ -105,7 +105,14 @@ BUILT_IN: tuple[str, ...] = tuple(CATALOGUE)
 
 
 def register_signal(info: SignalInfo) -> SignalInfo:
-    """Add a signal to the catalogue (after the standard ones in canonical order)."""
+    """Add a signal to the catalogue (after the standard ones in canonical order).
+
+    **Arguments:**
+
+    - ``info``: the signal's :class:`SignalInfo` (its grammar name, unit and ``value``).
+
+    **Returns:** ``info``.
+    """
     if info.name in CATALOGUE:
         raise ValueError(f"signal {info.name!r} is already in the catalogue")
     CATALOGUE[info.name] = info

@@ -87,7 +87,14 @@ STOP_RATIO = 4
 
 
 def default_m(n: int, per_decade: int = 10, stop_ratio: int = STOP_RATIO) -> np.ndarray:
-    """Cluster sizes 1 .. n // stop_ratio, about ``per_decade`` per decade (integers, unique)."""
+    """Cluster sizes 1 .. n // stop_ratio, about ``per_decade`` per decade (integers, unique).
+
+    **Arguments:**
+
+    - ``n``: the series' samples.
+    - ``per_decade``: cluster sizes per decade.
+    - ``stop_ratio``: the longest cluster is ``n / stop_ratio`` samples.
+    """
     top = max(1, int(n) // int(stop_ratio))
     k = int(math.floor(per_decade * math.log10(top))) + 1
     m = np.unique(np.round(np.logspace(0.0, math.log10(top), max(k, 1))).astype(np.int64))
@@ -175,6 +182,14 @@ def oadev(
     ``dt`` broadcasts against the leading axes. Returns (adev, count): count is
     the number of overlapping second differences, N + 1 − 2m. Entries with
     fewer than 2 terms or ``m > n_valid / stop_ratio`` are NaN.
+
+    **Arguments:**
+
+    - ``y``: the rates (..., n).
+    - ``dt``: the sample interval, s.
+    - ``m``: the cluster sizes (k,).
+    - ``n_valid``: the real samples of each padded series (default: all).
+    - ``stop_ratio``: the longest cluster is ``n_valid / stop_ratio`` samples.
     """
     y = jnp.asarray(y)
     lead = y.shape[:-1]
@@ -210,6 +225,12 @@ def adev_nonoverlapping(y: Float[np.ndarray, "... n"], dt: float,
     """Non-overlapping Allan deviation of ``y`` (..., n) at τ = m·dt; NaN where K < 1::
 
         σ²(τ) = 1 / (2 τ² K) · Σ_j (x[(j+2)m] − 2 x[(j+1)m] + x[jm])²,  K = ⌊n/m⌋ − 1
+
+    **Arguments:**
+
+    - ``y``: the rates (..., n).
+    - ``dt``: the sample interval, s.
+    - ``m``: the cluster sizes (k,).
     """
     x = _phase(y, dt)
     n = x.shape[-1] - 1
@@ -231,6 +252,12 @@ def mdev(y: Float[np.ndarray, "... n"], dt: float,
         Mod σ²(τ) = 1 / (2 m² τ² (N − 3m + 1)) · Σ_j (Σ_{i=j}^{j+m−1} x[i+2m] − 2 x[i+m] + x[i])²
 
     with N = n + 1 phase points.
+
+    **Arguments:**
+
+    - ``y``: the rates (..., n).
+    - ``dt``: the sample interval, s.
+    - ``m``: the cluster sizes (k,).
     """
     x = _phase(y, dt)
     big_n = x.shape[-1]
@@ -254,6 +281,12 @@ def edf_simple(n_phase, m, alpha):
 
     ``alpha``: +2 white PM, 0 white FM, −1 flicker FM, −2 random-walk FM
     (flicker PM is read as white PM here). ``n_phase`` = samples + 1.
+
+    **Arguments:**
+
+    - ``n_phase``: the phase points (samples + 1).
+    - ``m``: the cluster size.
+    - ``alpha``: the noise exponent.
     """
     N = jnp.asarray(n_phase, jnp.result_type(float))
     m = jnp.asarray(m, N.dtype)
@@ -272,12 +305,22 @@ def alpha_from_slope(slope):
     Steeper slopes (quantisation, white PM) get the white-FM EDF, which is
     smaller, i.e. conservative: a chance −1 slope among the few long clusters
     must not be granted white PM's huge EDF.
+
+    **Arguments:**
+
+    - ``slope``: the ADEV log-log slope.
     """
     return jnp.clip(jnp.round(-2.0 * slope - 1.0), -2.0, 0.0)
 
 
 def chi2_ppf(p, nu):
-    """Chi-square quantile: Wilson–Hilferty start, then Newton steps on log x (traceable)."""
+    """Chi-square quantile: Wilson–Hilferty start, then Newton steps on log x (traceable).
+
+    **Arguments:**
+
+    - ``p``: the probability.
+    - ``nu``: the degrees of freedom.
+    """
     p = jnp.asarray(p, jnp.result_type(float))
     nu = jnp.asarray(nu, p.dtype)
     z = jnp.sqrt(2.0) * jax.scipy.special.erfinv(2.0 * p - 1.0)
@@ -302,7 +345,15 @@ def chi2_ppf(p, nu):
 
 
 def log_slope(log_tau, log_adev, weight, half: int = 3):
-    """Slope of log σ against log τ by weighted least squares over ±``half`` points."""
+    """Slope of log σ against log τ by weighted least squares over ±``half`` points.
+
+    **Arguments:**
+
+    - ``log_tau``: log τ of the points.
+    - ``log_adev``: log σ of the points.
+    - ``weight``: each point's weight.
+    - ``half``: the window, ± points.
+    """
     k = log_tau.shape[-1]
     i = jnp.arange(k)
     win = (jnp.abs(i[:, None] - i[None, :]) <= half).astype(log_tau.dtype)
@@ -395,6 +446,14 @@ def noise_terms(tau, adev, edf, ok, iterations: int = 4):
     ``(3Q², N², 0.664²B², K²/3)``, the design columns, and each term's
     evidence: the rise of the weighted squared misfit (a χ²) when the best
     fit must do without it.
+
+    **Arguments:**
+
+    - ``tau``: the cluster times τ (k,), s.
+    - ``adev``: the Allan deviation at each (k,).
+    - ``edf``: its equivalent degrees of freedom (k,).
+    - ``ok``: which points are defined (k,).
+    - ``iterations``: refinements of the weights.
     """
     x = jnp.stack([1.0 / tau**2, 1.0 / tau, jnp.ones_like(tau), tau], axis=-1)
     x = jnp.where(ok[:, None], x, 0.0)
@@ -531,6 +590,25 @@ def allan(
     least ``dominance`` of the variance at some τ); ``method="lines"`` fits
     each fixed-slope line alone where the local slope (window ±``half``
     points) is within ``tol`` (−½), ``tol_flat`` (0) or ``tol_rrw`` (+½).
+
+    **Arguments:**
+
+    - ``y``: the rates (..., n), rad/s.
+    - ``dt``: the sample interval, s (broadcast over the leading axes).
+    - ``m``: the cluster sizes (default: :func:`default_m` of the longest series).
+    - ``n_valid``: the real samples of each padded series (default: all n).
+    - ``ci``: the confidence intervals' probability.
+    - ``method``: ``"fit"`` or ``"lines"``, as above.
+    - ``dominance``: the share of the variance at some τ a term must carry to be read out
+      (``fit``).
+    - ``evidence``: how much worse (χ²) the fit without a term must be for the term to be
+      read out (``fit``).
+    - ``tol``: the local slope's tolerance around −½ (``lines``).
+    - ``tol_flat``: its tolerance around 0 (``lines``).
+    - ``tol_rrw``: its tolerance around +½ (``lines``).
+    - ``half``: the local slope's window, ± points.
+    - ``stop_ratio``: the longest cluster is ``n / stop_ratio`` samples.
+    - ``per_decade``: cluster sizes per decade of the default ``m``.
     """
     if method not in ("fit", "lines"):
         raise ValueError(f"unknown read-out method {method!r} (use 'fit' or 'lines')")
@@ -548,7 +626,13 @@ def allan(
 
 
 def sample_interval(t: np.ndarray, n_valid: int | None = None) -> float:
-    """Median spacing of the valid time stamps (seconds)."""
+    """Median spacing of the valid time stamps (seconds).
+
+    **Arguments:**
+
+    - ``t``: time stamps (n,), s.
+    - ``n_valid``: the valid samples (default: all).
+    """
     t = np.asarray(t, dtype=np.float64)
     if n_valid is not None:
         t = t[: int(n_valid)]
@@ -558,7 +642,12 @@ def sample_interval(t: np.ndarray, n_valid: int | None = None) -> float:
 
 
 def sample_intervals(batch) -> np.ndarray:
-    """Each device's sample interval (s): the median spacing of its valid time stamps."""
+    """Each device's sample interval (s): the median spacing of its valid time stamps.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`.
+    """
     nv = np.asarray(batch.n_valid, dtype=np.int64)
     return np.array([sample_interval(batch.t[i], nv[i]) for i in range(batch.n_devices)])
 
@@ -568,6 +657,12 @@ def cluster_sizes(taus, dt: float, rtol: float = 1e-6) -> np.ndarray:
 
     Raises ValueError naming the first τ that is not a whole number (≥ 1) of
     sample intervals within ``rtol``: the deviation is only defined there.
+
+    **Arguments:**
+
+    - ``taus``: the requested τ, s.
+    - ``dt``: the sample interval, s.
+    - ``rtol``: how close to a whole number of intervals each τ must be.
     """
     taus = np.asarray(taus, dtype=np.float64)
     m = np.round(taus / dt)
@@ -583,6 +678,12 @@ def allan_batch(batch, m=None, **options) -> AllanResult:
 
     Leading axes of the result: (devices, 3). Each device's sample interval is
     the median spacing of its time stamps; rates are taken as recorded (rad/s).
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`.
+    - ``m``: the cluster sizes (default: from the longest device).
+    - ``**options``: options of :func:`allan`.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     gyro = np.asarray(batch.gyro, dtype=np.float64)
@@ -604,6 +705,12 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
     :class:`~diffgyro.errors.DataError` (naming file and device) where a τ is
     not a whole number of its sample intervals; a τ longer than
     ``n / stop_ratio`` is NaN as usual.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`.
+    - ``taus``: the cluster times, s.
+    - ``**options``: options of :func:`allan`.
     """
 
     dt = sample_intervals(batch)
@@ -626,7 +733,14 @@ def allan_at_taus(batch, taus, **options) -> list[tuple[np.ndarray, AllanResult]
 
 def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
     """The ``allan --json`` object (NaN becomes null, and the axis' ``missing``
-    says why; τ only where defined)."""
+    says why; τ only where defined).
+
+    **Arguments:**
+
+    - ``result``: the :class:`AllanResult` (leading axes: devices, axes).
+    - ``devices``: the devices' names.
+    - ``axes``: the axes' labels.
+    """
     tau = np.asarray(result.tau)
     adev = np.asarray(result.adev)
     ro = result.readouts
@@ -660,7 +774,16 @@ _MISSING = {
 
 
 def plot_allan(result: AllanResult, device: int = 0, axes=("gx", "gy", "gz"), ax=None, title=None):
-    """Log-log Allan deviation of one device's axes with CIs, the −½, 0, +½ lines and read-outs."""
+    """Log-log Allan deviation of one device's axes with CIs, the −½, 0, +½ lines and read-outs.
+
+    **Arguments:**
+
+    - ``result``: the :class:`AllanResult`.
+    - ``device``: the device's index.
+    - ``axes``: the axes' labels.
+    - ``ax``: a matplotlib axes to draw on (default: a new figure).
+    - ``title``: the figure's title.
+    """
     import matplotlib
 
     if ax is None:

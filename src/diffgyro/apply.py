@@ -56,6 +56,12 @@ An accelerometer calibration (the file's ``channel`` is ``accel``) is applied by
   heating or cooling, ``T_ext = T``, extra columns at their centres). The result is the
   accelerometer as it reads at ``temp_centre``; its absolute offset is the accelerometer
   calibration's to remove, as both autopilots' parameters leave it.
+
+A term registered outside diffgyro has no code here: its numpy columns are passed in
+``terms``, a mapping from its name to ``fn(order, dev, rate, env, theta) -> (columns,
+used)`` (``order`` the spec's whole-number argument or None, ``env`` from
+:func:`environment`, ``theta`` the log τ from this term's on, ``used`` how many of them
+it read); the term's class declares the same function as ``numpy_columns``.
 """
 
 from __future__ import annotations
@@ -136,7 +142,14 @@ def _signal(name: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
 
 
 def local_slope(t: np.ndarray, y: np.ndarray, half: int) -> np.ndarray:
-    """Centred least-squares slope of y(t) over samples i-half .. i+half."""
+    """Centred least-squares slope of y(t) over samples i-half .. i+half.
+
+    **Arguments:**
+
+    - ``t``: sample times (n,).
+    - ``y``: the samples (n,).
+    - ``half``: the window's half-width in samples (clipped at the ends).
+    """
     n = len(t)
     tc, yc = t - t.mean(), y - y.mean()
 
@@ -175,8 +188,18 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
     return y
 
 
-def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
-    """Regressor columns (n, 3, p) of every term at true rate ``rate`` (n, 3)."""
+def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None) -> np.ndarray:
+    """Regressor columns (n, 3, p) of every term of ``spec`` at the true rate.
+
+    **Arguments:**
+
+    - ``spec``: the calibration file's model spec (``"bias_poly(2)+gradient"``).
+    - ``dev``: the device's record in the file (``beta``, ``theta``, ``temp_centre``, …).
+    - ``rate``: the true rate (n, 3), rad/s.
+    - ``env``: the derived signals of :func:`environment`.
+    - ``terms``: the numpy columns of terms registered outside diffgyro, by name (see the
+      module's notes); None: built-in terms only.
+    """
     n = rate.shape[0]
     cols, q = [], 0
     theta = np.asarray(dev["theta"], float)
@@ -233,15 +256,31 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict) -> np.ndarray:
             tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
             q += 1
             cols.append(np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1))
+        elif terms and name in terms:
+            c, used = terms[name](k, dev, rate, env, theta[q:])
+            q += int(used)
+            cols.append(np.asarray(c, float))
         else:
-            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}")
+            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}; "
+                             f"pass its numpy columns as terms={{{name!r}: fn}}")
     return np.concatenate(cols, axis=-1) if cols else np.zeros((n, 3, 0))
 
 
 def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0,
                 aux=None) -> dict:
-    """Derived signals of one device, as the calibration defines them; ``aux`` maps the
-    extra columns' names to their samples."""
+    """Derived signals of one device, as the calibration defines them (steps 1 and 2).
+
+    **Arguments:**
+
+    - ``dev``: the device's record in the calibration file (its ``temp_range``,
+      ``temp_centre``, ``temp_scale`` and ``aux`` centring).
+    - ``t``: sample times (n,), s.
+    - ``temp``: die temperature (n,), °C, or None when no term reads it.
+    - ``temp_ext``: external temperature (n,), °C, or None.
+    - ``accel``: specific force (n, 3), m/s², or None.
+    - ``dtemp_window``: the window of the dT/dt slope, s (the file's ``dtemp_window``).
+    - ``aux``: the extra columns' samples (n,) by name, for ``aux(NAME)`` terms.
+    """
     t = np.asarray(t, float) - float(t[0])
     env = {"t": t, "accel": None if accel is None else np.asarray(accel, float), "aux_s": {}}
     for name, e in dev.get("aux", {}).items():
@@ -310,9 +349,22 @@ def compensate_accel(calibration: dict, device: str, t, accel, temp=None, temp_e
 
 
 def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None, accel=None,
-               iterations: int = 4, aux=None) -> np.ndarray:
-    """True rate (n, 3) from measured ``gyro`` (n, 3) with a parsed calibration file;
-    ``aux`` maps extra column names to samples (n,) for ``aux(NAME)`` terms."""
+               iterations: int = 4, aux=None, terms=None) -> np.ndarray:
+    """True rate (n, 3) from the measured gyro with a parsed calibration file.
+
+    **Arguments:**
+
+    - ``calibration``: the calibration file as a dict (``json.load``).
+    - ``device``: the device's id in the file.
+    - ``t``: sample times (n,), s.
+    - ``gyro``: the measured rate (n, 3), rad/s.
+    - ``temp``: die temperature (n,), °C, where a term reads it.
+    - ``temp_ext``: external temperature (n,), °C, for ``temp_diff``.
+    - ``accel``: specific force (n, 3), m/s², for ``g_sens`` and accelerometer signals.
+    - ``iterations``: Newton steps that invert the rate-dependent terms.
+    - ``aux``: extra column names to samples (n,), for ``aux(NAME)`` terms.
+    - ``terms``: term names to the numpy columns of terms registered outside diffgyro.
+    """
     dev = _device(calibration, device)
     spec = calibration["model"]
     beta = np.asarray(dev["beta"], float)
@@ -320,7 +372,7 @@ def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None
     gyro = np.asarray(gyro, float)
 
     def err(omega):
-        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env), beta)
+        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env, terms), beta)
 
     omega = gyro - err(np.zeros_like(gyro))
     eps = 1e-7

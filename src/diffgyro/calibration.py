@@ -127,14 +127,23 @@ class Calibration:
 
 def entry_json(fields: dict) -> dict:
     """A device entry as written: JSON-safe, without an empty ``aux``, ``limits`` or ``motion``
-    block and without ``static_only`` when false."""
+    block and without ``static_only`` when false.
+
+    **Arguments:**
+
+    - ``fields``: the device entry's fields."""
     return to_json_safe({k: v for k, v in fields.items()
                          if k not in ("aux", "limits", "motion", "static_only", "reference",
                                       "device_id") or v is not None and v is not False and v != {}})
 
 
 def data_hash(batch: Batch) -> str:
-    """SHA-256 of the valid samples of every device (order of devices included)."""
+    """SHA-256 of the valid samples of every device (order of devices included).
+
+    **Arguments:**
+
+    - ``batch``: the batch.
+    """
     h = hashlib.sha256()
     for i in range(batch.n_devices):
         n = int(batch.n_valid[i])
@@ -151,7 +160,13 @@ def data_hash(batch: Batch) -> str:
 
 def units_of(model: ErrorModel, channel: str = "gyro") -> dict:
     """The unit of each term's coefficients, and of tau, rates and temperature (the
-    accelerometer channel's measurement is in m/s² where the gyro's is in rad/s)."""
+    accelerometer channel's measurement is in m/s² where the gyro's is in rad/s).
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``channel``: ``"gyro"`` or ``"accel"``.
+    """
     def unit(text: str) -> str:
         return text if channel == "gyro" else text.replace("rad/s", UNITS[channel])
 
@@ -169,8 +184,14 @@ def aux_entries(result: AbstractFitResult, i: int) -> dict:
 
 def from_fit(result: AbstractFitResult, batch: Batch | None = None,
              device_ids: dict[str, int] | None = None) -> Calibration:
-    """A calibration file's content from a fit (``batch`` adds the input hash;
-    ``device_ids``: the sensors' ids by device, as a log gives them)."""
+    """A calibration file's content from a fit.
+
+    **Arguments:**
+
+    - ``result``: the fit's result (:func:`diffgyro.fit.fit`).
+    - ``batch``: the data fitted; adds the input hash.
+    - ``device_ids``: the sensors' ids by device, as a log gives them.
+    """
     ref = getattr(result, "reference", None)
     ids = device_ids or {}
 
@@ -199,7 +220,13 @@ def from_fit(result: AbstractFitResult, batch: Batch | None = None,
 
 
 def save(cal: Calibration, path: str | os.PathLike) -> None:
-    """Write ``cal`` as JSON in one atomic step (a reader never sees half a file)."""
+    """Write ``cal`` as JSON in one atomic step (a reader never sees half a file).
+
+    **Arguments:**
+
+    - ``cal``: the :class:`Calibration`.
+    - ``path``: the file to write.
+    """
     atomic_write_text(path, dumps(cal.to_json(), indent=1) + "\n")
 
 
@@ -365,7 +392,12 @@ def _sensor_fields(d: dict, where: str) -> tuple[list[float] | None, int | None]
 
 
 def from_json(obj) -> Calibration:
-    """Validate a parsed calibration file against the schema; SpecError on anything odd."""
+    """Validate a parsed calibration file against the schema; SpecError on anything odd.
+
+    **Arguments:**
+
+    - ``obj``: the parsed JSON (any value: whatever is not a valid file is refused).
+    """
     if not isinstance(obj, dict):
         raise SpecError("calibration file: top level must be a JSON object")
     if obj.get("format") != FORMAT:
@@ -480,7 +512,12 @@ def _aux_entries(val, model: ErrorModel, where: str) -> dict:
 
 
 def load(path: str | os.PathLike) -> Calibration:
-    """Read and validate a calibration file (SpecError naming the file on any problem)."""
+    """Read and validate a calibration file (SpecError naming the file on any problem).
+
+    **Arguments:**
+
+    - ``path``: the calibration file.
+    """
     path = os.fspath(path)
     try:
         if os.path.getsize(path) > MAX_FILE_BYTES:
@@ -521,6 +558,11 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     Temperatures outside a device's calibrated range are clamped to it (as
     PX4 does) and counted; the counts come back in the second value, keyed
     by device. A device whose calibration is not ``ok`` is an error.
+
+    **Arguments:**
+
+    - ``cal``: the :class:`Calibration` (:func:`load`).
+    - ``data``: a Batch, one Recording or a list of them, devices named as in ``cal``.
     """
     batch = data if isinstance(data, Batch) else Batch.from_recordings(
         [data] if isinstance(data, Recording) else list(data))

@@ -25,7 +25,12 @@ __all__ = ["residuals"]
 def residuals(corrected: Batch, original: Batch) -> list[dict]:
     """Per device of ``corrected`` (``calibration.compensate``'s output for ``original``):
     ``residual_rms`` and per axis, ``noise_floor`` and per axis (rad/s), their ``ratio`` and
-    ``against`` (``"rate"`` or ``"zero"``); strict-JSON numbers (None when not given)."""
+    ``against`` (``"rate"`` or ``"zero"``); strict-JSON numbers (None when not given).
+
+    **Arguments:**
+
+    - ``corrected``: the compensated batch.
+    - ``original``: the batch as loaded (its reference rate, if any, and noise floor)."""
 
     gyro = np.asarray(original.gyro, np.float64)
     rate = None if original.rate is None else np.asarray(original.rate, np.float64)

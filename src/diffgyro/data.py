@@ -45,7 +45,12 @@ AUX_PREFIX = "aux:"
 
 
 def aux_key(name: str) -> str:
-    """The signal name of extra column ``name`` (as effect terms declare it in ``requires``)."""
+    """The signal name of extra column ``name`` (as effect terms declare it in ``requires``).
+
+    **Arguments:**
+
+    - ``name``: the extra column's name.
+    """
     return AUX_PREFIX + name
 
 
@@ -113,6 +118,11 @@ def bucket_length(n: int, minimum: int = 64) -> int:
 
     A handful of bucket lengths per decade keeps recompilation rare when
     devices have slightly different numbers of samples.
+
+    **Arguments:**
+
+    - ``n``: the number of samples.
+    - ``minimum``: the smallest bucket length.
     """
     n = max(int(n), minimum)
     k = max(0, math.floor(math.log2(n)) - 2)
@@ -130,6 +140,11 @@ def device_bucket(n: int, minimum: int = 8) -> int:
     The direct-path fit pads to at least 8 (few compiled sizes for small batches);
     diagnose's chunks and Allan curves pass ``minimum=1``, so that one device is not
     computed eight times over in its larger per-device work.
+
+    **Arguments:**
+
+    - ``n``: the number of devices.
+    - ``minimum``: the smallest padded count.
     """
     n = max(int(n), 1)
     if n <= 64:
@@ -148,7 +163,11 @@ def _pad_into(out: np.ndarray, arr: np.ndarray, mode: str) -> None:
 
 def as_slice(idx: np.ndarray) -> slice | np.ndarray:
     """``idx`` as a slice where it is one run of consecutive indices (indexing with it then
-    gives a view, not a copy), else ``idx`` itself."""
+    gives a view, not a copy), else ``idx`` itself.
+
+    **Arguments:**
+
+    - ``idx``: sorted integer indices."""
     if idx.size and np.array_equal(idx, np.arange(idx[0], idx[0] + idx.size)):
         return slice(int(idx[0]), int(idx[0]) + idx.size)
     return idx
@@ -312,7 +331,12 @@ class Batch(eqx.Module):
 
 
 def as_batch(data: Batch | Recording | list[Recording]) -> Batch:
-    """A Batch of ``data`` (a Batch, one Recording or a list of them)."""
+    """A Batch of ``data``.
+
+    **Arguments:**
+
+    - ``data``: a Batch (returned as it is), one Recording or a list of them.
+    """
     if isinstance(data, Batch):
         return data
     if isinstance(data, Recording):
@@ -321,7 +345,12 @@ def as_batch(data: Batch | Recording | list[Recording]) -> Batch:
 
 
 def pad_devices(batch: Batch) -> Batch:
-    """The batch with its last device repeated up to :func:`device_bucket` devices."""
+    """The batch with its last device repeated up to :func:`device_bucket` devices.
+
+    **Arguments:**
+
+    - ``batch``: the batch to pad.
+    """
     n = batch.n_devices
     m = device_bucket(n)
     if m == n:
@@ -331,7 +360,12 @@ def pad_devices(batch: Batch) -> Batch:
 
 def sampling_intervals(batch: Batch) -> np.ndarray:
     """Median interval between each device's first ``n_valid`` samples (s; 1 where it
-    has fewer than two). Devices of one length share one vectorised median."""
+    has fewer than two). Devices of one length share one vectorised median.
+
+    **Arguments:**
+
+    - ``batch``: the batch.
+    """
     out = np.ones(batch.n_devices)
     n_valid = np.asarray(batch.n_valid, int)
     t = np.asarray(batch.t)

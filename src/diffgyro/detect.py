@@ -73,6 +73,17 @@ def s1_range_detector(
     from ``start`` (default ``init``, so ``window_static`` lines up with
     :func:`diffgyro.recipes._static_kalman.offset_filter`). ``margin`` is the patent's ``M``.
     A window needs at least one valid sample; its range is over valid ones.
+
+    **Arguments:**
+
+    - ``accel``: specific force (n, 3), m/s².
+    - ``gyro``: rate (n, 3), rad/s.
+    - ``window``: samples per window.
+    - ``init``: samples of the factory static window at the start.
+    - ``margin``: the patent's ``M``.
+    - ``gyro_axes``: the gyro axes tested.
+    - ``mask``: which samples are valid (default: all).
+    - ``start``: where the windows start (default: ``init``).
     """
     accel = jnp.asarray(accel)
     sig = jnp.concatenate([accel, jnp.asarray(gyro, accel.dtype)[:, list(gyro_axes)]], axis=1)
@@ -108,6 +119,12 @@ def rolling_variance(x: Float[Array, "n c"], mask: Bool[Array, " n"], half: int)
     """Variance of every column over the valid samples of ``i−half .. i+half`` (cumulative sums).
 
     Columns are centred on their valid mean first so the sums stay accurate.
+
+    **Arguments:**
+
+    - ``x``: the columns (n, c).
+    - ``mask``: which samples are valid.
+    - ``half``: the window's half-width, samples.
     """
     w = mask.astype(x.dtype)[:, None]
     mean = jnp.sum(x * w, 0) / jnp.maximum(jnp.sum(w), 1.0)
@@ -130,7 +147,14 @@ def rolling_variance(x: Float[Array, "n c"], mask: Bool[Array, " n"], half: int)
 @eqx.filter_jit
 def otsu_threshold(values: Float[Array, " n"], mask: Bool[Array, " n"], bins: int = 256) -> Float[Array, ""]:
     """Otsu's threshold of the valid ``values``: maximises the between-class variance
-    (the middle of the best split when an empty gap between the modes makes it a plateau)."""
+    (the middle of the best split when an empty gap between the modes makes it a plateau).
+
+    **Arguments:**
+
+    - ``values``: the values (n,).
+    - ``mask``: which of them are valid.
+    - ``bins``: histogram bins.
+    """
     v = jnp.where(mask, values, jnp.nan)
     lo, hi = jnp.nanmin(v), jnp.nanmax(v)
     width = jnp.maximum(hi - lo, 1e-12) / bins
@@ -153,7 +177,13 @@ def otsu_threshold(values: Float[Array, " n"], mask: Bool[Array, " n"], bins: in
 
 @eqx.filter_jit
 def drop_short_runs(flag: Bool[Array, " n"], min_length: int) -> Bool[Array, " n"]:
-    """``flag`` with every run of True shorter than ``min_length`` samples cleared."""
+    """``flag`` with every run of True shorter than ``min_length`` samples cleared.
+
+    **Arguments:**
+
+    - ``flag``: the flags (n,).
+    - ``min_length``: the shortest run of True kept, samples.
+    """
     n = flag.shape[0]
     start = flag & ~jnp.concatenate([jnp.zeros((1,), bool), flag[:-1]])
     run = jnp.cumsum(start) - 1
@@ -178,6 +208,16 @@ def variance_detector(
     samples of initial rest for ``ς_init``, ``min_length`` the shortest static
     run kept; ``multiplier`` ``k`` (threshold ``k·ς_init``) or ``None`` for
     Otsu's automatic threshold on ``log ς``.
+
+    **Arguments:**
+
+    - ``accel``: specific force (n, 3), m/s².
+    - ``half_window``: samples each side for the rolling variance.
+    - ``init``: samples of initial rest, for ``ς_init``.
+    - ``min_length``: the shortest static run kept, samples.
+    - ``multiplier``: ``k`` of the threshold ``k·ς_init``, or None for Otsu's threshold on
+      ``log ς``.
+    - ``mask``: which samples are valid (default: all).
     """
     accel = jnp.asarray(accel)
     n = accel.shape[0]
@@ -206,6 +246,12 @@ def detect_batch(batch, method: str = "variance", **options) -> Bool[np.ndarray,
     ``method="variance"`` (needs accelerometer; options of
     :func:`variance_detector`, windows in samples) or ``"s1"`` (options of
     :func:`s1_range_detector`).
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`.
+    - ``method``: ``"variance"`` or ``"s1"``.
+    - ``**options``: the chosen detector's options.
     """
 
     if batch.accel is None:
@@ -224,7 +270,13 @@ def detect_batch(batch, method: str = "variance", **options) -> Bool[np.ndarray,
 
 
 def precision_recall(pred: Bool[np.ndarray, " n"], truth: Bool[np.ndarray, " n"]) -> tuple[float, float]:
-    """Precision and recall of ``pred`` as a detector of ``truth`` (both boolean)."""
+    """Precision and recall of ``pred`` as a detector of ``truth`` (both boolean).
+
+    **Arguments:**
+
+    - ``pred``: the detector's flags (n,).
+    - ``truth``: the true flags (n,).
+    """
     pred = np.asarray(pred, bool)
     truth = np.asarray(truth, bool)
     tp = np.sum(pred & truth)

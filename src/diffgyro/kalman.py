@@ -94,6 +94,16 @@ def rw_filter(
     """Kalman filter of the random walk run on ``y`` and on each column of ``x`` (lax.scan).
 
     (An associative-scan version compiled for minutes and ran slower on CPU.)
+
+    **Arguments:**
+
+    - ``y``: one axis' observations (n,).
+    - ``x``: the design columns of that axis (n, p).
+    - ``obs``: where the bias is observed (n,).
+    - ``t``: sample times (n,), s.
+    - ``q``: the walk's variance rate.
+    - ``r``: the white measurement variance.
+    - ``p0``: the walk's prior variance at the first sample.
     """
     dtype = y.dtype
     p_cols = x.shape[1]
@@ -120,6 +130,12 @@ def profile(fp: FilterPass, obs: Bool[Array, " n"], reml: bool = False):
     """Log-likelihood with β profiled out (GLS), and β̂, from one filter pass.
 
     Returns (loglik, beta, gram) where gram = Σ E_Xᵀ E_X / F is Xᵀ Σ⁻¹ X.
+
+    **Arguments:**
+
+    - ``fp``: one filter pass (:func:`rw_filter`).
+    - ``obs``: where the bias is observed (n,).
+    - ``reml``: restricted maximum likelihood instead of plain ML.
     """
     w = jnp.where(obs, 1.0 / fp.f, 0.0)
     quad = jnp.sum(w * fp.e_y**2)
@@ -144,7 +160,19 @@ def profile(fp: FilterPass, obs: Bool[Array, " n"], reml: bool = False):
 
 
 def loglik(y, x, obs, t, q, r, p0=0.0, reml: bool = False):
-    """Marginal log-likelihood of one axis (β profiled out) and β̂."""
+    """Marginal log-likelihood of one axis (β profiled out) and β̂.
+
+    **Arguments:**
+
+    - ``y``: one axis' observations (n,).
+    - ``x``: its design columns (n, p).
+    - ``obs``: where the bias is observed (n,).
+    - ``t``: sample times (n,), s.
+    - ``q``: the walk's variance rate.
+    - ``r``: the white measurement variance.
+    - ``p0``: the walk's prior variance at the first sample.
+    - ``reml``: restricted maximum likelihood instead of plain ML.
+    """
     fp = rw_filter(y, x, obs, t, q, r, p0)
     ll, beta, _ = profile(fp, obs, reml)
     return ll, beta
@@ -156,6 +184,11 @@ def rts_smoother(fp: FilterPass, beta: Float[Array, " p"]):
     Returns (mean, variance) of ``b_k`` given all observations, every sample:
     ``G_k = P_k|k / P_{k+1|k}``, ``m_k = m_k|k + G_k (m_{k+1} − m_k|k)``,
     ``P_k = P_k|k + G_k² (P_{k+1} − P_{k+1|k})`` (G = 1 where nothing moves).
+
+    **Arguments:**
+
+    - ``fp``: the forward pass (:func:`rw_filter`).
+    - ``beta``: the deterministic coefficients (p,) whose residual is smoothed.
     """
     mf = fp.a_y - fp.a_x @ beta
     pf = fp.p
@@ -201,6 +234,17 @@ def smooth_bias(
 
     ``y`` is the measured minus the reference rate, ``x`` the deterministic
     design (``model.design(sig, θ)``), ``obs`` where the bias is observed.
+
+    **Arguments:**
+
+    - ``y``: the measured minus the reference rate (n, 3).
+    - ``x``: the deterministic design (n, 3, p), ``model.design(sig, θ)``.
+    - ``obs``: where the bias is observed (n,).
+    - ``t``: sample times (n,), s.
+    - ``q``: the walk's variance rate per axis (3,), (rad/s)²/s.
+    - ``r``: the white measurement variance per axis (3,), (rad/s)².
+    - ``p0``: the walk's prior variance at the first sample.
+    - ``reml``: profile β by restricted maximum likelihood (REML) instead of plain ML.
     """
     p0 = jnp.asarray(p0, y.dtype)
 
@@ -220,6 +264,16 @@ def causal_bias(y, obs, t, q, r, m0, p0):
 
     Starts from ``b ~ N(m0, p0)`` at ``t[0]``; returns (mean, variance) per sample
     (what a device would subtract at sample k, knowing only the past).
+
+    **Arguments:**
+
+    - ``y``: one axis' measured minus reference rate (n,).
+    - ``obs``: where the bias is observed (n,).
+    - ``t``: sample times (n,), s.
+    - ``q``: the walk's variance rate, (rad/s)²/s.
+    - ``r``: the white measurement variance, (rad/s)².
+    - ``m0``: the prior mean of the bias at ``t[0]``.
+    - ``p0``: its prior variance.
     """
     fp = rw_filter(y - m0, jnp.zeros((y.shape[0], 0), y.dtype), obs, t, q, r, p0)
     pred = jnp.concatenate([jnp.zeros((1,), y.dtype), fp.a_y[:-1]]) + m0
@@ -234,7 +288,15 @@ def identified_bias(y: Float[Array, "n 3"], axes: dict, dt: float, p0_walk: floa
     states replace the one walk of :func:`rw_filter`
     (:mod:`diffgyro.stochastic._bias_filter`); a random walk alone is that filter. An
     axis with no bias process (white only) has bias 0 and variance 0. ``y``: the rate
-    at rest, or the residual of a deterministic model, sampled every ``dt`` s."""
+    at rest, or the residual of a deterministic model, sampled every ``dt`` s.
+
+    **Arguments:**
+
+    - ``y``: the rate at rest, or the residual of a deterministic model (n, 3), rad/s.
+    - ``axes``: each axis' identified noise model, ``{"x": {"components": [...]}, ...}``.
+    - ``dt``: the sampling interval, s.
+    - ``p0_walk``: the prior variance of a random-walk state at the first sample.
+    """
 
     y = jnp.asarray(y, jnp.float64)
     mean, var = [], []
@@ -317,6 +379,20 @@ def learn_noise(
     Start: r from successive differences; log q from the best of a grid
     (q·dt from 1e-9·r to 10·r) at that r; then BFGS on the negative
     log-likelihood per observation in (log q, log r, θ). β follows in closed form.
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel` (its time constants are learned
+      too).
+    - ``sig``: one device's :class:`~diffgyro.signals.Signals`.
+    - ``obs``: where the bias is observed (n,).
+    - ``p0``: the walk's prior variance at the first sample.
+    - ``keep``: (indices, valid): the samples the likelihood reads, or None for all.
+    - ``reml``: restricted maximum likelihood instead of plain ML.
+    - ``max_steps``: BFGS steps at most.
+    - ``rtol``: BFGS's relative tolerance.
+    - ``atol``: BFGS's absolute tolerance.
+    - ``n_grid``: points of the starting grid in log q.
     """
     dtype = sig.gyro.dtype
     obs = obs & sig.mask

@@ -108,6 +108,15 @@ def s2_plan(step: float = 10.0, soak: float = 1800.0, ramp_per_min: float = 1.5,
 
     The patent cools at 1–2 °C/min; 1.5 °C/min is taken. Its total time is
     :func:`plan_duration` (about 8 h from a 25 °C start).
+
+    **Arguments:**
+
+    - ``step``: the temperature step, °C.
+    - ``soak``: each soak, s.
+    - ``ramp_per_min``: the ramp rate, °C/min.
+    - ``table_rate_deg``: the table's rate, °/s.
+    - ``spin``: each spin, s.
+    - ``limits``: the coldest and hottest temperatures, °C.
     """
     temps = np.arange(limits[0], limits[1] + 1e-9, step)
     k = len(temps)
@@ -129,7 +138,13 @@ def ramp_times(plan: ChamberPlan, config: PlanConfig) -> Float[Array, " k"]:
 
 
 def plan_duration(plan: ChamberPlan, config: PlanConfig) -> Float[Array, ""]:
-    """Total test time (s): every ramp and every soak."""
+    """Total test time (s): every ramp and every soak.
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    """
     return jnp.sum(ramp_times(plan, config)) + jnp.sum(plan.soaks)
 
 
@@ -166,6 +181,13 @@ def plan_environment(plan: ChamberPlan, config: PlanConfig,
 
     ``tau_sensor`` (s) and ``self_heating`` (°C) default to the config's
     nominal device; pass arrays to vmap over a population.
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``tau_sensor``: the sensor lag, s (default: the config's).
+    - ``self_heating``: the self-heating, °C (default: the config's).
     """
     dtype = plan.temps.dtype
     tau = jnp.asarray(config.tau_sensor if tau_sensor is None else tau_sensor, dtype)
@@ -291,6 +313,15 @@ def operating_signals(temps, rates, norm: TempNorm, dtemp: float = 0.0,
     A single sample is steady state for every term: a lagged temperature
     equals the temperature, the warm-up transient is over (``t_on`` s after
     power-on), the inside–outside difference is zero.
+
+    **Arguments:**
+
+    - ``temps``: the operating temperatures (m,), °C.
+    - ``rates``: the true rates (m, 3) or (3,), rad/s.
+    - ``norm``: the temperature normalisation.
+    - ``dtemp``: dT/dt there, °C/s.
+    - ``accel``: the specific force, m/s².
+    - ``t_on``: the time since power-on, s.
     """
     temps = jnp.asarray(temps, jnp.result_type(float))
     m = temps.shape[0]
@@ -313,6 +344,14 @@ def compensation_error(fit_model: ErrorModel, fitted: Params, op: Signals,
     The gyro output is what the truth produces at the operating point
     (``truth_model``/``truth``; default: the fitted model with ``truth``),
     then inverted with the fitted calibration.
+
+    **Arguments:**
+
+    - ``fit_model``: the calibrated :class:`~diffgyro.model.ErrorModel`.
+    - ``fitted``: its fitted parameters.
+    - ``op``: the operating points (:func:`operating_signals`).
+    - ``truth_model``: the true model (default: ``fit_model``).
+    - ``truth``: the true parameters.
     """
     truth_model = fit_model if truth_model is None else truth_model
 
@@ -328,18 +367,36 @@ def compensation_error(fit_model: ErrorModel, fitted: Params, op: Signals,
 
 
 def flat(params: Params) -> Float[Array, " k"]:
-    """(beta per axis, theta) as one vector, in FitResult.cov's order."""
+    """(beta per axis, theta) as one vector, in FitResult.cov's order.
+
+    **Arguments:**
+
+    - ``params``: the :class:`~diffgyro.model.Params`.
+    """
     return jnp.concatenate([params.beta.reshape(-1), params.theta])
 
 
 def unflat(vec: Float[Array, " k"], model: ErrorModel) -> Params:
-    """The :class:`~diffgyro.model.Params` of a :func:`flat` vector."""
+    """The :class:`~diffgyro.model.Params` of a :func:`flat` vector.
+
+    **Arguments:**
+
+    - ``vec``: the flat vector.
+    - ``model``: the :class:`~diffgyro.model.ErrorModel` it belongs to.
+    """
     p, q = model.n_params, model.n_nonlinear
     return Params(beta=vec[:3 * p].reshape(3, p), theta=vec[3 * p:3 * p + q])
 
 
 def output_jacobian(model: ErrorModel, sig: Signals, params: Params) -> Float[Array, "n 3 k"]:
-    """∂(model output per sample and axis)/∂(flat params): the Gauss–Newton rows."""
+    """∂(model output per sample and axis)/∂(flat params): the Gauss–Newton rows.
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``sig``: one device's :class:`~diffgyro.signals.Signals`.
+    - ``params``: the parameters it is linearised at.
+    """
     p, q = model.n_params, model.n_nonlinear
     x = model.design(sig, params.theta)  # (n, 3, p)
     n = x.shape[0]
@@ -368,7 +425,13 @@ def scaled_inverse(info: Float[Array, "k k"]) -> Float[Array, "k k"]:
 
 
 def default_truth(model: ErrorModel, dtype=jnp.float64) -> Params:
-    """Nominal parameters used to linearise nonlinear models (time constants 10 min)."""
+    """Nominal parameters used to linearise nonlinear models (time constants 10 min).
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``dtype``: the arrays' dtype.
+    """
     beta = jnp.full((3, model.n_params), 1e-3, dtype)
     theta = jnp.full((model.n_nonlinear,), math.log(600.0), dtype)
     return Params(beta=beta, theta=theta)
@@ -403,6 +466,19 @@ def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
     Earth rate is not in the reference): the compensation error of the fit to
     the plan's noiseless data through :func:`~diffgyro.fit.solve_device` —
     closed form for linear models, optimistix's implicit adjoint otherwise.
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the :class:`~diffgyro.model.ErrorModel` calibrated.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``truth``: the true parameters (default: :func:`default_truth`).
+    - ``truth_model``: the true model, where it differs from ``model``.
+    - ``systematic``: include the systematic part (default: where the truth differs or Earth
+      rate is unknown).
+    - ``fit_options``: the fit's :class:`~diffgyro.fit.FitOptions`.
     """
     dtype = plan.temps.dtype
     truth = default_truth(model, dtype) if truth is None else truth
@@ -455,7 +531,13 @@ def expected_fit_error(plan: ChamberPlan, config: PlanConfig, model: ErrorModel,
 
 
 def smooth_max(x: Float[Array, "..."], p: float = 16.0) -> Float[Array, ""]:
-    """Power mean of order ``p``: a smooth stand-in for ``max`` (≤ max, → max as p grows)."""
+    """Power mean of order ``p``: a smooth stand-in for ``max`` (≤ max, → max as p grows).
+
+    **Arguments:**
+
+    - ``x``: the values.
+    - ``p``: the power mean's order.
+    """
     m = jax.lax.stop_gradient(jnp.max(x))
     return m * jnp.mean((x / m) ** p) ** (1.0 / p)
 
@@ -543,6 +625,20 @@ def optimise_plan(plan0: ChamberPlan, config: PlanConfig, model: ErrorModel | st
     unless ``"rates"`` is listed). The objective is the log of a power mean
     of order ``p`` of the predicted 1σ error over the operating grid; the
     learning rate follows a cosine decay to a tenth.
+
+    **Arguments:**
+
+    - ``plan0``: the starting plan.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``budget``: the total test time, s (default: ``plan0``'s own).
+    - ``free``: the plan's fields that move.
+    - ``steps``: Adam steps.
+    - ``lr``: the initial learning rate.
+    - ``p``: the power mean's order.
+    - ``**predict_kw``: options of :func:`predict_plan`.
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
@@ -588,6 +684,15 @@ def plan_sensitivity(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
     Returns ``worst`` (1σ, rad/s), ``grad`` (a ChamberPlan of ∂worst/∂field,
     in rad/s per field unit) and ``elasticity`` (∂log worst/∂log field: the
     % change of the error per % change of the field).
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``**predict_kw``: options of :func:`predict_plan`.
     """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
@@ -604,7 +709,18 @@ def heading_study(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str
                   op: OperatingRange, headings=(1, 2, 4), **predict_kw) -> dict[int, float]:
     """Predicted worst-case error for several numbers of table headings (an integer knob:
     a finite difference, not a gradient). It matters when Earth rate is not in the
-    reference (``config.earth_rate="unknown"``)."""
+    reference (``config.earth_rate="unknown"``).
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``headings``: the numbers of headings tried.
+    - ``**predict_kw``: options of :func:`predict_plan`.
+    """
     if isinstance(model, str):
         model = ErrorModel.from_spec(model)
     out = {}
@@ -624,6 +740,19 @@ def budget_for_accuracy(target: float, plan0: ChamberPlan, config: PlanConfig,
     regula falsi (Illinois) on log error against log time, never below
     ``lo``; every trial time optimises a plan started from ``plan0``.
     Returns the shortest trial time that reached the target and its plan.
+
+    **Arguments:**
+
+    - ``target``: the predicted worst-case 1σ error to reach, rad/s.
+    - ``plan0``: the plan every trial starts from.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``lo``: the shortest test time tried, s.
+    - ``hi``: the longest, s (it must reach the target).
+    - ``iterations``: regula falsi steps.
+    - ``**opt_kw``: options of :func:`optimise_plan`.
     """
     def err(x):
         res = optimise_plan(plan0, config, model, arw, op, budget=math.exp(x), **opt_kw)
@@ -671,6 +800,22 @@ def simulate_devices(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | 
     optionally Gauss–Markov (AR(1)) noise of standard deviation ``gm_sigma``
     and correlation time ``gm_tau`` s. The fit sees the plan's reference
     rate and the sensor temperature.
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``n_devices``: how many devices.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``norm``: the temperature normalisation of ``truth``.
+    - ``seed``: the seed.
+    - ``truth``: the nominal true parameters (default: :func:`default_truth`).
+    - ``param_spread``: the parameters' relative spread.
+    - ``tau_spread``: the sensor lag's relative spread.
+    - ``heating_spread``: the self-heating's spread, °C.
+    - ``gm_sigma``: Gauss–Markov noise σ, rad/s (0: none).
+    - ``gm_tau``: its correlation time, s.
     """
 
 
@@ -746,6 +891,20 @@ def monte_carlo(plan: ChamberPlan, config: PlanConfig, model: ErrorModel | str, 
 
     ``fit_kw`` goes to ``fit`` (e.g. ``path="direct"`` for the
     :func:`~diffgyro.fit.solve_device` path that the sensitivities differentiate).
+
+    **Arguments:**
+
+    - ``plan``: the :class:`ChamberPlan`.
+    - ``config``: the :class:`PlanConfig` (table, reference, sampling, the nominal device).
+    - ``model``: the model calibrated: a spec or an :class:`~diffgyro.model.ErrorModel`.
+    - ``arw``: the white-noise density, rad/s/√Hz.
+    - ``op``: the :class:`OperatingRange` the error is judged over.
+    - ``n_devices``: how many devices.
+    - ``seed``: the seed.
+    - ``chunk``: devices simulated and fitted at a time.
+    - ``truth``: the nominal true parameters.
+    - ``fit_kw``: options of ``fit``.
+    - ``**sim_kw``: options of :func:`simulate_devices`.
     """
 
     if isinstance(model, str):

@@ -86,7 +86,12 @@ def _plt():
 
 
 def figure_png(fig) -> str:
-    """A matplotlib figure as a base64 PNG string (the figure is closed)."""
+    """A matplotlib figure as a base64 PNG string (the figure is closed).
+
+    **Arguments:**
+
+    - ``fig``: the matplotlib figure.
+    """
     if _CHANNEL.get() != "gyro":  # every text artist: labels, titles, legends, ticks
         for text in fig.findobj(lambda a: hasattr(a, "get_text") and hasattr(a, "set_text")):
             text.set_text(in_units(text.get_text()))
@@ -141,7 +146,17 @@ def _scatter_vs(ax, x, e, xlabel, color_by=None):
 
 def device_figures(diagnosis, batch: Batch, i: int, ladder=None, named=None) -> dict[str, str]:
     """The figures of device ``i`` as {title: base64 PNG}; ``named`` is this device's entry of
-    :func:`named_term_residuals` (the residual with the named term, drawn over the base's)."""
+    :func:`named_term_residuals` (the residual with the named term, drawn over the base's).
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``batch``: the data diagnosed.
+    - ``i``: the device's index.
+    - ``ladder``: the batch's :class:`~diffgyro.diagnose.Ladder` (``diagnose --auto``), or
+      None.
+    - ``named``: this device's entry of :func:`named_term_residuals`, or None.
+    """
     d = diagnosis.devices[i]
     n = int(batch.n_valid[i])
     rec = batch.recording(i)
@@ -285,6 +300,13 @@ def named_term_residuals(diagnosis, batch: Batch, ladder=None) -> dict[int, tupl
     For every device whose diagnosis names a deterministic term: one fit per
     distinct model over the devices that name it, with the base fit's options
     (the ladder's last fit is reused when it is that model).
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``batch``: the data diagnosed.
+    - ``ladder``: the batch's :class:`~diffgyro.diagnose.Ladder` (``diagnose --auto``), or
+      None.
     """
 
     groups: dict[str, list[int]] = {}
@@ -323,7 +345,16 @@ def _most_correlated(cols: np.ndarray, y: np.ndarray, among=(0, 1, 2)) -> int:
 def followed_signal(name: str | None, rec, dtemp, k: int, delta: np.ndarray):
     """(x (n,), axis label) of the signal ``name`` (an effect's ``follows``) of ``rec`` as it
     bears on gyro axis ``k``; ``delta`` (the named term's fitted contribution on that axis)
-    picks the component of a vector signal. None when the data lack it or it is time."""
+    picks the component of a vector signal. None when the data lack it or it is time.
+
+    **Arguments:**
+
+    - ``name``: the signal's name (an effect's ``follows``).
+    - ``rec``: the device's :class:`~diffgyro.data.Recording`.
+    - ``dtemp``: its dT/dt (n,), °C/s.
+    - ``k``: the gyro axis.
+    - ``delta``: the named term's fitted contribution on that axis (n,).
+    """
     temp, ext, rate, acc = rec.temp, rec.temp_ext, rec.rate, rec.accel
     if name in ("temp", "heating") and temp is not None:
         return temp, "temperature (°C)"
@@ -374,6 +405,15 @@ def residual_drop_figure(base_model, new_spec: str, rec, e_base: np.ndarray, e_n
 
     Each model is drawn as thinned samples, labelled ``"<spec>: RMS <value> rad/s"`` (the
     RMS of every sample on that axis), and a moving or bin mean in the same colour.
+
+    **Arguments:**
+
+    - ``base_model``: the base :class:`~diffgyro.model.ErrorModel`.
+    - ``new_spec``: the spec with the added term.
+    - ``rec``: the device's :class:`~diffgyro.data.Recording`.
+    - ``e_base``: the base model's residual (n, 3), rad/s.
+    - ``e_new``: the new model's residual (n, 3), rad/s.
+    - ``dtemp``: the device's dT/dt (n,), °C/s, where known.
     """
     plt = _plt()
     base_spec = getattr(base_model, "spec", base_model)
@@ -407,7 +447,13 @@ def residual_drop_figure(base_model, new_spec: str, rec, e_base: np.ndarray, e_n
 
 
 def ladder_png(ladder, device: int | None = None) -> str:
-    """Held-out RMS as terms are added (one line per device, or one device)."""
+    """Held-out RMS as terms are added (one line per device, or one device).
+
+    **Arguments:**
+
+    - ``ladder``: the :class:`~diffgyro.diagnose.Ladder`.
+    - ``device``: one device's index, or None for all.
+    """
     plt = _plt()
     fig, ax = plt.subplots(figsize=(7, 3.6))
     specs = [s.spec for s in ladder.steps]
@@ -492,7 +538,18 @@ def _motion_line(diagnosis, i: int) -> str:
 
 
 def device_page(diagnosis, batch: Batch, i: int, ladder=None, named=None, limits=None) -> str:
-    """One device's page; ``limits``: its record with the --limits result."""
+    """One device's page; ``limits``: its record with the --limits result.
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``batch``: the data diagnosed.
+    - ``i``: the device's index.
+    - ``ladder``: the batch's :class:`~diffgyro.diagnose.Ladder` (``diagnose --auto``), or
+      None.
+    - ``named``: this device's entry of :func:`named_term_residuals`, or None.
+    - ``limits``: the device's record with its ``--limits`` result, or None.
+    """
     d = diagnosis.devices[i]
     rows = "".join(
         f"<tr><td class=l>{html.escape(c.effect)}</td><td class=l>{html.escape(c.spec)}</td>"
@@ -557,7 +614,13 @@ def _coefficients(fit) -> dict[str, np.ndarray]:
 
 
 def outliers(diagnosis, z: float = 5.0) -> list[tuple[str, str]]:
-    """Devices far from the batch: robust z (median/MAD) of held-out/floor or of a coefficient."""
+    """Devices far from the batch: robust z (median/MAD) of held-out/floor or of a coefficient.
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``z``: the robust z beyond which a device is far from the batch.
+    """
     out = []
     devs = [d.device for d in diagnosis.devices]
     if len(devs) < 4:
@@ -589,7 +652,13 @@ def _text(text: str) -> str:
 def coefficient_unit(model, label: str) -> str:
     """The unit of a coefficient label (``bias_poly(2).c1`` -> ``rad/s per T_s``;
     a shared time constant ``thermal_lag.tau`` -> ``s``). ``T_s``: the scaled temperature
-    (dimensionless, about [-1, 1] over the calibrated range)."""
+    (dimensionless, about [-1, 1] over the calibrated range).
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``label``: the coefficient's label.
+    """
 
     spec, _, name = label.rpartition(".")
     if name == "tau" or name.startswith("tau"):
@@ -609,7 +678,14 @@ def coefficient_unit(model, label: str) -> str:
 def coefficients_figure(fit, devices: list[str], z: float = OUTLIER_Z):
     """Each coefficient across the devices: a strip of named dots for a few devices, a
     histogram for many; devices farther than ``z`` robust standard deviations from the
-    median are drawn red and named. Returns (figure, {panel: outlier device names})."""
+    median are drawn red and named. Returns (figure, {panel: outlier device names}).
+
+    **Arguments:**
+
+    - ``fit``: the :class:`~diffgyro.fit.FitResult`.
+    - ``devices``: the devices' names.
+    - ``z``: the robust z beyond which a device is an outlier.
+    """
     plt = _plt()
     coefs = _coefficients(fit)
     names = list(coefs)
@@ -669,7 +745,15 @@ def coefficients_figure(fit, devices: list[str], z: float = OUTLIER_Z):
 
 
 def summary_page(diagnosis, ladder=None, limits=None) -> str:
-    """The batch page; ``limits``: (records, summary) of --limits."""
+    """The batch page; ``limits``: (records, summary) of --limits.
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``ladder``: the batch's :class:`~diffgyro.diagnose.Ladder` (``diagnose --auto``), or
+      None.
+    - ``limits``: (records, summary) of ``--limits``, or None.
+    """
     plt = _plt()
     devs = diagnosis.devices
     counts = diagnosis.verdicts()
@@ -746,6 +830,15 @@ def write_report(diagnosis, batch: Batch, directory: str | os.PathLike, ladder=N
     ``limits``: (records, summary) of a limits file (:mod:`diffgyro.limits`): each page
     says pass or fail and the limits broken, the summary the yield and the rejected units.
     Returns the paths written. Each page embeds its figures (base64 PNG).
+
+    **Arguments:**
+
+    - ``diagnosis``: the :class:`~diffgyro.diagnose.Diagnosis`.
+    - ``batch``: the data diagnosed.
+    - ``directory``: where the pages go.
+    - ``ladder``: the batch's :class:`~diffgyro.diagnose.Ladder` (``diagnose --auto``), or
+      None.
+    - ``limits``: (records, summary) of a limits file, or None.
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)

@@ -59,7 +59,13 @@ _ANDREWS = {"bartlett": (1.1447, 1), "parzen": (2.6614, 2), "qs": (1.3221, 2)}
 
 
 def autocovariance(x: Float[Array, " n"], n_valid) -> Float[Array, " n"]:
-    """Biased sample autocovariance ``γ_k = Σ x_t x_{t+k} / n`` of a zero-padded series (FFT)."""
+    """Biased sample autocovariance ``γ_k = Σ x_t x_{t+k} / n`` of a zero-padded series (FFT).
+
+    **Arguments:**
+
+    - ``x``: the zero-padded series (n,).
+    - ``n_valid``: its real samples.
+    """
     m = _fft_size(x.shape[0])
     f = jnp.fft.rfft(x, m)
     return jnp.fft.irfft(f * jnp.conj(f), m)[:x.shape[0]] / jnp.maximum(n_valid, 1.0)
@@ -123,7 +129,13 @@ def andrews_bandwidth(resid: Float[Array, "n 3"], n_valid, kernel: str = "bartle
 
 
 def lag_window(kind: str, x: Float[Array, "..."]) -> Float[Array, "..."]:
-    """Kernel weight at ``x = lag / bandwidth``."""
+    """Kernel weight at ``x = lag / bandwidth``.
+
+    **Arguments:**
+
+    - ``kind``: the kernel (``"bartlett"``, …).
+    - ``x``: lag / bandwidth.
+    """
     x = jnp.abs(x)
     if kind == "bartlett":
         return jnp.maximum(1.0 - x, 0.0)
@@ -157,7 +169,14 @@ def lag_weighted_sum(u: Float[Array, "n k"], w_circ: Float[Array, " m"]) -> Floa
 
 
 def long_run_covariance(u: Float[Array, "n k"], bandwidth, kernel: str = "bartlett"):
-    """Kernel estimate ``Σ_t Σ_s k((t−s)/L) u_t u_sᵀ`` (Newey–West for the Bartlett kernel)."""
+    """Kernel estimate ``Σ_t Σ_s k((t−s)/L) u_t u_sᵀ`` (Newey–West for the Bartlett kernel).
+
+    **Arguments:**
+
+    - ``u``: the scores (n, k).
+    - ``bandwidth``: the lag window's bandwidth L, samples.
+    - ``kernel``: the lag window.
+    """
     m = _fft_size(u.shape[0])
     return lag_weighted_sum(u, lag_window(kernel, _circular_lags(m, u.dtype) / bandwidth))
 
@@ -167,6 +186,11 @@ def levinson(g: Float[Array, " p1"], n_valid) -> tuple[Float[Array, " p"], Float
 
     Returns the coefficients (zero beyond the chosen order), the innovation
     variance and the order.
+
+    **Arguments:**
+
+    - ``g``: the autocovariances ``g[0..pmax]``.
+    - ``n_valid``: the samples they came from (for AIC).
     """
     pmax = g.shape[0] - 1
     a = jnp.zeros((pmax,), g.dtype)
@@ -189,7 +213,16 @@ def levinson(g: Float[Array, " p1"], n_valid) -> tuple[Float[Array, " p"], Float
 def ar_autocovariance(x: Float[Array, " n"], n_valid, m: int, pmax: int = 16,
                       return_order: bool = False):
     """Autocovariance at every circular lag of the AR(p) model (p ≤ pmax by AIC) fitted to ``x``
-    (and the order p, with ``return_order``)."""
+    (and the order p, with ``return_order``).
+
+    **Arguments:**
+
+    - ``x``: the zero-padded series (n,).
+    - ``n_valid``: its real samples.
+    - ``m``: the circular lags (the length of the result).
+    - ``pmax``: the largest AR order.
+    - ``return_order``: also return the order chosen.
+    """
     x = x - jnp.sum(x) / jnp.maximum(n_valid, 1.0) * (jnp.arange(x.shape[0]) < n_valid)
     g = autocovariance(x, n_valid)[:pmax + 1]
     a, e, order = levinson(g, n_valid)
@@ -298,6 +331,18 @@ def hac_covariance(result: FitResult, batch: Batch, method: str = "ar", kernel: 
     ``batch`` is the data the fit saw; ``method`` and the other options as
     in :func:`device_hac`. Returns ``cov`` (d, k, k), ``cov_gn`` (plain, same
     residuals), ``bandwidth`` (d,), ``rho`` (d, k).
+
+    **Arguments:**
+
+    - ``result``: the :class:`~diffgyro.fit.FitResult`.
+    - ``batch``: the data the fit saw.
+    - ``method``: ``"ar"`` (autoregressive spectral) or ``"kernel"`` (Newey–West style).
+    - ``kernel``: the lag window of ``"kernel"`` (``"bartlett"``, …).
+    - ``bandwidth``: its bandwidth, samples (default: Andrews' plug-in).
+    - ``prewhiten``: prewhiten the scores by AR(1) (``"kernel"``).
+    - ``cap``: the bound on |ρ| of the AR(1) prewhitening.
+    - ``pmax``: the largest AR order (``"ar"``).
+    - ``chunk``: devices per compiled call (default: all at once).
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     if kernel not in KERNELS:
@@ -378,6 +423,15 @@ def block_bootstrap(result: FitResult, batch: Batch, n_boot: int = 200, block=No
     cross-axis correlation survives) and added to the fitted error; each
     replicate is refitted — one Cholesky factor for linear models, variable
     projection from the fitted time constants otherwise.
+
+    **Arguments:**
+
+    - ``result``: the :class:`~diffgyro.fit.FitResult`.
+    - ``batch``: the data the fit saw.
+    - ``n_boot``: bootstrap replicates.
+    - ``block``: the block length, samples (default: chosen per device).
+    - ``seed``: the seed.
+    - ``chunk``: devices per compiled call.
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     keys = jax.random.split(jax.random.PRNGKey(seed), result.n_devices)
@@ -395,13 +449,26 @@ def _bootstrap_batch(model, sig, params, keys, n_boot, block, opts, chunk):
 
 
 def z_value(level: float) -> float:
-    """Two-sided normal quantile for a confidence ``level`` (0.95 → 1.96)."""
+    """Two-sided normal quantile for a confidence ``level`` (0.95 → 1.96).
+
+    **Arguments:**
+
+    - ``level``: the confidence level.
+    """
 
     return NormalDist().inv_cdf(0.5 + level / 2)
 
 
 def coverage(estimates, truth, cov, level: float = 0.95) -> float:
-    """Share of parameters whose ``level`` interval (from ``cov``'s diagonal) holds the truth."""
+    """Share of parameters whose ``level`` interval (from ``cov``'s diagonal) holds the truth.
+
+    **Arguments:**
+
+    - ``estimates``: the estimated parameters.
+    - ``truth``: the true ones.
+    - ``cov``: the covariances whose diagonals give the intervals.
+    - ``level``: the intervals' confidence level.
+    """
     est, tru = np.asarray(estimates), np.asarray(truth)
     sd = np.sqrt(np.maximum(np.diagonal(np.asarray(cov), axis1=-2, axis2=-1), 0.0))
     return float(np.mean(np.abs(est - tru) <= z_value(level) * sd))
@@ -465,6 +532,17 @@ def uncertainty_band(result: FitResult, i: int, temps, rate=0.0, cov=None, level
     parameters, and ``C`` the parameter covariance: ``result.cov[i]`` (plain
     Gauss–Newton) by default, or any (k, k) matrix such as
     ``hac_covariance(...)["cov"][i]``.
+
+    **Arguments:**
+
+    - ``result``: the :class:`~diffgyro.fit.FitResult`.
+    - ``i``: the device's index.
+    - ``temps``: the temperatures, °C.
+    - ``rate``: the input rate, rad/s.
+    - ``cov``: the parameter covariance (k, k); default ``result.cov[i]``.
+    - ``level``: the band's confidence level.
+    - ``dtemp``: dT/dt, °C/s.
+    - ``label``: the band's name in figures.
     """
     params = result.device_params(i)
     norm = TempNorm(centre=result.norm.centre[i], scale=result.norm.scale[i])
@@ -477,7 +555,17 @@ def uncertainty_band(result: FitResult, i: int, temps, rate=0.0, cov=None, level
 
 def uncertainty_bands(result: FitResult, temps, rate=0.0, cov=None, level: float = 0.95,
                       dtemp: float = 0.0) -> Band:
-    """:func:`uncertainty_band` of every device at once (arrays get a leading device axis)."""
+    """:func:`uncertainty_band` of every device at once (arrays get a leading device axis).
+
+    **Arguments:**
+
+    - ``result``: the :class:`~diffgyro.fit.FitResult`.
+    - ``temps``: the temperatures, °C.
+    - ``rate``: the input rate, rad/s.
+    - ``cov``: the covariances (d, k, k); default ``result.cov``.
+    - ``level``: the bands' confidence level.
+    - ``dtemp``: dT/dt, °C/s.
+    """
     cov = result.cov if cov is None else jnp.asarray(cov)
     temps = jnp.atleast_1d(jnp.asarray(temps, result.params.beta.dtype))
     model = result.model
@@ -500,6 +588,13 @@ def plot_uncertainty_band(bands: Band | list[Band], unit: str = "deg/h", fig=Non
 
     Several bands (e.g. plain and autocorrelation-consistent covariance)
     overlay; returns the matplotlib Figure.
+
+    **Arguments:**
+
+    - ``bands``: one :class:`Band` or several to overlay.
+    - ``unit``: the unit plotted (``"deg/h"`` or ``"rad/s"``).
+    - ``fig``: a matplotlib Figure to draw on (default: a new one).
+    - ``title``: the figure's title.
     """
 
     import matplotlib
@@ -545,7 +640,15 @@ def _sens_options(opts: FitOptions | None) -> FitOptions:
 
 def fitted_params(model: ErrorModel, sig: Signals, opts: FitOptions | None = None,
                   theta0=None) -> Float[Array, " k"]:
-    """Flat fitted parameters of one device through :func:`~diffgyro.fit.solve_device`."""
+    """Flat fitted parameters of one device through :func:`~diffgyro.fit.solve_device`.
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``sig``: one device's :class:`~diffgyro.signals.Signals`.
+    - ``opts``: the :class:`~diffgyro.fit.FitOptions`.
+    - ``theta0``: the start of the time constants (log τ).
+    """
     out = solve_device(model, sig, _sens_options(opts), theta0)
     return flat(Params(beta=out["beta"], theta=out["theta"]))
 
@@ -557,6 +660,13 @@ def param_sensitivity(model: ErrorModel, sig: Signals, opts: FitOptions | None =
     Linear models differentiate the lineax Cholesky solve; models with time
     constants differentiate the Levenberg–Marquardt solution by the implicit
     function theorem (optimistix ``ImplicitAdjoint``). Padded samples get 0.
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``sig``: one device's :class:`~diffgyro.signals.Signals`.
+    - ``opts``: the :class:`~diffgyro.fit.FitOptions` (default: the defaults).
+    - ``theta0``: the start of the time constants (log τ; default: the grid's best point).
     """
     def f(gyro):
         return fitted_params(model, eqx.tree_at(lambda s: s.gyro, sig, gyro), opts, theta0)
@@ -572,6 +682,16 @@ def compensation_sensitivity(model: ErrorModel, sig: Signals, temps, rate=0.0,
     The compensated error is the compensated minus the true rate; the truth
     does not depend on the data, so this is also the sensitivity of the
     compensation error. ``sig.norm`` fixes the temperature scaling.
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel`.
+    - ``sig``: one device's :class:`~diffgyro.signals.Signals`.
+    - ``temps``: the operating temperatures (m,), °C.
+    - ``rate``: the true rate there, rad/s.
+    - ``opts``: the :class:`~diffgyro.fit.FitOptions`.
+    - ``theta0``: the start of the time constants (log τ).
+    - ``dtemp``: dT/dt there, °C/s.
     """
     theta_hat = fitted_params(model, sig, opts, theta0)
     params = unflat(theta_hat, model)
@@ -580,7 +700,13 @@ def compensation_sensitivity(model: ErrorModel, sig: Signals, temps, rate=0.0,
 
 
 def batch_param_sensitivity(result: FitResult, batch: Batch) -> Float[Array, "d k n 3"]:
-    """:func:`param_sensitivity` of every device of a fit, vmapped (starts at the fitted τ)."""
+    """:func:`param_sensitivity` of every device of a fit, vmapped (starts at the fitted τ).
+
+    **Arguments:**
+
+    - ``result``: the :class:`~diffgyro.fit.FitResult`.
+    - ``batch``: the data the fit saw.
+    """
     sig = result.signals(batch)
     model = result.model
     opts = dataclasses.replace(result.options, n_folds=2, n_blocks=2)

@@ -84,6 +84,10 @@ def prefix_sums(x: Float[Array, "n k"]) -> Float[Array, "n+1 k"]:
     triangular matrix of ones, then the block totals (n/16 rows) by a cumsum:
     on XLA CPU several times faster than ``jnp.cumsum`` of each column, with
     the rounding of an ordinary running sum.
+
+    **Arguments:**
+
+    - ``x``: the columns (n, k).
     """
     n, k = x.shape
     b = PREFIX_BLOCK
@@ -103,6 +107,13 @@ def local_slope(
     """Least-squares slope of ``y`` against ``t`` over samples ``i-h .. i+h`` (masked).
 
     Computed with prefix sums in O(n); near the ends the window is clipped.
+
+    **Arguments:**
+
+    - ``t``: sample times (n,).
+    - ``y``: the samples (n,).
+    - ``mask``: which samples are valid.
+    - ``half_width``: ``h``, the window's half-width in samples.
     """
     w = mask.astype(y.dtype)
     n = t.shape[0]
@@ -125,6 +136,11 @@ def moving_average_difference(y: Float[Array, " n"], n_avg: int) -> Float[Array,
 
     Defined from sample ``2·n_avg - 1`` on (earlier samples get 0), in units of
     ``y`` per ``n_avg`` samples, exactly as the published method uses it.
+
+    **Arguments:**
+
+    - ``y``: the samples (n,).
+    - ``n_avg``: the samples in each mean.
     """
     c = jnp.concatenate([jnp.zeros((1,), y.dtype), jnp.cumsum(y)])
     i = jnp.arange(y.shape[0])
@@ -138,6 +154,12 @@ def latched_heating(dtemp: Float[Array, " n"], mask: Bool[Array, " n"], threshol
 
     Samples before the first heating or cooling take the first state seen.
     A device that never heats or cools gets 0 everywhere.
+
+    **Arguments:**
+
+    - ``dtemp``: dT/dt (n,), °C/s.
+    - ``mask``: which samples are valid.
+    - ``threshold``: the |dT/dt| (°C/s) above which the device heats or cools.
     """
     active = mask & (jnp.abs(dtemp) > threshold)
     idx = jnp.where(active, jnp.arange(dtemp.shape[0]), -1)
@@ -153,13 +175,24 @@ def masked_range(x: Float[Array, " n"], mask: Bool[Array, " n"]) -> tuple[Array,
     Two reductions, each fused with its mask. One variadic min/max reduction (one
     pass) compiled 10× slower on XLA CPU without fusion emitters: 100-170 ms for an
     unmasked (16, 2000) input (an ALIGNED group's constant mask folds away), against
-    11 ms for the two."""
+    11 ms for the two.
+
+    **Arguments:**
+
+    - ``x``: the values (n,).
+    - ``mask``: which of them are valid."""
     return (jnp.min(jnp.where(mask, x, jnp.inf), axis=-1),
             jnp.max(jnp.where(mask, x, -jnp.inf), axis=-1))
 
 
 def temp_norm_from(temp: Float[Array, " n"], mask: Bool[Array, " n"]) -> TempNorm:
-    """Centre and half-range of the masked temperature (half-range at least 0.5 °C)."""
+    """Centre and half-range of the masked temperature (half-range at least 0.5 °C).
+
+    **Arguments:**
+
+    - ``temp``: die temperature (n,), °C.
+    - ``mask``: which samples are valid.
+    """
     lo, hi = masked_range(temp, mask)
     return TempNorm(centre=0.5 * (lo + hi), scale=jnp.maximum(0.5 * (hi - lo), 0.5))
 
@@ -180,12 +213,24 @@ def make_signals(
 ) -> Signals:
     """Derived signals for one device; pure, so it vmaps over a batch.
 
-    ``dtemp_window`` (seconds) is the span of the centred slope that gives
-    dT/dt; widen it when the temperature read-out is coarsely quantised.
-    ``dt`` is the nominal sampling interval (default: median spacing of the
-    valid samples). Without ``slopes`` dT/dt and the heating state are left out
-    (None): for a model that reads neither, they are not traced at all. ``aux``
-    holds extra columns already centred and scaled (:func:`diffgyro._aux.scaled`).
+    **Arguments:**
+
+    - ``t``: sample times (n,), s.
+    - ``gyro``: the measured rate (n, 3), rad/s.
+    - ``mask``: which samples are valid (padding is not).
+    - ``rate``: the reference rate (n, 3), rad/s, where the data has one.
+    - ``temp``: die temperature (n,), °C.
+    - ``temp_ext``: external temperature (n,), °C.
+    - ``accel``: specific force (n, 3), m/s².
+    - ``norm``: the temperature centring (default: the device's own range,
+      :func:`temp_norm_from`).
+    - ``dtemp_window``: the span (s) of the centred slope that gives dT/dt; widen it
+      when the temperature read-out is coarsely quantised.
+    - ``dt``: the nominal sampling interval (default: the median spacing of the valid
+      samples).
+    - ``slopes``: False leaves dT/dt and the heating state out (None): for a model that
+      reads neither, they are not traced at all.
+    - ``aux``: extra columns already centred and scaled (:func:`diffgyro._aux.scaled`).
     """
     t = jnp.asarray(t)
     t = t - t[0]

@@ -40,7 +40,13 @@ RESIDUAL_REFUSE = 10.0
 def residual_verdict(heldout_rms, noise_floor) -> tuple[str, float | None]:
     """``ok``, ``model_limit`` or ``unexplained`` for a device's held-out RMS against its
     noise floor (:data:`RESIDUAL_WARN`, :data:`RESIDUAL_REFUSE`), and their ratio (None
-    where either is missing)."""
+    where either is missing).
+
+    **Arguments:**
+
+    - ``heldout_rms``: the device's held-out RMS, rad/s (None: not known).
+    - ``noise_floor``: its noise floor, rad/s (None: not known).
+    """
     try:
         ratio = float(heldout_rms) / float(noise_floor)
     except (TypeError, ValueError, ZeroDivisionError):
@@ -53,7 +59,14 @@ def residual_verdict(heldout_rms, noise_floor) -> tuple[str, float | None]:
 
 
 def residual_note(device: str, heldout_rms, noise_floor) -> str | None:
-    """One line for a device whose residual stands above its noise floor, else None."""
+    """One line for a device whose residual stands above its noise floor, else None.
+
+    **Arguments:**
+
+    - ``device``: the device's name.
+    - ``heldout_rms``: its held-out RMS, rad/s.
+    - ``noise_floor``: its noise floor, rad/s.
+    """
     verdict, ratio = residual_verdict(heldout_rms, noise_floor)
     if verdict == "ok":
         return None
@@ -68,7 +81,17 @@ def residual_note(device: str, heldout_rms, noise_floor) -> str | None:
 def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, rank_ok=None):
     """Status code of a fit, the most basic problem first: too few samples, a term
     whose signal does not vary (``range_flags``), collinear columns (``rank_ok``
-    false on an axis), no convergence, non-finite results."""
+    false on an axis), no convergence, non-finite results.
+
+    **Arguments:**
+
+    - ``n_valid``: the device's valid samples.
+    - ``min_samples``: the fewest the fit needs (:func:`min_samples`).
+    - ``converged``: whether the solver converged.
+    - ``finite``: whether the results are finite.
+    - ``range_flags``: per term, positive where the data cannot support it.
+    - ``rank_ok``: per axis, whether the design has full rank.
+    """
     status = jnp.where(finite, OK, FAILED)
     status = jnp.where(~converged, NOT_CONVERGED, status)
     if rank_ok is not None:
@@ -79,13 +102,25 @@ def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, r
 
 
 def min_samples(n_unknowns: int) -> int:
-    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis."""
+    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis.
+
+    **Arguments:**
+
+    - ``n_unknowns``: the parameters per axis.
+    """
     return max(2 * n_unknowns, n_unknowns + 4)
 
 
 def collinear_terms(model, direction, rank_ok):
     """Per term: does it weigh in a direction the data do not excite?
-    ``direction`` (3, p) is the smallest eigenvector of each axis' scaled Gram matrix."""
+    ``direction`` (3, p) is the smallest eigenvector of each axis' scaled Gram matrix.
+
+    **Arguments:**
+
+    - ``model``: the fitted :class:`~diffgyro.model.ErrorModel`.
+    - ``direction``: the smallest eigenvector of each axis' scaled Gram matrix (3, p).
+    - ``rank_ok``: per axis, whether the design has full rank.
+    """
     terms = model.terms
     if not model.n_params:
         return jnp.zeros((len(terms),), bool)
@@ -118,7 +153,21 @@ def _range_reason(term, temp_range, channel: str = "gyro") -> str:
 def explain(name: str, model, *, range_flags=None, collinear=None, temp_range=None,
             n_samples=None, steps=None, motion=None, channel: str = "gyro") -> str:
     """``status_detail``: the status name, and for a device not ``ok`` why, in plain words
-    (``channel``: the sensor fitted, whose remedies differ)."""
+    (``channel``: the sensor fitted, whose remedies differ).
+
+    **Arguments:**
+
+    - ``name``: the status name (``ok``, ``rank_deficient``, …).
+    - ``model``: the fitted :class:`~diffgyro.model.ErrorModel`.
+    - ``range_flags``: per term, whether the data could not support it.
+    - ``collinear``: per term, whether it weighs in a direction the data do not excite.
+    - ``temp_range``: the device's temperature span, °C.
+    - ``n_samples``: its valid samples.
+    - ``steps``: the solver's steps.
+    - ``motion``: the device's motion record (a dict, as the result keeps it), for
+      ``in_motion`` and ``rest_unverified``.
+    - ``channel``: the sensor fitted, ``"gyro"`` or ``"accel"``, whose remedies differ.
+    """
     terms = model.terms
     if name == "ok":
         return name

@@ -6,12 +6,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro._reference import attitude_from_accel_mag, quat_conj, quat_mul, rotvec_from_quat
 from diffgyro.data import Recording
 from diffgyro.errors import DataError
+from diffgyro.internal import attitude_from_accel_mag, quat_conj, quat_mul, rotvec_from_quat
 from diffgyro.model import Params
-from diffgyro.recipes._attitude_reference import attitude_reference
-from diffgyro.recipes._common import toolkit_compensate
+from diffgyro.recipes import attitude_reference, toolkit_compensate
 from diffgyro.simulate import simulate
 
 BIAS = np.array([0.01, -0.02, 0.015])        # rad/s

@@ -8,7 +8,7 @@ import pytest
 
 from diffgyro.data import Batch, Recording
 from diffgyro.errors import DataError
-from diffgyro.recipes._binned_thermal import binned_thermal
+from diffgyro.recipes import binned_thermal
 
 OFFSET = np.array([-0.2426, 0.0873, -0.0310])     # rad/s (−13.9 °/s, as in the patent's example)
 SLOPE = np.array([2.1e-3, -1.4e-3, 0.9e-3])       # rad/s per °C

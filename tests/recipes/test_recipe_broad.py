@@ -10,9 +10,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro._reference import heading_error, integrate_gyro, rates_from_quaternions
+from diffgyro.internal import heading_error, integrate_gyro, joint_affine, rates_from_quaternions
 from diffgyro.recipes import attitude_reference, static_kalman
-from diffgyro.recipes._attitude_reference import joint_affine
 
 BROAD = Path(__file__).resolve().parents[1] / "data" / "broad"
 TRIAL = BROAD / "05_undisturbed_slow_rotation_with_breaks_B.mat"

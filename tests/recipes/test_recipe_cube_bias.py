@@ -9,8 +9,7 @@ import pytest
 from diffgyro.data import Recording
 from diffgyro.errors import DataError
 from diffgyro.model import Params
-from diffgyro.recipes._common import toolkit_compensate
-from diffgyro.recipes._cube_bias import cube_bias, read_sets
+from diffgyro.recipes import cube_bias, read_sets, toolkit_compensate
 from diffgyro.simulate import simulate
 
 EARTH = 7.292115e-5

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from diffgyro.errors import DataError
+from diffgyro.internal import s2_design, sign_change_mask
 from diffgyro.model import Params
-from diffgyro.recipes._common import single_axis, toolkit_compensate
-from diffgyro.recipes._fog_one_run import fog_one_run, s2_design, sign_change_mask
+from diffgyro.recipes import fog_one_run, single_axis, toolkit_compensate
 from diffgyro.signals import TempNorm
 from diffgyro.simulate import simulate
 

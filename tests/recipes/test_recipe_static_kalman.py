@@ -8,8 +8,8 @@ import pytest
 
 from diffgyro.data import Recording
 from diffgyro.errors import DataError
-from diffgyro.recipes._common import toolkit_compensate
-from diffgyro.recipes._static_kalman import offset_filter, static_kalman
+from diffgyro.internal import offset_filter
+from diffgyro.recipes import static_kalman, toolkit_compensate
 
 FS = 200.0          # 1000 samples = the published 5 s factory rest
 DEG = np.pi / 180.0
@@ -91,7 +91,7 @@ def test_offset_tracks_a_wandering_bias_on_all_three_axes(walk):
 
 
 def test_heading_error_against_a_reference_attitude(walk):
-    from diffgyro._reference import integrate_gyro
+    from diffgyro.internal import integrate_gyro
 
     t, gyro, accel, rate, bias, moving, _ = walk
     q0 = np.array([np.cos(0.3), 0.0, 0.0, np.sin(0.3)])

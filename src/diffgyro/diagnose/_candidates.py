@@ -98,6 +98,14 @@ def candidate_specs(model: ErrorModel, available: frozenset[str],
     extra column in ``columns`` the model does not read with it yet. A noise process
     (``random_walk``) is offered as the model plus that noise component when the model
     has none.
+
+    **Arguments:**
+
+    - ``model``: the base :class:`~diffgyro.model.ErrorModel`.
+    - ``available``: the signals the data holds (``temp``, ``rate``, ``accel``, …).
+    - ``names``: effect names or full terms to limit the search to; None: every registered
+      effect.
+    - ``columns``: the extra columns the data holds (for terms with a column argument).
     """
 
     present = {t.name: t for t in model.terms}

@@ -228,6 +228,13 @@ def redecide(row: dict, thresholds: Thresholds, rw_key: str = "rw_interp") -> di
     ``cand_names``, ``cand_specs`` and ``diag`` (its record). Returns the record
     the device would get with ``thresholds``. The greedy pair (:mod:`.greedy`) is not
     re-scored: its numbers are not saved, so this is the one-term rule.
+
+    **Arguments:**
+
+    - ``row``: one device's saved numbers: ``raw``, ``cand_names``, ``cand_specs`` and
+      ``diag``.
+    - ``thresholds``: the :class:`Thresholds` to decide with.
+    - ``rw_key``: the key of the random walk's held-out error in ``raw``.
     """
     r = row["raw"]
     names, specs = row["cand_names"], row["cand_specs"]

@@ -35,6 +35,13 @@ def evidence(residual: np.ndarray, rec: Recording, sig_dev: dict,
     the white-noise level per axis ``floor_axes``, each signal also gets
     ``explains``: the share of the residual's variance above that level a
     straight line in the signal explains on that axis (r² · var / (var − σ²)).
+
+    **Arguments:**
+
+    - ``residual``: the base model's residual (n, 3), rad/s.
+    - ``rec``: the device's :class:`~diffgyro.data.Recording`.
+    - ``sig_dev``: the device's derived signals as numpy (``dtemp``, ``heating``).
+    - ``floor_axes``: the white-noise level per axis (3,); adds ``explains`` to each signal.
     """
     e = residual
     axes = [np.ascontiguousarray(e[:, i], float) for i in range(3)]  # a column's dot is strided
@@ -194,7 +201,12 @@ def _outside(ev: dict) -> str:
 
 
 def explain(d: DeviceDiagnosis) -> str:
-    """A short explanation in words naming the evidence."""
+    """A short explanation in words naming the evidence.
+
+    **Arguments:**
+
+    - ``d``: the device's :class:`DeviceDiagnosis`.
+    """
     white = max(d.white_noise_rms, 1e-300)
     floor = f"white-noise RMS {_fmt(d.white_noise_rms)} rad/s"
     if d.verdict == "adequate":

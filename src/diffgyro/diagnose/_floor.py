@@ -22,6 +22,12 @@ def white_noise_rms(
     would leak in) are left out, and the same on lag-2 differences guards
     against output samples that are correlated (a sensor's internal low-pass
     filter): the larger is kept.
+
+    **Arguments:**
+
+    - ``y``: gyro − rate (n, 3), or the gyro at rest.
+    - ``mask``: which samples are valid (n,).
+    - ``rate``: the reference rate (n, 3), whose jumps are left out; None: no reference.
     """
     y = np.asarray(y, np.float64)
     mask = np.asarray(mask, bool)

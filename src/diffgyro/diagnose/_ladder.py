@@ -78,7 +78,12 @@ def _step(diag: Diagnosis, added: str | None) -> LadderStep:
 
 def choose_effect(diag: Diagnosis) -> tuple[str, str] | None:
     """(effect, spec) to add for a batch: the effect named best by most devices missing one
-    (ties: the lower median held-out RMS), in the spec most of those devices chose."""
+    (ties: the lower median held-out RMS), in the spec most of those devices chose.
+
+    **Arguments:**
+
+    - ``diag``: the batch's :class:`Diagnosis`.
+    """
     votes: dict[str, list[tuple[float, str]]] = {}
     for d in diag.devices:
         if d.verdict == "missing_effect" and d.best is not None:
@@ -107,6 +112,18 @@ def diagnose_auto(
     devices missing an effect name as their best. A random walk ends the
     ladder (its rung reports the smoother's held-out numbers). ``progress``
     is called with a line of text before each diagnosis and each of its stages.
+
+    **Arguments:**
+
+    - ``model``: the starting model: a spec string or an
+      :class:`~diffgyro.model.ErrorModel`.
+    - ``batch``: a Batch, one Recording or a list of them.
+    - ``candidates``: the effects tried (default: every registered effect the data
+      supports).
+    - ``max_steps``: rungs at most.
+    - ``thresholds``: the decision's :class:`Thresholds`.
+    - ``progress``: called with a line of text before each diagnosis and each of its stages.
+    - ``**fit_options``: fit options, as for :func:`diagnose`.
     """
 
     if isinstance(model, str):

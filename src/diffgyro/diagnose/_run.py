@@ -463,6 +463,25 @@ def diagnose(
     loaded, and the candidates are scored on the accelerometer less its reference.
     Returns a :class:`Diagnosis`; ``.to_json()`` is the ``diagnose --json``
     object.
+
+    **Arguments:**
+
+    - ``model``: the base model: a spec string or an :class:`~diffgyro.model.ErrorModel`.
+    - ``batch``: a Batch, one Recording or a list of them.
+    - ``candidates``: the effects tried, names or terms (default: every registered effect
+      the data supports).
+    - ``thresholds``: the decision's :class:`Thresholds` (default: the calibrated ones).
+    - ``base_fit``: a :class:`~diffgyro.fit.FitResult` of ``model`` on this batch, reused
+      instead of fitting again.
+    - ``greedy``: try the best term followed by the best second term before a random walk is
+      named.
+    - ``synthesis``: propose a term built from the recording's signals where no built-in
+      term closes the gap.
+    - ``noise``: identify the residual's stochastic model: ``"auto"``, True (every judged
+      device) or False.
+    - ``progress``: called with a line of text before each stage.
+    - ``channel``: ``"gyro"`` or ``"accel"`` (the accelerometer's thermal offset).
+    - ``**fit_options``: fit options (``n_folds``, ``n_blocks``, ``dtemp_window``, …).
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
 

@@ -81,7 +81,12 @@ RW_GRID = tuple(10.0 ** np.linspace(-10.0, -1.0, 19))
 
 
 def family_of(name: str) -> str | None:
-    """The look-alike family of the registered effect ``name`` (its ``family``), or None."""
+    """The look-alike family of the registered effect ``name`` (its ``family``), or None.
+
+    **Arguments:**
+
+    - ``name``: a registered effect's name.
+    """
     cls = registry().get(name)
     return None if cls is None else cls.family
 

@@ -118,7 +118,12 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
     """Decorator: ``fn(model, batch, *, norm, options, **overrides)`` fits models whose
     noise component is a ``cls``. :func:`diffgyro.fit.fit` dispatches through this table
     and registers the built-in ``RandomWalk``'s fit (:func:`diffgyro.kalman.fit_random_walk`)
-    itself, so every edge is an import the module graph shows."""
+    itself, so every edge is an import the module graph shows.
+
+    **Arguments:**
+
+    - ``cls``: the noise process's class (a subclass of :class:`AbstractNoise`).
+    """
     def add(fn: Callable) -> Callable:
         _NOISE_FITS[cls] = fn
         return fn
@@ -128,7 +133,12 @@ def register_noise_fit(cls: type[AbstractNoise]) -> Callable[[Callable], Callabl
 
 def noise_fit(noise: AbstractNoise) -> Callable:
     """The fit registered for the class of ``noise`` (or the nearest base class); the
-    built-in processes' fits are registered once :mod:`diffgyro.fit` is imported."""
+    built-in processes' fits are registered once :mod:`diffgyro.fit` is imported.
+
+    **Arguments:**
+
+    - ``noise``: a model's noise component.
+    """
     for cls in type(noise).__mro__:
         if cls in _NOISE_FITS:
             return _NOISE_FITS[cls]
@@ -148,6 +158,11 @@ class AbstractEffect(AbstractTerm):
     #: True when a time constant shorter than the window that estimates dT/dt is the
     #: ``gradient`` term at the data's resolution: diagnose searches τ from that window up.
     tau_from_dtemp_window: ClassVar[bool] = False
+    #: The term's columns in numpy, for :mod:`diffgyro.apply` (which holds the built-in
+    #: terms' own): a function ``(order, dev, rate, env, theta) -> (columns, used)``, given
+    #: to ``apply.compensate(..., terms={name: fn})``; ``used`` is how many of the log τ
+    #: in ``theta`` (this term's first) it read. None: apply.py cannot compensate the term.
+    numpy_columns: ClassVar[Callable | None] = None
 
     @abc.abstractmethod
     def param_names(self) -> tuple[str, ...]:
@@ -180,7 +195,9 @@ class AbstractEffect(AbstractTerm):
     def columns(self, sig: Signals, theta: Float[Array, " q"]) -> Float[Array, "n 3 p"]:
         """Regressor columns per axis; ``theta`` holds this term's nonlinear parameters."""
 
-    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]):
+    def columns_jet(self, sig: Signals, theta: Float[Array, " q"]
+                    ) -> tuple[Float[Array, "n 3 p"], Float[Array, "q n 3 p"],
+                               Float[Array, "q q n 3 p"]]:
         """Columns and their first and second derivatives in ``theta``: arrays (n, 3, p),
         (q, n, 3, p) and (q, q, n, 3, p). Forward mode by default; a term whose columns
         come from a recursion can give a cheaper exact form (one pass for all three)."""
@@ -228,6 +245,13 @@ def register(cls: type[AbstractTerm]) -> type[AbstractTerm]:
 
     Registering a name twice replaces the earlier class (so a notebook can be
     re-run); built-in names cannot be replaced by a different class.
+
+    **Arguments:**
+
+    - ``cls``: a subclass of :class:`AbstractEffect` or :class:`AbstractNoise` with a
+      lower_snake_case ``name``.
+
+    **Returns:** ``cls``, so that ``@register`` decorates it.
     """
     if not (isinstance(cls, type) and issubclass(cls, (AbstractEffect, AbstractNoise))):
         raise TypeError("register() takes a subclass of AbstractEffect or AbstractNoise")
@@ -255,7 +279,12 @@ MAX_SPEC_LENGTH = 1000
 
 
 def is_column_name(text: str) -> bool:
-    """Whether ``text`` can be written as a term's column argument (``aux(NAME)``)."""
+    """Whether ``text`` can be written as a term's column argument (``aux(NAME)``).
+
+    **Arguments:**
+
+    - ``text``: the candidate column name.
+    """
     return bool(_COLUMN.fullmatch(text))
 
 
@@ -266,7 +295,12 @@ def _did_you_mean(name: str) -> str:
 
 
 def spec_arguments(cls: type[AbstractTerm]) -> tuple[tuple[str, str], ...]:
-    """The (field, kind) arguments a term's spec takes, in order."""
+    """The (field, kind) arguments a term's spec takes, in order.
+
+    **Arguments:**
+
+    - ``cls``: a registered term's class.
+    """
     if cls.arguments:
         return tuple(cls.arguments)
     return (("order", "int"),) if cls.order_arg else ()
@@ -298,7 +332,12 @@ def _argument(name: str, field: str, kind: str, text: str, cls) -> object:
 
 def parse_term(text: str) -> AbstractTerm:
     """``"bias_poly(2)"`` -> ``BiasPoly(order=2)``, ``"aux(vdd,2)"`` -> ``Aux(column="vdd",
-    order=2)``; clear errors for bad text."""
+    order=2)``; clear errors for bad text.
+
+    **Arguments:**
+
+    - ``text``: one term of a spec.
+    """
     m = _TERM.match(text)
     valid = ", ".join(sorted(_REGISTRY))
     if m is None:
@@ -330,7 +369,12 @@ def parse_term(text: str) -> AbstractTerm:
 
 
 def parse_spec(spec: str) -> tuple[AbstractTerm, ...]:
-    """Split a spec on ``+`` and parse every term; a name may appear only once."""
+    """Split a spec on ``+`` and parse every term; a name may appear only once.
+
+    **Arguments:**
+
+    - ``spec``: the model spec (``"bias_poly(2)+gradient"``).
+    """
     if not isinstance(spec, str) or not spec.strip():
         raise SpecError("empty model spec", hint="e.g. bias_poly(2)+gradient")
     if len(spec) > MAX_SPEC_LENGTH:
@@ -345,5 +389,10 @@ def parse_spec(spec: str) -> tuple[AbstractTerm, ...]:
 
 
 def format_spec(terms) -> str:
-    """Canonical spec text of a sequence of terms."""
+    """Canonical spec text of a sequence of terms.
+
+    **Arguments:**
+
+    - ``terms``: the terms, in spec order.
+    """
     return "+".join(t.spec for t in terms)

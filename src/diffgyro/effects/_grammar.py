@@ -92,7 +92,12 @@ def _tokens(text: str) -> list[tuple[str, str, int]]:
 
 def parse_factors(text: str) -> tuple[tuple[str, bool, int], ...]:
     """``"az*temp^2"`` -> ``(("temp", False, 2), ("az", False, 1))``: (signal, lagged, power)
-    in canonical order; SpecError naming the character of the first error."""
+    in canonical order; SpecError naming the character of the first error.
+
+    **Arguments:**
+
+    - ``text``: the product inside ``term(...)``.
+    """
     toks = _tokens(text)
     if not toks:
         _fail(text, 0, "empty product")
@@ -161,7 +166,13 @@ def format_factors(factors) -> str:
 
 def signal_value(sig, name: str):
     """Signal ``name`` of the grammar as (n,) or, for ``w``, (n, 3): a catalogue signal
-    (:data:`diffgyro._signal_catalogue.CATALOGUE`), else an extra column."""
+    (:data:`diffgyro._signal_catalogue.CATALOGUE`), else an extra column.
+
+    **Arguments:**
+
+    - ``sig``: the device's :class:`~diffgyro.signals.Signals`.
+    - ``name``: the signal's grammar name, or an extra column's.
+    """
     if name in CATALOGUE:
         return CATALOGUE[name].value(sig)
     return sig.aux[name]
@@ -287,7 +298,15 @@ def product_of(expr: str, rec, dtemp=None, axis: int = 0):
     column's own; a lagged factor unlagged: its τ is the fit's), for figures; None when the
     recording lacks one of them. Each factor is the catalogue's value
     (:data:`diffgyro._signal_catalogue.CATALOGUE`) on :func:`plain_signals`, or an extra
-    column."""
+    column.
+
+    **Arguments:**
+
+    - ``expr``: the product (``"temp*az"``), as inside ``term(...)``.
+    - ``rec``: the :class:`~diffgyro.data.Recording`.
+    - ``dtemp``: its dT/dt (n,), °C/s, where known (else derived from ``rec``).
+    - ``axis``: the gyro axis whose rate ``w`` stands for.
+    """
 
     sig = plain_signals(rec, dtemp)
     have = sig.available

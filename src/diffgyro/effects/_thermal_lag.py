@@ -20,10 +20,17 @@ from ._common import (
 )
 
 
-def first_order_lag(t, x, tau):
+def first_order_lag(t: Float[Array, " n"], x: Float[Array, " n"],
+                    tau: Float[Array, ""] | float) -> Float[Array, " n"]:
     """``x`` seen through ``τ·dy/dt = x − y``, starting settled (``y[0] = x[0]``).
 
     Exact for ``x`` held constant between samples; ``t`` may be irregular.
+
+    **Arguments:**
+
+    - ``t``: sample times (n,), s.
+    - ``x``: the input (n,).
+    - ``tau``: the time constant τ, s.
     """
     alpha = -jnp.expm1(-jnp.diff(t) / tau)
 

@@ -20,7 +20,15 @@ FORMATS = ("px4", "ardupilot", "kalibr", "c-header", "px4-ekf", "ardupilot-ekf")
 
 
 def select_devices(cal: Calibration, device: str | None, fmt: str, max_devices: int) -> list[str]:
-    """The named device, or every device of the calibration if there are few enough."""
+    """The named device, or every device of the calibration if there are few enough.
+
+    **Arguments:**
+
+    - ``cal``: the :class:`~diffgyro.calibration.Calibration`.
+    - ``device``: the device named, or None for all.
+    - ``fmt``: the format, as messages name it.
+    - ``max_devices``: the most devices the format holds.
+    """
     names = [d.device for d in cal.devices]
     if device is not None:
         cal.device(device)  # SpecError naming the devices it has
@@ -43,7 +51,13 @@ def _slots(fmt: str, first: int | None, count: int, slots: range) -> int:
 def refuse_not_ok(devices: list[tuple[str, str, str]], force: bool) -> list[str]:
     """``(device, status, status_detail)`` of the devices to write: a DataError naming the
     first that is not ``ok`` and why, or with ``force`` one line per such device for the
-    file's comments and the report."""
+    file's comments and the report.
+
+    **Arguments:**
+
+    - ``devices``: ``(device, status, status_detail)`` of each device.
+    - ``force``: write them anyway, with one line each.
+    """
     bad = [(name, status, detail) for name, status, detail in devices if status != "ok"]
     if bad and not force:
         name, status, detail = bad[0]
@@ -99,7 +113,19 @@ def render(cal: Calibration, fmt: str, device: str | None = None, instance: int 
     ``accel``: an accelerometer calibration written beside the gyro's (px4: TC_A slots,
     ardupilot: INS_TCALn_ACC*); ``cal`` may itself be an accelerometer calibration.
     A device whose status is not ``ok`` is refused (a DataError naming it and why);
-    ``force`` writes it anyway, with a comment in the file that says so."""
+    ``force`` writes it anyway, with a comment in the file that says so.
+
+    **Arguments:**
+
+    - ``cal``: the :class:`~diffgyro.calibration.Calibration`.
+    - ``fmt``: the format (``px4``, ``ardupilot``, ``c``, …; :data:`FORMATS`).
+    - ``device``: the device to write (default: every device, where the format holds them).
+    - ``instance``: the first slot or IMU instance written.
+    - ``device_ids``: the sensors' device ids (default: from the calibration file).
+    - ``force``: write devices whose status is not ``ok``, saying so in the file.
+    - ``accel``: an accelerometer calibration written beside the gyro's.
+    - ``accel_ids``: the accelerometers' device ids.
+    """
     gyro, acc = _channels(cal, accel, fmt)
     if fmt in ("px4", "ardupilot", "c-header"):
         max_devices = {"px4": len(px4.SLOTS), "ardupilot": len(ardupilot.SLOTS), "c-header": 1}[fmt]

@@ -56,7 +56,14 @@ def _coefficients(poly: ThermalPoly, n: int, letters: str) -> list[tuple[str, fl
 
 def parameters(poly: ThermalPoly, n: int, shared: bool = False) -> list[tuple[str, float]]:
     """(name, value) of IMU ``n``'s gyro temperature calibration and offset (float64);
-    ``shared``: leave out ENABLE/TMIN/TMAX (written with the accelerometer's)."""
+    ``shared``: leave out ENABLE/TMIN/TMAX (written with the accelerometer's).
+
+    **Arguments:**
+
+    - ``poly``: the device's temperature polynomial.
+    - ``n``: the IMU instance.
+    - ``shared``: leave out ENABLE/TMIN/TMAX.
+    """
     t_cal = float(np.clip(TEMP_REFERENCE, poly.t_lo, poly.t_hi))
     offs = poly.bias(np.array([t_cal]))[0]
     rows = ([] if shared else _range(poly, n)) + _coefficients(poly, n, "GYR")
@@ -66,7 +73,13 @@ def parameters(poly: ThermalPoly, n: int, shared: bool = False) -> list[tuple[st
 
 
 def accel_parameters(poly: ThermalPoly, n: int) -> list[tuple[str, float]]:
-    """(name, value) of IMU ``n``'s accelerometer temperature calibration (float64)."""
+    """(name, value) of IMU ``n``'s accelerometer temperature calibration (float64).
+
+    **Arguments:**
+
+    - ``poly``: the device's temperature polynomial.
+    - ``n``: the IMU instance.
+    """
     return _range(poly, n) + _coefficients(poly, n, "ACC")
 
 
@@ -89,7 +102,14 @@ def _correct(values: dict, n: int, temp: np.ndarray, letters: str, cal_temp, off
 
 
 def evaluate(values: dict[str, float], n: int, temp: np.ndarray) -> np.ndarray:
-    """ArduPilot's total gyro correction raw − corrected (n, 3), in float32 as the firmware."""
+    """ArduPilot's total gyro correction raw − corrected (n, 3), in float32 as the firmware.
+
+    **Arguments:**
+
+    - ``values``: the parameters by name.
+    - ``n``: the IMU instance.
+    - ``temp``: temperatures (n,), °C.
+    """
     return _correct(values, n, temp, "GYR", values[f"INS_GYR{n}_CALTEMP"],
                     [values[k] for k in _offset_names(n)])
 
@@ -97,7 +117,16 @@ def evaluate(values: dict[str, float], n: int, temp: np.ndarray) -> np.ndarray:
 def evaluate_accel(values: dict[str, float], n: int, temp: np.ndarray, cal_temp: float = 35.0,
                    offsets=(0.0, 0.0, 0.0)) -> np.ndarray:
     """ArduPilot's accelerometer correction raw − corrected (n, 3) with an accelerometer
-    calibration made at ``cal_temp`` (INS_ACCn_CALTEMP) that measured ``offsets``."""
+    calibration made at ``cal_temp`` (INS_ACCn_CALTEMP) that measured ``offsets``.
+
+    **Arguments:**
+
+    - ``values``: the parameters by name.
+    - ``n``: the IMU instance.
+    - ``temp``: temperatures (n,), °C.
+    - ``cal_temp``: the accelerometer calibration's temperature, °C.
+    - ``offsets``: the offsets it measured, m/s².
+    """
     return _correct(values, n, temp, "ACC", cal_temp, offsets)
 
 
@@ -143,7 +172,15 @@ def _id(cal: Calibration, name: str) -> str:
 def write(cal: Calibration | None, devices: list[str], first_slot: int,
           accel: tuple[Calibration, list[str]] | None = None) -> tuple[str, list[str]]:
     """The .param file's text and its report lines (float32 error per device): the gyros
-    of ``cal`` (None: none) and the accelerometers of ``accel``, IMU by IMU."""
+    of ``cal`` (None: none) and the accelerometers of ``accel``, IMU by IMU.
+
+    **Arguments:**
+
+    - ``cal``: the gyro calibration, or None.
+    - ``devices``: the devices written, IMU by IMU.
+    - ``first_slot``: the first IMU instance.
+    - ``accel``: (accelerometer calibration, its devices), or None.
+    """
     lines = ["# Temperature calibration written by diffgyro export --format ardupilot",
              "# corrected = raw - P(T - 35) + P(CALTEMP - 35) - OFFS, P(d) = (C1 + (C2 + C3*d)*d)*d*1e-6,",
              "# T clamped to [TMIN, TMAX]; C = GYRk (rad/s) or ACCk (m/s^2)"]

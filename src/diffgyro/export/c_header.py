@@ -67,7 +67,13 @@ def _literal(x: float) -> str:
 
 
 def write(cal: Calibration, device: str) -> str:
-    """The header's text for one device of ``cal``."""
+    """The header's text for one device of ``cal``.
+
+    **Arguments:**
+
+    - ``cal``: the :class:`~diffgyro.calibration.Calibration`.
+    - ``device``: the device written.
+    """
     terms = _check(cal, device)
     dev = cal.device(device)
     need = cal.error_model.requires()

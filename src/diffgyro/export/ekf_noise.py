@@ -59,7 +59,13 @@ def unsupported(axis: dict, dt: float | None = None) -> list[str]:
     behind: each parameter they use that is ``not_identified`` (its ``why``), and a
     Gauss–Markov process shorter than the axis' ``resolution.gauss_markov_tau.min`` (else
     :data:`~diffgyro.stochastic.SHORT_SAMPLES` sample intervals ``dt``): white noise at that
-    sampling, not a bias (a model written before the identification merged it)."""
+    sampling, not a bias (a model written before the identification merged it).
+
+    **Arguments:**
+
+    - ``axis``: one axis of ``noise --json``.
+    - ``dt``: the sampling interval, s.
+    """
     used = {"white": ("arw",), "random_walk": ("rrw",), "gauss_markov": ("sigma", "tau")}
     out = []
     shortest = ((axis.get("resolution") or {}).get("gauss_markov_tau") or {}).get("min")
@@ -89,7 +95,12 @@ def unsupported(axis: dict, dt: float | None = None) -> list[str]:
 
 def axis_densities(axis: dict) -> tuple[float | None, float | None, list[str]]:
     """(N, K, notes) of one axis of ``noise --json``: the white-noise density and the random
-    walk, Gauss–Markov processes folded into K as ``2σ²/T``."""
+    walk, Gauss–Markov processes folded into K as ``2σ²/T``.
+
+    **Arguments:**
+
+    - ``axis``: one axis of ``noise --json``.
+    """
     n = k2 = None
     notes = []
     for c in axis.get("components", []):
@@ -122,7 +133,14 @@ def device_densities(doc: dict, device: str | None, force: bool = False
 
     A parameter the model does not stand behind (:func:`unsupported`) is refused, a
     DataError naming the axis, the parameter and why, unless ``force``: the report's first
-    lines then say ``WARNING: written with --force: ...``."""
+    lines then say ``WARNING: written with --force: ...``.
+
+    **Arguments:**
+
+    - ``doc``: the ``noise --json`` object.
+    - ``device``: the device (None: the only one).
+    - ``force``: write parameters the model does not stand behind.
+    """
     devs = doc.get("devices") if isinstance(doc, dict) else None
     if not isinstance(devs, list) or not devs:
         raise DataError("not a 'noise --json' object (devices[].axes.*.components)")
@@ -167,18 +185,40 @@ def device_densities(doc: dict, device: str | None, force: bool = False
 
 
 def px4_parameters(n: float, k: float, dt: float = PX4_DT) -> dict[str, float]:
-    """EKF2_GYR_NOISE (rad/s) and EKF2_GYR_B_NOISE (rad/s²) for densities N, K and period Δt."""
+    """EKF2_GYR_NOISE (rad/s) and EKF2_GYR_B_NOISE (rad/s²) for densities N, K and period Δt.
+
+    **Arguments:**
+
+    - ``n``: the white-noise density N, rad/s/√Hz.
+    - ``k``: the bias random walk K, rad/s/√s.
+    - ``dt``: the filter's period, s.
+    """
     return {"EKF2_GYR_NOISE": n / math.sqrt(dt), "EKF2_GYR_B_NOISE": k / math.sqrt(dt)}
 
 
 def ardupilot_parameters(n: float, k: float, dt: float = ARDUPILOT_DT) -> dict[str, float]:
-    """EK3_GYRO_P_NSE (rad/s) and EK3_GBIAS_P_NSE (rad/s²) for densities N, K and step Δt."""
+    """EK3_GYRO_P_NSE (rad/s) and EK3_GBIAS_P_NSE (rad/s²) for densities N, K and step Δt.
+
+    **Arguments:**
+
+    - ``n``: the white-noise density N, rad/s/√Hz.
+    - ``k``: the bias random walk K, rad/s/√s.
+    - ``dt``: the filter's step, s.
+    """
     return {"EK3_GYRO_P_NSE": n / math.sqrt(dt), "EK3_GBIAS_P_NSE": k / math.sqrt(dt)}
 
 
 def write_px4(params: dict[str, float], device: str, dt: float, notes: list[str] = ()) -> str:
     """QGroundControl parameter file (the layout of :mod:`.px4`): float32 values; ``notes``
-    (the --force warnings) as comments."""
+    (the --force warnings) as comments.
+
+    **Arguments:**
+
+    - ``params``: the parameters by name.
+    - ``device``: the device, as the comments name it.
+    - ``dt``: the filter's period, s.
+    - ``notes``: comment lines.
+    """
 
     lines = ["# Onboard parameters for Vehicle 1", "#",
              f"# gyro noise of device {device} written by diffgyro export --format px4-ekf",
@@ -191,7 +231,15 @@ def write_px4(params: dict[str, float], device: str, dt: float, notes: list[str]
 
 def write_ardupilot(params: dict[str, float], device: str, dt: float, notes: list[str] = ()) -> str:
     """Mission Planner parameter file (``NAME,VALUE``, the layout of :mod:`.ardupilot`);
-    ``notes`` (the --force warnings) as comments."""
+    ``notes`` (the --force warnings) as comments.
+
+    **Arguments:**
+
+    - ``params``: the parameters by name.
+    - ``device``: the device, as the comments name it.
+    - ``dt``: the filter's step, s.
+    - ``notes``: comment lines.
+    """
 
     lines = [f"# gyro noise of device {device} written by diffgyro export --format ardupilot-ekf",
              f"# EKF3 step {dt:g} s: parameter = density / sqrt(step)",

@@ -76,7 +76,16 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
     """Densities of one device from an ``allan --json`` object (gyro; ``accel``: the same
     object for the accelerometer, or None). A device whose read-outs are not a sensor's
     noise (status ``in_motion``) is refused unless ``force``; the report's first lines
-    then say so."""
+    then say so.
+
+    **Arguments:**
+
+    - ``doc``: the gyro's ``allan --json`` object.
+    - ``device``: the device (None: the only one).
+    - ``rate``: the IMU's rate, Hz (default: from the object).
+    - ``accel``: the accelerometer's ``allan --json`` object, or None.
+    - ``force``: write a device whose read-outs are not a sensor's noise.
+    """
     devs = doc.get("devices") if isinstance(doc, dict) else None
     if not isinstance(devs, list) or not devs or not all(
             isinstance(d, dict) and isinstance(d.get("axes"), dict) for d in devs):
@@ -106,7 +115,14 @@ def from_allan(doc: dict, device: str | None, rate: float | None,
 def allan_of(batch, which: str = "gyro", motion=None) -> dict:
     """``allan --json`` object of a batch's gyro, or of its accelerometer (m/s² for rad/s);
     with ``motion`` (:class:`diffgyro.motion.Motion`) a device that moved gets status
-    ``in_motion``, one whose rest cannot be shown ``rest_unverified``."""
+    ``in_motion``, one whose rest cannot be shown ``rest_unverified``.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`.
+    - ``which``: ``"gyro"`` or ``"accel"``.
+    - ``motion``: the batch's motion check, or None.
+    """
 
     y = np.moveaxis(np.asarray(getattr(batch, which), np.float64), -1, 1)
     nv = np.asarray(batch.n_valid, np.int64)
@@ -124,7 +140,14 @@ def allan_of(batch, which: str = "gyro", motion=None) -> dict:
 
 
 def write(noise: ImuNoise, topic: str = "/imu0", notes: list[str] = ()) -> str:
-    """The imu.yaml text (continuous-time values, SI units, comments name them)."""
+    """The imu.yaml text (continuous-time values, SI units, comments name them).
+
+    **Arguments:**
+
+    - ``noise``: the densities (:func:`from_allan`).
+    - ``topic``: the IMU's ROS topic.
+    - ``notes``: comment lines.
+    """
     if noise.accel_noise_density is None or noise.accel_random_walk is None:
         missing = [k for k, v in (("accelerometer_noise_density", noise.accel_noise_density),
                                   ("accelerometer_random_walk", noise.accel_random_walk))

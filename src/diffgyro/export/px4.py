@@ -65,7 +65,15 @@ def _poly(cal: Calibration, name: str) -> ThermalPoly:
 
 def parameters(poly: ThermalPoly, slot: int, device_id: int,
                channel: str = "gyro") -> list[tuple[str, float | int, int]]:
-    """(name, value, MAVLink type) of one slot, values before float32 rounding."""
+    """(name, value, MAVLink type) of one slot, values before float32 rounding.
+
+    **Arguments:**
+
+    - ``poly``: the device's temperature polynomial.
+    - ``slot``: the slot.
+    - ``device_id``: the sensor's device id.
+    - ``channel``: ``"gyro"`` (TC_G) or ``"accel"`` (TC_A).
+    """
     t_ref = 0.5 * (poly.t_lo + poly.t_hi)
     a = poly.about(t_ref)
     p = f"TC_{LETTER[channel]}{slot}_"
@@ -77,14 +85,27 @@ def parameters(poly: ThermalPoly, slot: int, device_id: int,
 
 
 def as_int32(device_id: int) -> int:
-    """PX4's uint32 device_id as the int32 parameter that holds it (same bits)."""
+    """PX4's uint32 device_id as the int32 parameter that holds it (same bits).
+
+    **Arguments:**
+
+    - ``device_id``: the uint32 device id.
+    """
     v = int(device_id) & 0xFFFFFFFF
     return v - (1 << 32) if v >= (1 << 31) else v
 
 
 def evaluate(values: dict[str, float], slot: int, temp: np.ndarray,
              channel: str = "gyro") -> np.ndarray:
-    """PX4's offset (n, 3) from parameter values, in float32 as the firmware computes it."""
+    """PX4's offset (n, 3) from parameter values, in float32 as the firmware computes it.
+
+    **Arguments:**
+
+    - ``values``: the parameters by name.
+    - ``slot``: the slot.
+    - ``temp``: temperatures (n,), °C.
+    - ``channel``: ``"gyro"`` or ``"accel"``.
+    """
     p = f"TC_{LETTER[channel]}{slot}_"
     t = np.clip(temp.astype(np.float32), f32(values[p + "TMIN"]), f32(values[p + "TMAX"]))
     d = (t - f32(values[p + "TREF"])).astype(np.float32)
@@ -115,7 +136,18 @@ def write(cal: Calibration | None, devices: list[str], first_slot: int, device_i
           vehicle_id: int = 1, component_id: int = 1,
           accel: Sensors | None = None) -> tuple[str, list[str]]:
     """The parameter file's text and its report lines (float32 error per device): the gyro
-    slots of ``cal`` (None: none), then the accelerometer slots of ``accel``."""
+    slots of ``cal`` (None: none), then the accelerometer slots of ``accel``.
+
+    **Arguments:**
+
+    - ``cal``: the gyro calibration, or None.
+    - ``devices``: the devices written, slot by slot.
+    - ``first_slot``: the first slot.
+    - ``device_ids``: the sensors' device ids.
+    - ``vehicle_id``: the MAVLink system id.
+    - ``component_id``: the MAVLink component id.
+    - ``accel``: the accelerometers written after the gyros, or None.
+    """
     blocks = ([Sensors(cal, devices, first_slot, device_ids)] if cal is not None else []) \
         + ([accel] if accel is not None else [])
     what = " and ".join({"gyro": "Gyro", "accel": "accelerometer"}[b.cal.channel] for b in blocks)

@@ -27,7 +27,14 @@ def check_cells(raw: Sequence[np.ndarray], numeric: Sequence[str],
     """Values of the standard columns ``numeric`` (one 1-D array each) in SI units, as
     rows × columns (each column contiguous), and a code per cell: 0 valid, else
     :data:`NAN`, :data:`INF`, :data:`OVERFLOW` (in the unit conversion) or :data:`BEYOND`
-    (outside :data:`LIMITS`)."""
+    (outside :data:`LIMITS`).
+
+    **Arguments:**
+
+    - ``raw``: the columns as read, one 1-D array each.
+    - ``numeric``: their standard names.
+    - ``conv``: the unit conversion of each, ``{column: (scale, offset)}`` into SI.
+    """
     si = np.empty((raw[0].shape[0], len(raw)), np.float64, order="F")
     for j, column in enumerate(raw):
         si[:, j] = column
@@ -50,7 +57,15 @@ def check_cells(raw: Sequence[np.ndarray], numeric: Sequence[str],
 
 
 def cell_problem(code: int, raw: float, std: str, conv: Mapping) -> tuple[str, str]:
-    """The problem and the hint of an invalid cell (a :func:`check_cells` code)."""
+    """The problem and the hint of an invalid cell (a :func:`check_cells` code).
+
+    **Arguments:**
+
+    - ``code``: the cell's code from :func:`check_cells`.
+    - ``raw``: the cell's value as read.
+    - ``std``: its standard column's name.
+    - ``conv``: the unit conversion of each column, ``{column: (scale, offset)}``.
+    """
     drop = "use --drop-invalid (drop_invalid=True) to skip such rows; the count is reported"
     if code == NAN:
         return "missing or NaN value", drop

@@ -15,7 +15,12 @@ def parse_columns(text: str | None) -> dict[str, str]:
     A left-hand name that is not a standard column renames an extra column:
     ``vdd=Supply V`` keeps the file's ``Supply V`` as the extra column ``vdd``
     (letters, digits, ``_`` and ``.``, starting with a letter or ``_``; the
-    name an ``aux(vdd)`` term uses)."""
+    name an ``aux(vdd)`` term uses).
+
+    **Arguments:**
+
+    - ``text``: the mapping as the command line gives it (None: no mapping).
+    """
     out: dict[str, str] = {}
     if text is None or not text.strip():
         return out

@@ -49,30 +49,31 @@ def load(
 ) -> list[Recording]:
     """Read recordings from CSV / Parquet / NPZ files in the standard schema, or logs.
 
-    Args:
-        paths: one file or many; a device id may appear in only one file.
-        columns: standard name -> name in the file (``{"gx": "gyr_x"}``);
-            see :func:`parse_columns` for the command-line form.
-        units: signal -> unit of the file (``{"gyro": "deg/s", "temp": "K"}``),
-            converted to SI at load; see :func:`resolve_units`.
-        drop_invalid: skip rows with empty/NaN/inf cells (counted in
-            ``report``) instead of raising.
-        sampling_rate: Hz; files without a ``t`` column get ``t = k / rate``
-            (k = the sample's index within its device in the file).
-        device: id for files without a ``device`` column (default: file stem).
-        min_samples: fewer samples in a device is an error.
-        report: a :class:`LoadReport` that receives the dropped-row counts
-            and the log readers' warnings (without one they are issued with
-            :func:`warnings.warn`).
-        topic: ROS bags: the ``sensor_msgs/msg/Imu`` topic(s), comma-separated
-            (default: all).
-        temp_topic: ROS bags: the ``sensor_msgs/msg/Temperature`` topic.
-        check_units: check that the numbers of each signal whose unit nobody
-            stated are plausible in SI (:mod:`diffgyro.io._plausible`).
-        channel: the sensor to be calibrated (:mod:`diffgyro.channel`): a PX4 ULog read
-            for ``accel`` gives one device per ``sensor_accel`` instance, with its own
-            times, temperature and device id (:mod:`diffgyro.logs`); other files load
-            the same either way.
+    **Arguments:**
+
+    - ``paths``: one file or many; a device id may appear in only one file.
+    - ``columns``: standard name -> name in the file (``{"gx": "gyr_x"}``);
+      see :func:`parse_columns` for the command-line form.
+    - ``units``: signal -> unit of the file (``{"gyro": "deg/s", "temp": "K"}``),
+      converted to SI at load; see :func:`resolve_units`.
+    - ``drop_invalid``: skip rows with empty/NaN/inf cells (counted in
+      ``report``) instead of raising.
+    - ``sampling_rate``: Hz; files without a ``t`` column get ``t = k / rate``
+      (k = the sample's index within its device in the file).
+    - ``device``: id for files without a ``device`` column (default: file stem).
+    - ``min_samples``: fewer samples in a device is an error.
+    - ``report``: a :class:`LoadReport` that receives the dropped-row counts
+      and the log readers' warnings (without one they are issued with
+      :func:`warnings.warn`).
+    - ``topic``: ROS bags: the ``sensor_msgs/msg/Imu`` topic(s), comma-separated
+      (default: all).
+    - ``temp_topic``: ROS bags: the ``sensor_msgs/msg/Temperature`` topic.
+    - ``check_units``: check that the numbers of each signal whose unit nobody
+      stated are plausible in SI (:mod:`diffgyro.io._plausible`).
+    - ``channel``: the sensor to be calibrated (:mod:`diffgyro.channel`): a PX4 ULog read
+      for ``accel`` gives one device per ``sensor_accel`` instance, with its own
+      times, temperature and device id (:mod:`diffgyro.logs`); other files load
+      the same either way.
 
     A table's headers may carry units, ``Gyroscope X (deg/s)`` or
     ``acc_x[g]`` (:mod:`diffgyro.io._headers`): they are converted like
@@ -130,7 +131,24 @@ def load_batch(
     check_units: bool = True,
     channel: str = "gyro",
 ) -> Batch:
-    """:func:`load`, then :meth:`Batch.from_recordings` (padded to a bucket length)."""
+    """:func:`load`, then :meth:`Batch.from_recordings` (padded to a bucket length).
+
+    **Arguments:**
+
+    - ``paths``: one file or many, as for :func:`load`.
+    - ``columns``: standard name -> name in the file.
+    - ``units``: signal -> unit of the file.
+    - ``drop_invalid``: skip rows with invalid cells instead of raising.
+    - ``sampling_rate``: Hz, for files without a ``t`` column.
+    - ``device``: id for files without a ``device`` column.
+    - ``min_samples``: fewer samples in a device is an error.
+    - ``report``: a :class:`LoadReport` that receives the dropped rows and warnings.
+    - ``length``: the padded length (default: from the longest device).
+    - ``bucket``: pad to a bucket length (:func:`diffgyro.data.bucket_length`), so that
+      slightly different lengths reuse compiled programs.
+    - ``check_units``: check that signals in an assumed SI unit are plausible.
+    - ``channel``: the sensor to be calibrated, ``"gyro"`` or ``"accel"``.
+    """
     recs = load(paths, columns, units, drop_invalid, sampling_rate, device,
                 min_samples=min_samples, report=report, check_units=check_units,
                 channel=channel)

@@ -227,7 +227,15 @@ def check_plausible(recs: Sequence[Recording], file: str, assumed: set[str],
     """Warnings on the signals of one file read in an assumed SI unit (``assumed``:
     ``"gyro"``, ``"accel"``, ``"temp"``, ``"t"``); a refusal raises :class:`DataError`
     naming the file, the column (``columns``: signal -> how messages name it) and the
-    option that passes it."""
+    option that passes it.
+
+    **Arguments:**
+
+    - ``recs``: the file's recordings.
+    - ``file``: the file's name, as messages give it.
+    - ``assumed``: the signals read in an assumed SI unit.
+    - ``columns``: signal -> how messages name its column.
+    """
     recs = [r for r in recs if r.n >= MIN_SAMPLES]
     if not recs or not assumed & set(columns):
         return []

@@ -64,7 +64,14 @@ class LoadReport:
 
 
 def check_min_samples(recording: Recording, n_needed: int, why: str = "the model") -> None:
-    """Raise :class:`DataError` when ``recording`` has fewer than ``n_needed`` samples."""
+    """Raise :class:`DataError` when ``recording`` has fewer than ``n_needed`` samples.
+
+    **Arguments:**
+
+    - ``recording``: the recording.
+    - ``n_needed``: the fewest samples needed.
+    - ``why``: what needs them, as the message says it.
+    """
     if recording.n < n_needed:
         raise DataError(
             f"{recording.n} sample{'' if recording.n == 1 else 's'}: "

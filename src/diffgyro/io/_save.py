@@ -38,6 +38,11 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
     decimal form that reads back bitwise identical. The file is written to a
     temporary name in the same folder and moved into place, so a crash never
     leaves half a file. Returns the path written.
+
+    **Arguments:**
+
+    - ``data``: one Recording, a Batch or a list of Recordings.
+    - ``path``: the file; its extension chooses the format.
     """
     path = Path(path)
     recs = _as_recordings(data)

@@ -64,6 +64,10 @@ def resolve_units(units: Mapping[str, str] | None) -> dict[str, tuple[float, flo
     ``rate`` (reference rate) follows ``gyro`` and ``temp_ext`` follows
     ``temp`` unless given. ``mag`` accepts any unit and is not converted.
     Unknown signals or units raise :class:`DataError` listing valid ones.
+
+    **Arguments:**
+
+    - ``units``: signal -> unit name (None: all SI).
     """
     units = dict(units or {})
     for key in units:

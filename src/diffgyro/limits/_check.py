@@ -19,7 +19,13 @@ def lookup(record: dict, path: str) -> list[tuple[str, object]]:
     """Every (concrete path, value) that ``path`` names in ``record``: segments are matched
     against the keys, several segments joined by dots where a key holds dots
     (``bias_poly(2).c0``); ``*`` alone matches every key of its level, and inside a segment
-    any text (``bias_poly(*).c0``: any order); [] where nothing matches."""
+    any text (``bias_poly(*).c0``: any order); [] where nothing matches.
+
+    **Arguments:**
+
+    - ``record``: the device's record.
+    - ``path``: the limit's key (``*`` matches any segment).
+    """
     out: list[tuple[str, object]] = []
 
     def walk(node, parts: list[str], done: str) -> None:
@@ -90,7 +96,13 @@ def _check_one(lim: Limit, path: str, value) -> dict | None:
 
 
 def check(limits: Limits, record: dict) -> dict:
-    """``{"result": "pass"|"fail", "broken": [...]}`` of one device record."""
+    """``{"result": "pass"|"fail", "broken": [...]}`` of one device record.
+
+    **Arguments:**
+
+    - ``limits``: the :class:`Limits`.
+    - ``record``: the device's record (``fit --json``).
+    """
     broken = []
     for lim in limits.limits:
         found = lookup(record, lim.path)
@@ -105,13 +117,25 @@ def check(limits: Limits, record: dict) -> dict:
 
 def unmatched(limits: Limits, records: list[dict]) -> list[str]:
     """The limits that name a field no record holds (every device failed them for a missing
-    value: often a misspelt path)."""
+    value: often a misspelt path).
+
+    **Arguments:**
+
+    - ``limits``: the :class:`Limits`.
+    - ``records``: the device records.
+    """
     return [lim.path for lim in limits.limits
             if not any(lookup(r, lim.path) for r in records)]
 
 
 def summary(limits: Limits, records: list[dict]) -> dict:
-    """The batch's ``limits`` object from records that hold their ``limits`` result."""
+    """The batch's ``limits`` object from records that hold their ``limits`` result.
+
+    **Arguments:**
+
+    - ``limits``: the :class:`Limits`.
+    - ``records``: the device records.
+    """
     rejected = [r["device"] for r in records if r.get("limits", {}).get("result") != "pass"]
     n = len(records)
     return {"file": limits.file, "name": limits.name, "yield": (n - len(rejected)) / n if n else None,
@@ -119,13 +143,24 @@ def summary(limits: Limits, records: list[dict]) -> dict:
 
 
 def broken_text(entry: dict) -> str:
-    """One broken limit in words (the text output and the report)."""
+    """One broken limit in words (the text output and the report).
+
+    **Arguments:**
+
+    - ``entry``: one entry of a result's ``broken`` list.
+    """
     return entry.get("detail") or entry["limit"]
 
 
 def check_model(limits: Limits, model) -> None:
     """A DataError naming the file and key for a ``params`` limit that names no coefficient
-    of ``model`` (a typo would otherwise fail, or pass, every device)."""
+    of ``model`` (a typo would otherwise fail, or pass, every device).
+
+    **Arguments:**
+
+    - ``limits``: the :class:`Limits`.
+    - ``model``: the fitted :class:`~diffgyro.model.ErrorModel`.
+    """
     labels = model.param_labels()
     params = {ax: dict.fromkeys(labels[k], 0.0) for k, ax in enumerate("xyz")}
     shared = [f"{t.spec}.{n}" for t in model.terms for n in t.nonlinear_names()]

@@ -39,7 +39,14 @@ def _group(per_axis: dict[str, dict | float | None], key: str | None = None) -> 
 
 def residual_allan(residuals: np.ndarray, t: np.ndarray, n_valid: np.ndarray) -> list[dict]:
     """The ``allan`` group of every device from its fit residual ``(devices, n, 3)`` (padding
-    after ``n_valid``), time stamps ``t`` (devices, n) in s."""
+    after ``n_valid``), time stamps ``t`` (devices, n) in s.
+
+    **Arguments:**
+
+    - ``residuals``: the fit residuals (devices, n, 3), rad/s.
+    - ``t``: sample times (devices, n), s.
+    - ``n_valid``: each device's valid samples.
+    """
 
     res = np.asarray(residuals, np.float64)
     n_dev = res.shape[0]
@@ -59,7 +66,15 @@ def residual_allan(residuals: np.ndarray, t: np.ndarray, n_valid: np.ndarray) ->
 def bias_figures(params: dict | None, centre: float | None, scale: float | None,
                  temp_range) -> dict:
     """``bias_range`` and ``bias_tempco`` of one device from its labelled coefficients
-    (``params`` as ``fit --json`` writes them) and temperature normalisation."""
+    (``params`` as ``fit --json`` writes them) and temperature normalisation.
+
+    **Arguments:**
+
+    - ``params``: the device's labelled coefficients (None: not fitted).
+    - ``centre``: their temperature centre, °C.
+    - ``scale``: their temperature half-range, °C.
+    - ``temp_range``: the device's temperature span, °C.
+    """
     empty = {"bias_range": dict.fromkeys((*AXES, "worst")),
              "bias_tempco": dict.fromkeys((*AXES, "worst"))}
     if not params:
@@ -102,7 +117,17 @@ def _bias_coeffs(axis_params: dict) -> list | None:
 def add_figures(record: dict, wanted, *, allan: dict | None = None, centre=None, scale=None,
                 temp_range=None) -> dict:
     """``record`` with the computed groups in ``wanted`` added (``allan``: the device's
-    :func:`residual_allan` group, None where it has none)."""
+    :func:`residual_allan` group, None where it has none).
+
+    **Arguments:**
+
+    - ``record``: the device's record.
+    - ``wanted``: the groups of figures the limits read.
+    - ``allan``: the device's Allan figures, where computed.
+    - ``centre``: the temperature centre of its coefficients, °C.
+    - ``scale``: their temperature half-range, °C.
+    - ``temp_range``: the device's temperature span, °C.
+    """
     out = dict(record)
     if "allan" in wanted:
         out["allan"] = allan if allan is not None else {

@@ -89,7 +89,12 @@ class Limits:
 def split_path(path: str) -> list[str]:
     """``params.*.bias_poly(2).c0`` -> ``["params", "*", "bias_poly(2)", "c0"]``: the dots
     inside parentheses belong to the segment; :func:`.check.lookup` joins segments again to
-    match keys that hold dots (``bias_poly(2).c0``)."""
+    match keys that hold dots (``bias_poly(2).c0``).
+
+    **Arguments:**
+
+    - ``path``: a limit's key.
+    """
     out, depth, cur = [], 0, ""
     for ch in path:
         if ch == "." and depth == 0:
@@ -105,7 +110,13 @@ def split_path(path: str) -> list[str]:
 def load(path: str | os.PathLike, channel: str = "gyro") -> Limits:
     """Read and check a limits file; :class:`~diffgyro.errors.DataError` naming the file and
     the key for anything it cannot use. ``channel``: the sensor whose records it judges (its
-    bounds' units: the gyro's rates, the accelerometer's m/s², :mod:`._units`)."""
+    bounds' units: the gyro's rates, the accelerometer's m/s², :mod:`._units`).
+
+    **Arguments:**
+
+    - ``path``: the limits file (TOML).
+    - ``channel``: ``gyro`` or ``accel``.
+    """
     name = str(path)
     p = Path(path)
     try:
@@ -149,7 +160,14 @@ def fail(file: str, key: str, problem: str, hint: str | None = None) -> DataErro
 
 def from_dict(doc: dict, file: str = "<limits>", channel: str = "gyro") -> Limits:
     """The :class:`Limits` of a parsed TOML document (see the module notes), its bounds in
-    the units of ``channel``'s records."""
+    the units of ``channel``'s records.
+
+    **Arguments:**
+
+    - ``doc``: the parsed TOML document.
+    - ``file``: the name errors give.
+    - ``channel``: ``gyro`` or ``accel``.
+    """
     for key in doc:
         if key not in ("about", "limits"):
             raise fail(file, key, "unknown section", "a limits file holds [about] and [limits]")

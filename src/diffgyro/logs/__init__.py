@@ -30,12 +30,22 @@ _MAGIC = {"ulog": (b"ULog\x01\x12\x35",), "rosbag": (b"#ROSBAG V2.0", b"\x89MCAP
 
 
 def is_rosbag_dir(path: Path) -> bool:
-    """True for a rosbag2 folder (it holds ``metadata.yaml``)."""
+    """True for a rosbag2 folder (it holds ``metadata.yaml``).
+
+    **Arguments:**
+
+    - ``path``: the folder.
+    """
     return path.is_dir() and (path / "metadata.yaml").is_file()
 
 
 def log_format(path: Path) -> str | None:
-    """The log reader for ``path`` by its name (``None``: not a log)."""
+    """The log reader for ``path`` by its name (``None``: not a log).
+
+    **Arguments:**
+
+    - ``path``: the file or folder.
+    """
     if is_rosbag_dir(path):
         return "rosbag"
     return LOG_SUFFIXES.get(path.suffix.lower())
@@ -67,17 +77,18 @@ def read_log(path: str | Path, fmt: str | None = None, *, file: str | None = Non
              temp_topic: str | None = None, channel: str = "gyro") -> LogTable:
     """Read one log as a :class:`LogTable`.
 
-    Args:
-        path: the log (a rosbag2 folder is a path too).
-        fmt: ``ulog``, ``rosbag`` or ``dataflash`` (default: by extension).
-        file: the name errors give (default: ``path``).
-        prefix: device ids start with this (default: the file stem).
-        topic: ROS bags: the Imu topic(s) to read, comma-separated.
-        temp_topic: ROS bags: the Temperature topic joined to them.
-        channel: ``accel``: a PX4 ULog gives one device per ``sensor_accel`` instance
-            (its own times, temperature and device id); a DataFlash log's IMU instances
-            keep the accelerometer's id (``INS_ACCn_ID``) instead of the gyro's; ROS logs
-            read the same either way.
+    **Arguments:**
+
+    - ``path``: the log (a rosbag2 folder is a path too).
+    - ``fmt``: ``ulog``, ``rosbag`` or ``dataflash`` (default: by extension).
+    - ``file``: the name errors give (default: ``path``).
+    - ``prefix``: device ids start with this (default: the file stem).
+    - ``topic``: ROS bags: the Imu topic(s) to read, comma-separated.
+    - ``temp_topic``: ROS bags: the Temperature topic joined to them.
+    - ``channel``: ``accel``: a PX4 ULog gives one device per ``sensor_accel`` instance
+      (its own times, temperature and device id); a DataFlash log's IMU instances
+      keep the accelerometer's id (``INS_ACCn_ID``) instead of the gyro's; ROS logs
+      read the same either way.
     """
     path = Path(path)
     file = str(path) if file is None else file

@@ -96,7 +96,13 @@ def _fitter(setup: dict):
 
 
 def read_chunk(job: dict, setup: dict) -> tuple[dict[str, Recording], dict[str, str]]:
-    """Recordings of a chunk's devices and the reasons of those that cannot be fitted."""
+    """Recordings of a chunk's devices and the reasons of those that cannot be fitted.
+
+    **Arguments:**
+
+    - ``job``: the chunk's job: its devices and their files.
+    - ``setup``: the run's settings (loading).
+    """
     cfg = ReadConfig.from_json(setup["read"])
     failed: dict[str, str] = dict(job.get("excluded", {}))
     devices = [d for d in job["devices"] if d not in failed]
@@ -216,7 +222,15 @@ def _invalid_diagnosis(device: str, reason: str) -> dict:
 
 def fit_chunk(job: dict, setup: dict, prepared=None) -> dict:
     """Fit (or diagnose) one chunk; its JSON-ready result: records and calibration
-    entries, in plan order."""
+    entries, in plan order.
+
+    **Arguments:**
+
+    - ``job``: the chunk's job: its devices and their files.
+    - ``setup``: the run's settings (model, options, loading).
+    - ``prepared``: the chunk's recordings already read (:func:`read_chunk`), or None to
+      read them.
+    """
     recs, failed = prepared if prepared is not None else read_chunk(job, setup)
     diagnosing = setup.get("command", "fit") == "diagnose"
     records: dict[str, dict] = {}
@@ -513,6 +527,14 @@ def fit_dataset(paths: Sequence[str | os.PathLike], model: str, **kwargs) -> Run
     ``json_stream`` receives the ``fit --json`` object, device by device.
     ``columns``, ``units``, ``drop_invalid``, ``sampling_rate`` are as in
     :func:`diffgyro.io.load`; ``shard=False`` keeps each chunk on one JAX device.
+
+    **Arguments:**
+
+    - ``paths``: the Parquet files (or folders of them).
+    - ``model``: the model spec.
+    - ``**kwargs``: ``out``, ``results``, ``work_dir``, ``resume``, ``dask``,
+      ``fit_options``, ``json_stream``, ``columns``, ``units``, ``drop_invalid``,
+      ``sampling_rate``, ``shard``, as above.
     """
     kwargs["fit_options"] = {"dtemp_window": 60.0, **(kwargs.get("fit_options") or {})}
     return _run("fit", paths, model, **kwargs)
@@ -527,6 +549,13 @@ def diagnose_dataset(paths: Sequence[str | os.PathLike], model: str,
     chunk chooses its own dT/dt window from its temperature read-outs (as
     ``diagnose`` does for a batch); give one to make it the same for all. Other
     keywords as for :func:`fit_dataset` (no calibration file: ``out`` is refused).
+
+    **Arguments:**
+
+    - ``paths``: the Parquet files (or folders of them).
+    - ``model``: the base model spec.
+    - ``candidates``: the effects tried, as for :func:`diffgyro.diagnose.diagnose`.
+    - ``**kwargs``: as for :func:`fit_dataset`, ``out`` aside.
     """
     if kwargs.get("out") is not None:
         raise DataError("diagnose writes no calibration file; use results= for the table")

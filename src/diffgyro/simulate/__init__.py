@@ -82,11 +82,21 @@ def _error_chunk(model: ErrorModel, norm: TempNorm, params: Params, t, rate, tem
 
 def model_error(model: ErrorModel, params: Params, norm: TempNorm, t, rate, temp, dtemp,
                 temp_ext, accel, aux_s: dict | None = None) -> np.ndarray:
-    """Deterministic error (devices, n, 3) of ``model`` on true signals.
+    """Deterministic error (devices, n, 3) of ``model`` on true signals, evaluated in
+    device chunks of equal size (one compilation).
 
-    ``t`` (n,), the others (devices, n[, 3]); ``dtemp`` is the true dT/dt
-    (°C/s); ``aux_s`` the extra columns, centred and scaled, (devices, n) each.
-    Evaluated in device chunks of equal size (one compilation).
+    **Arguments:**
+
+    - ``model``: the true :class:`~diffgyro.model.ErrorModel`.
+    - ``params``: its coefficients, beta (devices, 3, P) and theta (devices, Q).
+    - ``norm``: the temperature normalisation they refer to.
+    - ``t``: sample times (n,), s.
+    - ``rate``: the true rate (devices, n, 3), rad/s.
+    - ``temp``: the true die temperature (devices, n), °C.
+    - ``dtemp``: the true dT/dt (devices, n), °C/s.
+    - ``temp_ext``: the external temperature (devices, n), °C.
+    - ``accel``: the true specific force (devices, n, 3), m/s².
+    - ``aux_s``: the extra columns, centred and scaled, (devices, n) each.
     """
     aux_s = dict(aux_s or {})
     d, n = temp.shape
@@ -143,28 +153,40 @@ def simulate(
 ) -> tuple[Batch, Truth]:
     """Simulate ``n_devices`` gyros through test ``plan``; returns ``(batch, truth)``.
 
-    ``effects`` is a model spec (default: the plan's); ``preset`` ``"mems"``
-    or ``"fog"`` (default: the plan's) sets coefficient spreads and noise;
-    ``noise`` overrides noise levels (``"none"``, or a dict such as
-    ``{"arw": 1e-4, "rrw": 0}``); ``temp_quantum`` rounds the reported
-    temperatures (°C). ``params`` fixes the true coefficients (Params with
-    beta (3, P) or (d, 3, P), theta (Q,) or (d, Q)); ``temp_norm`` the
-    normalisation they refer to (default: the plan's). ``accel_errors``
-    turns accelerometer bias/scale/misalignment on (default: the plan's).
-    ``accel_effects`` (a spec of bias terms: ``bias_poly(3)+gradient``) adds the
-    accelerometer's thermal offset, with ``accel_params`` as its coefficients (m/s² per
-    unit regressor, same temperature norm; default: drawn like the gyro's and
-    :data:`ACCEL_PER_GYRO` times larger); the truth keeps them in ``truth.accel``
-    (``thermal_beta``, ``thermal_theta``) and the spec in ``truth.info["accel_effects"]``
-    (with ``keep_components``, the offset itself in ``truth.env["accel_thermal"]``).
-    ``keep_components`` stores the deterministic error, the true specific
-    force and each noise part in ``truth.env``. Other keywords are plan
-    options (see :mod:`.plans`), e.g. ``sample_rate``, ``duration``.
-    ``aux`` adds extra columns by name ((n,) or (devices, n) arrays); a column an
-    ``aux(NAME)`` effect reads that is not given is a simulated supply voltage
-    (:func:`.supply.supply_voltage`); ``truth.aux_norm`` holds the centring the
-    true coefficients refer to (pass it to ``fit(..., aux_norm=)``).
-    The same arguments and seed always give identical output.
+    **Arguments:**
+
+    - ``plan``: the test plan's name (``"thermal"``, ``"rate_table"``, ``"six_face"``,
+      ``"warmup"``, …) or a plan object.
+    - ``n_devices``: how many devices.
+    - ``effects``: the true model spec (default: the plan's).
+    - ``seed``: the seed; the same arguments and seed always give identical output.
+    - ``preset``: ``"mems"`` or ``"fog"`` (default: the plan's): coefficient spreads and
+      noise.
+    - ``noise``: overrides the noise levels (``"none"``, or a dict such as
+      ``{"arw": 1e-4, "rrw": 0}``).
+    - ``temp_quantum``: rounds the reported temperatures (°C).
+    - ``params``: fixes the true coefficients (Params with beta (3, P) or (d, 3, P),
+      theta (Q,) or (d, Q)).
+    - ``temp_norm``: the normalisation ``params`` refer to (default: the plan's).
+    - ``accel_errors``: turns accelerometer bias/scale/misalignment on (default: the
+      plan's).
+    - ``accel_effects``: a spec of bias terms (``bias_poly(3)+gradient``) that adds the
+      accelerometer's thermal offset; the truth keeps its coefficients in ``truth.accel``
+      (``thermal_beta``, ``thermal_theta``) and the spec in
+      ``truth.info["accel_effects"]``.
+    - ``accel_params``: that offset's coefficients (m/s² per unit regressor, same
+      temperature norm; default: drawn like the gyro's and :data:`ACCEL_PER_GYRO` times
+      larger).
+    - ``keep_components``: store the deterministic error, the true specific force, each
+      noise part (and the accelerometer's thermal offset, ``accel_thermal``) in
+      ``truth.env``.
+    - ``device_prefix``: devices are named ``{device_prefix}000``, ….
+    - ``aux``: extra columns by name ((n,) or (devices, n) arrays); a column an
+      ``aux(NAME)`` effect reads that is not given is a simulated supply voltage
+      (:func:`.supply.supply_voltage`); ``truth.aux_norm`` holds the centring the true
+      coefficients refer to (pass it to ``fit(..., aux_norm=)``).
+    - ``**plan_options``: the plan's options (see :mod:`.plans`), e.g. ``sample_rate``,
+      ``duration``.
     """
     if isinstance(n_devices, bool) or not isinstance(n_devices, int | np.integer) or n_devices < 1:
         raise DataError(f"number of devices must be a positive integer, not {n_devices!r}")
@@ -315,6 +337,15 @@ def demo_batch(n_devices: int = 4, seed: int = 0, effects: str = "bias_poly(2)+g
     ramps (about 1e-3 rad/s at the fastest ramp, well above the noise), and
     adding ``gradient`` closes the gap. Two hours at 1 Hz, the default
     thermal profile compressed (ramps ≈ 2× faster).
+
+    **Arguments:**
+
+    - ``n_devices``: how many devices.
+    - ``seed``: the seed.
+    - ``effects``: the true model spec.
+    - ``duration``: the run's length, s.
+    - ``sample_rate``: samples per second.
+    - ``**kwargs``: further arguments of :func:`simulate`.
     """
     return simulate("thermal", n_devices, effects=effects, seed=seed, duration=duration,
                     sample_rate=sample_rate, **kwargs)

@@ -499,7 +499,13 @@ PLANS: dict[str, type[Plan]] = {
 
 
 def get_plan(plan: str | Plan, **options) -> Plan:
-    """A plan object from its name and options (or the plan itself)."""
+    """A plan object from its name and options (or the plan itself).
+
+    **Arguments:**
+
+    - ``plan``: the plan's name, or a plan object (returned as it is).
+    - ``**options``: the plan's options (``duration``, ``sample_rate``, …).
+    """
     if isinstance(plan, Plan):
         if options:
             raise DataError("give options either to the Plan object or to simulate(), not both")

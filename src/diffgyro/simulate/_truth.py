@@ -36,6 +36,13 @@ def rebase(model: ErrorModel, params: Params, old: TempNorm, new: TempNorm) -> P
     every polynomial ``Σ_j β_j T_s,old^j`` (bias_poly, scale_poly and the
     lag differences of thermal_lag) is expanded in ``T_s,new``. Norms may be
     scalars or per device (leading axis of ``params``).
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel` of ``params``.
+    - ``params``: the coefficients in the ``old`` normalisation.
+    - ``old``: the :class:`~diffgyro.signals.TempNorm` they refer to.
+    - ``new``: the one to express them in.
     """
     beta = np.array(params.beta, dtype=float, copy=True)
     lead = beta.shape[:-2]
@@ -207,7 +214,12 @@ class Truth:
 
 
 def truth_path(out: str | Path) -> Path:
-    """Where the truth of data file ``out`` goes: ``x.csv`` -> ``x.truth.json``."""
+    """Where the truth of data file ``out`` goes: ``x.csv`` -> ``x.truth.json``.
+
+    **Arguments:**
+
+    - ``out``: the data file's path.
+    """
     out = Path(out)
     return out.with_name(out.name[: -len(out.suffix)] + ".truth.json" if out.suffix else out.name
                          + ".truth.json")

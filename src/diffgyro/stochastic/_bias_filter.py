@@ -26,7 +26,14 @@ from jaxtyping import Array, Float
 
 def state_space(components: list[dict], dt: float, p0_walk: float = 1.0):
     """(φ, q, p0, r) of the bias states (diagonal transition, noise, initial variances) and the
-    white measurement variance per sample, from ``noise --json`` components (SI units)."""
+    white measurement variance per sample, from ``noise --json`` components (SI units).
+
+    **Arguments:**
+
+    - ``components``: the axis' noise components as ``noise --json`` gives them.
+    - ``dt``: the sampling interval, s.
+    - ``p0_walk``: the initial variance of a random-walk state.
+    """
     phi, q, p0 = [], [], []
     r = 0.0
     for c in components:
@@ -51,7 +58,16 @@ def state_space(components: list[dict], dt: float, p0_walk: float = 1.0):
 
 def bias_filter(y: Float[Array, " n"], phi, q, p0, r):
     """Filter the bias of one series: returns (bias mean, bias variance, innovation,
-    innovation variance) per sample, the bias after the update with sample k."""
+    innovation variance) per sample, the bias after the update with sample k.
+
+    **Arguments:**
+
+    - ``y``: one series (n,), rad/s.
+    - ``phi``: the bias states' transition factors per sample (diagonal).
+    - ``q``: their process-noise variances per sample.
+    - ``p0``: their initial variances.
+    - ``r``: the white measurement variance per sample.
+    """
     s = phi.shape[0]
 
     def step(carry, yk):

@@ -42,7 +42,20 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
 
     ``motion``: per device None (static) or a one-line status detail saying why not
     (``in_motion: ...`` or ``rest_unverified: ...``: that status, no axes). Devices of equal length are identified together.
-    ``progress`` is called with a line of text before each group of devices."""
+    ``progress`` is called with a line of text before each group of devices.
+
+    **Arguments:**
+
+    - ``values``: the rates (d, n, 3), rad/s.
+    - ``n_valid``: each device's valid samples (d,).
+    - ``t``: sample times (d, n), s.
+    - ``devices``: the devices' names.
+    - ``motion``: per device None (at rest) or why not, as above.
+    - ``max_gm``: Gauss–Markov processes per structure at most.
+    - ``penalty``: the criterion's factor per parameter (default:
+      :data:`~.selection.PENALTY`).
+    - ``progress``: called with a line of text before each group of devices.
+    """
 
     pen = PENALTY if penalty is None else penalty
     motion = [None] * len(devices) if motion is None else motion

@@ -269,7 +269,14 @@ def _param(log_power, log_var, unit, power=True):
 
 
 def components_of(theta, cov, mask) -> list[dict]:
-    """JSON components of one model (log-parameters ``theta``, covariance ``cov``)."""
+    """JSON components of one model (log-parameters ``theta``, covariance ``cov``).
+
+    **Arguments:**
+
+    - ``theta``: the model's log-parameters.
+    - ``cov``: their covariance.
+    - ``mask``: which parameters the structure has (:func:`structure_mask`).
+    """
     theta = np.asarray(theta)
     var = np.diag(np.asarray(cov))
     out = []
@@ -293,7 +300,16 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
     """Identify the stochastic model of every series ``y`` (..., n) in rad/s sampled every ``dt``
     seconds (scalar or per series); ``n_valid``: real samples of each padded series;
     ``structures``: the candidates (default :func:`~.selection.catalogue`), each with white
-    noise; ``penalty``: the criterion's factor per parameter (:data:`~.selection.PENALTY`)."""
+    noise; ``penalty``: the criterion's factor per parameter (:data:`~.selection.PENALTY`).
+
+    **Arguments:**
+
+    - ``y``: the series (..., n), rad/s.
+    - ``dt``: the sampling interval, s: a scalar or one per series.
+    - ``n_valid``: the real samples of each padded series (default: all n).
+    - ``structures``: the candidate structures (default: :func:`~.selection.catalogue`).
+    - ``penalty``: the criterion's factor per parameter.
+    """
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
     n = y.shape[-1]

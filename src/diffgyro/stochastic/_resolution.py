@@ -61,7 +61,14 @@ DISPLAY = {
 
 def gm_white_power(sigma2, tau, dt):
     """White density² (rad²/s) that a sampled Gauss–Markov process (σ², T) adds at long
-    scales: σ²·dt·(1+φ)/(1−φ), φ = exp(−dt/T)."""
+    scales: σ²·dt·(1+φ)/(1−φ), φ = exp(−dt/T).
+
+    **Arguments:**
+
+    - ``sigma2``: the process' variance σ², (rad/s)².
+    - ``tau``: its correlation time T, s.
+    - ``dt``: the sampling interval, s.
+    """
     a = dt / tau
     one_phi = -math.expm1(-a)
     return sigma2 * dt * (2.0 - one_phi) / one_phi

@@ -34,7 +34,12 @@ PENALTY = 5.0
 
 def structure_mask(structure: tuple[str, ...]) -> np.ndarray:
     """Parameter mask (:data:`~.components.LAYOUT`) of a structure such as
-    ``("white", "gauss_markov", "random_walk")``; kinds may repeat for Gauss–Markov (≤ 2)."""
+    ``("white", "gauss_markov", "random_walk")``; kinds may repeat for Gauss–Markov (≤ 2).
+
+    **Arguments:**
+
+    - ``structure``: the structure's kinds.
+    """
     mask = np.zeros(N_PARAMS, bool)
     gm = 0
     for kind in structure:
@@ -58,7 +63,12 @@ def structure_mask(structure: tuple[str, ...]) -> np.ndarray:
 
 def catalogue(max_gm: int = 2) -> list[tuple[str, ...]]:
     """Every structure: white noise, with or without quantization, 0..max_gm Gauss–Markov
-    processes, a random walk and a ramp, fewest parameters first."""
+    processes, a random walk and a ramp, fewest parameters first.
+
+    **Arguments:**
+
+    - ``max_gm``: Gauss–Markov processes per structure at most.
+    """
     out = []
     for q, gm, rw, ramp in itertools.product((0, 1), range(max_gm + 1), (0, 1), (0, 1)):
         s = ("white",) + ("quantization",) * q + ("gauss_markov",) * gm \
@@ -75,7 +85,12 @@ def effective_rank(d_white):
 
 
 def label(structure: tuple[str, ...]) -> str:
-    """``white + gauss_markov×2 + random_walk``."""
+    """``white + gauss_markov×2 + random_walk``.
+
+    **Arguments:**
+
+    - ``structure``: the structure's kinds, such as ``("white", "gauss_markov")``.
+    """
     parts = []
     for kind in KINDS:
         c = structure.count(kind)

@@ -25,7 +25,19 @@ def simulate_noise(key, n: int, dt: float, *, arw: float = 0.0, q: float = 0.0,
     """One rate series of n samples (rad/s): white noise of density ``arw`` (rad/s/√Hz),
     angle quantization of RMS ``q`` (rad; uniform angle error, step q·√12), first-order
     Gauss–Markov processes ``gm = ((sigma, tau), …)`` started stationary, a rate random
-    walk ``rrw`` (rad/s/√s) and a ramp ``ramp`` (rad/s²)."""
+    walk ``rrw`` (rad/s/√s) and a ramp ``ramp`` (rad/s²).
+
+    **Arguments:**
+
+    - ``key``: the JAX random key.
+    - ``n``: the number of samples.
+    - ``dt``: the sampling interval, s.
+    - ``arw``: white-noise density, rad/s/√Hz.
+    - ``q``: angle quantization RMS, rad.
+    - ``gm``: Gauss–Markov processes ``((sigma, tau), …)``, rad/s and s.
+    - ``rrw``: rate random walk, rad/s/√s.
+    - ``ramp``: rate ramp, rad/s².
+    """
     keys = jax.random.split(key, 4 + len(gm))
     y = arw / jnp.sqrt(dt) * jax.random.normal(keys[0], (n,))
     if q:

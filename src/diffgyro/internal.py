@@ -1,0 +1,93 @@
+"""The private helpers that tests (and a reader checking a result by hand) reach, in one
+namespace, as optimistix's ``internal``: not the public API. Nothing here is promised to
+stay between versions; it is not in :data:`diffgyro.PUBLIC_MODULES` nor on the API pages.
+
+The test suite reaches the package through its public names and this module only; a test
+of one private module itself (``_jit``, ``_jsonio``, ``_program_cache``, …) imports that
+module. This is the one module that may import another package's private modules
+(``tests/test_architecture.py`` allows it alone). Grouped by where each name lives:
+
+- signals and terms: :func:`batch_signals` and :func:`stacked_signals` (loaded data to
+  signals), the signal catalogue's built-in names (``BUILT_IN``) and ``present``, the
+  effect registry's tables (``REGISTRY``, and ``NOISE_FITS`` of the noise processes'
+  fits), ``per_axis`` (one column per gyro axis);
+- the fit's engines: ``filter_jit``, the JAX noise floor (``device_noise_floor``,
+  ``masked_median``), the temperature read-out step and dT/dt window
+  (``temperature_quantum``, ``suggest_dtemp_window``), ``window_stats`` (the motion
+  check's statistics), the sums path's ``pack`` and ``unpack_results``;
+- attitude references: quaternion helpers and gyro integration (``_reference``);
+- diagnose: ``candidate_grid``, ``residual_floor``, term synthesis (``describe``,
+  ``library``, ``propose_all``, ``synthesise``) and ``reason`` (why a candidate is skipped);
+- files: unit headers (``header_units``, ``merge_units``, ``split_header``),
+  ``unit_scale`` of limits files, the command line's ``load_from_cli``;
+- streaming: ``ReadConfig``, ``expand_inputs``, ``index_dataset``, ``WorkDir``,
+  ``calibration_entries``, ``ChunkFitter``, ``local_mesh``;
+- recipes: ``joint_affine``, ``s2_design``, ``sign_change_mask``, ``offset_filter``;
+- the simulator: motion constants and quaternions (``DEG``, ``EARTH_RATE``, ``G0``,
+  ``qconj``, ``qlog``, ``qmul``), ``first_order_hold_lag``, noise (``flicker``,
+  ``gyro_noise``), populations (``FOG``, ``MEMS``, ``draw_params``);
+- the stochastic model: ``LAYOUT``, ``avar_gauss_markov``, ``model_wv``, ``psd``,
+  ``wv_covariance``, ``dyadic_m``, ``haar_wv``.
+"""
+
+from __future__ import annotations
+
+from ._fit_sums import pack, unpack_results
+from ._jit import filter_jit
+from ._noise_jax import device_noise_floor, masked_median
+from ._reference import (
+    attitude_from_accel_mag,
+    heading_error,
+    integrate_gyro,
+    quat_conj,
+    quat_mul,
+    rates_from_quaternions,
+    rotvec_from_quat,
+)
+from ._signal_builder import batch_signals, stacked_signals
+from ._signal_catalogue import BUILT_IN, present
+from ._temperature import suggest_dtemp_window, temperature_quantum
+from ._window_stats import window_stats
+from .cli._load import load_from_cli
+from .diagnose._noise_model import residual_floor
+from .diagnose._scoring import candidate_grid
+from .diagnose._synthesis import apply as synthesise
+from .diagnose._synthesis import describe, library, propose_all
+from .diagnose._unsupported import reason
+from .effects._base import _NOISE_FITS as NOISE_FITS
+from .effects._base import _REGISTRY as REGISTRY
+from .effects._common import per_axis
+from .io._headers import header_units, merge_units, split_header
+from .limits._units import unit_scale
+from .pipeline._chunkfit import ChunkFitter, local_mesh
+from .pipeline._dataset import ReadConfig, expand_inputs, index_dataset
+from .pipeline._run import calibration_entries
+from .pipeline._workdir import WorkDir
+from .recipes._attitude_reference import joint_affine
+from .recipes._fog_one_run import s2_design, sign_change_mask
+from .recipes._static_kalman import offset_filter
+from .simulate._motion import DEG, EARTH_RATE, G0, qconj, qlog, qmul
+from .simulate._noise import flicker, gyro_noise
+from .simulate._population import FOG, MEMS, draw_params
+from .simulate._thermal import first_order_hold_lag
+from .stochastic._components import LAYOUT, avar_gauss_markov, model_wv
+from .stochastic._covariance import psd, wv_covariance
+from .stochastic._wavelet_variance import dyadic_m, haar_wv
+
+__all__ = [
+    "batch_signals", "stacked_signals", "BUILT_IN", "present", "REGISTRY", "NOISE_FITS",
+    "per_axis",
+    "filter_jit", "device_noise_floor", "masked_median", "temperature_quantum",
+    "suggest_dtemp_window", "window_stats", "pack", "unpack_results",
+    "attitude_from_accel_mag", "heading_error", "integrate_gyro", "quat_conj", "quat_mul",
+    "rates_from_quaternions", "rotvec_from_quat",
+    "candidate_grid", "residual_floor", "describe", "library", "propose_all", "synthesise",
+    "reason",
+    "header_units", "merge_units", "split_header", "unit_scale", "load_from_cli",
+    "ReadConfig", "expand_inputs", "index_dataset", "WorkDir", "calibration_entries",
+    "ChunkFitter", "local_mesh",
+    "joint_affine", "s2_design", "sign_change_mask", "offset_filter",
+    "DEG", "EARTH_RATE", "G0", "qconj", "qlog", "qmul", "first_order_hold_lag", "flicker",
+    "gyro_noise", "FOG", "MEMS", "draw_params",
+    "LAYOUT", "avar_gauss_markov", "model_wv", "psd", "wv_covariance", "dyadic_m", "haar_wv",
+]
