@@ -317,7 +317,12 @@ _INPUT_SIGNALS = {"rx", "ry", "rz", "w"}
 
 
 def reads_input(spec: str) -> bool:
-    """Whether the model ``spec`` reads the reference input (rate, or gravity on a face)."""
+    """Whether the model ``spec`` reads the reference input (rate, or gravity on a face).
+
+    **Arguments:**
+
+    - ``spec``: the model's spec, as the calibration file holds it.
+    """
     for name, k in _terms(spec):
         if name in _INPUT_TERMS or (name == "term" and any(f[0] in _INPUT_SIGNALS for f in k)):
             return True
@@ -328,7 +333,19 @@ def compensate_accel(calibration: dict, device: str, t, accel, temp=None, temp_e
                      iterations: int = 4, aux=None) -> np.ndarray:
     """Corrected accelerometer (n, 3), m/s², from measured ``accel`` (n, 3) with a parsed
     accelerometer calibration file (the module docstring: the specific force where the
-    calibration read several orientations, the reading at ``temp_centre`` where one)."""
+    calibration read several orientations, the reading at ``temp_centre`` where one).
+
+    **Arguments:**
+
+    - ``calibration``: the accelerometer calibration file as a dict (``json.load``).
+    - ``device``: the device's id in the file.
+    - ``t``: sample times (n,), s.
+    - ``accel``: the measured specific force (n, 3), m/s².
+    - ``temp``: die temperature (n,), °C, where a term reads it.
+    - ``temp_ext``: external temperature (n,), °C, for ``temp_diff``.
+    - ``iterations``: Newton steps that invert the input-dependent terms.
+    - ``aux``: extra column names to samples (n,), for ``aux(NAME)`` terms.
+    """
     if calibration.get("channel", "gyro") != "accel":
         raise ValueError("not an accelerometer calibration (its channel is "
                          f"{calibration.get('channel', 'gyro')!r})")

@@ -59,7 +59,13 @@ _GYRO_AXIS = re.compile(r"\bg([xyz])\b")
 def in_units(text: str, channel: str | None = None) -> str:
     """``text`` (a label or a page, its embedded images untouched) in the units of
     ``channel`` (default: the report being written): the gyro's wording as it is, the
-    accelerometer's in m/s² with axes ``ax, ay, az`` and gravity as its input."""
+    accelerometer's in m/s² with axes ``ax, ay, az`` and gravity as its input.
+
+    **Arguments:**
+
+    - ``text``: a label or a page.
+    - ``channel``: ``gyro`` or ``accel`` (default: the report being written).
+    """
     channel = _CHANNEL.get() if channel is None else channel
     if channel == "gyro":
         return text
