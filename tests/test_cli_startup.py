@@ -136,7 +136,8 @@ def test_a_command_starts_jax_only_when_its_code_does(tmp_path):
 
 def test_export_and_effects_load_no_pandas(tmp_path):
     """``export`` reads a calibration file and ``effects`` lists the terms: no DataFrame,
-    so no pandas (nor numba, matplotlib); the file export writes holds the device's
+    so no pandas (nor numba, matplotlib), and no compiled program, so no JAX (the terms'
+    table, ``diffgyro._term_info``); the file export writes holds the device's
     parameters."""
     cal = {"format": "diffgyro-calibration", "format_version": 1, "model": "bias_poly(1)",
            "dtemp_window": 60.0, "devices": [{
@@ -145,8 +146,8 @@ def test_export_and_effects_load_no_pandas(tmp_path):
                "quality": {"heldout_rms": 3e-4, "noise_floor": 3e-4}}]}
     (tmp_path / "cal.json").write_text(json.dumps(cal))
     code = ("import json, sys; from diffgyro.cli import main; code = main({argv!r}); "
-            "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib') "
-            "if m in sys.modules)]))")
+            "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib', 'jax', "
+            "'equinox') if m in sys.modules)]))")
 
     def run(argv):
         return subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True,

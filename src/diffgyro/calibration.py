@@ -23,27 +23,21 @@ import hashlib
 import json
 import math
 import os
-import warnings
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
 from . import __version__
-from . import _aux as aux_cols
-from ._aux import aux_names
-from ._fit_result import AbstractFitResult
 from ._jsonio import atomic_write_text, dumps, to_json_safe
-from ._signal_builder import batch_signals
-from .channel import CHANNELS, UNITS
-from .data import Batch, Recording
+from ._term_info import ModelInfo, model_info
+from ._vocabulary import CHANNELS, MAX_INTERVALS, STATUS_NAMES, UNITS, VERDICT_NAMES, aux_names
 from .errors import SpecError
-from .model import ErrorModel, Params
-from .motion import MAX_INTERVALS, VERDICT_NAMES
-from .signals import TempNorm
-from .status import STATUS_NAMES
+
+if TYPE_CHECKING:
+    from ._fit_result import AbstractFitResult
+    from .data import Batch, Recording
+    from .model import ErrorModel
 
 __all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",
            "from_json", "units_of", "entry_json", "data_hash", "FORMAT", "FORMAT_VERSION"]
@@ -102,7 +96,15 @@ class Calibration:
 
     @property
     def error_model(self) -> ErrorModel:
+        """The model as the fit and compensation run it (imports JAX)."""
+        from .model import ErrorModel
+
         return ErrorModel.from_spec(self.model)
+
+    @property
+    def model_info(self) -> ModelInfo:
+        """The model's terms as export and the file's checks read them (without JAX)."""
+        return model_info(self.model)
 
     def device(self, name: str) -> DeviceCalibration:
         for d in self.devices:
@@ -146,7 +148,7 @@ def data_hash(batch: Batch) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def units_of(model: ErrorModel, channel: str = "gyro") -> dict:
+def units_of(model: ErrorModel | ModelInfo, channel: str = "gyro") -> dict:
     """The unit of each term's coefficients, and of tau, rates and temperature (the
     accelerometer channel's measurement is in m/s² where the gyro's is in rad/s)."""
     def unit(text: str) -> str:
@@ -362,7 +364,7 @@ def from_json(obj) -> Calibration:
         raise SpecError(f"calibration file: format_version {version} is not supported "
                         f"(this diffgyro reads 1..{FORMAT_VERSION})")
     spec = _req(obj, "model", str, "file")
-    model = ErrorModel.from_spec(spec)
+    model = model_info(spec)
     p, q = model.n_params, model.n_nonlinear
     devs = _req(obj, "devices", list, "file")
     if not devs:
@@ -445,7 +447,7 @@ def _limits_entry(val, where: str) -> dict:
     return val
 
 
-def _aux_entries(val, model: ErrorModel, where: str) -> dict:
+def _aux_entries(val, model: ModelInfo, where: str) -> dict:
     """The extra columns' centring and calibrated range: exactly those the model reads."""
 
     names = aux_names(model.requires())
@@ -508,73 +510,6 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
     PX4 does) and counted; the counts come back in the second value, keyed
     by device. A device whose calibration is not ``ok`` is an error.
     """
-    batch = data if isinstance(data, Batch) else Batch.from_recordings(
-        [data] if isinstance(data, Recording) else list(data))
-    if cal.channel != "gyro":
-        raise SpecError(f"this is a calibration of the {cal.channel} channel; compensation "
-                        "applies gyro calibrations", hint="export it to the autopilot "
-                        "(diffgyro export CAL --format px4|ardupilot), which applies it")
-    model = cal.error_model
-    devs = [cal.device(name) for name in batch.devices]
-    for d in devs:
-        if d.status != "ok":
-            why = d.status_detail if d.status_detail not in ("", d.status) else d.status
-            raise SpecError(f"calibration of device {d.device!r} is not ok ({why}); "
-                            "refusing to apply it", device=d.device)
-    params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
-                    theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))
-    clamped: dict[str, int] = {}
-    aux = _aux_scaled(batch, model, devs)
-    if batch.temp is not None and "temp" in model.requires():
-        temp = np.array(batch.temp, dtype=np.float64)
-        for i, d in enumerate(devs):
-            if d.temp_range is None:
-                continue
-            lo, hi = d.temp_range
-            n = int(batch.n_valid[i])
-            outside = (temp[i, :n] < lo) | (temp[i, :n] > hi)
-            if outside.any():
-                clamped[d.device] = int(outside.sum())
-            temp[i] = np.clip(temp[i], lo, hi)
-        batch_for_model = Batch(**{**{s: getattr(batch, s) for s in
-                                      ("t", "gyro", "mask", "n_valid", "temp_ext", "accel", "mag",
-                                       "rate", "quat")}, "temp": temp},
-                                devices=batch.devices, sources=batch.sources)
-        # dT/dt is taken from the measured temperature, not the clamped one
-        sig = batch_signals(batch_for_model, norm=_norm(devs), dtemp_window=cal.dtemp_window,
-                            aux=aux)
-        sig_raw = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
-        sig = eqx.tree_at(lambda s: (s.dtemp, s.heating), sig, (sig_raw.dtemp, sig_raw.heating))
-    else:
-        sig = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window, aux=aux)
-    if clamped:
-        warnings.warn("temperature outside the calibrated range was clamped for "
-                      + ", ".join(f"{k} ({v} samples)" for k, v in clamped.items()), stacklevel=2)
-    omega = _compensate_batch(model, params, sig)
-    omega = np.where(np.asarray(batch.mask)[..., None], np.asarray(omega), 0.0)
-    out = Batch(**{**{s: getattr(batch, s) for s in ("t", "mask", "n_valid", "temp", "temp_ext",
-                                                      "accel", "mag", "rate", "quat")},
-                   "gyro": omega}, devices=batch.devices, sources=batch.sources, aux=batch.aux)
-    return out, clamped
+    from ._compensate import compensate_batch
 
-
-def _aux_scaled(batch: Batch, model: ErrorModel, devs) -> dict:
-    """The extra columns the model reads, clamped to the calibrated range and centred as
-    calibrated; DataError naming the column when the data lack one."""
-
-    names = aux_cols.aux_names(model.requires())
-    aux_cols.check_columns(batch, names, vary=False)
-    norm = {k: TempNorm(centre=np.asarray([d.aux[k]["centre"] for d in devs]),
-                        scale=np.asarray([d.aux[k]["scale"] for d in devs])) for k in names}
-    clamp = {k: np.asarray([d.aux[k]["range"] for d in devs]) for k in names}
-    return aux_cols.scaled(batch, norm, clamp)
-
-
-def _norm(devs) -> TempNorm:
-    return TempNorm(centre=jnp.asarray([d.temp_centre for d in devs]),
-                    scale=jnp.asarray([d.temp_scale for d in devs]))
-
-
-@eqx.filter_jit
-def _compensate_batch(model: ErrorModel, params: Params, sig):
-    return jax.vmap(model.compensate)(params, sig)
+    return compensate_batch(cal, data)

@@ -24,16 +24,13 @@ import dataclasses
 import numpy as np
 from jaxtyping import Float
 
+from ._vocabulary import CHANNELS, UNITS
 from .data import Batch, Recording, as_batch
 from .errors import DataError, SpecError
 
 __all__ = ["CHANNELS", "UNITS", "check_channel", "split_spec", "resolve", "check_model",
            "gravity_reference", "as_channel"]
 
-#: The channels, the first the default.
-CHANNELS = ("gyro", "accel")
-#: The unit of each channel's measurement (and of its bias coefficients per unit of signal).
-UNITS = {"gyro": "rad/s", "accel": "m/s²"}
 #: Signals a model may not read on the accelerometer channel, and why.
 _NOT_ON_ACCEL = {
     "rate": "a reference rate is the gyro's input; the accelerometer's scale needs gravity "

@@ -22,6 +22,7 @@ import equinox as eqx
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
+from ._vocabulary import AUX_PREFIX
 from .errors import DataError
 
 __all__ = ["Batch", "Recording", "as_batch", "pad_devices", "device_bucket", "bucket_length",
@@ -41,7 +42,6 @@ SIGNALS: dict[str, tuple[str, ...]] = {
 OPTIONAL_SIGNALS = ("temp", "temp_ext", "accel", "mag", "rate", "quat")
 COLUMN_TO_SIGNAL = {c: s for s, cols in SIGNALS.items() for c in cols}
 STANDARD_COLUMNS = ("device", "t", *[c for cols in SIGNALS.values() for c in cols])
-AUX_PREFIX = "aux:"
 
 
 def aux_key(name: str) -> str:

@@ -11,7 +11,7 @@ import dataclasses
 
 from ..calibration import Calibration
 from ..errors import DataError
-from ..status import residual_note, residual_verdict
+from .._vocabulary import residual_note, residual_verdict
 from . import ardupilot, c_header, px4
 
 __all__ = ["render", "FORMATS", "select_devices", "refuse_not_ok"]
