@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..calibration import Calibration, DeviceCalibration
 from .._vocabulary import UNITS
+from ..calibration import Calibration, DeviceCalibration
 from ..errors import DataError
 
 #: Highest polynomial order PX4's TC_* and ArduPilot's INS_TCAL* parameters hold.
