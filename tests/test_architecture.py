@@ -206,10 +206,11 @@ DEFERRED = {
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
-    # the calibration file read, checked and exported without JAX: the full model (a spec
-    # beyond the built-in terms' table) and compensation load on use
+    # the calibration file read, checked, exported and applied without JAX: the full model
+    # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
+    # extra columns' checks (an aux term) load on use
     "diffgyro._term_info": {"diffgyro.model"},
-    "diffgyro.calibration": {"diffgyro.model", "diffgyro._compensate"},
+    "diffgyro.calibration": {"diffgyro.model", "diffgyro._compensate", "diffgyro._aux"},
     "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
                       "diffgyro.logs._dataflash"},
     "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'

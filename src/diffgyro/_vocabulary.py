@@ -1,11 +1,11 @@
 """The names that files, commands and engines share, defined without JAX.
 
 A calibration file is validated against these (its statuses, motion verdicts, channel),
-and ``export`` judges a device's residual with them; keeping them here lets the
-commands that compile nothing (``export``, ``effects``, ``compensate``, a bad input's
-error) answer without starting JAX. :mod:`diffgyro.status`, :mod:`diffgyro.motion`,
-:mod:`diffgyro.channel` and :mod:`diffgyro.data` re-export them.
-"""
+``export`` judges a device's residual with them, and a command checks a recording's
+length for a model with them; keeping them here lets the commands that compile nothing
+(``export``, ``effects``, ``compensate``, a bad input's error) answer without starting
+JAX. :mod:`diffgyro.status`, :mod:`diffgyro.motion`, :mod:`diffgyro.channel` and
+:mod:`diffgyro.data` re-export them."""
 
 from __future__ import annotations
 
@@ -13,7 +13,7 @@ import math
 from collections.abc import Iterable
 
 __all__ = ["STATUS_NAMES", "VERDICT_NAMES", "MAX_INTERVALS", "CHANNELS", "UNITS", "AUX_PREFIX",
-           "aux_names", "RESIDUAL_WARN", "RESIDUAL_REFUSE", "residual_verdict", "residual_note"]
+           "aux_names", "min_samples", "RESIDUAL_WARN", "RESIDUAL_REFUSE", "residual_verdict", "residual_note"]
 
 #: A device's fit status, by its code (:func:`diffgyro.status.fit_status`).
 STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
@@ -33,6 +33,11 @@ AUX_PREFIX = "aux:"
 def aux_names(required: Iterable[str]) -> tuple[str, ...]:
     """Extra-column names among a model's required signals (``aux:NAME``), sorted."""
     return tuple(sorted(s[len(AUX_PREFIX):] for s in required if s.startswith(AUX_PREFIX)))
+
+
+def min_samples(n_unknowns: int) -> int:
+    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis."""
+    return max(2 * n_unknowns, n_unknowns + 4)
 
 
 #: Held-out RMS over the noise floor above which a calibration carries a warning: the

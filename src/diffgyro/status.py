@@ -20,6 +20,7 @@ from ._vocabulary import (
     RESIDUAL_REFUSE,
     RESIDUAL_WARN,
     STATUS_NAMES,
+    min_samples,
     residual_note,
     residual_verdict,
 )
@@ -45,11 +46,6 @@ def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, r
     if range_flags is not None:
         status = jnp.where(jnp.any(range_flags), INSUFFICIENT_RANGE, status)
     return jnp.where(n_valid < min_samples, INSUFFICIENT_DATA, status)
-
-
-def min_samples(n_unknowns: int) -> int:
-    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis."""
-    return max(2 * n_unknowns, n_unknowns + 4)
 
 
 def collinear_terms(model, direction, rank_ok):
