@@ -74,3 +74,13 @@ def test_numpy_engine_refuses_as_the_model_does(batch):
             C.compensate(cal, batch, engine=engine)
     with pytest.raises(ValueError, match="engine"):
         C.compensate(cal, batch, engine="torch")
+
+
+def test_a_signal_the_model_needs_is_named(batch):
+    """Data without the temperature a thermal model reads: one DataError naming it, in
+    either engine (the true rate a scale term reads is what compensation solves for)."""
+    cal = _calibration("bias_poly(2)+gradient+scale_poly(0)", list(batch.devices))
+    bare = dataclasses.replace(batch, temp=None, temp_ext=None)
+    for engine in ("jax", "numpy"):
+        with pytest.raises(DataError, match="needs temp, not in the data"):
+            C.compensate(cal, bare, engine=engine)

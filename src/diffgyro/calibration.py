@@ -34,8 +34,8 @@ from . import __version__, apply
 from ._jsonio import atomic_write_text, dumps, to_json_safe
 from ._term_info import KINDS, ModelInfo, model_info
 from ._vocabulary import CHANNELS, MAX_INTERVALS, STATUS_NAMES, UNITS, VERDICT_NAMES, aux_names
-from .data import Batch, Recording, as_batch
-from .errors import SpecError
+from .data import SIGNALS, Batch, Recording, as_batch
+from .errors import DataError, SpecError
 
 if TYPE_CHECKING:
     from ._fit_result import AbstractFitResult
@@ -526,6 +526,11 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording],
                         "applies gyro calibrations", hint="export it to the autopilot "
                         "(diffgyro export CAL --format px4|ardupilot), which applies it")
     info = cal.model_info
+    # the true rate a scale term reads is what compensation solves for, not an input
+    missing = {s for s in info.requires() if s in SIGNALS and s != "rate"} - set(batch.signals)
+    if missing:
+        raise DataError(f"model {cal.model!r} needs {', '.join(sorted(missing))}, not in the data",
+                        file=batch.sources[0] if batch.sources else None)
     if engine == "jax" or any(t.name not in KINDS for t in info.parts):
         from ._compensate import compensate_batch
 
