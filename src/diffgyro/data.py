@@ -4,7 +4,10 @@ A :class:`Recording` holds one device's samples in the standard schema
 (docs/formats.md; SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
 recordings along a leading device axis, padded to a bucket length with a
 sample mask, so that batches of slightly different lengths reuse one compiled
-function; fits pad the device axis the same way (:func:`pad_devices`). Arrays are host numpy arrays here; fits move them to JAX.
+function; fits pad the device axis the same way (:func:`pad_devices`). Arrays are host
+numpy arrays here; fits move them to JAX. Both are frozen dataclasses that become JAX
+pytrees (the arrays children, the names static) when JAX is imported, so that reading a
+file needs no JAX.
 
 Extra numeric columns of a file (supply voltage, a second board temperature,
 heater duty, ...) travel beside the standard signals in ``aux``, a dict from
