@@ -10,6 +10,7 @@ need no compiled program ≤ 0.5 s, cold ≤ 2× warm) and whether it is met.
 
 ``--repeat N`` runs the walkthrough N times, each in a fresh folder and cache, and gives
 the median of each command's cold and warm times (on a shared machine one run is noisy).
+``--only NAMES`` times those commands alone (the ones whose files they read run once first).
 """
 
 from __future__ import annotations
@@ -44,7 +45,16 @@ COMMANDS = [
     ("noise", ["noise", "static.csv", "--json"], 1.5),
     ("effects", ["effects"], 0.5),
     ("bad input", ["fit", "missing.csv", "--model", "bias_poly(1)"], 0.5),
+    ("bad column", ["fit", "nocol.csv", "--model", "bias_poly(1)"], 0.5),
 ]
+#: The commands whose files a command reads (run once, untimed, under ``--only``).
+SETUP = {"compensate": ["simulate thermal", "fit"], "export px4": ["simulate thermal", "fit cubic"],
+         "export ardupilot": ["simulate thermal", "fit cubic"],
+         "export c-header": ["simulate thermal", "fit cubic"], "fit": ["simulate thermal"],
+         "fit cubic": ["simulate thermal"], "diagnose": ["simulate thermal"],
+         "allan": ["simulate static"], "noise": ["simulate static"]}
+#: A CSV without the column gz: the reader's one-line error.
+NO_COLUMN = "device,t,gx,gy,temp\nimu0,0,0.1,0.2,25\nimu0,0.5,0.1,0.2,25\n"
 
 
 def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int]:
@@ -54,12 +64,19 @@ def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int]:
     return time.perf_counter() - t0, done.returncode
 
 
-def _walkthrough() -> list[tuple[float, float, int]]:
-    """(cold s, warm s, exit code) of every command, in a fresh folder and cache."""
+def _walkthrough(only: list[str]) -> list[tuple[float, float, int]]:
+    """(cold s, warm s, exit code) of every command in ``only``, in a fresh folder and cache
+    (the commands whose files they read run first, once)."""
     work = Path(tempfile.mkdtemp())
+    (work / "nocol.csv").write_text(NO_COLUMN)
     env = {**os.environ, "DIFFGYRO_CACHE_DIR": str(work / "cache")}
+    setup = {s for name in only for s in SETUP.get(name, [])} - set(only)
     out = []
-    for _, cmd, _ in COMMANDS:
+    for name, cmd, _ in COMMANDS:
+        if name in setup:
+            _run(cmd, work, env)
+        if name not in only:
+            continue
         cold, code = _run(cmd, work, env)
         warm, _ = _run(cmd, work, env)
         out.append((cold, warm, code))
@@ -70,10 +87,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json")
     ap.add_argument("--repeat", type=int, default=1, help="walkthroughs; medians reported")
+    ap.add_argument("--only", help="comma-separated command names (default: all), e.g. "
+                    "'compensate,export px4,effects,bad input,bad column'")
     args = ap.parse_args()
-    runs = [_walkthrough() for _ in range(max(args.repeat, 1))]
+    only = [c[0] for c in COMMANDS] if not args.only else [n.strip() for n in args.only.split(",")]
+    unknown = set(only) - {c[0] for c in COMMANDS}
+    if unknown:
+        ap.error(f"unknown command(s) {sorted(unknown)}; one of {[c[0] for c in COMMANDS]}")
+    runs = [_walkthrough(only) for _ in range(max(args.repeat, 1))]
     rows = []
-    for k, (name, _, goal) in enumerate(COMMANDS):
+    for k, (name, _, goal) in enumerate(c for c in COMMANDS if c[0] in only):
         cold = statistics.median(r[k][0] for r in runs)
         warm = statistics.median(r[k][1] for r in runs)
         code = runs[0][k][2]

@@ -200,7 +200,8 @@ def test_no_long_function_without_a_reason():
 #: reason: an optional dependency (the extras ``logs`` and ``dask``, a POSIX-only module),
 #: a library only figures need (matplotlib), numba's compile on first use,
 #: ``import diffgyro`` staying free of JAX, and the state-space path, which the front door
-#: registers as the random walk's fit and loads when a model has one. The command line's deferred loading of the
+#: registers as the random walk's fit and loads when a model has one, and the calibration
+#: file read without JAX (the full model and compensation load on use). The command line's deferred loading of the
 #: engine is checked apart (:func:`test_cli_defers_only_the_engine`).
 DEFERRED = {
     "diffgyro": {"jax", "diffgyro._jit"},  # import diffgyro without JAX
@@ -212,6 +213,11 @@ DEFERRED = {
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
+    # the calibration file read, checked, exported and applied without JAX: the full model
+    # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
+    # extra columns' checks (an aux term) load on use
+    "diffgyro._term_info": {"diffgyro.model"},
+    "diffgyro.calibration": {"diffgyro.model", "diffgyro._compensate", "diffgyro._aux"},
     "diffgyro.logs": {"diffgyro.logs._ulog", "diffgyro.logs._rosbag",  # extra 'logs'
                       "diffgyro.logs._dataflash"},
     "diffgyro.pipeline._cluster": {"distributed"},  # extra 'dask'
@@ -322,14 +328,14 @@ def test_each_public_name_exported_once():
 #: only from its own row and the rows below.
 LAYERS = (
     ("errors", "data", "channel", "_jit", "_xla_options", "_program_cache", "_jsonio",
-     "_jax_setup"),
-    ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux"),
+     "_jax_setup", "_vocabulary"),
+    ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux", "_term_info"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
      "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
      "_window_stats", "_window_explain"),
     ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
-    ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits"),
+    ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits", "_compensate"),
     ("simulate", "recipes", "pipeline", "cli", "_demo", "__main__", "internal"),
 )
 #: Imports up a row, each for a reason: the random-walk fit runs the stochastic model's

@@ -57,6 +57,43 @@ def test_missing_file_and_bad_option_answer_without_jax(tmp_path):
     assert seen["code"] == 2 and not seen["jax"] and "--modle" in err and "--model" in err
 
 
+def test_a_bad_csv_answers_without_jax(tmp_path):
+    """A CSV without a required column is refused by the reader, before anything imports
+    JAX: ``fit`` checks its spec without JAX (``diffgyro._term_info``) and loads first;
+    the data containers are JAX-free (they become pytrees when JAX starts)."""
+    (tmp_path / "nocol.csv").write_text("device,t,gx,gy,temp\nimu0,0,0.1,0.2,25\nimu0,1,0.1,0.2,25\n")
+    want = ("diffgyro: error: file nocol.csv, column gz: missing required column (columns in the "
+            "file: device, t, gx, gy, temp; map others with --columns std=name)")
+    for argv in (["fit", "nocol.csv", "--model", "bias_poly(1)+gradient"],
+                 ["diagnose", "nocol.csv", "--model", "bias_poly(1)"],
+                 ["compensate", "nocol.csv", "--cal", "cal.json", "--out", "o.csv"]):
+        if argv[0] == "compensate":
+            (tmp_path / "cal.json").write_text(json.dumps(CAL))
+        seen, _, err = _probe(argv, tmp_path)
+        assert seen == {"code": 2, "jax": False, "equinox": False}, argv
+        assert err == want
+    seen, _, err = _probe(["fit", "nocol.csv", "--model", "bias_poly(1)+gradien"], tmp_path)
+    assert seen["code"] == 2 and "did you mean 'gradient'" in err  # the spec is read first
+
+
+def test_compensate_answers_without_jax(tmp_path):
+    """``compensate`` reads the file, applies the calibration in numpy
+    (:func:`diffgyro.apply.compensate`) and writes the corrected file: no JAX; the corrected
+    rate is the measured one less the calibration's bias polynomial."""
+    (tmp_path / "cal.json").write_text(json.dumps(CAL))
+    (tmp_path / "x.csv").write_text("device,t,gx,gy,gz,temp\n" + "".join(
+        f"imu0,{k},0.01,0.02,0.03,{20 + k}\n" for k in range(5)))
+    seen, out, _ = _probe(["compensate", "x.csv", "--cal", "cal.json", "--out", "c.csv"],
+                          tmp_path)
+    assert seen == {"code": 0, "jax": False, "equinox": False}
+    assert out.startswith("wrote c.csv: 1 device(s), 5 samples corrected by bias_poly(1)")
+    rows = [ln.split(",") for ln in (tmp_path / "c.csv").read_text().splitlines()[1:]]
+    for k, row in enumerate(rows):
+        ts = (20 + k - 25.0) / 10.0
+        want = [0.01 - 1e-3 - 2e-4 * ts, 0.02 + 1e-3, 0.03 - 5e-5 * ts]
+        assert [float(x) for x in row[2:5]] == pytest.approx(want, abs=1e-15)
+
+
 def test_public_names_still_load_on_use(tmp_path):
     code = ("import sys, diffgyro; assert 'jax' not in sys.modules; "
             "from diffgyro import Batch, ErrorModel; import diffgyro.effects as effects; "
@@ -134,19 +171,23 @@ def test_a_command_starts_jax_only_when_its_code_does(tmp_path):
     assert after == {"code": 0, "jax": True, "env": []}
 
 
+#: A calibration file of one device, bias_poly(1).
+CAL = {"format": "diffgyro-calibration", "format_version": 1, "model": "bias_poly(1)",
+       "dtemp_window": 60.0, "devices": [{
+           "device": "imu0", "status": "ok", "beta": [[1e-3, 2e-4], [-1e-3, 0.0], [0.0, 5e-5]],
+           "theta": [], "temp_centre": 25.0, "temp_scale": 10.0, "temp_range": [15.0, 35.0],
+           "quality": {"heldout_rms": 3e-4, "noise_floor": 3e-4}}]}
+
+
 def test_export_and_effects_load_no_pandas(tmp_path):
     """``export`` reads a calibration file and ``effects`` lists the terms: no DataFrame,
-    so no pandas (nor numba, matplotlib); the file export writes holds the device's
+    so no pandas (nor numba, matplotlib), and no compiled program, so no JAX (the terms'
+    table, ``diffgyro._term_info``); the file export writes holds the device's
     parameters."""
-    cal = {"format": "diffgyro-calibration", "format_version": 1, "model": "bias_poly(1)",
-           "dtemp_window": 60.0, "devices": [{
-               "device": "imu0", "status": "ok", "beta": [[1e-3, 2e-4], [-1e-3, 0.0], [0.0, 5e-5]],
-               "theta": [], "temp_centre": 25.0, "temp_scale": 10.0, "temp_range": [15.0, 35.0],
-               "quality": {"heldout_rms": 3e-4, "noise_floor": 3e-4}}]}
-    (tmp_path / "cal.json").write_text(json.dumps(cal))
+    (tmp_path / "cal.json").write_text(json.dumps(CAL))
     code = ("import json, sys; from diffgyro.cli import main; code = main({argv!r}); "
-            "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib') "
-            "if m in sys.modules)]))")
+            "print(json.dumps([code, sorted(m for m in ('pandas', 'numba', 'matplotlib', 'jax', "
+            "'equinox') if m in sys.modules)]))")
 
     def run(argv):
         return subprocess.run([sys.executable, "-c", code.format(argv=argv)], capture_output=True,

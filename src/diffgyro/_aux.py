@@ -17,17 +17,13 @@ from collections.abc import Iterable, Mapping
 
 import numpy as np
 
-from .data import AUX_PREFIX, Batch
+from ._vocabulary import aux_names  # noqa: F401  (its users read it here)
+from .data import Batch
 from .errors import DataError
 from .signals import TempNorm
 
 #: Relative half-range below which a column counts as constant.
 MIN_RELATIVE_SPAN = 1e-9
-
-
-def aux_names(required: Iterable[str]) -> tuple[str, ...]:
-    """Extra-column names among a model's required signals (``aux:NAME``), sorted."""
-    return tuple(sorted(s[len(AUX_PREFIX):] for s in required if s.startswith(AUX_PREFIX)))
 
 
 def missing_message(batch: Batch, name: str) -> tuple[str, str]:

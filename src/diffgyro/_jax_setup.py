@@ -10,6 +10,7 @@ running, so whichever code imports JAX first gets them. No JAX here.
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import sys
 from collections.abc import Callable, Iterator, Mapping
@@ -73,3 +74,49 @@ def when_jax_starts(settings: Mapping[str, object]) -> Iterator[None]:
                 os.environ.pop(name, None)
             else:
                 os.environ[name] = old
+
+
+#: Called with the ``jax`` module once it is imported (:func:`when_jax_imported`).
+_AFTER_IMPORT: list[Callable] = []
+
+
+class _JaxImportFinder:
+    """A finder that lets the normal one find ``jax`` and runs :data:`_AFTER_IMPORT` once
+    that module has executed (its loader's ``exec_module`` is wrapped for this one import)."""
+
+    busy = False
+
+    def find_spec(self, name, path=None, target=None):
+        if name != "jax" or self.busy:
+            return None
+        self.busy = True
+        try:
+            spec = importlib.util.find_spec(name)
+        finally:
+            self.busy = False
+        if spec is None or spec.loader is None or not hasattr(spec.loader, "exec_module"):
+            return spec
+        run = spec.loader.exec_module
+
+        def exec_module(module):
+            run(module)
+            if self in sys.meta_path:
+                sys.meta_path.remove(self)
+            for callback in _AFTER_IMPORT:
+                callback(module)
+            _AFTER_IMPORT.clear()
+
+        spec.loader.exec_module = exec_module
+        return spec
+
+
+def when_jax_imported(callback: Callable) -> None:
+    """Run ``callback(jax)`` now if JAX is imported, else right after JAX's import: the
+    data containers register as pytrees then, so that ``import diffgyro.data`` (and the
+    readers, ``export``, ``compensate``) need no JAX."""
+    if "jax" in sys.modules:
+        callback(sys.modules["jax"])
+        return
+    _AFTER_IMPORT.append(callback)
+    if not any(isinstance(f, _JaxImportFinder) for f in sys.meta_path):
+        sys.meta_path.insert(0, _JaxImportFinder())

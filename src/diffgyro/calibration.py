@@ -18,6 +18,7 @@ and compensation solves it for Ω.
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as _dt
 import hashlib
 import json
@@ -25,25 +26,20 @@ import math
 import os
 import warnings
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
-import equinox as eqx
-import jax
-import jax.numpy as jnp
 import numpy as np
 
-from . import __version__
-from . import _aux as aux_cols
-from ._aux import aux_names
-from ._fit_result import AbstractFitResult
+from . import __version__, apply
 from ._jsonio import atomic_write_text, dumps, to_json_safe
-from ._signal_builder import batch_signals
-from .channel import CHANNELS, UNITS
-from .data import Batch, Recording
-from .errors import SpecError
-from .model import ErrorModel, Params
-from .motion import MAX_INTERVALS, VERDICT_NAMES
-from .signals import TempNorm
-from .status import STATUS_NAMES
+from ._term_info import KINDS, ModelInfo, model_info
+from ._vocabulary import CHANNELS, MAX_INTERVALS, STATUS_NAMES, UNITS, VERDICT_NAMES, aux_names
+from .data import SIGNALS, Batch, Recording, as_batch
+from .errors import DataError, SpecError
+
+if TYPE_CHECKING:
+    from ._fit_result import AbstractFitResult
+    from .model import ErrorModel
 
 __all__ = ["from_fit", "save", "load", "compensate", "Calibration", "DeviceCalibration",
            "from_json", "units_of", "entry_json", "data_hash", "FORMAT", "FORMAT_VERSION"]
@@ -104,7 +100,15 @@ class Calibration:
 
     @property
     def error_model(self) -> ErrorModel:
+        """The model as the fit and compensation run it (imports JAX)."""
+        from .model import ErrorModel
+
         return ErrorModel.from_spec(self.model)
+
+    @property
+    def model_info(self) -> ModelInfo:
+        """The model's terms as export and the file's checks read them (without JAX)."""
+        return model_info(self.model)
 
     def device(self, name: str) -> DeviceCalibration:
         for d in self.devices:
@@ -158,7 +162,7 @@ def data_hash(batch: Batch) -> str:
     return "sha256:" + h.hexdigest()
 
 
-def units_of(model: ErrorModel, channel: str = "gyro") -> dict:
+def units_of(model: ErrorModel | ModelInfo, channel: str = "gyro") -> dict:
     """The unit of each term's coefficients, and of tau, rates and temperature (the
     accelerometer channel's measurement is in m/s² where the gyro's is in rad/s).
 
@@ -408,7 +412,7 @@ def from_json(obj) -> Calibration:
         raise SpecError(f"calibration file: format_version {version} is not supported "
                         f"(this diffgyro reads 1..{FORMAT_VERSION})")
     spec = _req(obj, "model", str, "file")
-    model = ErrorModel.from_spec(spec)
+    model = model_info(spec)
     p, q = model.n_params, model.n_nonlinear
     devs = _req(obj, "devices", list, "file")
     if not devs:
@@ -491,7 +495,7 @@ def _limits_entry(val, where: str) -> dict:
     return val
 
 
-def _aux_entries(val, model: ErrorModel, where: str) -> dict:
+def _aux_entries(val, model: ModelInfo, where: str) -> dict:
     """The extra columns' centring and calibrated range: exactly those the model reads."""
 
     names = aux_names(model.requires())
@@ -552,7 +556,8 @@ def _reject_duplicate_keys(pairs: list) -> dict:
 # --------------------------------------------------------------------------- compensation
 
 
-def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> tuple[Batch, dict]:
+def compensate(cal: Calibration, data: Batch | Recording | list[Recording],
+               engine: str = "jax") -> tuple[Batch, dict]:
     """Corrected rates for every device of ``data`` that the calibration knows.
 
     Temperatures outside a device's calibrated range are clamped to it (as
@@ -563,75 +568,55 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording]) -> t
 
     - ``cal``: the :class:`Calibration` (:func:`load`).
     - ``data``: a Batch, one Recording or a list of them, devices named as in ``cal``.
+    - ``engine``: ``"jax"``, the error model itself (compiled, every device at once), or
+      ``"numpy"``, :func:`diffgyro.apply.compensate` device by device, which needs no JAX
+      (``diffgyro compensate`` runs it; the two agree to about 1e-13 rad/s, not to the
+      last bit). A model with a user's registered term runs in JAX either way.
     """
-    batch = data if isinstance(data, Batch) else Batch.from_recordings(
-        [data] if isinstance(data, Recording) else list(data))
+    if engine not in ("jax", "numpy"):
+        raise ValueError(f"engine must be 'jax' or 'numpy', not {engine!r}")
+    batch = as_batch(data)
     if cal.channel != "gyro":
         raise SpecError(f"this is a calibration of the {cal.channel} channel; this "
                         "compensation applies gyro calibrations", hint="apply it with "
                         "diffgyro.apply.compensate_accel ('diffgyro compensate' does), or export "
                         "it to the autopilot (diffgyro export CAL --format px4|ardupilot)")
-    model = cal.error_model
+    info = cal.model_info
+    # the true rate a scale term reads is what compensation solves for, not an input
+    missing = {s for s in info.requires() if s in SIGNALS and s != "rate"} - set(batch.signals)
+    if missing:
+        raise DataError(f"model {cal.model!r} needs {', '.join(sorted(missing))}, not in the data",
+                        file=batch.sources[0] if batch.sources else None)
+    if engine == "jax" or any(t.name not in KINDS for t in info.parts):
+        from ._compensate import compensate_batch
+
+        return compensate_batch(cal, batch)
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:
         if d.status != "ok":
             why = d.status_detail if d.status_detail not in ("", d.status) else d.status
             raise SpecError(f"calibration of device {d.device!r} is not ok ({why}); "
                             "refusing to apply it", device=d.device)
-    params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
-                    theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))
+    names = aux_names(info.requires())
+    if names:
+        from ._aux import check_columns
+
+        check_columns(batch, names, vary=False)
+    omega = np.zeros(np.shape(batch.gyro), np.float64)
     clamped: dict[str, int] = {}
-    aux = _aux_scaled(batch, model, devs)
-    if batch.temp is not None and "temp" in model.requires():
-        temp = np.array(batch.temp, dtype=np.float64)
-        for i, d in enumerate(devs):
-            if d.temp_range is None:
-                continue
-            lo, hi = d.temp_range
-            n = int(batch.n_valid[i])
-            outside = (temp[i, :n] < lo) | (temp[i, :n] > hi)
-            if outside.any():
-                clamped[d.device] = int(outside.sum())
-            temp[i] = np.clip(temp[i], lo, hi)
-        batch_for_model = Batch(**{**{s: getattr(batch, s) for s in
-                                      ("t", "gyro", "mask", "n_valid", "temp_ext", "accel", "mag",
-                                       "rate", "quat")}, "temp": temp},
-                                devices=batch.devices, sources=batch.sources)
-        # dT/dt is taken from the measured temperature, not the clamped one
-        sig = batch_signals(batch_for_model, norm=_norm(devs), dtemp_window=cal.dtemp_window,
-                            aux=aux)
-        sig_raw = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window)
-        sig = eqx.tree_at(lambda s: (s.dtemp, s.heating), sig, (sig_raw.dtemp, sig_raw.heating))
-    else:
-        sig = batch_signals(batch, norm=_norm(devs), dtemp_window=cal.dtemp_window, aux=aux)
+    for i, d in enumerate(devs):
+        n = int(batch.n_valid[i])
+        rows = {s: None if getattr(batch, s) is None else np.asarray(getattr(batch, s)[i, :n],
+                                                                       np.float64)
+                for s in ("t", "gyro", "temp", "temp_ext", "accel")}
+        if rows["temp"] is not None and "temp" in info.requires() and d.temp_range is not None:
+            outside = int(np.sum((rows["temp"] < d.temp_range[0]) | (rows["temp"] > d.temp_range[1])))
+            if outside:
+                clamped[d.device] = outside
+        doc = {"model": cal.model, "dtemp_window": cal.dtemp_window, "devices": [d.__dict__]}
+        omega[i, :n] = apply.compensate(doc, d.device, **rows, aux={
+            k: np.asarray(batch.aux[k][i, :n], np.float64) for k in names})
     if clamped:
         warnings.warn("temperature outside the calibrated range was clamped for "
                       + ", ".join(f"{k} ({v} samples)" for k, v in clamped.items()), stacklevel=2)
-    omega = _compensate_batch(model, params, sig)
-    omega = np.where(np.asarray(batch.mask)[..., None], np.asarray(omega), 0.0)
-    out = Batch(**{**{s: getattr(batch, s) for s in ("t", "mask", "n_valid", "temp", "temp_ext",
-                                                      "accel", "mag", "rate", "quat")},
-                   "gyro": omega}, devices=batch.devices, sources=batch.sources, aux=batch.aux)
-    return out, clamped
-
-
-def _aux_scaled(batch: Batch, model: ErrorModel, devs) -> dict:
-    """The extra columns the model reads, clamped to the calibrated range and centred as
-    calibrated; DataError naming the column when the data lack one."""
-
-    names = aux_cols.aux_names(model.requires())
-    aux_cols.check_columns(batch, names, vary=False)
-    norm = {k: TempNorm(centre=np.asarray([d.aux[k]["centre"] for d in devs]),
-                        scale=np.asarray([d.aux[k]["scale"] for d in devs])) for k in names}
-    clamp = {k: np.asarray([d.aux[k]["range"] for d in devs]) for k in names}
-    return aux_cols.scaled(batch, norm, clamp)
-
-
-def _norm(devs) -> TempNorm:
-    return TempNorm(centre=jnp.asarray([d.temp_centre for d in devs]),
-                    scale=jnp.asarray([d.temp_scale for d in devs]))
-
-
-@eqx.filter_jit
-def _compensate_batch(model: ErrorModel, params: Params, sig):
-    return jax.vmap(model.compensate)(params, sig)
+    return dataclasses.replace(batch, gyro=omega), clamped

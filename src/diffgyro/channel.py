@@ -36,6 +36,7 @@ import dataclasses
 import numpy as np
 from jaxtyping import Float
 
+from ._vocabulary import CHANNELS, UNITS
 from .data import Batch, Recording, as_batch
 from .errors import DataError, SpecError
 
@@ -43,10 +44,6 @@ __all__ = ["CHANNELS", "UNITS", "GRAVITY", "FACE_TOLERANCE", "check_channel", "s
            "resolve", "check_model", "reads_gravity", "gravity_reference", "faces",
            "as_channel", "fitted_batch"]
 
-#: The channels, the first the default.
-CHANNELS = ("gyro", "accel")
-#: The unit of each channel's measurement (and of its bias coefficients per unit of signal).
-UNITS = {"gyro": "rad/s", "accel": "m/s²"}
 #: Standard gravity (m/s²): the magnitude of the reference in several orientations
 #: unless the local value is given (it differs by up to 0.3 %, a scale error that size).
 GRAVITY = 9.80665

@@ -4,7 +4,10 @@ A :class:`Recording` holds one device's samples in the standard schema
 (docs/formats.md; SI units, rad/s, m/s², °C). A :class:`Batch` stacks many
 recordings along a leading device axis, padded to a bucket length with a
 sample mask, so that batches of slightly different lengths reuse one compiled
-function; fits pad the device axis the same way (:func:`pad_devices`). Arrays are host numpy arrays here; fits move them to JAX.
+function; fits pad the device axis the same way (:func:`pad_devices`). Arrays are host
+numpy arrays here; fits move them to JAX. Both are frozen dataclasses that become JAX
+pytrees (the arrays children, the names static) when JAX is imported, so that reading a
+file needs no JAX.
 
 Extra numeric columns of a file (supply voltage, a second board temperature,
 heater duty, ...) travel beside the standard signals in ``aux``, a dict from
@@ -15,13 +18,15 @@ signal sets (:func:`inputs_of`, ``ErrorModel.requires``) they are named
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 
-import equinox as eqx
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
+from ._jax_setup import when_jax_imported
+from ._vocabulary import AUX_PREFIX
 from .errors import DataError
 
 __all__ = ["Batch", "Recording", "as_batch", "pad_devices", "device_bucket", "bucket_length",
@@ -41,7 +46,6 @@ SIGNALS: dict[str, tuple[str, ...]] = {
 OPTIONAL_SIGNALS = ("temp", "temp_ext", "accel", "mag", "rate", "quat")
 COLUMN_TO_SIGNAL = {c: s for s, cols in SIGNALS.items() for c in cols}
 STANDARD_COLUMNS = ("device", "t", *[c for cols in SIGNALS.values() for c in cols])
-AUX_PREFIX = "aux:"
 
 
 def aux_key(name: str) -> str:
@@ -64,7 +68,8 @@ def _aux_dict(aux) -> dict:
     return {str(k): aux[k] for k in sorted(aux or {})}
 
 
-class Recording(eqx.Module):
+@dataclasses.dataclass(frozen=True, eq=False)
+class Recording:
     """One device's samples; optional signals are ``None`` when not recorded."""
 
     t: Float[np.ndarray, " n"]
@@ -75,10 +80,13 @@ class Recording(eqx.Module):
     mag: Float[np.ndarray, "n 3"] | None = None
     rate: Float[np.ndarray, "n 3"] | None = None
     quat: Float[np.ndarray, "n 4"] | None = None
-    device: str = eqx.field(static=True, default="device")
-    source: str | None = eqx.field(static=True, default=None)
+    device: str = "device"
+    source: str | None = None
     #: Extra numeric columns by name, each (n,).
-    aux: dict[str, Float[np.ndarray, " n"]] = eqx.field(default_factory=dict, converter=_aux_dict)
+    aux: dict[str, Float[np.ndarray, " n"]] = dataclasses.field(default_factory=dict)
+
+    def __post_init__(self):
+        object.__setattr__(self, "aux", _aux_dict(self.aux))
 
     @property
     def n(self) -> int:
@@ -198,7 +206,8 @@ def _aligned(a):
     return out
 
 
-class Batch(eqx.Module):
+@dataclasses.dataclass(frozen=True, eq=False)
+class Batch:
     """Many devices stacked on a leading axis, padded with a sample mask.
 
     Padded samples have ``mask == False``; their time continues at the last
@@ -218,15 +227,15 @@ class Batch(eqx.Module):
     mag: Float[np.ndarray, "d n 3"] | None = None
     rate: Float[np.ndarray, "d n 3"] | None = None
     quat: Float[np.ndarray, "d n 4"] | None = None
-    devices: tuple[str, ...] = eqx.field(static=True, default=())
-    sources: tuple[str | None, ...] = eqx.field(static=True, default=())
+    devices: tuple[str, ...] = ()
+    sources: tuple[str | None, ...] = ()
     #: Extra numeric columns by name, each (d, n), padded by holding the last value.
-    aux: dict[str, Float[np.ndarray, "d n"]] = eqx.field(default_factory=dict, converter=_aux_dict)
+    aux: dict[str, Float[np.ndarray, "d n"]] = dataclasses.field(default_factory=dict)
 
     def __post_init__(self):
         for name in ("t", "gyro", "mask", "temp", "temp_ext", "accel", "mag", "rate", "quat"):
-            setattr(self, name, _aligned(getattr(self, name)))
-        self.aux = {k: _aligned(v) for k, v in self.aux.items()}
+            object.__setattr__(self, name, _aligned(getattr(self, name)))
+        object.__setattr__(self, "aux", {k: _aligned(v) for k, v in _aux_dict(self.aux).items()})
 
     @property
     def n_devices(self) -> int:
@@ -328,6 +337,32 @@ class Batch(eqx.Module):
         import pandas as pd
 
         return pd.concat([r.to_frame() for r in self.recordings()], ignore_index=True)
+
+
+def _register_pytrees(jax) -> None:
+    """Recording and Batch as JAX pytrees: the arrays (and ``aux``) are children, the names
+    static; unflattening sets the fields as given, as an equinox module's does (no copy, no
+    check). Run when JAX is imported (:func:`diffgyro._jax_setup.when_jax_imported`)."""
+    for cls, static in ((Recording, ("device", "source")), (Batch, ("devices", "sources"))):
+        names = tuple(f.name for f in dataclasses.fields(cls) if f.name not in static)
+
+        def flatten(obj, names=names, static=static):
+            return ([(jax.tree_util.GetAttrKey(n), getattr(obj, n)) for n in names],
+                    tuple(getattr(obj, n) for n in static))
+
+        def unflatten(meta, children, cls=cls, names=names, static=static):
+            obj = object.__new__(cls)
+            for n, v in (*zip(names, children, strict=True), *zip(static, meta, strict=True)):
+                object.__setattr__(obj, n, v)
+            return obj
+
+        jax.tree_util.register_pytree_with_keys(
+            cls, flatten, unflatten,
+            lambda obj, names=names, static=static: ([getattr(obj, n) for n in names],
+                                                     tuple(getattr(obj, n) for n in static)))
+
+
+when_jax_imported(_register_pytrees)
 
 
 def as_batch(data: Batch | Recording | list[Recording]) -> Batch:

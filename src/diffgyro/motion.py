@@ -61,6 +61,7 @@ from jaxtyping import Bool, Float, Int
 
 from ._jit import filter_jit
 from ._jsonio import number
+from ._vocabulary import MAX_INTERVALS, VERDICT_NAMES
 from ._window_explain import Explanation, explain_windows
 from ._window_stats import window_stats
 from ._xla_options import FAST_COMPILE
@@ -103,8 +104,6 @@ LOUDER_CAP = 8.0
 #: Windows read for the rest noise's quantiles, and per baseline block for its median.
 QUANTILE_WINDOWS = 512
 BLOCK_WINDOWS = 16
-#: Intervals of rest listed in a record (the rest are counted).
-MAX_INTERVALS = 100
 #: Fastest change of a bias at rest (rad/s per s): a fast warm-up's (0.5 mrad/s/°C at
 #: 0.1 °C/s). Two stretches of rest
 #: either side of a motion whose rates differ by more than this allows (and their noise)
@@ -124,7 +123,6 @@ MAX_BIAS = 0.5
 
 #: Verdicts, in :attr:`Motion.verdict`.
 AT_REST, IN_MOTION, UNVERIFIED = 0, 1, 2
-VERDICT_NAMES = ("at_rest", "in_motion", "unverified")
 _STATUS = ("ok", "in_motion", "rest_unverified")
 _NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak", "rest_rate",
             "rest_noise", "threshold", "resolution", "n_windows")

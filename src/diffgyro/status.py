@@ -16,6 +16,14 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ._vocabulary import (
+    RESIDUAL_REFUSE,
+    RESIDUAL_WARN,
+    STATUS_NAMES,
+    min_samples,
+    residual_note,
+    residual_verdict,
+)
 from .motion import describe, reason
 
 __all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK_DEFICIENT",
@@ -23,59 +31,8 @@ __all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK
            "RESIDUAL_WARN", "RESIDUAL_REFUSE", "residual_verdict", "residual_note",
            "collinear_terms"]
 
-STATUS_NAMES = ("ok", "not_converged", "rank_deficient", "insufficient_range",
-                "insufficient_data", "failed", "in_motion", "rest_unverified")
 (OK, NOT_CONVERGED, RANK_DEFICIENT, INSUFFICIENT_RANGE, INSUFFICIENT_DATA, FAILED, IN_MOTION,
  REST_UNVERIFIED) = range(8)
-
-
-#: Held-out RMS over the noise floor above which a calibration carries a warning: the
-#: model misses an effect (``model_limit``), and ``diffgyro diagnose`` names it.
-RESIDUAL_WARN = 3.0
-#: ... above which the number is not the sensor's to any use (``unexplained``): export
-#: refuses it unless ``--force``.
-RESIDUAL_REFUSE = 10.0
-
-
-def residual_verdict(heldout_rms, noise_floor) -> tuple[str, float | None]:
-    """``ok``, ``model_limit`` or ``unexplained`` for a device's held-out RMS against its
-    noise floor (:data:`RESIDUAL_WARN`, :data:`RESIDUAL_REFUSE`), and their ratio (None
-    where either is missing).
-
-    **Arguments:**
-
-    - ``heldout_rms``: the device's held-out RMS, rad/s (None: not known).
-    - ``noise_floor``: its noise floor, rad/s (None: not known).
-    """
-    try:
-        ratio = float(heldout_rms) / float(noise_floor)
-    except (TypeError, ValueError, ZeroDivisionError):
-        return "ok", None
-    if not math.isfinite(ratio):
-        return "ok", None
-    if ratio > RESIDUAL_REFUSE:
-        return "unexplained", ratio
-    return ("model_limit" if ratio > RESIDUAL_WARN else "ok"), ratio
-
-
-def residual_note(device: str, heldout_rms, noise_floor) -> str | None:
-    """One line for a device whose residual stands above its noise floor, else None.
-
-    **Arguments:**
-
-    - ``device``: the device's name.
-    - ``heldout_rms``: its held-out RMS, rad/s.
-    - ``noise_floor``: its noise floor, rad/s.
-    """
-    verdict, ratio = residual_verdict(heldout_rms, noise_floor)
-    if verdict == "ok":
-        return None
-    line = (f"{device}: held-out RMS {ratio:.3g}x its noise floor: the model misses an effect "
-            f"that diffgyro diagnose can name")
-    if verdict == "unexplained":
-        line += (f"; above {RESIDUAL_REFUSE:g}x the calibration is not the sensor's, and export "
-                 f"refuses it unless --force")
-    return line
 
 
 def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, rank_ok=None):
@@ -99,16 +56,6 @@ def fit_status(n_valid, min_samples: int, converged, finite, range_flags=None, r
     if range_flags is not None:
         status = jnp.where(jnp.any(range_flags), INSUFFICIENT_RANGE, status)
     return jnp.where(n_valid < min_samples, INSUFFICIENT_DATA, status)
-
-
-def min_samples(n_unknowns: int) -> int:
-    """Fewest valid samples for a least-squares fit of ``n_unknowns`` parameters per axis.
-
-    **Arguments:**
-
-    - ``n_unknowns``: the parameters per axis.
-    """
-    return max(2 * n_unknowns, n_unknowns + 4)
 
 
 def collinear_terms(model, direction, rank_ok):

@@ -87,8 +87,8 @@ def load_for_model(model, data, columns, gyro_unit, acc_unit, temp_unit, time_un
                    report=None, channel="gyro"):
     """Load data for ``model``: a DataError if every device is too short for it (``batch=False``:
     the recordings, not padded into a batch). Unit notes go to ``report`` if given."""
+    from diffgyro._vocabulary import min_samples
     from diffgyro.io import check_min_samples
-    from diffgyro.status import min_samples
 
     recs = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                          sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,

@@ -61,7 +61,7 @@ def compensate_command(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
-            corrected, clamped = calibration.compensate(calib, batch)
+            corrected, clamped = calibration.compensate(calib, batch, engine="numpy")
         except DataError as err:  # the calibration's problem: name its file
             if err.file is not None:
                 raise

@@ -220,10 +220,11 @@ def diagnose_command(
                         chunk_devices, work_dir, resume, dask, results, limits=limits)
         return
 
-    from diffgyro.model import ErrorModel
+    lim = None
+    if limits is not None:
+        from diffgyro.model import ErrorModel
 
-
-    lim = load_limits(limits, ErrorModel.from_spec(model), channel) if limits is not None else None
+        lim = load_limits(limits, ErrorModel.from_spec(model), channel)
     opts = ({} if dtemp_window is None else {"dtemp_window": float(dtemp_window)}) \
         | ({} if synthesis else {"synthesis": False}) | ({"noise": True} if noise else {}) \
         | ({} if channel == "gyro" else {"channel": channel}) \
@@ -314,18 +315,20 @@ def _load_checked(model, data, candidates, columns, gyro_unit, acc_unit, temp_un
     devices lack (:func:`partial_columns`) and the sensors' ids a log gave; a DataError
     (exit 2) for a bad spec, an unknown candidate or a signal the model needs that the data
     lacks."""
+    from diffgyro._term_info import model_info
     from diffgyro.channel import check_model
     from diffgyro.data import Batch
     from diffgyro.io import LoadReport
-    from diffgyro.model import ErrorModel
 
-
-    spec = ErrorModel.from_spec(model)
-    check_model(spec, channel)
+    info = model_info(model)  # the spec checked, and the data read, before JAX starts
+    check_model(info, channel)
     report = LoadReport()
-    recs = load_for_model(spec, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+    recs = load_for_model(info, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                           sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
                           batch=False, report=report, channel=channel)
+    from diffgyro.model import ErrorModel
+
+    spec = ErrorModel.from_spec(model)
     batch = Batch.from_recordings(recs)
     names = [c.strip() for c in candidates.split(",") if c.strip()] if candidates else None
     if names:

@@ -73,10 +73,9 @@ def fit_command(
     """
     from diffgyro import calibration
     from diffgyro._jsonio import dumps
+    from diffgyro._term_info import model_info
     from diffgyro.channel import resolve
-    from diffgyro.fit import fit
     from diffgyro.io import LoadReport
-    from diffgyro.model import ErrorModel
 
     channel, model = resolve(model, channel)
     refuse_on_accel(channel, static_only=static_only,
@@ -94,13 +93,16 @@ def fit_command(
                    resume, dask, results, limits=limits)
         return
 
-    em = ErrorModel.from_spec(model)
-    lim = load_limits(limits, em, channel)
+    info = model_info(model)  # the spec checked, and the data read, before JAX starts
+    lim = None if limits is None else load_limits(limits, _error_model(model), channel)
     report = LoadReport()
     with _progress.steps(f"loading {len(data)} file(s)") as step:
-        batch = load_for_model(em, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+        batch = load_for_model(info, data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
                                sampling_rate, drop_invalid, topic=topic, temp_topic=temp_topic,
                                report=report, channel=channel)
+        from diffgyro.fit import fit
+
+        em = _error_model(model)
         if dtemp_window is None:
             from diffgyro._temperature import suggest_dtemp_window
 
@@ -130,6 +132,13 @@ def fit_command(
         print_lines(records, summary)
     if out is not None:
         print(f"calibration written to {out}", file=sys.stderr)
+
+
+def _error_model(spec: str):
+    """The spec's :class:`~diffgyro.model.ErrorModel` (JAX starts here)."""
+    from diffgyro.model import ErrorModel
+
+    return ErrorModel.from_spec(spec)
 
 
 def _print_table(records: list[dict], spec: str, channel: str, summary) -> None:

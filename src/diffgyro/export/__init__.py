@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import dataclasses
 
+from .._vocabulary import residual_note, residual_verdict
 from ..calibration import Calibration
 from ..errors import DataError
-from ..status import residual_note, residual_verdict
 from . import ardupilot, c_header, px4
 
 __all__ = ["render", "FORMATS", "select_devices", "refuse_not_ok"]

@@ -20,8 +20,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._vocabulary import UNITS
 from ..calibration import Calibration, DeviceCalibration
-from ..channel import UNITS
 from ..errors import DataError
 
 #: Highest polynomial order PX4's TC_* and ArduPilot's INS_TCAL* parameters hold.
@@ -70,7 +70,7 @@ class ThermalPoly:
 
 def thermal_poly(cal: Calibration, dev: DeviceCalibration, fmt: str) -> ThermalPoly:
     """The device's ``bias_poly(k ≤ 3)``; any other term or a higher order is refused."""
-    terms = cal.error_model.terms
+    terms = cal.model_info.terms
     for t in terms:
         if t.name != "bias_poly":
             raise DataError(f"term {t.spec} cannot be written as {fmt} parameters: {fmt} holds "

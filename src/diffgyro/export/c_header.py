@@ -50,7 +50,7 @@ def _term_code(term, start: int) -> list[str]:
 
 
 def _check(cal: Calibration, device: str) -> list:
-    terms = cal.error_model.terms
+    terms = cal.model_info.terms
     for t in terms:
         if t.name not in SUPPORTED:
             raise DataError(f"term {t.spec} cannot be written as a c-header: the header implements "
@@ -76,7 +76,7 @@ def write(cal: Calibration, device: str) -> str:
     """
     terms = _check(cal, device)
     dev = cal.device(device)
-    need = cal.error_model.requires()
+    need = cal.model_info.requires()
     ident = _ident(device)
     guard = ident.upper() + "_H"
     p = len(dev.beta[0])
