@@ -494,6 +494,7 @@ PRIVATE_UNDER_TEST = {
     "test_window_explain.py": {"diffgyro._window_explain", "diffgyro._window_stats",
                                "diffgyro._motion_judge"},
     "test_cli_conventions.py": {"diffgyro.cli._tables"},  # the tables' width rule
+    "test_term_info.py": {"diffgyro._term_info"},
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
     # open elsewhere when diffgyro.internal came
     "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
