@@ -79,8 +79,8 @@ diffgyro.enable_compilation_cache()
 started = time.perf_counter()
 DPH = 180 / np.pi * 3600  # rad/s -> °/h
 QUICK = bool(os.environ.get("DIFFGYRO_NOTEBOOK_QUICK"))
-N_DEVICES, N_BOOT, N_MC = (40, 40, 40) if QUICK else (120, 100, 250)
-STEPS, BUDGET_STEPS, BUDGET_ITERATIONS = (40, 40, 3) if QUICK else (200, 150, 6)
+N_DEVICES, N_BOOT, N_MC = (24, 24, 24) if QUICK else (120, 100, 250)
+STEPS, BUDGET_STEPS, BUDGET_ITERATIONS = (20, 20, 2) if QUICK else (200, 150, 6)
 
 model = ErrorModel.from_spec("bias_poly(3)+scale_poly(2)+gradient")
 op = OperatingRange(temps=(-40.0, 70.0), rate=10 * DEG)   # where the calibration is used
@@ -106,7 +106,7 @@ plt.show()
 # %% [markdown]
 # ## 1. Uncertainty that survives correlated noise
 #
-# 120 devices (40 in quick mode) through fog-one-run, with white noise plus a Gauss–Markov bias
+# 120 devices (24 in quick mode) through fog-one-run, with white noise plus a Gauss–Markov bias
 # (σ = 0.5 °/h, τ = 2 min), each calibrated with `fit`. The truth is known,
 # so we can count how often the nominal 95 % intervals hold it.
 
@@ -225,7 +225,7 @@ plt.show()
 # %% [markdown]
 # ## 5. Does the prediction hold? Monte Carlo
 #
-# 250 simulated devices per plan (40 in quick mode) (each with its own sensor lag,
+# 250 simulated devices per plan (24 in quick mode) (each with its own sensor lag,
 # self-heating and coefficients, white noise), calibrated with `fit`; the
 # worst case over the operating range of the RMS compensation error is
 # compared with the prediction.
