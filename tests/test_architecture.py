@@ -491,13 +491,7 @@ PRIVATE_UNDER_TEST = {
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
     # open elsewhere when diffgyro.internal came
     "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
-    "test_diagnose_noise.py": {"diffgyro.stochastic._simulate"},
-    "test_noise_mpu6050.py": {"diffgyro.stochastic._devices"},
-    "test_noise_resolution.py": {"diffgyro.stochastic._devices"},
-    "test_motion.py": {"diffgyro._window_stats", "diffgyro.motion"},
     "test_sharding.py": {"diffgyro.pipeline._chunkfit", "diffgyro._fit_sums"},
-    "notebook_runner.py": {"diffgyro.effects._base"},
-    "recipes/test_recipe_six_position.py": {"diffgyro.recipes._common"},
     "test_imu_orientations.py": {"diffgyro.recipes._six_position", "diffgyro.simulate._motion"},
 }
 
