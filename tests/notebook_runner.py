@@ -55,11 +55,11 @@ def run_notebook(path: Path, monkeypatch) -> str:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from diffgyro.effects import _base as base
+    from diffgyro.internal import REGISTRY
 
     plt.close("all")  # a figure an earlier test left open is not this notebook's output
 
-    registered = dict(base._REGISTRY)
+    registered = dict(REGISTRY)
     monkeypatch.chdir(path.parent)
     figures: list[dict] = []
 
@@ -90,6 +90,6 @@ def run_notebook(path: Path, monkeypatch) -> str:
         keep(nb, path)
     finally:
         plt.close("all")
-        base._REGISTRY.clear()
-        base._REGISTRY.update(registered)
+        REGISTRY.clear()
+        REGISTRY.update(registered)
     return out.getvalue()

@@ -12,7 +12,7 @@ import pytest
 
 from diffgyro.data import Recording
 from diffgyro.diagnose import diagnose
-from diffgyro.stochastic._simulate import simulate_noise
+from diffgyro.stochastic import simulate_noise
 
 N, DT = 8192, 0.1
 SIGMA, TAU, ARW = 3e-3, 20.0, 3e-4  # rad/s, s, rad/s/√Hz

@@ -14,15 +14,14 @@ import pytest
 import scipy.io
 
 from diffgyro import calibration
-from diffgyro._window_stats import window_stats
 from diffgyro.cli import main
 from diffgyro.data import Batch, Recording
 from diffgyro.fit import fit
+from diffgyro.internal import check_windows, window_stats
 from diffgyro.motion import (
     MAX_RESOLUTION,
     MAX_WINDOWS,
     QUANTILE_WINDOWS,
-    _check,
     motion_check,
     noise_quantiles,
     window_sizes,
@@ -126,9 +125,9 @@ def test_a_device_is_judged_the_same_in_any_batch():
     gyro[(rec.t >= 431.0) & (rec.t < 435.0), 2] += 0.03
     rec = Recording(t=rec.t, gyro=gyro, accel=rec.accel, temp=rec.temp, device="turns")
     n = rec.t.size
-    alone = _check(*(window_stats(x[None], np.ones((1, n), bool), w, np.arange(1), -(-n // w),
-                                  noise_quantiles(), QUANTILE_WINDOWS) for x in (rec.gyro, rec.accel)),
-                   w, b)
+    alone = check_windows(*(window_stats(x[None], np.ones((1, n), bool), w, np.arange(1),
+                                         -(-n // w), noise_quantiles(), QUANTILE_WINDOWS)
+                            for x in (rec.gyro, rec.accel)), w, b)
     mixed = motion_check(Batch.from_recordings([rec, _device("long", duration=700.0)]))
     assert mixed.window[0] == w  # it moved: judged in the windows of its rate
     for k in ("moving_fraction", "rate_peak", "rate_rms", "rest_noise", "threshold"):

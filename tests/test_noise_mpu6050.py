@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from diffgyro.stochastic._devices import identify_devices
+from diffgyro.stochastic import identify_devices
 
 DATA = Path(__file__).parent / "data" / "mpu6050" / "mpu6050_static.csv.gz"
 #: Datasheet rate noise spectral density, °/s/√Hz (typical).

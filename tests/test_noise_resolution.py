@@ -16,8 +16,7 @@ import numpy as np
 import pytest
 
 from diffgyro.cli import main
-from diffgyro.stochastic import gm_white_power, simulate_noise
-from diffgyro.stochastic._devices import identify_devices
+from diffgyro.stochastic import gm_white_power, identify_devices, simulate_noise
 
 N, DT = 8192, 0.01  # the length test_noise_mpu6050 and test_diagnose_noise compile for
 AXES = {"x": dict(arw=2.2e-4, gm=((4e-3, 0.004),)),

@@ -57,7 +57,12 @@ _AXES = "xyz"
 
 
 def check_channel(channel: str | None) -> str:
-    """``channel`` checked (None: the gyro)."""
+    """``channel`` checked (None: the gyro).
+
+    **Arguments:**
+
+    - ``channel``: a channel's name, any case (None: the gyro).
+    """
     channel = "gyro" if channel is None else str(channel).strip().lower()
     if channel not in CHANNELS:
         raise SpecError(f"unknown channel {channel!r}", hint=f"one of {', '.join(CHANNELS)}")
@@ -65,7 +70,12 @@ def check_channel(channel: str | None) -> str:
 
 
 def split_spec(spec: str) -> tuple[str | None, str]:
-    """A spec's channel prefix (``"accel: bias_poly(3)"``) and the spec without it."""
+    """A spec's channel prefix (``"accel: bias_poly(3)"``) and the spec without it.
+
+    **Arguments:**
+
+    - ``spec``: a model spec, perhaps prefixed by its channel (``"accel: bias_poly(3)"``).
+    """
     head, sep, rest = str(spec).partition(":")
     if sep and head.strip().lower() in CHANNELS:
         return head.strip().lower(), rest.strip()
@@ -74,7 +84,14 @@ def split_spec(spec: str) -> tuple[str | None, str]:
 
 def resolve(spec: str, channel: str | None = None) -> tuple[str, str]:
     """The channel (named by the spec, by ``channel``, or the gyro) and the bare spec; a
-    SpecError where the two name different channels."""
+    SpecError where the two name different channels.
+
+    **Arguments:**
+
+    - ``spec``: a model spec, perhaps prefixed by its channel.
+    - ``channel``: the channel asked for apart from the spec (None: the spec's, or the
+      gyro).
+    """
     named, bare = split_spec(spec)
     if named is not None and channel is not None and check_channel(channel) != named:
         raise SpecError(f"model {spec!r} names channel {named}, but channel {channel} was asked "
@@ -83,7 +100,13 @@ def resolve(spec: str, channel: str | None = None) -> tuple[str, str]:
 
 
 def check_model(model, channel: str) -> None:
-    """A SpecError naming the first term the channel cannot hold (``model``: an ErrorModel)."""
+    """A SpecError naming the first term the channel cannot hold (``model``: an ErrorModel).
+
+    **Arguments:**
+
+    - ``model``: the :class:`~diffgyro.model.ErrorModel` to be fitted.
+    - ``channel``: the channel it is fitted on.
+    """
     if check_channel(channel) == "gyro":
         return
     if getattr(model, "noise", None) is not None:
@@ -98,7 +121,12 @@ def check_model(model, channel: str) -> None:
 
 def reads_gravity(model) -> bool:
     """Whether ``model`` (an ErrorModel) reads a reference input: on the accelerometer
-    channel, gravity in several orientations (absolute offset and scale)."""
+    channel, gravity in several orientations (absolute offset and scale).
+
+    **Arguments:**
+
+    - ``model``: an :class:`~diffgyro.model.ErrorModel`.
+    """
     return any("rate" in term.requires() for term in model.parts)
 
 
@@ -112,7 +140,16 @@ def faces(accel: Float[np.ndarray, "n 3"], static: np.ndarray, gravity: float = 
     nearest its median reading. A DataError names the device and rows of a stretch whose
     gravity lies more than :data:`FACE_TOLERANCE` degrees from every axis (the method
     needs the axes up and down), or of a sample that leaves its stretch's face (a move
-    the motion check did not see)."""
+    the motion check did not see).
+
+    **Arguments:**
+
+    - ``accel``: one device's specific force (n, 3), m/s².
+    - ``static``: its samples at rest (n,), booleans.
+    - ``gravity``: the magnitude of gravity, m/s².
+    - ``device``: the device's name, for the error.
+    - ``file``: the file it came from, for the error.
+    """
     acc = np.asarray(accel, float)
     still = np.asarray(static, bool)
     out = np.zeros_like(acc)
@@ -150,7 +187,12 @@ def faces(accel: Float[np.ndarray, "n 3"], static: np.ndarray, gravity: float = 
 
 def gravity_reference(batch: Batch) -> Float[np.ndarray, "d 3"]:
     """Each device's median specific force over its valid samples (m/s²): the reading at
-    rest that the accelerometer channel's offsets are relative to."""
+    rest that the accelerometer channel's offsets are relative to.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch`, with accelerometer readings.
+    """
     if batch.accel is None:
         raise DataError("the accelerometer channel needs ax, ay, az, which the data lack",
                         device=batch.devices[0] if batch.devices else None,
@@ -179,7 +221,18 @@ def as_channel(data: Batch | Recording | list[Recording], channel: str = "gyro",
     the measured triad is the accelerometer as read, its input (the batch's reference
     slot) gravity along each stretch's face (:func:`faces`, ``gravity`` in m/s²), the
     samples in motion are masked out, and the reference subtracted is zero. A DataError
-    names a device that holds fewer than two faces."""
+    names a device that holds fewer than two faces.
+
+    **Arguments:**
+
+    - ``data``: a :class:`~diffgyro.data.Batch`, a recording, or a list of recordings.
+    - ``channel``: ``"gyro"`` or ``"accel"``.
+    - ``reference``: each device's gravity reference (devices, 3), m/s² (default:
+      :func:`gravity_reference`).
+    - ``static``: the samples at rest (devices, samples), for several orientations (default:
+      one orientation).
+    - ``gravity``: the magnitude of gravity in several orientations, m/s².
+    """
     batch = as_batch(data)
     if check_channel(channel) == "gyro":
         return batch, None
@@ -199,7 +252,13 @@ def fitted_batch(result, batch: Batch) -> Batch:
     """The batch a fit ``result`` was fitted on: ``batch`` as loaded for the gyro; for the
     accelerometer its channel batch (:func:`as_channel`: less the result's gravity
     reference, or the rests its motion check kept with the result's gravity their input);
-    a batch already of the channel (no accelerometer left in it) as it is."""
+    a batch already of the channel (no accelerometer left in it) as it is.
+
+    **Arguments:**
+
+    - ``result``: the fit's result (its channel, reference, gravity and motion check).
+    - ``batch``: the :class:`~diffgyro.data.Batch` as loaded, or already of the channel.
+    """
     channel = getattr(result, "channel", "gyro")
     if channel == "gyro" or batch.accel is None:
         return batch

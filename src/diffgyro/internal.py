@@ -13,8 +13,8 @@ module. This is the one module that may import another package's private modules
   fits), ``per_axis`` (one column per gyro axis);
 - the fit's engines: ``filter_jit``, the JAX noise floor (``device_noise_floor``,
   ``masked_median``), the temperature read-out step and dT/dt window
-  (``temperature_quantum``, ``suggest_dtemp_window``), ``window_stats`` (the motion
-  check's statistics), the sums path's ``pack`` and ``unpack_results``;
+  (``temperature_quantum``, ``suggest_dtemp_window``), ``window_stats`` and
+  ``check_windows`` (the motion check's statistics, and its compiled judgement of them), the sums path's ``pack`` and ``unpack_results``;
 - attitude references: quaternion helpers and gyro integration (``_reference``);
 - diagnose: ``candidate_grid``, ``residual_floor``, term synthesis (``describe``,
   ``library``, ``propose_all``, ``synthesise``) and ``reason`` (why a candidate is skipped);
@@ -59,6 +59,7 @@ from .effects._base import _REGISTRY as REGISTRY
 from .effects._common import per_axis
 from .io._headers import header_units, merge_units, split_header
 from .limits._units import unit_scale
+from .motion import _check as check_windows
 from .pipeline._chunkfit import ChunkFitter, local_mesh
 from .pipeline._dataset import ReadConfig, expand_inputs, index_dataset
 from .pipeline._run import calibration_entries
@@ -78,7 +79,7 @@ __all__ = [
     "batch_signals", "stacked_signals", "BUILT_IN", "present", "REGISTRY", "NOISE_FITS",
     "per_axis",
     "filter_jit", "device_noise_floor", "masked_median", "temperature_quantum",
-    "suggest_dtemp_window", "window_stats", "pack", "unpack_results",
+    "suggest_dtemp_window", "window_stats", "check_windows", "pack", "unpack_results",
     "attitude_from_accel_mag", "heading_error", "integrate_gyro", "quat_conj", "quat_mul",
     "rates_from_quaternions", "rotvec_from_quat",
     "candidate_grid", "residual_floor", "describe", "library", "propose_all", "synthesise",

@@ -261,7 +261,12 @@ def rest_kept(motion: Motion) -> Motion:
     where at least :data:`MIN_WINDOWS` windows of it are kept, the recording resolves a
     turn of :data:`MAX_RESOLUTION` and the rest kept turns no faster than a bias
     (:data:`MAX_BIAS`), else unverified (too little rest, too noisy to show it, or a
-    spin)."""
+    spin).
+
+    **Arguments:**
+
+    - ``motion``: the :class:`Motion` of a recording.
+    """
     kept = np.asarray(motion.static).sum(axis=1) / np.maximum(motion.window, 1)
     with np.errstate(invalid="ignore"):
         fine = ((kept >= MIN_WINDOWS) & (np.asarray(motion.resolution, float) <= MAX_RESOLUTION)
@@ -296,7 +301,12 @@ def pct_of(rec: dict) -> str:
 
 
 def describe(rec: dict) -> str:
-    """How much of a recording moved and how fast, from a ``motion`` record."""
+    """How much of a recording moved and how fast, from a ``motion`` record.
+
+    **Arguments:**
+
+    - ``rec``: a device's ``motion`` record (:meth:`Motion.record`).
+    """
     def g(x):
         return "—" if x is None else f"{x:.2g}"
 
@@ -315,7 +325,12 @@ def describe(rec: dict) -> str:
 
 
 def reason(rec: dict) -> str:
-    """Why a ``motion`` record's device is not at rest, in words."""
+    """Why a ``motion`` record's device is not at rest, in words.
+
+    **Arguments:**
+
+    - ``rec``: a device's ``motion`` record (:meth:`Motion.record`).
+    """
     if rec.get("verdict") == "in_motion":
         return describe(rec)
     n, tw = rec.get("n_windows"), rec.get("window_s") or 0.0
@@ -336,7 +351,14 @@ def reason(rec: dict) -> str:
 def window_sizes(dt: float, samples: int | None = None) -> tuple[int, int]:
     """Samples per window and windows per baseline block for a sampling interval ``dt``
     (powers of two, so nearby rates share a compiled check); for a recording of
-    ``samples``, windows long enough that it holds at most :data:`MAX_WINDOWS`."""
+    ``samples``, windows long enough that it holds at most :data:`MAX_WINDOWS`.
+
+    **Arguments:**
+
+    - ``dt``: the sampling interval, s.
+    - ``samples``: the recording's length in samples (default: no limit on the number of
+      windows).
+    """
     dt = dt if math.isfinite(dt) and dt > 0 else 0.01
     w = int(np.clip(2 ** round(math.log2(max(WINDOW_S / dt, 1.0))), 4, 1024))
     if samples is not None and samples > w * MAX_WINDOWS:
@@ -739,7 +761,15 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
     less the reference (the rotation the reference does not explain), and not the
     accelerometer (the referenced turns tilt gravity); a fit's status does not follow from
     that check (the residual rule judges what the model leaves), so a long recording's
-    first look in long windows stands where it found motion."""
+    first look in long windows stands where it found motion.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
+    - ``dt``: the sampling interval, s (default: each device's own).
+    - ``explain``: a fitted model without rate reference whose residual judges again a
+      device that left its baseline (default: none).
+    """
     read, use_accel = _reads(batch)
     # the batch's arrays as stored: the pass reads each device's rows in place, and
     # subtracts the rate reference as it reads (what it does not explain)
@@ -988,7 +1018,13 @@ def compile_check(batch, dt: float | None = None) -> threading.Thread:
     """Compile :func:`motion_check`'s program for ``batch`` (of its largest group of
     devices) on a thread of its own, from the batch's shapes only: a caller that has other
     programs to trace (a fit) overlaps the two, and joins the thread before its
-    :func:`motion_check`, which then finds the program compiled."""
+    :func:`motion_check`, which then finds the program compiled.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch` (only its shapes are read).
+    - ``dt``: the sampling interval, s (default: each device's own).
+    """
     mask = np.asarray(batch.mask)
     dts = _device_intervals(batch, dt)
     spans = _spans(mask)

@@ -151,7 +151,7 @@ def test_warm_up_drift_during_the_session_and_the_toolkit_bias_model():
     the faces is wrong during the turns and the gyro matrix inherits it. The toolkit's
     bias_poly(0)+g_sens+warmup fitted on the face samples predicts the bias through the turns."""
     from diffgyro.data import Recording
-    from diffgyro.recipes._common import toolkit_compensate
+    from diffgyro.recipes import toolkit_compensate
 
     def drift(t):
         return 0.5 * np.exp(-t / 60.0)[:, None] * np.array([1.0, -0.8, 0.6])

@@ -3,13 +3,22 @@ held-out fold's refit, problems of one batched loop solved in turn."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
+from jaxtyping import Array, Bool, Float, Int, PyTree
+
+#: ``evaluate(j, θ)``: problem j's value, gradient, Hessian and aux pytree at θ.
+Evaluate = Callable[[Int[Array, ""], Float[Array, " q"]],
+                    tuple[Float[Array, ""], Float[Array, " q"], Float[Array, "q q"], PyTree]]
 
 
-def _proposal(th, g, h, lam, rtol):
+def _proposal(th: Float[Array, " q"], g: Float[Array, " q"], h: Float[Array, "q q"],
+              lam: Float[Array, ""], rtol: float,
+              ) -> tuple[Float[Array, " q"], Bool[Array, ""], Bool[Array, ""]]:
     """The damped Newton step at θ, whether the point is near a minimum (take the plain
     step untested), and whether the plain step is below ``rtol·(1 + |θ|)`` (converged)."""
     if th.shape[0] == 1:  # one time constant: the eigen-decomposition is the number
@@ -33,27 +42,32 @@ def _proposal(th, g, h, lam, rtol):
     return step, near, size_n <= rtol * scale_th
 
 
-def _split_point(x, q: int):
+def _split_point(x: Float[Array, " point"], q: int) -> tuple[
+        Float[Array, ""], Float[Array, " q"], Float[Array, " q"], Float[Array, "q q"],
+        Float[Array, " aux"]]:
     """f, θ, g, H, aux of a point vector."""
     cuts = np.cumsum([1, q, q, q * q])
     f, th, g, h, aux = jnp.split(x, cuts)
     return f[0], th, g, h.reshape(q, q), aux
 
 
-def _join_point(f, th, g, h, aux):
+def _join_point(f: Float[Array, ""], th: Float[Array, " q"], g: Float[Array, " q"],
+                h: Float[Array, "q q"], aux: Float[Array, " aux"]) -> Float[Array, " point"]:
     return jnp.concatenate([f[None], th, g, h.reshape(-1), aux])
 
 
-def _loop_body(evaluate, rtol, q: int, head: int, row: int, problems, caps_, dtype):
+def _loop_body(evaluate: Evaluate, rtol: float, q: int, head: int, row: int,
+               problems: Int[Array, " problems"], caps_: Float[Array, " problems"], dtype,
+               ) -> Callable[[Float[Array, " state"]], Float[Array, " state"]]:
     """One pass of the loop: a trial step of the current problem evaluated, accepted or
     not, and the problem's row written when it ends (the next starts from problem 0's
     optimum)."""
     n_problems = problems.shape[0]
 
-    def flat_aux(aux):
+    def flat_aux(aux: PyTree) -> Float[Array, " aux"]:
         return jnp.concatenate([a.reshape(-1).astype(dtype) for a in jax.tree.leaves(aux)])
 
-    def body(state):
+    def body(state: Float[Array, " state"]) -> Float[Array, " state"]:
         j, k, lam = state[0], state[1], state[2]
         cur = state[3:head]
         out = state[head:].reshape(n_problems, row)
@@ -84,7 +98,10 @@ def _loop_body(evaluate, rtol, q: int, head: int, row: int, problems, caps_, dty
     return body
 
 
-def newton(evaluate, theta0, caps: tuple[int, ...], rtol, aux_shapes):
+def newton(evaluate: Evaluate, theta0: Float[Array, " q"], caps: tuple[int, ...], rtol: float,
+           aux_shapes: PyTree[jax.ShapeDtypeStruct],
+           ) -> tuple[Float[Array, "problems q"], Float[Array, " problems"], PyTree,
+                      Int[Array, " problems"], Bool[Array, " problems"]]:
     """Minimise smooth functions of a few parameters (log time constants), one after another.
 
     ``evaluate(j, θ)`` gives problem j's value, gradient, Hessian and an aux pytree
@@ -118,7 +135,7 @@ def newton(evaluate, theta0, caps: tuple[int, ...], rtol, aux_shapes):
     caps_ = jnp.asarray(caps, dtype)
     body = _loop_body(evaluate, rtol, q, head, row, problems, caps_, dtype)
 
-    def cond(state):
+    def cond(state: Float[Array, " state"]) -> Bool[Array, ""]:
         return state[0] < n_problems
 
     # θ0 makes the state batched from the start under vmap: the loop's batching rule

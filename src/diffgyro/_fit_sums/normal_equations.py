@@ -6,13 +6,19 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import Array, Float
 
 from .._linalg import scale_gram
 from .layout import Layout, varying_products
 from .types import SplitSums
 
+#: The normal equations' sums per gyro axis: A (3, p, p), c (3, p), Q (3,) and the count.
+NormalSums = tuple[Float[Array, "... 3 p p"], Float[Array, "... 3 p"], Float[Array, "... 3"],
+             Float[Array, "..."]]
 
-def cholesky(a):
+
+def cholesky(a: Float[Array, "... p p"],
+             ) -> tuple[Float[Array, "... p p"], Float[Array, "... p"]]:
     """Cholesky factors of the column-scaled Gram matrices (..., p, p) and the column scales.
 
     A matrix that is not finite gives NaN (one degenerate device never stops the batch).
@@ -26,18 +32,21 @@ def cholesky(a):
     return jnp.where(ok, chol, jnp.nan), d
 
 
-def cho_inverse(chol, d):
+def cho_inverse(chol: Float[Array, "... p p"], d: Float[Array, "... p"],
+                ) -> Float[Array, "... p p"]:
     """Inverse of the matrix whose :func:`cholesky` factors are ``chol`` and ``d``."""
     eye = jnp.broadcast_to(jnp.eye(chol.shape[-1], dtype=chol.dtype), chol.shape)
     return jax.scipy.linalg.cho_solve((chol, True), eye) / (d[..., :, None] * d[..., None, :])
 
 
-def cho_solve(chol, d, c):
+def cho_solve(chol: Float[Array, "... p p"], d: Float[Array, "... p"],
+              c: Float[Array, "... p"]) -> Float[Array, "... p"]:
+    """The solution of ``A x = c`` from ``A``'s :func:`cholesky` factors ``chol`` and ``d``."""
     z = jax.scipy.linalg.cho_solve((chol, True), (c / d)[..., None])[..., 0]
     return z / d
 
 
-def unpack(layout: Layout, s):
+def unpack(layout: Layout, s: Float[Array, "... P"]) -> NormalSums:
     """A, c, Q and the count from the product vector(s) ``s`` (..., P); c and Q by static
     slices (an index array is a gather, a kernel of its own)."""
     a_idx, c_idx, q_idx = layout.index()
@@ -47,7 +56,8 @@ def unpack(layout: Layout, s):
     return a, c, s[..., int(q_idx[0]):int(q_idx[-1]) + 1], s[..., 0]
 
 
-def unpack_split(layout: Layout, fixed, moving):
+def unpack_split(layout: Layout, fixed: Float[Array, "... f"] | None,
+                 moving: Float[Array, "... m"]) -> NormalSums:
     """:func:`unpack` of the products whose fixed ones (:func:`varying_products`) are
     ``fixed`` and moving ones ``moving``, by one gather from the two side by side;
     ``fixed`` None: the fixed products are zero (derivatives)."""
@@ -70,14 +80,15 @@ def unpack_split(layout: Layout, fixed, moving):
         lead + c_idx.shape), g[..., cuts[1]:cuts[2]], g[..., cuts[2]])
 
 
-def residual_ss(a, c, q, beta):
+def residual_ss(a: Float[Array, "... 3 p p"], c: Float[Array, "... 3 p"],
+                q: Float[Array, "... 3"], beta: Float[Array, "... 3 p"]) -> Float[Array, "... 3"]:
     """Σ (y − xβ)² per axis from the sums A, c, Q."""
     return q - 2.0 * jnp.einsum("...ip,...ip->...i", beta, c) + jnp.einsum(
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
 
-def unpack_sums(layout: Layout, s):
+def unpack_sums(layout: Layout, s: Float[Array, "... P"] | SplitSums) -> NormalSums:
     """:func:`unpack` of a product vector, or of the fixed and moving sums apart (a model
     with time constants: :func:`unpack_split`)."""
     if isinstance(s, SplitSums):

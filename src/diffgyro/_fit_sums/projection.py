@@ -7,11 +7,15 @@ import functools
 
 import jax
 import jax.numpy as jnp
+from jaxtyping import Array, Float
 
 from .normal_equations import cho_solve, cholesky, residual_ss
 
 
-def product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
+def product_jet(u: Float[Array, "..."], du: Float[Array, "q ..."] | None,
+                ddu: Float[Array, "q q ..."] | None, v: Float[Array, "..."],
+                dv: Float[Array, "q ..."] | None, ddv: Float[Array, "q q ..."] | None, q: int,
+                ) -> list[Float[Array, "..."]]:
     """``u·v``, its first derivatives (q) and second derivatives (q·q, row-major) by the
     product rule; a derivative given as None is zero (a factor that does not move)."""
     def total(parts):
@@ -30,7 +34,13 @@ def product_jet(u, du, ddu, v, dv, ddv, q: int) -> list:
     return [u * v] + [d1(k) for k in range(q)] + [d2(k, r) for k in range(q) for r in range(q)]
 
 
-def projected_cost(sums, dsums, ddsums):
+def projected_cost(sums: tuple[Float[Array, "3 p p"], Float[Array, "3 p"], Float[Array, " 3"],
+                                 Float[Array, ""]],
+                   dsums: tuple[Float[Array, "q 3 p p"], Float[Array, "q 3 p"],
+                                Float[Array, "q 3"], Float[Array, " q"]],
+                   ddsums: tuple[Float[Array, "q q 3 p p"], Float[Array, "q q 3 p"],
+                                 Float[Array, "q q 3"], Float[Array, "q q"]],
+                   ) -> tuple[Float[Array, ""], Float[Array, " q"], Float[Array, "q q"]]:
     """Value, gradient and Hessian of the projected cost ``Σ_i min_β Σ(y_i − x_iβ)²``
     from the sums (A, c, Q, count) of :func:`.normal_equations.unpack` and their derivatives (leading
     axes (q,) and (q, q)).

@@ -127,7 +127,12 @@ RECIPES: dict[str, Recipe] = {
 
 
 def get(name: str) -> Recipe:
-    """The recipe called ``name``; a DataError lists the valid names otherwise."""
+    """The recipe called ``name``; a DataError lists the valid names otherwise.
+
+    **Arguments:**
+
+    - ``name``: the recipe's name, as the command line spells it (``"six-position"``, …).
+    """
     try:
         return RECIPES[name]
     except KeyError:

@@ -185,6 +185,20 @@ def attitude_reference(
 
     ``accel_band``: the gate ``| |a| − g | ≤ accel_band·g``; ``ratio``: weight of
     ``q_am`` in the complementary fusion.
+
+    **Arguments:**
+
+    - ``gyro``: the measured rate (n, 3), rad/s.
+    - ``accel``: the specific force (n, 3), m/s².
+    - ``mag``: the magnetic field (n, 3), any unit.
+    - ``t``: sample times (n,), s.
+    - ``gravity``: the magnitude of gravity, m/s².
+    - ``accel_band``: the gate's half-width, a fraction of ``gravity``.
+    - ``ratio``: the weight of ``q_am`` in the complementary fusion.
+    - ``reference``: ``"am"`` (two trusted ``q_am``) or ``"fused"`` (the fused attitude and
+      ``q_am``): the quaternions the reference rate comes from.
+    - ``interval``: samples between the two quaternions of ``reference="am"``.
+    - ``forget``: the running sums' forgetting factor (1: none).
     """
     gyro = np.asarray(gyro, float)
     accel = np.asarray(accel, float)

@@ -79,6 +79,16 @@ def binned_thermal(
 
     ``per_bin``: samples kept in every bin (default: the smallest count among
     bins holding at least ``min_count``; fuller bins are sub-sampled evenly).
+
+    **Arguments:**
+
+    - ``gyro``: the measured rate at rest (n, 3).
+    - ``temp``: the die temperature (n,), °C.
+    - ``bin_width``: the temperature bins' width, °C.
+    - ``edge``: the temperature a bin stands for: ``"low"``, ``"centre"`` or ``"high"``.
+    - ``per_bin``: samples kept in every bin (default: as above).
+    - ``min_count``: the fewest samples a bin holds to be kept.
+    - ``r_min``: the correlation ``|r|`` above which an axis's line is accepted.
     """
     gyro = np.asarray(gyro, float)
     temp = np.asarray(temp, float)

@@ -31,7 +31,12 @@ class RecipeResult:
 
 
 def jsonable(x):
-    """numpy / JAX values -> plain Python (lists, floats, None for non-finite)."""
+    """numpy / JAX values -> plain Python (lists, floats, None for non-finite).
+
+    **Arguments:**
+
+    - ``x``: a value, or a dict, list or tuple of them.
+    """
     return to_json_safe(x)
 
 
@@ -90,6 +95,13 @@ def toolkit_compensate(spec: str, fit_on: Recording, apply_to: Recording | None 
     Returns ``(fit_result, compensated_rate (n, 3), error (n, 3))`` where
     ``error`` is the model's whole error (bias, scale, ...) on ``apply_to``
     at its compensated rate (default: ``fit_on`` itself).
+
+    **Arguments:**
+
+    - ``spec``: the toolkit's model spec.
+    - ``fit_on``: the :class:`~diffgyro.data.Recording` fitted.
+    - ``apply_to``: the recording compensated (default: ``fit_on``).
+    - ``**options``: further arguments of :func:`diffgyro.fit.fit`.
     """
 
     apply_to = fit_on if apply_to is None else apply_to
@@ -107,7 +119,13 @@ def _compensate(model, params, sig):
 
 def single_axis(rec: Recording, axis: int) -> Recording:
     """One gyro axis copied onto all three (the toolkit fits three axes; a single-axis
-    rate table only excites one). Read the result from axis 0."""
+    rate table only excites one). Read the result from axis 0.
+
+    **Arguments:**
+
+    - ``rec``: the :class:`~diffgyro.data.Recording`.
+    - ``axis``: the gyro axis copied (0, 1 or 2).
+    """
     def rep(a):
         return None if a is None else np.repeat(np.asarray(a)[:, axis:axis + 1], 3, axis=1)
 

@@ -52,7 +52,14 @@ class CubeBiasResult(RecipeResult):
 
 
 def read_sets(source: str | Path | Mapping, n_samples: int | None = None) -> dict:
-    """Sample ranges of the static sets from JSON (``{"z_up_1": {"start": 0, "end": 900}, ...}``)."""
+    """Sample ranges of the static sets from JSON (``{"z_up_1": {"start": 0, "end": 900}, ...}``).
+
+    **Arguments:**
+
+    - ``source``: a JSON file's path, or the mapping itself.
+    - ``n_samples``: the recording's length; a set ending beyond it is refused (default:
+      unchecked).
+    """
     where = None
     if isinstance(source, Mapping):
         raw = source
@@ -82,6 +89,13 @@ def cube_bias(gyro: np.ndarray, accel: np.ndarray, sets: Mapping | str | Path,
 
     ``published=True`` uses the patent's assignment (z faces → x, y; y faces
     → z); ``False`` averages every perpendicular face pair present.
+
+    **Arguments:**
+
+    - ``gyro``: the measured rate (n, 3).
+    - ``accel``: the specific force (n, 3).
+    - ``sets``: the static sets' sample ranges, or a JSON file of them (:func:`read_sets`).
+    - ``published``: the patent's assignment of faces to axes, or every perpendicular pair.
     """
     gyro = np.asarray(gyro, float)
     accel = np.asarray(accel, float)

@@ -112,6 +112,19 @@ def fog_one_run(
     already in rad/s); ``n``: dT over ``2^n`` samples; ``m``: samples removed
     on each side of a sign change; rates within ``rate_deadband`` (rad/s) of
     zero count as sign 0 (table at rest).
+
+    **Arguments:**
+
+    - ``gyro``: the gyro's output (N, 3), or (N,) for the axis alone.
+    - ``temp``: the internal temperature (N,), °C.
+    - ``temp_ext``: the external temperature (N,), °C.
+    - ``rate``: the table's rate (N, 3), or (N,), rad/s.
+    - ``axis``: the table's axis.
+    - ``k0``: the room-temperature scale factor.
+    - ``n``: dT is taken over ``2^n`` samples.
+    - ``m``: samples removed on each side of a sign change.
+    - ``signs_from``: ``"rate"`` (the table's direction) or ``"gyro"`` (the sign of ``D``).
+    - ``rate_deadband``: the rate (rad/s) within which the table counts as at rest.
     """
     d = np.asarray(gyro, float)
     om = np.asarray(rate, float)

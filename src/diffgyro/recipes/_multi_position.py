@@ -233,6 +233,21 @@ def multi_position(
     mean of every whole pose instead of its first ``n_samples`` raw samples:
     noise averages out and every pose counts once. ``gyro_scale_init`` (rad/s per raw unit) replaces the
     automatic 1-D scale search.
+
+    **Arguments:**
+
+    - ``accel``: the accelerometer's output (n, 3), any unit.
+    - ``gyro``: the gyro's output (n, 3), any unit.
+    - ``t``: sample times (n,), s.
+    - ``gravity``: the magnitude of gravity, in the calibrated accelerometer's unit.
+    - ``init_seconds``: the length of the initial rest, s.
+    - ``multipliers``: the static threshold's multipliers of the initial rest's variance,
+      tried in turn.
+    - ``window``: the static detector's window, samples.
+    - ``n_samples``: samples per pose.
+    - ``min_intervals``: the fewest static poses a threshold must find.
+    - ``gyro_scale_init``: the gyro's starting scale (default: searched).
+    - ``pose_means``: fit the accelerometer to each pose's mean (diffgyro's variant).
     """
     accel = np.asarray(accel, float)
     gyro = np.asarray(gyro, float)

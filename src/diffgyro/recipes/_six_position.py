@@ -54,6 +54,13 @@ def read_sections(source: str | Path | Mapping, n_samples: int | None = None,
 
     Accepts ``{"x_p": {"start": 540, "end": 1271}, ...}`` or ``{"x_p": [540, 1271]}``;
     ``end`` is exclusive. Every one of the nine sections is required.
+
+    **Arguments:**
+
+    - ``source``: a JSON file's path, or the mapping itself.
+    - ``n_samples``: the recording's length; a section ending beyond it is refused (default:
+      unchecked).
+    - ``file``: the file's name for errors when ``source`` is a mapping.
     """
     if isinstance(source, Mapping):
         raw, where = source, file
@@ -170,6 +177,17 @@ def six_position(
     in the gyro's angle unit (−360 for deg/s, −2π for rad/s) and ``gravity``
     in the accelerometer's. Integration uses ``1 / sampling_rate`` per sample
     when given, otherwise the spacing of ``t``.
+
+    **Arguments:**
+
+    - ``gyro``: the gyro's output (n, 3).
+    - ``accel``: the accelerometer's output (n, 3).
+    - ``sections``: the nine sections' sample ranges, or a JSON file of them
+      (:func:`read_sections`).
+    - ``t``: sample times (n,), s (when ``sampling_rate`` is not given).
+    - ``sampling_rate``: samples per second.
+    - ``rotation_angle``: each turn's angle in the gyro's angle unit.
+    - ``gravity``: the magnitude of gravity in the accelerometer's unit.
     """
     gyro = np.asarray(gyro, float)
     accel = np.asarray(accel, float)

@@ -48,6 +48,13 @@ def static_intervals(
 
     ``window`` is made odd and at least 11 samples; intervals shorter than
     ``min_length`` samples are dropped.
+
+    **Arguments:**
+
+    - ``accel``: the accelerometer's output (n, 3).
+    - ``threshold``: the windowed variance norm below which a sample is static.
+    - ``window``: the variance window, samples.
+    - ``min_length``: the shortest interval kept, samples.
     """
     window = max(int(window), 11)
     window += 1 - window % 2

@@ -123,7 +123,20 @@ def static_kalman(
     q: float = 1e-4,
     q_unit: str = "deg/s",
 ) -> StaticKalmanResult:
-    """Run static-kalman on one recording (rates in rad/s); ``quat`` is an optional reference attitude."""
+    """Run static-kalman on one recording (rates in rad/s); ``quat`` is an optional reference attitude.
+
+    **Arguments:**
+
+    - ``gyro``: the measured rate (n, 3), rad/s.
+    - ``accel``: the specific force (n, 3).
+    - ``t``: sample times (n,), s.
+    - ``quat``: a reference attitude (n, 4) (default: none; heading from the z rate alone).
+    - ``init``: samples of the factory rest at the start.
+    - ``window``: samples per window.
+    - ``margin``: the static thresholds' margin ``M``.
+    - ``q``: the filter's ``Q``, in ``(q_unit)²``.
+    - ``q_unit``: ``"deg/s"`` or ``"rad/s"``.
+    """
     gyro = np.asarray(gyro, float)
     accel = np.asarray(accel, float)
     t = np.asarray(t, float)
@@ -244,6 +257,18 @@ def heading_errors(
     ``q``, ``r`` (what a device could run live); ``smoothed``: the RTS
     smoother with the same q, r (post-processing, uses the future too).
     Heading error = ∫ (corrected rate − true rate) dt, trapezoidal, rad.
+
+    **Arguments:**
+
+    - ``t``: sample times (n,), s.
+    - ``gz``: the measured z rate (n,), rad/s.
+    - ``rz``: the true z rate (n,), rad/s.
+    - ``static``: the samples at rest (n,).
+    - ``q``: the learned random walk's process variance.
+    - ``r``: the learned measurement noise variance.
+    - ``window``: samples per window of the recipe's filter.
+    - ``init``: samples of the factory rest at the start.
+    - ``q_static``: the recipe's fixed ``Q``, (rad/s)².
     """
     gz = jnp.asarray(gz)
     return _heading_errors(jnp.asarray(t, gz.dtype), gz, jnp.asarray(rz, gz.dtype),
