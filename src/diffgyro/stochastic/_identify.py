@@ -17,11 +17,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import filter_jit
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
 from ._estimator import (
@@ -138,7 +138,7 @@ def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
     return jnp.stack([power(walk), power(ramp)])
 
 
-@eqx.filter_jit
+@filter_jit(persistent=True)  # a later process skips the trace (1.6 s) and the lowering
 def _identify_batch(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     f = lambda w, c, nn, d: _identify_one(w, c, nn, d, m, masks, penalty, n_scales)  # noqa: E731
     return jax.vmap(f)(wv_hat, count, n, dt)
