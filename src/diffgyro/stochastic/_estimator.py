@@ -37,8 +37,9 @@ from jaxtyping import Array, Bool, Float
 
 from ._components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
 
-#: Levenberg–Marquardt iterations per stage.
-ITERATIONS = 40
+#: Levenberg–Marquardt iterations per stage (from the grid's starting values, and the
+#: second stage from the first's estimate, the steps have settled by then).
+ITERATIONS = 20
 #: Logarithms kept inside this range (no underflow of a power switched down to nothing).
 _LOG_FLOOR = -150.0
 
