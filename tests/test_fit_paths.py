@@ -372,3 +372,23 @@ def test_models_with_time_constants_run_in_small_groups(monkeypatch):
         with pytest.raises(Seen):
             fit(spec, batch, noise_floor=False)
     assert sizes[True] == 2 < sizes[False]
+
+
+def test_collinear_columns_report_the_real_rms():
+    """An extra column that is the temperature (3·T + 1) beside ``bias_poly(1)``: the
+    columns are collinear, the status ``rank_deficient``, and the rms is the residual of
+    the column space the two span, which ``bias_poly(1)`` alone spans: the same number on
+    both paths (the sums path read 0.0 or NaN, its coefficients' sums cancelling)."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    t = np.arange(n, dtype=float)
+    temp = 20.0 + 10.0 * np.sin(t / 900.0)
+    gyro = 1e-3 + 2e-4 * np.outer(temp - 20.0, [1.0, -1.0, 0.5]) + 5e-4 * rng.standard_normal((n, 3))
+    batch = Batch.from_recordings([Recording(t=t, gyro=gyro, temp=temp,
+                                             aux={"v": 3.0 * temp + 1.0}, device="d")])
+    plain = fit("bias_poly(1)", batch).records()[0]
+    assert plain["status"] == "ok"
+    for path in ("sums", "direct"):
+        rec = fit("bias_poly(1)+aux(v)", batch, path=path).records()[0]
+        assert rec["status"] == "rank_deficient", path
+        np.testing.assert_allclose(rec["rms"], plain["rms"], rtol=1e-6, err_msg=path)

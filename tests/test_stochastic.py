@@ -92,6 +92,26 @@ def test_empirical_wavelet_variance_and_its_covariance_match_the_model():
     np.testing.assert_allclose(corr_emp, corr_th, atol=0.12)
 
 
+def test_a_ramps_wavelet_variance_spreads_as_the_model_says():
+    """White noise + a ramp and no walk: where the ramp dominates, ν̂'s whole spread is its
+    coefficient times the mean of the white noise's (the record's ends, order 1/M²). The
+    model's standard deviation matches the spread over 400 series at every scale (it was
+    a tenth of it at the longest, where the ramp's intervals then covered nothing)."""
+    n, arw, r = 4096, 1e-3, 2e-3
+    rng = np.random.default_rng(5)
+    y = arw / math.sqrt(DT) * rng.standard_normal((400, n)) + r * DT * np.arange(n)
+    m = dyadic_m(n)
+    wv, count = haar_wv(jnp.asarray(y), DT, None, m)
+    th = _theta(white=arw**2, rate_ramp=r**2)
+    mask = jnp.asarray(structure_mask(("white", "rate_ramp")))
+    cov = np.asarray(wv_covariance(th, mask, jnp.asarray(m, float), jnp.asarray(count[0], float), n, DT))
+    theory = np.asarray(model_wv(th, mask, jnp.asarray(m * DT), DT))
+    ratio = np.asarray(wv).std(0) / np.sqrt(np.diag(cov))
+    ramp = 0.25 * r**2 * (m * DT) ** 2 > 10 * 0.5 * arw**2 / (m * DT)  # the ramp dominates
+    assert ramp.sum() >= 3 and theory[-1] > 100 * 0.5 * arw**2 / (m[-1] * DT)
+    assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+
+
 #: A small version of the benchmark: truth per structure (SI units), two seeds each.
 TRUTHS = {
     "white + random_walk": dict(arw=1e-3, rrw=2e-4),

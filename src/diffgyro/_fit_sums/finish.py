@@ -9,7 +9,14 @@ from .._linalg import rank_check
 from ..model import ErrorModel
 from ..status import collinear_terms, fit_status, min_samples
 from .layout import Layout, covariance_pairs, moving_columns
-from .normal_equations import cho_inverse, cho_solve, cholesky, residual_ss, unpack_sums
+from .normal_equations import (
+    cho_inverse,
+    cho_solve,
+    cholesky,
+    projected_ss,
+    residual_ss,
+    unpack_sums,
+)
 from .types import DeviceSums
 
 
@@ -43,6 +50,9 @@ def finish(model: ErrorModel, layout: Layout, opts, raw: DeviceSums) -> dict:
     ratio, direction, rank_ok = (jnp.broadcast_to(v, (3,) + v.shape[1:])
                                  for v in rank_check(a[:n_gram], opts.rank_tol))
     sse = jnp.maximum(residual_ss(a, cc, q, beta_s), 0.0)
+    # collinear columns: the residual at the least-squares minimum, formed without the
+    # unbounded β (whose sums cancel to noise)
+    sse = jnp.where(rank_ok, sse, jnp.maximum(projected_ss(a, cc, q, opts.rank_tol), 0.0))
     shift = jnp.zeros((3, p), dtype)
     if layout.const_col is not None:
         shift = shift.at[:, layout.const_col].set(raw.y0)

@@ -87,6 +87,18 @@ def residual_ss(a: Float[Array, "... 3 p p"], c: Float[Array, "... 3 p"],
         "...ip,...ipq,...iq->...i", beta, a, beta)
 
 
+def projected_ss(a, c, q, rank_tol):
+    """Σ (y − xβ)² per axis at the least-squares minimum, formed stably: ``q`` less the
+    squared projections of y on the scaled Gram matrix's eigenvectors, each non-negative,
+    directions below ``rank_tol`` of the largest eigenvalue left out (the minimum-norm
+    solution). Where the columns are collinear the solved β grows without bound and
+    :func:`residual_ss` cancels to noise (it read 0.0 for a rank-deficient device)."""
+    g, d = scale_gram(a)
+    evals, evecs = jnp.linalg.eigh(g)
+    proj = jnp.einsum("...pk,...p->...k", evecs, c / d)
+    keep = evals > rank_tol * jnp.max(evals, axis=-1, keepdims=True)
+    return q - jnp.sum(jnp.where(keep, proj**2 / jnp.where(keep, evals, 1.0), 0.0), axis=-1)
+
 
 def unpack_sums(layout: Layout, s: Float[Array, "... P"] | SplitSums) -> NormalSums:
     """:func:`unpack` of a product vector, or of the fixed and moving sums apart (a model

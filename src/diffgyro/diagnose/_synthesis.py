@@ -248,8 +248,9 @@ def select(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: fl
     the chosen groups' indices (empty when no set reaches the floor or closes the thresholds'
     ``rw_prefer`` of the gap to it) and the held-out SSE per block of the final set. Groups
     in ``vocabulary`` (built-in terms) need the thresholds' ``gain_min``, synthesised ones
-    :data:`GAIN_MIN`. ``keys``: per group, the term it is (one lag term on a grid of time
-    constants is several groups); a term enters once."""
+    :data:`GAIN_MIN`. ``keys``: per group, what it claims (:func:`claims`): the term it is
+    (one lag term on a grid of time constants is several groups) and the column it lags; a
+    claim is taken once."""
     chosen, sses = forward(zz, zy, yy, cnt, base, groups, floor2, th, max_terms, vocabulary, keys)
     # the floor reached, or the gap closed as a built-in term must close it to be preferred
     # to the random walk (flicker and read-out quantisation stay above the white floor)
@@ -279,7 +280,7 @@ def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: f
     """The forward path of :func:`select`: the groups added in order, each improving the
     held-out error consistently and materially against ``floor2``, until it reaches the
     floor; and the held-out SSE per block before the first and after each step."""
-    keys = list(range(len(groups))) if keys is None else keys
+    keys = [(j,) for j in range(len(groups))] if keys is None else keys
     cur = list(base)
     sse_cur = _heldout(zz, zy, yy, cur)
     sses = [sse_cur]
@@ -289,9 +290,9 @@ def forward(zz, zy, yy, cnt, base: list[int], groups: list[list[int]], floor2: f
         if sse_cur.sum() / denom.sum() <= floor2 * (1.0 + th.excess_min):
             break
         best, best_sse = None, None
-        taken = {keys[c] for c in chosen}
+        taken = {k for c in chosen for k in keys[c]}
         for j, g in enumerate(groups):
-            if keys[j] in taken:
+            if taken.intersection(keys[j]):
                 continue
             s = _heldout(zz, zy, yy, cur + g)
             if np.all(np.isfinite(s)) and (best_sse is None or s.sum() < best_sse.sum()):
@@ -376,6 +377,8 @@ def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorMo
     out = {}
     order = list(idx)
     grammar = [t for t in terms if isinstance(t, Term)]
+    # a column the model already lags is not lagged again (:func:`claims`)
+    base_lags = {k for t in model.terms for k in claims(t, "")[1:]}
     for start in range(0, len(order), CHUNK):
         part = order[start:start + CHUNK]
         pad = np.asarray(part + [part[-1]] * (CHUNK - len(part)) if len(order) > CHUNK else part)
@@ -396,8 +399,9 @@ def propose_many(idx: list[int], floors: list[float], batch, res, model: ErrorMo
             allowed = set(names[i])
             mine = {c.spec for c in builtins[idx.index(i)]}
             usable = [j for j, t in enumerate(terms)
-                      if (isinstance(t, Term) and {n for n, _, _ in t.factors} <= allowed)
-                      or (not isinstance(t, Term) and labels[j] in mine)]
+                      if ((isinstance(t, Term) and {n for n, _, _ in t.factors} <= allowed)
+                          or (not isinstance(t, Term) and labels[j] in mine))
+                      and not base_lags.intersection(claims(t, labels[j]))]
             check = None if residual_floor is None else (lambda e, i=i: residual_floor(i, e))
             prop = _select_device(np.asarray(xs[r])[:n], cols, np.asarray(ys[r])[:n], n, fl, p,
                                   terms, labels, groups, usable, rivals, model, th, check)
@@ -416,7 +420,7 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
     floor2 = max(floor ** 2, 1e-300)
     vocab = frozenset(k for k, j in enumerate(usable) if not isinstance(terms[j], Term))
     grouped = [groups[j] for j in usable]
-    keys = [labels[j] for j in usable]
+    keys = [claims(terms[j], labels[j]) for j in usable]
     noise2 = None
     if residual_floor is None:
         chosen, sse = select(zz, zy, yy, cnt, list(range(p)), grouped, floor2, th, vocabulary=vocab,
@@ -440,6 +444,16 @@ def _select_device(x, c, y, n, floor, p, terms, labels, groups, usable, rivals, 
                     rms=math.sqrt(max(_full_sse(zz, zy, yy, cols), 0.0) / (3.0 * cnt.sum())),
                     t=t, folds_improved=int(np.sum(diff > 0)),
                     noise_floor=None if noise2 is None else math.sqrt(noise2))
+
+
+def claims(term, label: str) -> tuple[str, ...]:
+    """What a candidate takes from the selection once chosen: its term (one lag term on the
+    grid of time constants is several groups) and the column it lags. A proposal lags a
+    column once: ``lag(x)`` beside ``x*lag(x)`` would be fitted with two time constants of
+    one thermal path, which the data do not tell apart (the fit came back rank-deficient,
+    its coefficients cancelling in the millions)."""
+    lagged = getattr(term, "lagged", None) if isinstance(term, Term) else None
+    return (label,) + ((f"lag:{lagged}",) if lagged else ())
 
 
 def _against_noise(z, y, zz, zy, yy, cnt, p: int, groups: list[list[int]], floor2: float,

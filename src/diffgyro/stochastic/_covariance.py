@@ -76,8 +76,30 @@ def wv_covariance(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], m: Float[A
     integral = h * (jnp.sum(integrand, -1) - 0.5 * (integrand[..., 0] + integrand[..., -1]))
     big_m = jnp.maximum(count[:, None], count[None, :])
     cov = 4.0 * integral / big_m  # 2/M ∫_{−½}^{½} = 4/M ∫_0^{½}
-    # the ramp's deterministic coefficients times the random walk's zero-frequency coefficients
+    # the ramp's deterministic coefficients times the mean of the noise's: the random walk's
+    # zero-frequency coefficients (order 1/M), and the record's ends for the rest (order 1/M²)
     p = jnp.exp(theta)
     d = jnp.where(mask[7], jnp.sqrt(p[7]) * m * dt / 2.0, 0.0)
     s0 = jnp.where(mask[6], m[:, None] * m[None, :] * p[6] * dt / 4.0, 0.0)
-    return cov + 4.0 * d[:, None] * d[None, :] * s0 / big_m
+    ends = _ends(p, mask, m, count, dt)
+    return cov + 4.0 * d[:, None] * d[None, :] * (s0 / big_m + ends)
+
+
+def _ends(p, mask, m, count, dt):
+    """Covariance of the means of the Haar coefficients at scales i, j of the noise but the
+    random walk: the filter sums to zero, so the mean over M positions keeps only the
+    record's two ends, triangles of 2m samples with weights up to 1/(2M): Σ c_i c_j =
+    2·T_ij/(4 m_i m_j M_i M_j) per unit of white variance, T_ii = 2m³/3, T_ij = min(m)³
+    (scales an octave or more apart). White noise and each Gauss–Markov process count with
+    their long-scale white variance per sample (σ²(1+φ)/(1−φ)); quantization, a difference
+    itself, cancels further. Small beside the noise's own variance, it is the whole spread
+    of a ramp's wavelet variance where the ramp dominates (its intervals were too narrow
+    without it: none of 12 covered a white + ramp truth)."""
+    var = jnp.where(mask[0], p[0] / dt, 0.0)
+    for iv, it in ((2, 3), (4, 5)):
+        one_phi = -jnp.expm1(-dt / p[it])
+        var = var + jnp.where(mask[iv], p[iv] * (2.0 - one_phi) / one_phi, 0.0)
+    lo = jnp.minimum(m[:, None], m[None, :])
+    t = jnp.where(m[:, None] == m[None, :], 2.0 * lo**3 / 3.0, lo**3)
+    cnt = jnp.maximum(count, 1.0)
+    return var * 2.0 * t / (4.0 * m[:, None] * m[None, :] * cnt[:, None] * cnt[None, :])

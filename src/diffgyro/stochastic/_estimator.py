@@ -37,8 +37,9 @@ from jaxtyping import Array, Bool, Float
 
 from ._components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
 
-#: Levenberg–Marquardt iterations per stage.
-ITERATIONS = 40
+#: Levenberg–Marquardt iterations per stage (from the grid's starting values, and the
+#: second stage from the first's estimate, the steps have settled by then).
+ITERATIONS = 20
 #: Logarithms kept inside this range (no underflow of a power switched down to nothing).
 _LOG_FLOOR = -150.0
 
@@ -65,11 +66,42 @@ def log_moments(rel_cov: Float[Array, "J J"]) -> tuple[Float[Array, "J J"], Floa
     return rel_cov * g[:, None] * g[None, :], digamma(e / 2.0) - jnp.log(e / 2.0)
 
 
-def residual(theta, mask, target, valid, tau, dt, chol):
+def spd_solve(a: Float[Array, "... p p"], b: Float[Array, "... p"]) -> Float[Array, "... p"]:
+    """Solve ``a x = b`` for symmetric positive definite ``a`` by a Cholesky factorisation
+    written out over p (at most 8 here): elementwise operations over the batch, which XLA
+    fuses; a batched ``jnp.linalg.solve`` of 6×6 systems took 6× as long on CPU (the
+    starting values' thousands of small systems; the fit's own 8×8 steps gain nothing and
+    compile longer, so they keep the LU solve). A pivot that is not positive is floored at
+    1e-300 (a huge, not a NaN, step)."""
+    p = a.shape[-1]
+    low = [[None] * p for _ in range(p)]
+    for j in range(p):
+        piv = jnp.sqrt(jnp.maximum(a[..., j, j] - sum((low[j][k] ** 2 for k in range(j)), 0.0),
+                                   1e-300))
+        low[j][j] = piv
+        for i in range(j + 1, p):
+            low[i][j] = (a[..., i, j] - sum((low[i][k] * low[j][k] for k in range(j)), 0.0)) / piv
+    z: list = []
+    for i in range(p):
+        z.append((b[..., i] - sum((low[i][k] * z[k] for k in range(i)), 0.0)) / low[i][i])
+    x: list = [None] * p
+    for i in reversed(range(p)):
+        x[i] = (z[i] - sum((low[k][i] * x[k] for k in range(i + 1, p)), 0.0)) / low[i][i]
+    return jnp.stack(x, axis=-1)
+
+
+def whitener(chol: Float[Array, "J J"]) -> Float[Array, "J J"]:
+    """L⁻¹ of a Cholesky factor, formed once per weight: the fit's iterations multiply by it
+    (a batched triangular solve inside the iterations cost 13× the whole step on CPU)."""
+    return jax.scipy.linalg.solve_triangular(chol, jnp.eye(chol.shape[0], dtype=chol.dtype),
+                                             lower=True)
+
+
+def residual(theta, mask, target, valid, tau, dt, linv):
     """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias; zero on
-    invalid scales."""
+    invalid scales; ``linv``: L⁻¹ (:func:`whitener`)."""
     r = jnp.where(valid, target - jnp.log(model_wv(theta, mask, tau, dt)), 0.0)
-    return jax.scipy.linalg.solve_triangular(chol, r, lower=True)
+    return linv @ r
 
 
 def _bounds(dt, n):
@@ -80,10 +112,11 @@ def _bounds(dt, n):
     return lo, hi
 
 
-def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, chol, iterations=ITERATIONS):
-    """Minimise ‖residual‖² over the switched-on log-parameters; returns (θ, objective)."""
+def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, linv, iterations=ITERATIONS):
+    """Minimise ‖residual‖² over the switched-on log-parameters (``linv``: the weight's
+    :func:`whitener`); returns (θ, objective)."""
     lo, hi = _bounds(dt, n)
-    fun = lambda th: residual(th, mask, target, valid, tau, dt, chol)  # noqa: E731
+    fun = lambda th: residual(th, mask, target, valid, tau, dt, linv)  # noqa: E731
     on = mask.astype(theta0.dtype)
 
     def step(carry, _):
@@ -93,7 +126,7 @@ def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, chol, iteration
         g = jac.T @ r
         a = jac.T @ jac
         damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
-        delta = jnp.linalg.solve(a + jnp.diag(damp), -g) * on
+        delta = jnp.linalg.solve(a + jnp.diag(damp), -g[:, None])[:, 0] * on
         trial = jnp.clip(th + delta, lo, hi)
         tr = fun(trial)
         new_cost = tr @ tr
@@ -138,18 +171,29 @@ def _nnls_powers(cols, target, active, sweeps=6):
     def sweep(act, _):
         w = act.astype(c.dtype)
         a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-        p = jnp.linalg.solve(a, (c * w).T @ target) * w
+        p = spd_solve(a, (c * w).T @ target) * w
         return act & (p > 0), p
 
     act, ps = jax.lax.scan(sweep, act, None, length=sweeps)
     w = act.astype(c.dtype)
     a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-    p = jnp.linalg.solve(a, (c * w).T @ target) * w
+    p = spd_solve(a, (c * w).T @ target) * w
     p = jnp.maximum(p, 0.0)
     misfit = jnp.sum((c @ p - target) ** 2)
     # a switched-on component the data do not ask for starts small, not at zero
     p = jnp.where(active & (p <= 0), 1e-3 * jnp.sqrt(jnp.sum(target**2)), p)
     return p / norm, misfit
+
+
+def pair_columns(grid, pairs, tau, dt):
+    """Per start pair (:func:`start_pairs`): the log-parameters with its two correlation
+    times, and each component's wavelet variance at unit power (K, J, 6). The same for
+    every structure and series of one sampling: formed once, outside their vmaps."""
+    def one(ia, ib):
+        th = jnp.zeros((N_PARAMS,)).at[3].set(jnp.log(grid[ia])).at[5].set(jnp.log(grid[ib]))
+        return th, (0.5 * component_avar(th, tau, dt)).T
+
+    return jax.vmap(one)(*pairs)
 
 
 def starting_values(mask, wv_hat, valid, tau, dt, weight, grid, pairs):
@@ -158,14 +202,9 @@ def starting_values(mask, wv_hat, valid, tau, dt, weight, grid, pairs):
     sw = jnp.where(valid, jnp.sqrt(weight), 0.0)
     rows_on = row_mask(mask)
 
-    def one(ia, ib):
-        th = jnp.zeros((N_PARAMS,)).at[3].set(jnp.log(grid[ia])).at[5].set(jnp.log(grid[ib]))
-        comp = 0.5 * component_avar(th, tau, dt)  # unit powers, (6, J)
-        cols = (comp / s[None, :] * sw[None, :]).T  # (J, 6)
-        p, misfit = _nnls_powers(cols, sw, rows_on)
-        return th, p, misfit
-
-    ths, ps, misfits = jax.vmap(one)(*pairs)
+    ths, cols = pair_columns(grid, pairs, tau, dt)
+    cols = cols / s[None, :, None] * sw[None, :, None]  # (K, J, 6)
+    ps, misfits = jax.vmap(lambda c: _nnls_powers(c, sw, rows_on))(cols)
     best = jnp.argmin(misfits)
     th, p = ths[best], ps[best]
     logp = jnp.log(jnp.maximum(p, 1e-300))

@@ -17,11 +17,11 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._jit import filter_jit
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
 from ._estimator import (
@@ -33,6 +33,7 @@ from ._estimator import (
     start_pairs,
     starting_values,
     tau_grid,
+    whitener,
 )
 from ._intervals import Z95, sandwich
 from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
@@ -79,17 +80,19 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
         chol1, target1 = weights(rel_cov(th[ref], masks[ref]))
         chol = jnp.where(k == 0, chol0, chol1)
         target = jnp.where(k == 0, target0, target1)
-        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, chol))(
+        linv = whitener(chol)
+        th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, linv))(
             th, masks)
         return (th, obj), chol
 
     obj0 = jnp.zeros(masks.shape[0], wv_hat.dtype)
     (th2, obj), chols = jax.lax.scan(stage, (th0, obj0), jnp.arange(2))
     chol_ref = chols[1]
+    linv_ref = whitener(chol_ref)
 
     def rank_of(th, mask):
         d = jacobian_log(th, mask, valid, tau, dt)
-        return effective_rank(jax.scipy.linalg.solve_triangular(chol_ref, d, lower=True))
+        return effective_rank(linv_ref @ d)
 
     rank = jax.vmap(rank_of)(th2, masks)
     crit = obj + penalty * k_nominal
@@ -135,7 +138,7 @@ def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
     return jnp.stack([power(walk), power(ramp)])
 
 
-@eqx.filter_jit
+@filter_jit(persistent=True)  # a later process skips the trace (1.6 s) and the lowering
 def _identify_batch(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     f = lambda w, c, nn, d: _identify_one(w, c, nn, d, m, masks, penalty, n_scales)  # noqa: E731
     return jax.vmap(f)(wv_hat, count, n, dt)
