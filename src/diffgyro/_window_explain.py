@@ -44,9 +44,9 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     """The devices ``rows`` of ``batch`` as the means of their valid samples over each of
     ``k`` windows of ``w`` samples: time, the signals in ``reads`` (a model's
     ``requires()``: ``temp``, ``accel``, ``aux:name`` ...) and the gyro (given: its
-    windows' ``mean``). Only the devices ``fill`` are read (the others hold their first sample: the
-    shape stays the batch's). A window with no valid sample is masked and holds its
-    neighbour's values."""
+    windows' ``mean``). Only the devices ``fill`` are read; the others repeat the first
+    one read (the shape stays the batch's, and a row not judged is still a well-formed
+    recording). A window with no valid sample is masked and holds its neighbour's values."""
     n_dev, n = np.shape(batch.mask)
     m = min(n, k * w)
     read = np.asarray(rows)[fill]
@@ -57,6 +57,8 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
               np.broadcast_to(_sums(np.ones((1, m), bool), w, k), (len(read), k)))
     mask = np.zeros((len(rows), k), bool)
     mask[fill] = counts > 0
+    spare, first = ~fill, int(np.argmax(fill))  # (rows not read repeat the first one read)
+    mask[spare] = mask[first]
     safe = np.maximum(counts, 1.0)
 
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
@@ -67,6 +69,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
             part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
         s = _sums(part, w, k)
         out[fill] = _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
+        out[spare] = out[first]
         return out
 
     def times(t):  # a window's time: its first sample's, plus half its span
@@ -78,6 +81,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
         out[fill, :start.shape[1]] = start + 0.5 * (w - 1) * step
         out[fill] = _held(out[fill], counts > 0)
+        out[spare] = out[first]
         return out
 
     kw = {f: None if getattr(batch, f) is None or f not in reads else
