@@ -495,6 +495,7 @@ PRIVATE_UNDER_TEST = {
                                "diffgyro._motion_judge"},
     "test_cli_conventions.py": {"diffgyro.cli._tables"},  # the tables' width rule
     "test_term_info.py": {"diffgyro._term_info"},
+    "test_synthesis.py": {"diffgyro.diagnose._synthesis"},  # its claims table
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
     # open elsewhere when diffgyro.internal came
     "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
