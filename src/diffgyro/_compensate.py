@@ -15,29 +15,18 @@ import numpy as np
 
 from . import _aux as aux_cols
 from ._signal_builder import batch_signals
-from .data import Batch, Recording
-from .errors import SpecError
+from .data import Batch
 from .model import ErrorModel, Params
 from .signals import TempNorm
 
 __all__ = ["compensate_batch"]
 
 
-def compensate_batch(cal, data: Batch | Recording | list[Recording]) -> tuple[Batch, dict]:
-    """:func:`diffgyro.calibration.compensate` (``cal`` a :class:`~diffgyro.calibration.Calibration`)."""
-    batch = data if isinstance(data, Batch) else Batch.from_recordings(
-        [data] if isinstance(data, Recording) else list(data))
-    if cal.channel != "gyro":
-        raise SpecError(f"this is a calibration of the {cal.channel} channel; compensation "
-                        "applies gyro calibrations", hint="export it to the autopilot "
-                        "(diffgyro export CAL --format px4|ardupilot), which applies it")
+def compensate_batch(cal, batch: Batch, devs: list) -> tuple[Batch, dict]:
+    """:func:`diffgyro.calibration.compensate` in JAX (``cal`` a
+    :class:`~diffgyro.calibration.Calibration`, ``devs`` its entries of ``batch``'s
+    devices, checked there)."""
     model = cal.error_model
-    devs = [cal.device(name) for name in batch.devices]
-    for d in devs:
-        if d.status != "ok":
-            why = d.status_detail if d.status_detail not in ("", d.status) else d.status
-            raise SpecError(f"calibration of device {d.device!r} is not ok ({why}); "
-                            "refusing to apply it", device=d.device)
     params = Params(beta=jnp.asarray([d.beta for d in devs], jnp.float64).reshape(len(devs), 3, -1),
                     theta=jnp.asarray([d.theta for d in devs], jnp.float64).reshape(len(devs), -1))
     clamped: dict[str, int] = {}

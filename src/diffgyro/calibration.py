@@ -587,16 +587,16 @@ def compensate(cal: Calibration, data: Batch | Recording | list[Recording],
     if missing:
         raise DataError(f"model {cal.model!r} needs {', '.join(sorted(missing))}, not in the data",
                         file=batch.sources[0] if batch.sources else None)
-    if engine == "jax" or any(t.name not in KINDS for t in info.parts):
-        from ._compensate import compensate_batch
-
-        return compensate_batch(cal, batch)
     devs = [cal.device(name) for name in batch.devices]
     for d in devs:
         if d.status != "ok":
             why = d.status_detail if d.status_detail not in ("", d.status) else d.status
             raise SpecError(f"calibration of device {d.device!r} is not ok ({why}); "
                             "refusing to apply it", device=d.device)
+    if engine == "jax" or any(t.name not in KINDS for t in info.parts):
+        from ._compensate import compensate_batch
+
+        return compensate_batch(cal, batch, devs)
     names = aux_names(info.requires())
     if names:
         from ._aux import check_columns
