@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from noise_identification import flat_components, truth_params  # the scoring is shared
 from scipy.signal import lfilter
 
 #: (name, rate Hz, length s, truth): arw rad/s/√Hz, q rad, gm ((σ rad/s, T s), …),
@@ -87,35 +88,6 @@ def scaled(kw: dict, k: float) -> dict:
     out = {key: v * k for key, v in kw.items() if key != "gm"}
     if "gm" in kw:
         out["gm"] = tuple((s * k, t) for s, t in kw["gm"])
-    return out
-
-
-def truth_params(kw: dict) -> dict[str, float]:
-    """Flat {parameter: truth} in the order of diffgyro's components (GM by τ)."""
-    out = {"arw": kw["arw"]}
-    if kw.get("q"):
-        out["q"] = kw["q"]
-    for i, (s, t) in enumerate(sorted(kw.get("gm", ()), key=lambda p: p[1])):
-        out[f"gm{i + 1}_sigma"], out[f"gm{i + 1}_tau"] = s, t
-    if kw.get("rrw"):
-        out["rrw"] = kw["rrw"]
-    if kw.get("ramp"):
-        out["r"] = kw["ramp"]
-    return out
-
-
-def flat_components(components: list[dict]) -> dict[str, tuple]:
-    """{parameter: (value, lo, hi)} of diffgyro's components."""
-    out, gm = {}, 0
-    for c in components:
-        p = c["params"]
-        if c["kind"] == "gauss_markov":
-            gm += 1
-            for k in ("sigma", "tau"):
-                out[f"gm{gm}_{k}"] = (p[k]["value"], *p[k]["ci"])
-        else:
-            (name, v), = p.items()
-            out[name] = (v["value"], *v["ci"])
     return out
 
 
