@@ -67,12 +67,8 @@ def compensate_command(
                 raise
             raise type(err)(err.problem, file=str(cal), device=err.device, column=err.column,
                             row=err.row, hint=err.hint) from None
-    for dev, n in clamped.items():
-        print(f"diffgyro: warning: device {dev}: {n} samples outside the calibrated temperature "
-              f"range were clamped to it", file=sys.stderr)
-    if Path(out).resolve() == Path(data).resolve():
-        raise DataError("refusing to overwrite the input file", file=str(out),
-                        hint="choose another --out")
+    _warn_clamped(clamped)
+    _refuse_overwrite(data, out)
     io.save(corrected, out)
     if as_json:
         from diffgyro._jsonio import dumps
@@ -128,12 +124,8 @@ def _accel(calib, cal: Path, batch, data: Path, out: Path, as_json: bool) -> Non
                                                 acc[i, :n], temp, ext, aux=aux or None)
         except ValueError as err:
             raise DataError(str(err), file=str(cal), device=name) from None
-    for dev_name, k in clamped.items():
-        print(f"diffgyro: warning: device {dev_name}: {k} samples outside the calibrated "
-              f"temperature range were clamped to it", file=sys.stderr)
-    if Path(out).resolve() == Path(data).resolve():
-        raise DataError("refusing to overwrite the input file", file=str(out),
-                        hint="choose another --out")
+    _warn_clamped(clamped)
+    _refuse_overwrite(data, out)
     corrected = dataclasses.replace(batch, accel=acc)
     io.save(corrected, out)
     counts = [int(v) for v in np.asarray(batch.mask).sum(axis=1)]
@@ -151,3 +143,17 @@ def _accel(calib, cal: Path, batch, data: Path, out: Path, as_json: bool) -> Non
                f"samples corrected by {calib.model} (m/s², {what})"
                + (f", {n_clamped} clamped to the calibrated temperature range"
                   if n_clamped else ""))
+
+
+def _warn_clamped(clamped: dict[str, int]) -> None:
+    """One warning line per device whose temperature was clamped to its calibrated range."""
+    for dev, n in clamped.items():
+        print(f"diffgyro: warning: device {dev}: {n} samples outside the calibrated temperature "
+              f"range were clamped to it", file=sys.stderr)
+
+
+def _refuse_overwrite(data: Path, out: Path) -> None:
+    """A DataError where ``out`` is the input file itself (nothing the user gave is altered)."""
+    if Path(out).resolve() == Path(data).resolve():
+        raise DataError("refusing to overwrite the input file", file=str(out),
+                        hint="choose another --out")
