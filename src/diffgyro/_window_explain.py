@@ -26,6 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
+from ._window_stats import spread_quantile
 from .data import Batch
 
 
@@ -146,32 +147,9 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     stats[ok, :, 2] = residual[ok, :, 0] - residual[ok, :, 1]
     _, half_q, _, zh = quantiles
     sigma = noise[ok, 0].astype(float)
-    half = _spread_quantile(np.abs(stats[ok, :, 2]), valid[ok], half_q, limit)
+    half = spread_quantile(np.abs(stats[ok, :, 2]), valid[ok], half_q, limit)
     noise[ok, 1] = np.maximum(sigma / np.sqrt(w), half / zh / 2.0)
     return stats, noise
-
-
-def _spread_quantile(x: Float[np.ndarray, "r k 3"], valid: Bool[np.ndarray, "r k"], q: float,
-                     limit: int) -> Float[np.ndarray, "r 3"]:
-    """The ``q`` quantile (linear between order statistics) per device and axis of ``x``
-    over its valid windows among at most ``limit`` spread evenly over its span (the rest
-    noise's rule, :mod:`diffgyro._window_stats`); NaN where none."""
-    k = valid.shape[1]
-    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)[:, None]
-    j = np.arange(min(k, limit))[None]
-    at = np.where(span > limit, (j * span) // limit, j)
-    use = np.take_along_axis(valid, np.minimum(at, k - 1), axis=1) & (j < span)
-    v = np.take_along_axis(x, np.minimum(at, k - 1)[..., None], axis=1)
-    v = np.sort(np.where(use[..., None], v, np.inf), axis=1)
-    u = use.sum(axis=1)[:, None]
-    pos = q * np.maximum(u - 1, 0)
-    lo = np.floor(pos).astype(int)
-    hi = np.minimum(lo + 1, np.maximum(u - 1, 0))
-    a = np.take_along_axis(v, lo[..., None].repeat(3, axis=2), axis=1)[:, 0]
-    b = np.take_along_axis(v, hi[..., None].repeat(3, axis=2), axis=1)[:, 0]
-    with np.errstate(invalid="ignore"):
-        out = a + (b - a) * (pos - lo)
-    return np.where(u > 0, out, np.nan)
 
 
 __all__ = ["Explanation", "explain_windows", "windows", "explained"]

@@ -92,28 +92,36 @@ def _rest_noise(stats, valid, quantum, w: int, q, limit: int, noise) -> None:
     """Every device's rest noise (the compiled pass's ``_rest_noise``), into ``noise``."""
     rest_q, half_q, z, zh = q
     chi = max(1.0 - z / np.sqrt(2.0 * max(w - 1, 1)), 0.5)
-    k = valid.shape[1]
-    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)
-    for i in range(len(valid)):  # a small batch: a few devices
-        m = min(int(span[i]), limit)
-        at = (np.arange(m) * span[i]) // limit if span[i] > limit else np.arange(m)
-        at = at[valid[i, at]]
-        if not at.size:
-            continue
-        for a in range(3):
-            sigma = max(_quantile(stats[i, at, 1, a], rest_q) / chi, quantum[i, a] / np.sqrt(12.0))
-            mean_noise = max(sigma / np.sqrt(w), _quantile(np.abs(stats[i, at, 2, a]), half_q) / zh / 2.0)
-            noise[i, 0, a], noise[i, 1, a] = sigma, mean_noise
+    sigma = np.maximum(spread_quantile(stats[:, :, 1], valid, rest_q, limit) / chi,
+                       quantum / np.sqrt(12.0))
+    half = spread_quantile(np.abs(stats[:, :, 2]), valid, half_q, limit)
+    noise[:, 0], noise[:, 1] = sigma, np.maximum(sigma / np.sqrt(w), half / zh / 2.0)
 
 
-def _quantile(values: Float[np.ndarray, " u"], q: float) -> float:
-    """The compiled pass's ``_quantile`` of float32 ``values`` (none empty)."""
-    u = len(values)
-    h = q * (u - 1)
-    lo = int(np.floor(h))
-    hi = min(lo + 1, u - 1)
-    s = np.sort(values)
-    return float(s[lo]) + float(np.float32(s[hi] - s[lo])) * (h - lo)
+def spread_quantile(x: Float[np.ndarray, "r k 3"], valid: Bool[np.ndarray, "r k"], q: float,
+                    limit: int) -> Float[np.ndarray, "r 3"]:
+    """The ``q`` quantile (linear between order statistics, as the compiled pass's
+    ``_quantile`` forms it from float32 values) per device and axis of ``x`` over its valid
+    windows among at most ``limit`` spread evenly from its first window to its last valid
+    one; NaN where none."""
+    r, k = valid.shape
+    if not k:
+        return np.full((r, 3), np.nan)
+    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)[:, None]
+    j = np.arange(min(k, limit))[None]
+    at = np.minimum(np.where(span > limit, (j * span) // limit, j), k - 1)
+    use = np.take_along_axis(valid, at, axis=1) & (j < span)
+    v = np.sort(np.where(use[..., None], np.take_along_axis(x, at[..., None], axis=1), np.inf),
+                axis=1)
+    u = use.sum(axis=1)[:, None]
+    pos = q * np.maximum(u - 1, 0)
+    lo = np.floor(pos).astype(int)
+    hi = np.minimum(lo + 1, np.maximum(u - 1, 0))
+    a = np.take_along_axis(v, np.repeat(lo[..., None], 3, axis=2), axis=1)[:, 0]
+    b = np.take_along_axis(v, np.repeat(hi[..., None], 3, axis=2), axis=1)[:, 0]
+    with np.errstate(invalid="ignore"):
+        out = a + (b - a) * (pos - lo)
+    return np.where(u > 0, out, np.nan)
 
 
-__all__ = ["window_stats", "COMPILED_SAMPLES"]
+__all__ = ["window_stats", "spread_quantile", "COMPILED_SAMPLES"]
