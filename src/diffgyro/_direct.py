@@ -25,7 +25,7 @@ from ._jit import TRACE_COUNTS
 from ._linalg import normal_equations, rank_check, solve_normal, solve_normal_inner
 from ._noise_jax import device_noise_floor
 from ._options import FitOptions
-from .model import ErrorModel, Params
+from .model import ErrorModel, Params, columns_times
 from .signals import Signals
 from .status import collinear_terms, fit_status, min_samples
 
@@ -49,7 +49,7 @@ def varpro(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Float[Arr
 
     def residual(theta, _):
         beta, x = project_linear(model, sig, y, w, theta)
-        return (y - jnp.einsum("nip,ip->ni", x, beta)) * sw
+        return (y - columns_times(x, beta)) * sw
 
     solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
     sol = optx.least_squares(residual, solver, theta0, max_steps=max_steps, throw=False)
@@ -84,7 +84,7 @@ def _full_lm(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Float[A
 
     def residual(params, _):
         beta, theta = params
-        return (y - jnp.einsum("nip,ip->ni", model.design(sig, theta), beta)) * sw
+        return (y - columns_times(model.design(sig, theta), beta)) * sw
 
     beta0 = jnp.zeros((3, model.n_params), y.dtype)
     solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
@@ -101,7 +101,7 @@ def _grid_start(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Floa
 
     def cost(theta):
         beta, x = project_linear(model, sig, y, w, theta)
-        r = y - jnp.einsum("nip,ip->ni", x, beta)
+        r = y - columns_times(x, beta)
         return jnp.sum(w[:, None] * r * r)
 
     costs = jax.vmap(cost)(grid)
@@ -126,7 +126,7 @@ def _covariance(model: ErrorModel, sig: Signals, params: Params, w: Float[Array,
     for i in range(3):
         info = info.at[i * p:(i + 1) * p, i * p:(i + 1) * p].set(i_bb[i])
     if q:
-        gth = jax.jacfwd(lambda th: jnp.einsum("nip,ip->ni", model.design(sig, th), params.beta))(
+        gth = jax.jacfwd(lambda th: columns_times(model.design(sig, th), params.beta))(
             params.theta)  # (n, 3, q)
         i_bt = jnp.einsum("nip,niq->ipq", xw, gth)
         i_tt = jnp.einsum("niq,nir->qr", gth * (w[:, None] / sigma2[None, :])[:, :, None], gth)
@@ -182,7 +182,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
         beta = solve_normal(a, c)
     ratio, direction, rank_ok = rank_check(a, opts.rank_tol)
     params = Params(beta=beta, theta=theta)
-    resid = (y - jnp.einsum("nip,ip->ni", x, beta)) * w[:, None]
+    resid = (y - columns_times(x, beta)) * w[:, None]
     rms = jnp.sqrt(jnp.sum(resid**2) / jnp.maximum(3 * n_valid, 1.0))
     if q:  # a local optimum worse than the best grid point is not the answer
         converged = converged & (jnp.sum(resid**2) <= grid_cost * (1.0 + 1e-9) + 1e-300)
@@ -199,7 +199,7 @@ def solve_device(model: ErrorModel, sig: Signals, opts: FitOptions,
             xf = x
         af, cf = normal_equations(xf, y, wf)
         bf = solve_normal(af, cf)
-        rf = y - jnp.einsum("nip,ip->ni", xf, bf)
+        rf = y - columns_times(xf, bf)
         held = (fold == f).astype(y.dtype)
         return jnp.sum(held[:, None] * rf**2), jnp.sum(held)
 

@@ -65,10 +65,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
         x = np.asarray(x)
         out = np.broadcast_to(x[rows, :1], (len(rows), k) + x.shape[2:]).copy()
-        part = (x if whole else x[read])[:, :m]
-        if not every:
-            part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
-        s = _sums(part, w, k)
+        s = _sums(_rows(x[:, :m], read, whole, n_dev, valid, every), w, k)
         out[fill] = _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
         out[spare] = out[first]
         return out
@@ -78,7 +75,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
             return means(t)
         out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
-        start = (t if whole else t[read])[:, :m:w]
+        start = t[:, :m:w] if whole else t[:, :m:w][read]
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
         out[fill, :start.shape[1]] = start + 0.5 * (w - 1) * step
         out[fill] = _held(out[fill], counts > 0)
@@ -107,6 +104,15 @@ def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray
     at = windows(batch, rows, w // 2, 2 * k, todo, gyro, explanation.reads)
     residual = np.asarray(explanation.residual(rows, at), float).reshape(r, k, 2, 3)
     return explained(stats, noise, valid, residual, todo, w, quantiles, limit)
+
+
+def _rows(x, read, whole: bool, n_dev: int, valid, every: bool):
+    """The rows ``read`` of ``x`` (devices first), zero where not ``valid``: a copy of those
+    rows only (not of a broadcast or memory-mapped whole)."""
+    part = x if whole else x[read]
+    if not every:
+        part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
+    return part
 
 
 def _sums(x, h: int, k: int):

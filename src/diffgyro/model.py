@@ -38,6 +38,25 @@ class Params(eqx.Module):
     theta: Float[Array, " q"]
 
 
+def columns_times(x: Float[Array, "n 3 p"], beta: Float[Array, "3 p"]) -> Float[Array, "n 3"]:
+    """``Σ_p x[:, i, p] β[i, p]``: the columns' contribution, as one sum of products column
+    by column. XLA on a CPU runs a dot with so short a contraction (batched over devices)
+    and a reduction over a short last axis each several times slower than this one fused
+    loop (30× and 6× on 1000 devices × 626 samples).
+
+    **Arguments:**
+
+    - ``x``: the columns per sample and axis (a model's ``design``).
+    - ``beta``: the linear parameters per axis.
+    """
+    if not x.shape[-1]:
+        return jnp.zeros(x.shape[:-1], x.dtype)
+    out = x[..., 0] * beta[:, 0]
+    for j in range(1, x.shape[-1]):
+        out = out + x[..., j] * beta[:, j]
+    return out
+
+
 class ErrorModel(eqx.Module):
     """A gyro error model: the ordered sum of its deterministic effect terms, plus at most
     one noise component (``random_walk``) that a state-space smoother tracks while fitting."""
@@ -151,8 +170,7 @@ class ErrorModel(eqx.Module):
 
     def error(self, params: Params, sig: Signals) -> Float[Array, "n 3"]:
         """Sum of all terms' contributions at the signals' true rate."""
-        x = self.design(sig, params.theta)
-        return jnp.einsum("nip,ip->ni", x, params.beta)
+        return columns_times(self.design(sig, params.theta), params.beta)
 
     def predict(self, params: Params, sig: Signals) -> Float[Array, "n 3"]:
         """Measured rate the model expects for ``sig.rate`` and its environment."""

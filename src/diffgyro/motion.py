@@ -840,19 +840,27 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
                            for x in (stats, acc)), w, b)
 
-    out = judged(stats)
-    if explain is not None:  # judged again by what the model leaves, where anything moved
-        with np.errstate(invalid="ignore"):  # (a spin's rate no bias reaches: not a model's)
-            todo = ((np.asarray(out["moving_fraction"])[:d] > 0)
-                    & ~(np.asarray(out["rest_rate"])[:d] > MAX_BIAS))
+    recorded_stats = stats
+    todo = np.zeros(rows, bool)
+    if explain is not None:  # what the model leaves is judged, where a bias can hold the rate
+        todo[:d] = _bias_like(stats[0][:d, :, 0], stats[2][:d])
         if todo.any():
             pad = np.minimum(np.arange(rows), d - 1)  # the layout's rows: one shape
-            left, noise = explain(idx[pad], w, stats[0], stats[3], stats[2],
-                                  np.r_[todo, np.zeros(rows - d, bool)], q, QUANTILE_WINDOWS)
+            left, noise = explain(idx[pad], w, stats[0], stats[3], stats[2], todo, q,
+                                  QUANTILE_WINDOWS)
             stats = (left, stats[1], stats[2], noise)
-            out = judged(stats)
-    # a judgement the host reads: numpy, unpadded on the host (no program per shape)
-    num = {k: np.array(out[k])[:d] for k in _NUMBERS if k != "resolution"}
+    out = _numpy_out(judged(stats), d)
+    moved = todo[:d] & (_verdicts(_with_resolution(out, w, dts)) == IN_MOTION)
+    if moved.any():  # a residual that moves where the recording rests: the model's, not a turn
+        raw = _numpy_out(judged(recorded_stats), d)
+        keep = moved & (_verdicts(_with_resolution(raw, w, dts)) == AT_REST)
+        for key, value in out.items():
+            value[keep] = raw[key][keep]
+        todo[:d] &= ~keep
+    num = {k: out[k] for k in _NUMBERS if k != "resolution"}
+    if todo.any():  # the rate held at rest is the recording's (the residual's is about 0)
+        num["rest_rate"][todo[:d]] = _rest_rate(recorded_stats[0][:d, :, 0], out["window_valid"],
+                                                out["window_moving"])[todo[:d]]
     recorded = mask[idx]
     samples = min(k * w, n)
 
@@ -861,7 +869,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         full[:, :samples] = np.repeat(flags, w, axis=1)[:, :samples]
         return full
 
-    static = ~per_sample(np.asarray(out["window_near"])[:d]) & recorded
+    static = ~per_sample(out["window_near"]) & recorded
     window_s = w * np.asarray(dts, float)
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
@@ -871,10 +879,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     # windows stand as the compiled check left them)
     refined = (np.flatnonzero((num["moving_fraction"] > 0) & np.broadcast_to(final, (d,)))
                if not referenced else [])
-    if len(refined):  # on the host, once (not a program per device)
-        win = {k: np.asarray(out[k]) for k in ("window_rate", "window_moving", "window_valid",
-                                                "threshold_axes", "window_accel", "accel_threshold")
-               if k in out}
+    win = out
     for i in refined:
         acc = ({"accel": win["window_accel"][i], "accel_thr": win["accel_threshold"][i]}
                if "window_accel" in win else {})
@@ -893,7 +898,39 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
             if still.any():
                 num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
-    return num, static, np.full(d, w), np.asarray(out["loud"])[:d]
+    return num, static, np.full(d, w), out["loud"]
+
+
+def _numpy_out(out: dict, d: int) -> dict:
+    """A judgement's outputs on the host, its first ``d`` rows (numpy, writable: no
+    program per shape)."""
+    return {k: np.array(v)[:d] for k, v in out.items()}
+
+
+def _with_resolution(out: dict, w: int, dts) -> dict:
+    """A judgement's numbers with the resolution (rad) the host forms for :func:`_verdicts`."""
+    return out | {"resolution": out["threshold"] * w * np.asarray(dts, float)}
+
+
+def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
+               ) -> Bool[np.ndarray, " d"]:
+    """Devices whose mean rate over their valid windows a bias can hold (at most
+    :data:`MAX_BIAS`): a fitted model's residual judges them. A rate beyond it is a spin,
+    which a bias term would absorb: its recording is judged as it is."""
+    count = valid.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        held = np.where(valid[..., None], mean, 0.0).sum(axis=1) / np.maximum(count, 1)[:, None]
+        return (count > 0) & (np.sqrt(np.sum(held**2, axis=1)) <= MAX_BIAS)
+
+
+def _rest_rate(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
+               moving: Bool[np.ndarray, "d k"]) -> Float[np.ndarray, " d"]:
+    """The rate (norm) of the mean of each device's valid windows that did not move."""
+    still = valid & ~moving
+    with np.errstate(invalid="ignore"):
+        held = (np.where(still[..., None], mean, 0.0).sum(axis=1)
+                / np.maximum(still.sum(axis=1), 1)[:, None])
+    return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 
 
 def _rest_stretches(rate, moving, valid, thr, window_s: float, accel=None, accel_thr=None):

@@ -48,7 +48,7 @@ from ._direct import solve_device
 from .data import Batch
 from .effects import first_order_lag
 from .fit import FitOptions, fit
-from .model import ErrorModel, Params
+from .model import ErrorModel, Params, columns_times
 from .signals import Signals, TempNorm, make_signals
 
 __all__ = ["predict_plan", "optimise_plan", "plan_sensitivity", "heading_study",
@@ -404,7 +404,7 @@ def output_jacobian(model: ErrorModel, sig: Signals, params: Params) -> Float[Ar
     jb = (x[:, :, None, :] * eye[None, :, :, None]).reshape(n, 3, 3 * p)
     if not q:
         return jb
-    jt = jax.jacfwd(lambda th: jnp.einsum("nip,ip->ni", model.design(sig, th), params.beta))(
+    jt = jax.jacfwd(lambda th: columns_times(model.design(sig, th), params.beta))(
         params.theta)
     return jnp.concatenate([jb, jt], axis=-1)
 
