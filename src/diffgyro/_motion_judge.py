@@ -30,7 +30,7 @@ __all__ = ["judge_motion"]
 
 def judge_motion(result: AbstractFitResult, batch: Batch, motion: Motion | None = None,
                  recorded: Float[Array, " d"] | None = None,
-                 static_only: bool = False) -> AbstractFitResult:
+                 static_only: bool = False, ahead=None) -> AbstractFitResult:
     """``result`` (any fit: :class:`~diffgyro._fit_result.AbstractFitResult`) with the motion check
     of ``batch`` and, where the model has no rate reference, status ``in_motion`` for a
     device that moved and ``rest_unverified`` for one whose recording cannot show that it
@@ -38,9 +38,11 @@ def judge_motion(result: AbstractFitResult, batch: Batch, motion: Motion | None 
     made; else it is made here, judging what the fitted model leaves where its residual
     tells motion (:func:`_explanation`). ``recorded``: samples per device before
     ``static_only`` masked the moving ones (whose fit is ``rest_unverified`` where too
-    little rest is left). Every path that fits a batch ends here."""
+    little rest is left). ``ahead``: the check's first look read beside the fit
+    (:func:`diffgyro.motion.check_ahead`). Every path that fits a batch ends here."""
     if motion is None:
-        motion = motion_check(batch, explain=None if static_only else _explanation(result, batch))
+        motion = motion_check(batch, explain=None if static_only else _explanation(result, batch),
+                              ahead=ahead)
     if recorded is None:
         recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
     status = result.status

@@ -131,6 +131,8 @@ def _sums(x, h: int, k: int):
 def _held(x, has):
     """``x`` (rows, m, ...) with the entries without ``has`` holding the nearest earlier
     one (the first one, before any)."""
+    if has.all():
+        return x
     at = np.where(has, np.arange(has.shape[1]), -1)
     at = np.maximum.accumulate(at, axis=1)
     first = np.argmax(has, axis=1)[:, None]

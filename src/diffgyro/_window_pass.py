@@ -20,15 +20,54 @@ from ._jit import available_cores
 
 
 @njit(cache=True, nogil=True)
+def _select(v, n, k):  # pragma: no cover - compiled
+    """The ``k``-th smallest of ``v[:n]``, in place (quickselect, middle-of-three pivots):
+    ``v[k]`` holds it, ``v[:k]`` the values not above it."""
+    lo, hi = 0, n - 1
+    while hi > lo:
+        mid = (lo + hi) // 2
+        if v[mid] < v[lo]:
+            v[mid], v[lo] = v[lo], v[mid]
+        if v[hi] < v[lo]:
+            v[hi], v[lo] = v[lo], v[hi]
+        if v[hi] < v[mid]:
+            v[hi], v[mid] = v[mid], v[hi]
+        pivot = v[mid]
+        i, j = lo, hi
+        while i <= j:
+            while v[i] < pivot:
+                i += 1
+            while pivot < v[j]:
+                j -= 1
+            if i <= j:
+                v[i], v[j] = v[j], v[i]
+                i += 1
+                j -= 1
+        if k <= j:
+            hi = j
+        elif k >= i:
+            lo = i
+        else:
+            break
+    return v[k]
+
+
+@njit(cache=True, nogil=True)
 def _quantile(values, n, q):  # pragma: no cover - compiled
-    """The ``q`` quantile of ``values[:n]`` (linear between order statistics; NaN if none)."""
+    """The ``q`` quantile of ``values[:n]`` (linear between order statistics; NaN if none);
+    ``values`` is reordered."""
     if n == 0:
         return math.nan
     h = q * (n - 1)
     lo = int(math.floor(h))
     hi = min(lo + 1, n - 1)
-    part = np.partition(values[:n], (lo, hi)) if hi > lo else np.partition(values[:n], lo)
-    return part[lo] + (part[hi] - part[lo]) * (h - lo)
+    a = _select(values, n, lo)
+    b = a
+    if hi > lo:  # the next order statistic: the smallest of those above the lo-th
+        b = values[hi]
+        for i in range(hi + 1, n):
+            b = min(b, values[i])
+    return a + (b - a) * (h - lo)
 
 
 @njit(cache=True, nogil=True)

@@ -35,7 +35,7 @@ from .data import Batch, Recording, as_batch, pad_devices
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
-from .motion import Motion, compile_check, motion_check
+from .motion import Motion, check_ahead, motion_check
 from .signals import TempNorm
 from .status import explain, residual_verdict
 
@@ -207,15 +207,15 @@ def fit(
         motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    else:  # the check's program compiles while the fit's are traced; the check then
-        # judges what the fitted model leaves (judge_motion)
-        ahead = compile_check(imu)
+    else:  # the check's program compiles, and its first look reads the samples, while the
+        # fit runs; the check then judges what the fitted model leaves (judge_motion)
+        ahead = check_ahead(imu)
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-        ahead.join()
         motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
-    return judge_motion(result, batch, motion, recorded, static_only)
+    return judge_motion(result, batch, motion, recorded, static_only,
+                        ahead=None if static_only else ahead)
 
 
 @register_noise_fit(RandomWalk)

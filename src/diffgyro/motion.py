@@ -48,6 +48,7 @@ windows cannot show a turn of :data:`MAX_RESOLUTION`.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 import functools
 import math
 import threading
@@ -748,7 +749,8 @@ def _reads(batch) -> tuple[type, bool]:
     return read, batch.accel is not None and batch.rate is None
 
 
-def motion_check(batch, dt: float | None = None, explain: Explanation | None = None) -> Motion:
+def motion_check(batch, dt: float | None = None, explain: Explanation | None = None,
+                 ahead: Callable[[], dict] | None = None) -> Motion:
     """The :class:`Motion` of every device of a :class:`~diffgyro.data.Batch` (see the
     module docstring); ``dt`` the sampling interval (default: each device's own; devices
     sampled at rates far apart are checked in windows of their own).
@@ -767,8 +769,10 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
 
     - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
     - ``dt``: the sampling interval, s (default: each device's own).
-    - ``explain``: a fitted model without rate reference whose residual judges again a
-      device that left its baseline (default: none).
+    - ``explain``: a fitted model without rate reference whose residual judges the
+      recording (default: none).
+    - ``ahead``: the first look's window statistics, read beside a fit
+      (:func:`check_ahead` of this batch and ``dt``).
     """
     read, use_accel = _reads(batch)
     # the batch's arrays as stored: the pass reads each device's rows in place, and
@@ -786,11 +790,14 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
     if explain is not None:
         explain = functools.partial(explain_windows, batch, explain)
 
+    read = ahead() if ahead is not None else {}
+
     def check(groups, final):
         for (w, b), idx in groups.items():
             pn, static[idx], window[idx], loud[idx] = _check_group(
                 gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
-                final=final | (w <= own[idx]), explain=explain)
+                final=final | (w <= own[idx]), explain=explain,
+                read=None if final else read.get((w, b)))
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
 
@@ -819,22 +826,22 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
 
 
 def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel,  # noqa: C901
-                 final=True, explain=None):
+                 final=True, explain=None, read=None):
     """The numbers (float32), static mask, window length (samples) and whether a window
     was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
     of ``w`` samples and blocks of ``b`` windows. A device not ``final`` (per device: a
     first look in long windows, judged again where anything moved) is not sought for its
     stretches of rest. ``explain``: the window statistics of what a fitted model leaves
     (:func:`diffgyro._window_explain.explain_windows`, bound to the batch), by which a
-    device that moved is judged again."""
+    device that moved is judged again. ``read``: the group's window statistics where
+    already read (:func:`check_ahead`)."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel)
     rows, k = lay.shape
     referenced = rate is not None
     q = noise_quantiles()
-    stats = window_stats(gyro, mask, w, idx, k, q, QUANTILE_WINDOWS, rows, rate)
-    acc = window_stats(accel, mask, w, idx, k, q, QUANTILE_WINDOWS, rows) if use_accel else None
+    stats, acc = read or _read_group(gyro, accel, mask, rate, idx, lay)
 
     def judged(stats):
         return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
@@ -899,6 +906,18 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
                 num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
     return num, static, np.full(d, w), out["loud"]
+
+
+def _read_group(gyro, accel, mask, rate, idx, lay: _Layout) -> tuple:
+    """The window statistics (:func:`~diffgyro._window_stats.window_stats`) of devices
+    ``idx`` in ``lay``'s windows: the gyro's (less ``rate``), and the accelerometer's
+    where ``lay`` reads it (else None)."""
+    rows, k = lay.shape
+    q = noise_quantiles()
+    stats = window_stats(gyro, mask, lay.w, idx, k, q, QUANTILE_WINDOWS, rows, rate)
+    acc = (window_stats(accel, mask, lay.w, idx, k, q, QUANTILE_WINDOWS, rows) if lay.accel
+           else None)
+    return stats, acc
 
 
 def _numpy_out(out: dict, d: int) -> dict:
@@ -1051,30 +1070,54 @@ def _levels(rate, runs, thr, window_s: float) -> list[dict]:
     return clusters
 
 
-def compile_check(batch, dt: float | None = None) -> threading.Thread:
-    """Compile :func:`motion_check`'s program for ``batch`` (of its largest group of
-    devices) on a thread of its own, from the batch's shapes only: a caller that has other
-    programs to trace (a fit) overlaps the two, and joins the thread before its
-    :func:`motion_check`, which then finds the program compiled.
+def check_ahead(batch, dt: float | None = None) -> Callable[[], dict]:
+    """Start what :func:`motion_check` of ``batch`` needs before a fit's model: its program
+    compiled (for the largest group of devices) and the first look's window statistics
+    read, on threads of their own (XLA and the compiled pass hold no GIL), while the
+    caller fits. Returns a function that waits and gives the statistics read, for
+    ``motion_check(batch, dt, ahead=...)``.
 
     **Arguments:**
 
-    - ``batch``: the :class:`~diffgyro.data.Batch` (only its shapes are read).
+    - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
     - ``dt``: the sampling interval, s (default: each device's own).
     """
     mask = np.asarray(batch.mask)
     dts = _device_intervals(batch, dt)
     spans = _spans(mask)
-    (w, b), idx = max(_groups(dts, spans).items(), key=lambda kv: len(kv[1]))
+    groups = _groups(dts, spans)
     _, use_accel = _reads(batch)
-    lay = _layout(len(idx), int(max(spans[idx].max(initial=0), 1)), w, b, use_accel)
+    lays = {key: _layout(len(idx), int(max(spans[idx].max(initial=0), 1)), *key, use_accel)
+            for key, idx in groups.items()}
+    (w, b), idx = max(groups.items(), key=lambda kv: len(kv[1]))
+    lay = lays[(w, b)]
 
     def spec(*shape, dtype=np.float32):
         return jax.ShapeDtypeStruct(shape, dtype)
 
     rows, k = lay.shape
     stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
-    return lay.check.compile_ahead(stats, stats if lay.accel else None, w, b)
+    compiled = lay.check.compile_ahead(stats, stats if lay.accel else None, w, b)
+    out: dict = {}
+    rate = None if batch.rate is None else np.asarray(batch.rate)
+    accel = np.asarray(batch.accel) if use_accel else None
+
+    def read():
+        try:
+            for key, idx in groups.items():
+                out[key] = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
+        except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
+            pass
+
+    thread = threading.Thread(target=read, name="diffgyro-motion-ahead", daemon=True)
+    thread.start()
+
+    def wait() -> dict:
+        compiled.join()
+        thread.join()
+        return out
+
+    return wait
 
 
 #: Groups of at most this many samples (devices × samples) are checked at a bucketed
@@ -1083,6 +1126,6 @@ def compile_check(batch, dt: float | None = None) -> threading.Thread:
 PAD_SAMPLES = 1 << 21
 
 
-__all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "compile_check",
+__all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "check_ahead",
            "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES", "ACCEL_FLOOR",
            "EARTH_RATE", "K_SIGMA", "MAX_RESOLUTION", "MIN_PEAK_RATIO", "MIN_TILT", "MIN_WINDOWS"]
