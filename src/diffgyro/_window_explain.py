@@ -89,19 +89,32 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
                  aux={a: means(v) for a, v in batch.aux.items() if f"aux:{a}" in reads}, **kw)
 
 
-def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray, " r"], w: int,
-                    stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2 3"],
-                    valid: Bool[np.ndarray, "r k"], todo: Bool[np.ndarray, " r"],
-                    quantiles: tuple[float, ...], limit: int
-                    ) -> tuple[Float[np.ndarray, "r k 3 3"], Float[np.ndarray, "r 2 3"]]:
-    """The window ``stats`` and rest ``noise`` of devices ``rows`` of ``batch`` (in windows
-    of ``w`` samples) with those of the devices ``todo`` taken from what ``explanation``
-    leaves at the means of each half window (:func:`windows`, :func:`explained`); the
-    gyro's half-window means are the window mean ± half the half-window difference."""
+def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
+                 stats: Float[np.ndarray, "r k 3 3"], todo: Bool[np.ndarray, " r"],
+                 reads: frozenset[str]) -> Batch:
+    """The devices ``rows`` of ``batch`` (in windows of ``w`` samples, their ``stats``) at
+    the means of each half window (:func:`windows`), of the devices ``todo``: what a model
+    reading ``reads`` is evaluated at. The gyro's half-window means are the window mean ±
+    half the half-window difference. It needs no fitted model: a fit reads it beside its
+    solve (:func:`diffgyro.motion.check_ahead`)."""
     r, k = stats.shape[:2]
     mean, half = stats[:, :, 0].astype(float), stats[:, :, 2].astype(float)
     gyro = np.stack([mean + half / 2, mean - half / 2], axis=2).reshape(r, 2 * k, 3)
-    at = windows(batch, rows, w // 2, 2 * k, todo, gyro, explanation.reads)
+    return windows(batch, rows, w // 2, 2 * k, todo, gyro, reads)
+
+
+def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray, " r"], w: int,
+                    stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2 3"],
+                    valid: Bool[np.ndarray, "r k"], todo: Bool[np.ndarray, " r"],
+                    quantiles: tuple[float, ...], limit: int, at: Batch | None = None
+                    ) -> tuple[Float[np.ndarray, "r k 3 3"], Float[np.ndarray, "r 2 3"]]:
+    """The window ``stats`` and rest ``noise`` of devices ``rows`` of ``batch`` (in windows
+    of ``w`` samples) with those of the devices ``todo`` taken from what ``explanation``
+    leaves at the means of each half window (``at``, :func:`half_windows` where not
+    given; :func:`explained`)."""
+    r, k = stats.shape[:2]
+    if at is None:
+        at = half_windows(batch, rows, w, stats, todo, explanation.reads)
     residual = np.asarray(explanation.residual(rows, at), float).reshape(r, k, 2, 3)
     return explained(stats, noise, valid, residual, todo, w, quantiles, limit)
 
@@ -160,4 +173,4 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     return stats, noise
 
 
-__all__ = ["Explanation", "explain_windows", "windows", "explained"]
+__all__ = ["Explanation", "explain_windows", "half_windows", "windows", "explained"]

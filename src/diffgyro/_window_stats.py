@@ -12,10 +12,13 @@ statistics stored in float32).
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-#: Batches of at least this many samples (devices × samples) are read by the compiled pass.
+#: Batches of at least this many samples (devices × samples) are read by the compiled pass
+#: (and any batch, once a process has loaded it).
 COMPILED_SAMPLES = 1 << 19
 
 
@@ -46,7 +49,7 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     x = np.asarray(x)
     mask = np.asarray(mask, bool)
     q = np.asarray(quantiles, np.float64)
-    if len(rows) * x.shape[1] >= COMPILED_SAMPLES:
+    if len(rows) * x.shape[1] >= COMPILED_SAMPLES or "diffgyro._window_pass" in sys.modules:
         from ._window_pass import compiled_pass  # numba: imported for a large batch only
 
         rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)

@@ -209,7 +209,8 @@ def fit(
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     else:  # the check's program compiles, and its first look reads the samples, while the
         # fit runs; the check then judges what the fitted model leaves (judge_motion)
-        ahead = check_ahead(imu)
+        ahead = check_ahead(imu, reads=model.requires()
+                            if model.noise is None and imu.rate is None else None)
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
         motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own

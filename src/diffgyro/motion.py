@@ -63,7 +63,7 @@ from jaxtyping import Bool, Float, Int
 from ._jit import filter_jit
 from ._jsonio import number
 from ._vocabulary import MAX_INTERVALS, VERDICT_NAMES
-from ._window_explain import Explanation, explain_windows
+from ._window_explain import Explanation, explain_windows, half_windows
 from ._window_stats import window_stats
 from ._xla_options import FAST_COMPILE
 from .data import device_bucket
@@ -841,21 +841,21 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     rows, k = lay.shape
     referenced = rate is not None
     q = noise_quantiles()
-    stats, acc = read or _read_group(gyro, accel, mask, rate, idx, lay)
+    stats, acc, todo, at = read or (*_read_group(gyro, accel, mask, rate, idx, lay), None, None)
 
     def judged(stats):
         return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
                            for x in (stats, acc)), w, b)
 
     recorded_stats = stats
-    todo = np.zeros(rows, bool)
-    if explain is not None:  # what the model leaves is judged, where a bias can hold the rate
-        todo[:d] = _bias_like(stats[0][:d, :, 0], stats[2][:d])
-        if todo.any():
-            pad = np.minimum(np.arange(rows), d - 1)  # the layout's rows: one shape
-            left, noise = explain(idx[pad], w, stats[0], stats[3], stats[2], todo, q,
-                                  QUANTILE_WINDOWS)
-            stats = (left, stats[1], stats[2], noise)
+    if explain is None:
+        todo = np.zeros(rows, bool)
+    elif todo is None:  # what the model leaves is judged, where a bias can hold the rate
+        todo = _explained_rows(stats, d)
+    if todo.any():
+        left, noise = explain(_pad(idx, rows), w, stats[0], stats[3], stats[2], todo, q,
+                              QUANTILE_WINDOWS, at=at)
+        stats = (left, stats[1], stats[2], noise)
     out = _numpy_out(judged(stats), d)
     moved = todo[:d] & (_verdicts(_with_resolution(out, w, dts)) == IN_MOTION)
     if moved.any():  # a residual that moves where the recording rests: the model's, not a turn
@@ -918,6 +918,19 @@ def _read_group(gyro, accel, mask, rate, idx, lay: _Layout) -> tuple:
     acc = (window_stats(accel, mask, lay.w, idx, k, q, QUANTILE_WINDOWS, rows) if lay.accel
            else None)
     return stats, acc
+
+
+def _pad(idx, rows: int):
+    """Devices ``idx`` padded to a layout's ``rows`` (the last repeated): one shape."""
+    return idx[np.minimum(np.arange(rows), len(idx) - 1)]
+
+
+def _explained_rows(stats, d: int) -> Bool[np.ndarray, " r"]:
+    """Rows of a layout (``stats``' leading axis, ``d`` devices then padding) judged by a
+    fitted model's residual: those whose mean rate a bias can hold (:func:`_bias_like`)."""
+    todo = np.zeros(stats[0].shape[0], bool)
+    todo[:d] = _bias_like(stats[0][:d, :, 0], stats[2][:d])
+    return todo
 
 
 def _numpy_out(out: dict, d: int) -> dict:
@@ -1070,17 +1083,21 @@ def _levels(rate, runs, thr, window_s: float) -> list[dict]:
     return clusters
 
 
-def check_ahead(batch, dt: float | None = None) -> Callable[[], dict]:
+def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = None
+                ) -> Callable[[], dict]:
     """Start what :func:`motion_check` of ``batch`` needs before a fit's model: its program
-    compiled (for the largest group of devices) and the first look's window statistics
-    read, on threads of their own (XLA and the compiled pass hold no GIL), while the
-    caller fits. Returns a function that waits and gives the statistics read, for
-    ``motion_check(batch, dt, ahead=...)``.
+    compiled (for the largest group of devices), the first look's window statistics read
+    and, for a model that reads ``reads``, the half windows it is evaluated at
+    (:func:`~diffgyro._window_explain.half_windows`), on threads of their own (XLA, the
+    compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
+    waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``.
 
     **Arguments:**
 
     - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
     - ``dt``: the sampling interval, s (default: each device's own).
+    - ``reads``: the signals the fitted model will read (its ``requires()``), whose
+      residual judges the recording; None where none will.
     """
     mask = np.asarray(batch.mask)
     dts = _device_intervals(batch, dt)
@@ -1105,7 +1122,14 @@ def check_ahead(batch, dt: float | None = None) -> Callable[[], dict]:
     def read():
         try:
             for key, idx in groups.items():
-                out[key] = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
+                stats, acc = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
+                todo = at = None
+                if reads is not None:
+                    todo = _explained_rows(stats, len(idx))
+                    rows = _pad(idx, lays[key].shape[0])
+                    at = half_windows(batch, rows, key[0], stats[0], todo, reads) \
+                        if todo.any() else None
+                out[key] = (stats, acc, todo, at)
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
 
