@@ -71,3 +71,21 @@ def test_a_chambers_ramps_are_explained_in_the_first_look_and_a_turn_is_not(cham
     assert rest["motion"]["window_s"] > 16.0  # judged in the first look's long windows
     assert turned["status"] == "in_motion"
     assert turned["motion"]["turn_peak"] == pytest.approx(np.radians(5.0), rel=0.15)
+    # the rest rate reported is the recording's (the residual's is about zero)
+    gyro = np.asarray(batch.gyro)[0][np.asarray(batch.mask)[0]]
+    assert rest["motion"]["rest_rate"] == pytest.approx(np.linalg.norm(gyro.mean(axis=0)), rel=0.02)
+
+
+def test_a_fit_that_does_not_stand_explains_nothing():
+    """A short recording whose temperature barely moves cannot support a quadratic in it
+    (``insufficient_range``), yet its coefficients absorb a spin that starts a third of
+    the way in: the recording's own judgement stands, and the spin is motion."""
+    rng = np.random.default_rng(4)
+    t = np.arange(0.0, 20.0, 0.1)
+    gyro = 1e-3 * rng.normal(size=(t.size, 3))
+    gyro[:, 2] += 0.5 * np.clip(t - 20.0 / 3.0, 0.0, 1.0)
+    temp = 25.0 + 0.001 * t + 0.01 * rng.normal(size=t.size)
+    res = fit("bias_poly(2)", Recording(t=t, gyro=gyro, temp=temp, device="spun"))
+    rec = res.records()[0]
+    assert rec["status"] == "insufficient_range"
+    assert rec["motion"]["verdict"] == "in_motion", rec["motion"]

@@ -77,7 +77,8 @@ def _explanation(result: AbstractFitResult, batch: Batch) -> Explanation | None:
             sub = jax.tree.map(lambda x: np.asarray(x)[rows] if _per_device(x, d) else x, result)
         return np.asarray(sub.residuals(half))
 
-    return Explanation(residual=residual, reads=frozenset(result.model.requires()))
+    return Explanation(residual=residual, reads=frozenset(result.model.requires()),
+                       trusted=np.asarray(result.status) == OK)
 
 
 def _per_device(x, d: int) -> bool:

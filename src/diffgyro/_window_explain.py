@@ -33,10 +33,13 @@ from .data import Batch
 class Explanation(NamedTuple):
     """A fitted model, as the motion check reads it: ``residual`` maps (rows of the batch,
     a batch of those devices at their means over windows) to the model's residual there
-    (rows, windows, 3); ``reads`` names the data signals it reads (``requires()``)."""
+    (rows, windows, 3); ``reads`` names the data signals it reads (``requires()``);
+    ``trusted``, per device of the batch, whether its fit stands (status ``ok``): a fit
+    that failed, or whose data could not support a term, explains nothing."""
 
     residual: Callable[[Int[np.ndarray, " r"], Batch], Float[np.ndarray, "r m 3"]]
     reads: frozenset[str]
+    trusted: Bool[np.ndarray, " d"]
 
 
 def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,

@@ -774,7 +774,7 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
     - ``ahead``: the first look's window statistics, read beside a fit
       (:func:`check_ahead` of this batch and ``dt``).
     """
-    read, use_accel = _reads(batch)
+    dtype, use_accel = _reads(batch)
     # the batch's arrays as stored: the pass reads each device's rows in place, and
     # subtracts the rate reference as it reads (what it does not explain)
     gyro = np.asarray(batch.gyro)
@@ -784,19 +784,19 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
     d, n = mask.shape
     dts = _device_intervals(batch, dt)
     spans = _spans(mask)
-    num = {k: np.zeros(d, read) for k in _NUMBERS}
+    num = {k: np.zeros(d, dtype) for k in _NUMBERS}
     static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
     loud = np.zeros(d, bool)
+    trusted = np.zeros(d, bool) if explain is None else np.asarray(explain.trusted, bool)
     if explain is not None:
         explain = functools.partial(explain_windows, batch, explain)
-
     read = ahead() if ahead is not None else {}
 
     def check(groups, final):
         for (w, b), idx in groups.items():
             pn, static[idx], window[idx], loud[idx] = _check_group(
                 gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
-                final=final | (w <= own[idx]), explain=explain,
+                final=final | (w <= own[idx]), explain=explain, trusted=trusted[idx],
                 read=None if final else read.get((w, b)))
             for k in _NUMBERS:
                 num[k][idx] = pn[k]
@@ -826,15 +826,15 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
 
 
 def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_accel,  # noqa: C901
-                 final=True, explain=None, read=None):
+                 final=True, explain=None, trusted=None, read=None):
     """The numbers (float32), static mask, window length (samples) and whether a window
     was louder than :data:`LOUDER_CAP` allows, of devices ``idx``, all checked in windows
     of ``w`` samples and blocks of ``b`` windows. A device not ``final`` (per device: a
     first look in long windows, judged again where anything moved) is not sought for its
     stretches of rest. ``explain``: the window statistics of what a fitted model leaves
-    (:func:`diffgyro._window_explain.explain_windows`, bound to the batch), by which a
-    device that moved is judged again. ``read``: the group's window statistics where
-    already read (:func:`check_ahead`)."""
+    (:func:`diffgyro._window_explain.explain_windows`, bound to the batch), by which the
+    devices ``trusted`` (whose fit stands) are judged. ``read``: the group's window
+    statistics where already read (:func:`check_ahead`)."""
     n = mask.shape[1]
     d = len(idx)
     lay = _layout(d, int(max(spans.max(initial=0), 1)), w, b, use_accel)
@@ -852,6 +852,8 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         todo = np.zeros(rows, bool)
     elif todo is None:  # what the model leaves is judged, where a bias can hold the rate
         todo = _explained_rows(stats, d)
+    if explain is not None:  # and where the fit stands
+        todo = todo & np.r_[trusted, np.zeros(rows - d, bool)]
     if todo.any():
         left, noise = explain(_pad(idx, rows), w, stats[0], stats[3], stats[2], todo, q,
                               QUANTILE_WINDOWS, at=at)
