@@ -12,14 +12,14 @@ statistics stored in float32).
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
 #: Batches of at least this many samples (devices × samples) are read by the compiled pass
 #: (and any batch, once a process has loaded it).
 COMPILED_SAMPLES = 1 << 19
+#: Whether this process has loaded the compiled pass (then every batch takes it).
+_loaded = False
 
 
 def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w: int,
@@ -40,6 +40,7 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     between neighbouring valid samples); NaN where it has no valid window. The outputs hold
     ``out_rows`` devices (default ``len(rows)``) and ``windows`` windows: those past the
     data are empty (invalid)."""
+    global _loaded
     rows = np.ascontiguousarray(rows, np.int64)
     total = len(rows) if out_rows is None else out_rows
     stats = np.zeros((total, windows, 3, 3), np.float32)
@@ -49,9 +50,10 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     x = np.asarray(x)
     mask = np.asarray(mask, bool)
     q = np.asarray(quantiles, np.float64)
-    if len(rows) * x.shape[1] >= COMPILED_SAMPLES or "diffgyro._window_pass" in sys.modules:
+    if len(rows) * x.shape[1] >= COMPILED_SAMPLES or _loaded:
         from ._window_pass import compiled_pass  # numba: imported for a large batch only
 
+        _loaded = True
         rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
         compiled_pass(x, mask, rate, rows, int(w), stats, count, valid, noise, q, int(limit))
     elif len(rows):

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 from ._fit_sums import pack, unpack_results
 from ._jit import filter_jit
+from ._motion_windows import _check as check_windows
 from ._noise_jax import device_noise_floor, masked_median
 from ._reference import (
     attitude_from_accel_mag,
@@ -59,7 +60,6 @@ from .effects._base import _REGISTRY as REGISTRY
 from .effects._common import per_axis
 from .io._headers import header_units, merge_units, split_header
 from .limits._units import unit_scale
-from .motion import _check as check_windows
 from .pipeline._chunkfit import ChunkFitter, local_mesh
 from .pipeline._dataset import ReadConfig, expand_inputs, index_dataset
 from .pipeline._run import calibration_entries
