@@ -166,9 +166,11 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     mean's noise from those differences. A device whose residual is not finite keeps the
     recording's."""
     ok = rows & np.all(np.isfinite(residual) | ~valid[:, :, None, None], axis=(1, 2, 3))
+    ok = slice(None) if ok.all() else ok  # (every row: views, not copies)
     stats, noise = stats.copy(), noise.copy()
-    stats[ok, :, 0] = 0.5 * (residual[ok, :, 0] + residual[ok, :, 1])
-    stats[ok, :, 2] = residual[ok, :, 0] - residual[ok, :, 1]
+    first, second = residual[ok, :, 0], residual[ok, :, 1]
+    stats[ok, :, 0] = 0.5 * (first + second)
+    stats[ok, :, 2] = first - second
     _, half_q, _, zh = quantiles
     sigma = noise[ok, 0].astype(float)
     half = spread_quantile(np.abs(stats[ok, :, 2]), valid[ok], half_q, limit)

@@ -601,8 +601,14 @@ def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
     which a bias term would absorb: its recording is judged as it is."""
     count = valid.sum(axis=1)
     with np.errstate(invalid="ignore"):
-        held = np.where(valid[..., None], mean, 0.0).sum(axis=1) / np.maximum(count, 1)[:, None]
+        held = _sum_over(valid, mean) / np.maximum(count, 1)[:, None]
         return (count > 0) & (np.sqrt(np.sum(held**2, axis=1)) <= MAX_BIAS)
+
+
+def _sum_over(use: Bool[np.ndarray, "d k"], x: Float[np.ndarray, "d k 3"]
+              ) -> Float[np.ndarray, "d 3"]:
+    """Each device's sum of ``x`` over its windows ``use`` (NaN elsewhere left out)."""
+    return np.einsum("dk,dkc->dc", use.astype(x.dtype), np.where(use[..., None], x, 0.0))
 
 
 def _rest_rate(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
@@ -610,8 +616,7 @@ def _rest_rate(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
     """The rate (norm) of the mean of each device's valid windows that did not move."""
     still = valid & ~moving
     with np.errstate(invalid="ignore"):
-        held = (np.where(still[..., None], mean, 0.0).sum(axis=1)
-                / np.maximum(still.sum(axis=1), 1)[:, None])
+        held = _sum_over(still, mean) / np.maximum(still.sum(axis=1), 1)[:, None]
     return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 
 
