@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from diffgyro import Batch, Recording
-from diffgyro._motion_judge import _explanation
+from diffgyro._motion_judge import _explanation, judge_motion
 from diffgyro._window_explain import explain_windows
 from diffgyro._window_stats import window_stats
 from diffgyro.fit import fit
@@ -89,3 +89,14 @@ def test_a_fit_that_does_not_stand_explains_nothing():
     rec = res.records()[0]
     assert rec["status"] == "insufficient_range"
     assert rec["motion"]["verdict"] == "in_motion", rec["motion"]
+
+
+def test_the_first_look_read_beside_the_fit_is_the_one_read_after_it(chamber):
+    """What a fit reads of the recording while it solves (``check_ahead``: the first look's
+    window statistics and the half windows its model is evaluated at) gives the judgement
+    the check forms by itself afterwards."""
+    batch, res = chamber
+    again = judge_motion(fit("bias_poly(3)", batch, check_motion=False), batch).motion
+    for name in ("verdict", "moving_fraction", "rate_peak", "rest_rate", "threshold", "window",
+                 "static"):
+        np.testing.assert_array_equal(getattr(res.motion, name), getattr(again, name), err_msg=name)
