@@ -213,6 +213,10 @@ DEFERRED = {
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
+    # the solvers' libraries load when a solve is traced, not in a process whose programs
+    # are stored (a warm command: 0.1-0.25 s of its start)
+    "diffgyro._direct": {"optimistix"},
+    "diffgyro._linalg": {"lineax"},
     # the calibration file read, checked, exported and applied without JAX: the full model
     # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
     # extra columns' checks (an aux term) load on use
