@@ -217,6 +217,7 @@ DEFERRED = {
     # are stored (a warm command: 0.1-0.25 s of its start)
     "diffgyro._direct": {"optimistix"},
     "diffgyro._linalg": {"lineax"},
+    "diffgyro.diagnose._synthesis": {"scipy.signal"},  # a lagged product only: 0.45 s of import
     # the calibration file read, checked, exported and applied without JAX: the full model
     # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
     # extra columns' checks (an aux term) load on use

@@ -61,7 +61,9 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         (:mod:`diffgyro._program_cache`) where there is one, else the traced one."""
         treedef, static, dynamic = _split(args, kwargs)
         cpu = jax.default_backend() == "cpu"
-        if persistent or (persistent is None and _jax_setup.store_programs and cpu):
+        inside = any(isinstance(d, jax.core.Tracer) for d in dynamic)  # part of another trace
+        if not inside and (persistent or (persistent is None and _jax_setup.store_programs
+                                          and cpu)):
             kept = program(fun, treedef, static, dynamic,
                            functools.partial(_unsplit, fun, treedef, static),
                            options=compiler_options if cpu else None)
