@@ -218,6 +218,11 @@ DEFERRED = {
     "diffgyro._direct": {"optimistix"},
     "diffgyro._linalg": {"lineax"},
     "diffgyro.diagnose._synthesis": {"scipy.signal"},  # a lagged product only: 0.45 s of import
+    # pandas and pyarrow (0.2-0.35 s of import) for what a plain CSV (io._plain_csv) is not
+    "diffgyro.io._source": {"pandas", "pyarrow", "pyarrow.parquet"},
+    "diffgyro.io._convert": {"pandas"},
+    "diffgyro.logs._table": {"pandas"},
+    "diffgyro.io._save": {"pyarrow", "pyarrow.csv", "pyarrow.parquet"},
     # the calibration file read, checked, exported and applied without JAX: the full model
     # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
     # extra columns' checks (an aux term) load on use
@@ -487,6 +492,7 @@ PRIVATE_UNDER_TEST = {
     "test_jit.py": {"diffgyro._jit"},
     "test_compile.py": {"diffgyro._jit"},
     "test_program_cache.py": {"diffgyro._program_cache", "diffgyro._jit"},
+    "test_plain_csv.py": {"diffgyro.io._plain_csv"},
     "test_jsonio.py": {"diffgyro._jsonio"},
     "test_demo.py": {"diffgyro._demo"},
     "test_cli_progress.py": {"diffgyro.cli._progress"},

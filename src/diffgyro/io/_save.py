@@ -7,9 +7,6 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.csv as pcsv
-import pyarrow.parquet as pq
 
 from .._jsonio import AtomicFile
 from ..data import OPTIONAL_SIGNALS, SIGNALS, Batch, Recording
@@ -83,6 +80,8 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
             _write_csv(cols, tmp, "\t" if ".tsv" in [s.lower() for s in path.suffixes] else ",",
                        compression)
         elif fmt == "parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
 
             table = pa.table({k: (pa.array(v.tolist(), pa.string()) if k == "device" else v)
                               for k, v in cols.items()})
@@ -96,6 +95,8 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
 
 
 def _write_csv(cols: dict[str, np.ndarray], tmp: str, sep: str, compression: str | None) -> None:
+    import pyarrow as pa  # loaded to write, not by every reader of diffgyro.io
+    import pyarrow.csv as pcsv
 
     table = pa.table({k: (pa.array(v.tolist(), pa.string()) if k == "device" else v)
                       for k, v in cols.items()})
