@@ -222,7 +222,7 @@ DEFERRED = {
     "diffgyro.io._source": {"pandas", "pyarrow", "pyarrow.parquet"},
     "diffgyro.io._convert": {"pandas"},
     "diffgyro.logs._table": {"pandas"},
-    "diffgyro.io._save": {"pyarrow", "pyarrow.csv", "pyarrow.parquet"},
+    "diffgyro.io._save": {"pyarrow", "pyarrow.csv", "pyarrow.parquet"},  # a large file
     # the calibration file read, checked, exported and applied without JAX: the full model
     # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
     # extra columns' checks (an aux term) load on use
@@ -493,6 +493,7 @@ PRIVATE_UNDER_TEST = {
     "test_compile.py": {"diffgyro._jit"},
     "test_program_cache.py": {"diffgyro._program_cache", "diffgyro._jit"},
     "test_plain_csv.py": {"diffgyro.io._plain_csv"},
+    "test_float_text.py": {"diffgyro.io._float_text", "diffgyro.io._save"},
     "test_jsonio.py": {"diffgyro._jsonio"},
     "test_demo.py": {"diffgyro._demo"},
     "test_cli_progress.py": {"diffgyro.cli._progress"},
