@@ -48,8 +48,8 @@ TRUSTED = frozenset({"diffgyro", "builtins", "numpy", "jax", "jaxlib", "equinox"
                      "dataclasses", "enum", "copyreg", "types"})
 
 _loaded: dict[str, Callable | None] = {}  # key -> program (None: traced as usual)
-#: (function, folder, argument tree, static arguments, shapes, options) -> program: a call
-#: seen before in this process is not keyed (pickled and hashed) again.
+#: (function, folder, argument tree, static arguments, options, JAX's settings, shapes) ->
+#: program: a call seen before in this process is not keyed (pickled and hashed) again.
 _seen: dict[tuple, Callable | None] = {}
 
 
@@ -132,7 +132,8 @@ def program(fun: Callable, treedef, static, dynamic, body: Callable,
         return None
     opts = tuple(sorted((options or {}).items()))
     try:
-        seen = (fun, folder, treedef, static, opts,
+        seen = (fun, folder, treedef, static, opts, bool(jax.config.jax_enable_x64),
+                str(jax.config.jax_default_matmul_precision), jax.default_backend(),
                 tuple(None if d is None else (tuple(d.shape), str(d.dtype),
                                               bool(getattr(d, "weak_type", False)))
                       for d in dynamic))
