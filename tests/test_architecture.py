@@ -213,6 +213,16 @@ DEFERRED = {
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
+    # the solvers' libraries load when a solve is traced, not in a process whose programs
+    # are stored (a warm command: 0.1-0.25 s of its start)
+    "diffgyro._direct": {"optimistix"},
+    "diffgyro._linalg": {"lineax"},
+    "diffgyro.diagnose._synthesis": {"scipy.signal"},  # a lagged product only: 0.45 s of import
+    # pandas and pyarrow (0.2-0.35 s of import) for what a plain CSV (io._plain_csv) is not
+    "diffgyro.io._source": {"pandas", "pyarrow", "pyarrow.parquet"},
+    "diffgyro.io._convert": {"pandas"},
+    "diffgyro.logs._table": {"pandas"},
+    "diffgyro.io._save": {"pyarrow", "pyarrow.csv", "pyarrow.parquet"},  # a large file
     # the calibration file read, checked, exported and applied without JAX: the full model
     # (a spec beyond the built-in terms' table), its compensation (a user's term) and the
     # extra columns' checks (an aux term) load on use
@@ -482,6 +492,8 @@ PRIVATE_UNDER_TEST = {
     "test_jit.py": {"diffgyro._jit"},
     "test_compile.py": {"diffgyro._jit"},
     "test_program_cache.py": {"diffgyro._program_cache", "diffgyro._jit"},
+    "test_plain_csv.py": {"diffgyro.io._plain_csv"},
+    "test_float_text.py": {"diffgyro.io._float_text", "diffgyro.io._save"},
     "test_jsonio.py": {"diffgyro._jsonio"},
     "test_demo.py": {"diffgyro._demo"},
     "test_cli_progress.py": {"diffgyro.cli._progress"},

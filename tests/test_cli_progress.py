@@ -71,6 +71,17 @@ def test_diagnose_shows_its_stages_on_a_terminal_and_json_stays_pure(recording):
     assert re.search(r"scoring \d+ candidate\(s\) on devices 1-2 of 2", err), err
 
 
+def test_allan_and_simulate_show_their_stages_on_a_terminal(recording):
+    code, out, err = _on_terminal(["allan", "x.csv", "--json"], recording)
+    assert code == 0, err
+    assert len(json.loads(out)["devices"]) == 2  # stdout: the object alone
+    assert "Allan deviation and its read-outs" in err, err
+    code, _, err = _on_terminal(["simulate", "--plan", "static", "--devices", "1", "--duration",
+                                 "60", "--out", "s.csv"], recording)
+    assert code == 0, err
+    assert "simulating 1 device(s), plan static" in err and "wrote s.csv" in err, err
+
+
 def test_quiet_draws_nothing(recording):
     code, out, err = _on_terminal(["--quiet", "diagnose", "x.csv", "--model", "bias_poly(1)",
                                    "--json"], recording)

@@ -199,3 +199,17 @@ def test_export_and_effects_load_no_pandas(tmp_path):
     assert "TC_G0_ID\t7\t6" in written and "TC_G0_TREF\t25\t9" in written
     out = run(["effects"])
     assert "bias_poly" in out and json.loads(out.splitlines()[-1]) == [0, []]
+
+
+def test_the_program_ends_at_once_with_its_output_and_exit_code(tmp_path):
+    """``python -m diffgyro`` skips the interpreter's teardown (``cli._exit_now``): what it
+    printed still arrives whole, on both streams, with the command's exit code."""
+    run = subprocess.run([sys.executable, "-m", "diffgyro", "fit", "missing.csv", "--model",
+                          "bias_poly(1)", "--json"], capture_output=True, text=True,
+                         cwd=tmp_path, timeout=60, check=False)
+    assert run.returncode == 2
+    assert json.loads(run.stdout)["file"] == "missing.csv"
+    assert run.stderr.strip() == "diffgyro: error: file missing.csv: file not found"
+    run = subprocess.run([sys.executable, "-m", "diffgyro", "effects"], capture_output=True,
+                         text=True, cwd=tmp_path, timeout=60, check=False)
+    assert run.returncode == 0 and "bias_poly" in run.stdout and run.stdout.endswith("\n")

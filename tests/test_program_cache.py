@@ -4,6 +4,7 @@ calls that can not be keyed or exported traced as usual."""
 from __future__ import annotations
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -33,10 +34,17 @@ def _module_result(x):
     return Outside(k=1), x  # not a plain result: not exportable
 
 
-for f in (_scaled, _outside, _module_result):
+def _cubed_sum(x):
+    traces.append("cubed")
+    return {"sum": jnp.sum(x**3)}
+
+
+for f in (_scaled, _outside, _module_result, _cubed_sum):
     f.__module__ = "diffgyro.probe"  # as if diffgyro's own (only those are kept)
 scaled, outside, module_result = (filter_jit(persistent=True)(f)
                                   for f in (_scaled, _outside, _module_result))
+#: Not marked persistent, with XLA options: kept only while the command line runs.
+cubed_sum = filter_jit(compiler_options={"xla_cpu_enable_fast_math": False})(_cubed_sum)
 
 
 @pytest.fixture
@@ -90,3 +98,20 @@ def test_nothing_is_kept_without_readable_sources(store, monkeypatch):
     monkeypatch.setattr(program_cache, "_source_digest", lambda: None)
     out = scaled(np.arange(3.0), np.float64(1.0), power=1, name="c")
     assert float(out["sum"]) == 4.0 and not list(store.glob("*"))
+
+
+def test_every_program_is_kept_while_the_command_line_runs(store, monkeypatch):
+    x = np.arange(4.0)
+    cubed_sum(x)  # a library call: traced, nothing kept
+    assert traces == ["cubed"] and not list(store.glob("*"))
+    monkeypatch.setattr(program_cache._jax_setup, "store_programs", True)  # the command line
+    program_cache.forget()
+    cubed_sum(x + 1.0)  # exported (its trace) and stored, options and all
+    assert traces == ["cubed"] * 2 and len(list(store.glob("*.bin"))) == 1
+    program_cache.forget()  # a new process: shapes, lowering, compiling and the call
+    shapes = cubed_sum.eval_shape(jax.ShapeDtypeStruct((4,), np.float64))
+    assert shapes["sum"].shape == () and shapes["sum"].dtype == np.float64
+    cubed_sum.compile_ahead(jax.ShapeDtypeStruct((4,), np.float64)).join()
+    out = cubed_sum(x + 2.0)
+    assert traces == ["cubed"] * 2  # none of them traced the function again
+    assert float(out["sum"]) == float(np.sum((x + 2.0) ** 3))

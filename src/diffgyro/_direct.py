@@ -14,10 +14,11 @@ batch in one compiled program.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-import optimistix as optx
 from jaxtyping import Array, Bool, Float, Int
 
 from ._folds import fold_ids
@@ -28,6 +29,9 @@ from ._options import FitOptions
 from .model import ErrorModel, Params, columns_times
 from .signals import Signals
 from .status import collinear_terms, fit_status, min_samples
+
+if TYPE_CHECKING:
+    import optimistix as optx
 
 __all__ = ["solve_device", "solve_batch", "project_linear", "varpro", "lm_converged",
            "STALLED_STEPS"]
@@ -51,6 +55,8 @@ def varpro(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Float[Arr
         beta, x = project_linear(model, sig, y, w, theta)
         return (y - columns_times(x, beta)) * sw
 
+    import optimistix as optx  # loaded when a solve is traced (0.1-0.25 s of a start)
+
     solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)
     sol = optx.least_squares(residual, solver, theta0, max_steps=max_steps, throw=False)
     return sol.value, lm_converged(sol), sol.stats["num_steps"]
@@ -69,6 +75,8 @@ def lm_converged(sol: optx.Solution) -> Bool[Array, ""]:
     is rounding, and whether it falls under the tolerance before the steps run out rests on
     the last bits of the arithmetic. A stall at a point worse than the start grid is still
     caught by :func:`solve_device`'s comparison with the grid."""
+    import optimistix as optx
+
     stalled = sol.state.num_steps_since_acceptance >= STALLED_STEPS
     return (sol.result == optx.RESULTS.successful) | stalled
 
@@ -85,6 +93,8 @@ def _full_lm(model: ErrorModel, sig: Signals, y: Float[Array, "n 3"], w: Float[A
     def residual(params, _):
         beta, theta = params
         return (y - columns_times(model.design(sig, theta), beta)) * sw
+
+    import optimistix as optx
 
     beta0 = jnp.zeros((3, model.n_params), y.dtype)
     solver = optx.LevenbergMarquardt(rtol=opts.rtol, atol=opts.atol)

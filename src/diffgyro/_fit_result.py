@@ -140,8 +140,14 @@ class AbstractFitResult(eqx.Module):
             else {})
 
     def records(self) -> list[dict]:
-        """Every device's :meth:`summary`."""
-        return [self.summary(i) for i in range(self.n_devices)]
+        """Every device's :meth:`summary`, read from one host copy of the arrays (indexing a
+        JAX array compiles a small program per shape: 14 of them in a two-device fit)."""
+        host = self.on_host()
+        return [host.summary(i) for i in range(self.n_devices)]
+
+    def on_host(self):
+        """The same result with numpy arrays (one transfer), for reading device by device."""
+        return jax.device_get(self)
 
     def signals(self, batch: Batch) -> Signals:
         """Derived signals of ``batch`` with this fit's temperature centring (and the

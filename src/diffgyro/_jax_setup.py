@@ -25,6 +25,12 @@ FLOAT64 = {"jax_enable_x64": True}
 #: start JAX.
 on_new_program: Callable[[], None] | None = None
 
+#: Whether every diffgyro program compiled on the CPU is kept traced on disk, not only
+#: those marked ``persistent`` (:func:`diffgyro._jit.filter_jit`): the command line turns
+#: this on, so that a second run loads its programs instead of tracing them again. Off
+#: elsewhere: a process that runs a program once gains nothing and pays the export.
+store_programs: bool = False
+
 
 def cache_dir(path: str | None = None) -> str:
     """The persistent cache's folder: ``path``, else ``$DIFFGYRO_CACHE_DIR``, else
@@ -35,7 +41,8 @@ def cache_dir(path: str | None = None) -> str:
 
 def cache_settings(path: str | None = None) -> dict:
     """JAX's settings of a persistent compilation cache in :func:`cache_dir` (made if
-    missing): every program compiled in 0.2 s or more is kept. Empty where the folder
+    missing): every program is kept, the small ones too (a warm command would compile
+    each again; reading one back takes milliseconds). Empty where the folder
     cannot be made (a read-only home must not stop a calibration)."""
     folder = cache_dir(path)
     try:
@@ -43,7 +50,7 @@ def cache_settings(path: str | None = None) -> dict:
     except OSError:
         return {}
     return {"jax_compilation_cache_dir": folder,
-            "jax_persistent_cache_min_compile_time_secs": 0.2,
+            "jax_persistent_cache_min_compile_time_secs": 0.0,
             "jax_persistent_cache_min_entry_size_bytes": 0}
 
 

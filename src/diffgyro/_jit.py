@@ -30,22 +30,23 @@ from typing import Any
 import equinox as eqx
 import jax
 
+from . import _jax_setup
 from ._program_cache import program
 
 
 def filter_jit(fun: Callable[..., Any] | None = None, *,
                compiler_options: dict[str, Any] | None = None,
-               persistent: bool = False) -> Callable[..., Any]:
+               persistent: bool | None = None) -> Callable[..., Any]:
     """Compile ``fun``: array leaves of its arguments traced, other leaves static
     (hashable); results are not waited for. ``compiler_options`` go to XLA for this
     program only (``filter_jit(compiler_options=...)`` decorates). ``persistent``: the
     traced program is kept on disk for later processes (:mod:`diffgyro._program_cache`;
-    results must be dicts, lists and tuples of arrays)."""
+    results must be dicts, lists and tuples of arrays, else it is traced as usual); None:
+    when :data:`diffgyro._jax_setup.store_programs` says so (the command line) and the
+    backend is the CPU."""
     if fun is None:
         return functools.partial(filter_jit, compiler_options=compiler_options,
                                  persistent=persistent)
-    if persistent and compiler_options:
-        raise ValueError("a persistent program is compiled with XLA's default options")
 
     def body(treedef, static, dynamic):
         return _unsplit(fun, treedef, static, dynamic)
@@ -55,22 +56,44 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
     elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu
 
-    def compiled_for_backend():
-        return on_cpu if jax.default_backend() == "cpu" else elsewhere
+    def program_for(args, kwargs):
+        """(program, its arguments) for this call: the one kept on disk
+        (:mod:`diffgyro._program_cache`) where there is one, else the traced one."""
+        treedef, static, dynamic = _split(args, kwargs)
+        cpu = jax.default_backend() == "cpu"
+        inside = any(isinstance(d, jax.core.Tracer) for d in dynamic)  # part of another trace
+        if not inside and (persistent or (persistent is None and _jax_setup.store_programs
+                                          and cpu)):
+            kept = program(fun, treedef, static, dynamic,
+                           functools.partial(_unsplit, fun, treedef, static),
+                           options=compiler_options if cpu else None)
+            if kept is not None:
+                return kept, (dynamic,)
+        return (on_cpu if cpu else elsewhere), (treedef, static, dynamic)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        treedef, static, dynamic = _split(args, kwargs)
-        if persistent:
+        jitted, parts = program_for(args, kwargs)
+        return jitted(*parts)
 
-            stored = program(fun, treedef, static, dynamic,
-                             functools.partial(_unsplit, fun, treedef, static))
-            if stored is not None:
-                return stored(dynamic)
-        return compiled_for_backend()(treedef, static, dynamic)
+    def lower(*args, **kwargs):
+        jitted, parts = program_for(args, kwargs)
+        return jitted.lower(*parts)
 
-    call.lower = lambda *a, **k: compiled_for_backend().lower(*_split(a, k))  # type: ignore[attr-defined]
+    def eval_shape(*args, **kwargs):
+        """Shapes and dtypes of the results, from the same (cached) trace as a call, or
+        from a kept program's signature (no trace)."""
+        jitted, parts = program_for(args, kwargs)
+        return jitted.eval_shape(*parts)
 
+    call.lower = lower  # type: ignore[attr-defined]
+    call.compile_ahead = _compile_ahead(fun.__name__, lower)  # type: ignore[attr-defined]
+    call.eval_shape = eval_shape  # type: ignore[attr-defined]
+    return call
+
+
+def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread]:
+    """A program's ``compile_ahead`` (``lower``: its arguments to a lowered program)."""
     ahead: set = set()  # the signatures compiled ahead in this process
 
     def compile_ahead(*a, **k) -> threading.Thread:
@@ -90,9 +113,9 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
             return done
         ahead.add(key)
         try:
-            lowered = compiled_for_backend().lower(*_split(a, k))
+            lowered = lower(*a, **k)
         except Exception:  # noqa: BLE001 - the call lowers again and raises it
-            log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+            log.debug("compile_ahead of %s failed", name, exc_info=True)
             lowered = None
 
         def work():
@@ -100,16 +123,13 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
                 if lowered is not None:
                     lowered.compile()
             except Exception:  # noqa: BLE001 - the call compiles again and raises it
-                log.debug("compile_ahead of %s failed", fun.__name__, exc_info=True)
+                log.debug("compile_ahead of %s failed", name, exc_info=True)
 
-        thread = threading.Thread(target=work, name=f"compile {fun.__name__}", daemon=True)
+        thread = threading.Thread(target=work, name=f"compile {name}", daemon=True)
         thread.start()
         return thread
 
-    call.compile_ahead = compile_ahead  # type: ignore[attr-defined]
-    # shapes and dtypes of the results, from the same (cached) trace as a call
-    call.eval_shape = lambda *a, **k: compiled_for_backend().eval_shape(*_split(a, k))  # type: ignore[attr-defined]
-    return call
+    return compile_ahead
 
 
 @contextlib.contextmanager

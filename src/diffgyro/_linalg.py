@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-import lineax as lx
 from jaxtyping import Array, Float
 
 
@@ -40,6 +39,8 @@ def solve_normal(a: Float[Array, "3 p p"], c: Float[Array, "3 p"], ridge: float 
     bad = ~(jnp.all(jnp.isfinite(g), axis=(-2, -1)) & jnp.all(jnp.isfinite(b), axis=-1))
     g = jnp.where(bad[:, None, None], eye, g)
     b = jnp.where(bad[:, None], 0.0, b)
+
+    import lineax as lx  # loaded when a solve is traced, not at every start
 
     def one(gi, bi):
         op = lx.MatrixLinearOperator(gi, lx.positive_semidefinite_tag)

@@ -1,4 +1,5 @@
-"""Traced programs kept on disk between processes (``filter_jit(persistent=True)``).
+"""Traced programs kept on disk between processes (``filter_jit(persistent=True)``, and
+every ``filter_jit`` program while the command line runs: ``_jax_setup.store_programs``).
 
 JAX's persistent compilation cache skips XLA's compilation, but every process
 still traces the Python function and lowers it to StableHLO before it can look
@@ -17,7 +18,8 @@ serialised) beside that cache, keyed by everything the trace depends on:
   matmul precision.
 
 A later process with the same key deserialises the program (milliseconds) and
-calls it; its compiled form comes from the compilation cache. A program that
+calls it (with the XLA options the function was given); its compiled form comes from
+the compilation cache, and its result shapes (``eval_shape``) from its signature. A program that
 can not be exported (or whose results are not plain dicts, lists and tuples of
 arrays) is marked so, and traced as usual from then on.
 """
@@ -46,6 +48,9 @@ TRUSTED = frozenset({"diffgyro", "builtins", "numpy", "jax", "jaxlib", "equinox"
                      "dataclasses", "enum", "copyreg", "types"})
 
 _loaded: dict[str, Callable | None] = {}  # key -> program (None: traced as usual)
+#: (function, folder, argument tree, static arguments, options, JAX's settings, shapes) ->
+#: program: a call seen before in this process is not keyed (pickled and hashed) again.
+_seen: dict[tuple, Callable | None] = {}
 
 
 class _Untrusted(Exception):
@@ -117,27 +122,50 @@ def _write(path: Path, data: bytes) -> None:
     atomic_write_bytes(path, data)
 
 
-def program(fun: Callable, treedef, static, dynamic, body: Callable) -> Callable | None:
+def program(fun: Callable, treedef, static, dynamic, body: Callable,
+            options: dict | None = None) -> Callable | None:
     """The stored program for this call of ``fun`` (``program(dynamic)`` runs it), exported
     from ``body`` (``body(dynamic)`` calls ``fun``) and stored now if it is new; None when
-    the call is to be traced as usual."""
+    the call is to be traced as usual. ``options``: XLA's options for its compilation."""
     folder = _directory()
     if folder is None:
         return None
+    opts = tuple(sorted((options or {}).items()))
+    try:
+        seen = (fun, folder, treedef, static, opts, bool(jax.config.jax_enable_x64),
+                str(jax.config.jax_default_matmul_precision), jax.default_backend(),
+                tuple(None if d is None else (tuple(d.shape), str(d.dtype),
+                                              bool(getattr(d, "weak_type", False)))
+                      for d in dynamic))
+        return _seen[seen]
+    except KeyError:
+        pass
+    except TypeError:  # a static argument that can not be hashed: keyed every call
+        seen = None
+    found = _program(fun, treedef, static, dynamic, body, options, folder)
+    if seen is not None:
+        _seen[seen] = found
+    return found
+
+
+def _program(fun, treedef, static, dynamic, body, options, folder: Path) -> Callable | None:
     key = _key(fun, treedef, static, dynamic)
     if key is None:
         return None
+    if options:
+        key = hashlib.sha256((key + repr(sorted(options.items()))).encode()).hexdigest()
     if key in _loaded:
         return _loaded[key]
     path, failed = folder / f"{key}.bin", folder / f"{key}.fail"
     found = None
     try:
         if path.exists():
-            found = jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call)
+            found = jax.jit(jax.export.deserialize(bytearray(path.read_bytes())).call,
+                            compiler_options=options)
         elif not failed.exists():
             if _jax_setup.on_new_program is not None:  # the command line's notice
                 _jax_setup.on_new_program()
-            found = _export(fun, body, dynamic, path, failed)
+            found = _export(fun, body, dynamic, path, failed, options)
     except Exception:  # noqa: BLE001 - a damaged or foreign file: trace as usual
         logging.getLogger("diffgyro").debug("stored program %s not used", key, exc_info=True)
         found = None
@@ -145,7 +173,7 @@ def program(fun: Callable, treedef, static, dynamic, body: Callable) -> Callable
     return found
 
 
-def _export(fun, body, dynamic, path: Path, failed: Path) -> Callable | None:
+def _export(fun, body, dynamic, path: Path, failed: Path, options=None) -> Callable | None:
     specs = [None if d is None else jax.ShapeDtypeStruct(d.shape, d.dtype,
                                                          weak_type=getattr(d, "weak_type", False))
              for d in dynamic]
@@ -157,10 +185,11 @@ def _export(fun, body, dynamic, path: Path, failed: Path) -> Callable | None:
         _write(failed, b"")
         return None
     _write(path, bytes(data))
-    return jax.jit(exported.call)
+    return jax.jit(exported.call, compiler_options=options)
 
 
 def forget() -> None:
     """Drop the programs loaded in this process (they are read again from disk)."""
     _loaded.clear()
+    _seen.clear()
 

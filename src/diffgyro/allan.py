@@ -68,7 +68,7 @@ import numpy as np
 from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
-from ._jit import release_compiled_if_crowded
+from ._jit import filter_jit, release_compiled_if_crowded
 from ._jsonio import number
 from .errors import DataError
 from .signals import prefix_sums
@@ -168,7 +168,7 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     return jnp.where(good, adev, jnp.nan), count
 
 
-@eqx.filter_jit
+@filter_jit  # (diffgyro's: kept traced on disk under the command line)
 def oadev(
     y: Float[Array, "... n"],
     dt: Float[Array, "..."] | float,

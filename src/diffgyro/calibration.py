@@ -196,6 +196,7 @@ def from_fit(result: AbstractFitResult, batch: Batch | None = None,
     - ``batch``: the data fitted; adds the input hash.
     - ``device_ids``: the sensors' ids by device, as a log gives them.
     """
+    result = result.on_host()  # numpy copies: indexing a JAX array compiles a program
     ref = getattr(result, "reference", None)
     ids = device_ids or {}
 

@@ -9,11 +9,15 @@ error is also a JSON object on stdout (:meth:`~diffgyro.errors.DataError.to_json
 
 from __future__ import annotations
 
+import atexit
 import functools
 import importlib
 import inspect
+import logging
+import os
 import pkgutil
 import sys
+import threading
 from pathlib import Path
 from typing import Annotated
 
@@ -116,8 +120,13 @@ def _engine_first(command):
             _check_inputs(command, kwargs)
             if _progress.shown():  # a first run says once that it compiles
                 _jax_setup.on_new_program = _progress.compiling
-            with _jax_setup.when_jax_starts({**_jax_setup.FLOAT64, **_jax_setup.cache_settings()}):
-                return callback(*args, **kwargs)
+            settings = _jax_setup.cache_settings()
+            stored, _jax_setup.store_programs = _jax_setup.store_programs, bool(settings)
+            try:
+                with _jax_setup.when_jax_starts({**_jax_setup.FLOAT64, **settings}):
+                    return callback(*args, **kwargs)
+            finally:
+                _jax_setup.store_programs = stored
         except Exception as err:
             usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2
             if flag is not None and kwargs.get(flag) and (isinstance(err, DataError) or usage):
@@ -187,4 +196,24 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def run() -> None:  # console script
-    sys.exit(main())
+    """``diffgyro`` as a program: :func:`main`, then the process ends at once."""
+    _exit_now(main())
+
+
+def _exit_now(code: int) -> None:
+    """End the process with ``code`` once its output is out, without the interpreter's
+    teardown: freeing XLA's compiled programs and every module's objects took 0.6-0.9 s
+    of a warm ``fit`` after its result was printed. Other threads that are not daemons
+    are joined and the exit handlers run first (what a normal exit does before the
+    teardown); a write that fails (a closed pipe) ends with the normal exit instead."""
+    for thread in threading.enumerate():
+        if thread is not threading.current_thread() and not thread.daemon:
+            thread.join()
+    atexit._run_exitfuncs()
+    logging.shutdown()
+    try:
+        sys.stdout.flush()
+        sys.stderr.flush()
+    except (OSError, ValueError):
+        sys.exit(code)
+    os._exit(code)

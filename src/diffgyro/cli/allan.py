@@ -11,8 +11,8 @@ from typing import Annotated
 import typer
 from rich.markup import escape
 
+from . import _progress, app
 from . import _tables as tables
-from . import app
 from ._load import MIN_SAMPLES, load_from_cli, longest_static, units_json
 from ._options import (
     AccUnit,
@@ -77,22 +77,26 @@ def allan_command(
 
     wanted = _parse_taus(taus)
     loaded = LoadReport()
-    batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
-                          sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
-                          topic=topic, temp_topic=temp_topic, report=loaded)
-    motion = motion_check(batch)
-    recorded = [int(n) for n in batch.n_valid]
-    if static_only:
-        batch = longest_static(batch, motion, MIN_SAMPLES)
-    _warn_uneven(batch)
-    parts = _curves(batch, per_decade, wanted)
-    doc = _merged_json(parts, batch)
-    doc["units"] = units_json(loaded)
-    _add_motion(doc, motion, batch, recorded, static_only)
-    if wanted is not None:
-        _warn_missing_taus(doc, wanted)
-    if report is not None:
-        _write_report(parts, batch, doc, report)
+    with _progress.steps(f"loading {len(data)} file(s)") as step:
+        batch = load_from_cli(data, columns, gyro_unit, acc_unit, temp_unit, time_unit,
+                              sampling_rate, drop_invalid, min_samples=MIN_SAMPLES,
+                              topic=topic, temp_topic=temp_topic, report=loaded)
+        step(f"checking {batch.n_devices} device(s) for motion")
+        motion = motion_check(batch)
+        recorded = [int(n) for n in batch.n_valid]
+        if static_only:
+            batch = longest_static(batch, motion, MIN_SAMPLES)
+        _warn_uneven(batch)
+        step("Allan deviation and its read-outs")
+        parts = _curves(batch, per_decade, wanted)
+        doc = _merged_json(parts, batch)
+        doc["units"] = units_json(loaded)
+        _add_motion(doc, motion, batch, recorded, static_only)
+        if wanted is not None:
+            _warn_missing_taus(doc, wanted)
+        if report is not None:
+            step(f"writing the report to {report}")
+            _write_report(parts, batch, doc, report)
     if out is not None:
         from diffgyro._jsonio import atomic_write_text
 

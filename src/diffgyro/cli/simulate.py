@@ -15,7 +15,7 @@ import typer
 
 from diffgyro.errors import DataError
 
-from . import app
+from . import _progress, app
 
 
 def _value(text: str):
@@ -77,15 +77,18 @@ def simulate_command(
         noise_arg = _pairs([noise], "--noise")
     else:
         noise_arg = noise
-    batch, known = simulate(plan, devices, effects=effects, seed=seed, preset=preset,
-                            noise=noise_arg, temp_quantum=temp_quantum, **plan_options)
+    with _progress.steps(f"simulating {devices} device(s), plan {plan}") as step:
+        batch, known = simulate(plan, devices, effects=effects, seed=seed, preset=preset,
+                                noise=noise_arg, temp_quantum=temp_quantum, **plan_options)
+        if out is not None:
+            step(f"writing {out}")
+            path = save(batch, out)
     if out is None:
         frame = batch.to_frame()
         frame.to_csv(sys.stdout, index=False, float_format="%.17g")
         if truth is not None:
             known.to_json(truth)
         return
-    path = save(batch, out)
     tpath = truth if truth is not None else truth_path(path)
     known.to_json(tpath)
     n = int(batch.n_valid.max())

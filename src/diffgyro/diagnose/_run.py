@@ -514,8 +514,9 @@ def diagnose(
     al = _allan(out["residual"], batch)
     reported = _reported_floor(batch, res)
     devices, slopes, floor_allans = [], [], []
+    host = res.on_host()  # read device by device: indexing JAX arrays compiles programs
     for i in range(batch.n_devices):
-        d, slope, fa = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
+        d, slope, fa = _device(i, batch, host, out, cands, ranges, floors, al, rw_spec, th, model,
                                unsupported, skips[i])
         d.noise_floor, d.noise_axes = reported[i]
         devices.append(d)
@@ -528,8 +529,8 @@ def diagnose(
         say("trying the best term followed by a second")
         pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
         for i, pair in pairs.items():
-            devices[i] = _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model,
-                                 unsupported, skips[i], pair)[0]
+            devices[i] = _device(i, batch, host, out, cands, ranges, floors, al, rw_spec, th,
+                                 model, unsupported, skips[i], pair)[0]
             devices[i].noise_floor, devices[i].noise_axes = reported[i]
     if synthesis:
         say("proposing terms built from the recording's signals")

@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from ..errors import DataError
 from ._source import NA_TEXT
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 
 def label(std: str, name: str) -> str:
@@ -20,7 +23,12 @@ def label(std: str, name: str) -> str:
 
 
 def to_float(series: pd.Series, file: str, column: str, devices: DeviceIds) -> np.ndarray:
-    """A column as float64; empty and NaN-like cells become NaN; text is an error."""
+    """A column as float64; empty and NaN-like cells become NaN; text is an error. A numpy
+    float64 column (a plain CSV's, :mod:`._plain_csv`) is already that."""
+    if isinstance(series, np.ndarray) and series.dtype == np.float64:
+        return series
+    import pandas as pd  # a frame's column: pandas is loaded already
+
     if pd.api.types.is_bool_dtype(series.dtype):
         raise DataError("holds true/false values, not numbers", file=file,
                         device=str(devices[0]), column=column, row=1)
@@ -100,14 +108,29 @@ def _id_text(cell, numeric: bool) -> str:
 def device_ids(series: pd.Series, file: str, column: str) -> DeviceIds:
     """Device ids as stripped text, made once per distinct cell value (a column of
     millions of rows holds a few ids); cells that read the same (' a', 'a') are one
-    device. A missing or empty id is an error naming its first row."""
-    raw, distinct = pd.factorize(series, sort=False)  # missing cells: -1
-    numeric = pd.api.types.is_float_dtype(series.dtype)
+    device. A missing or empty id is an error naming its first row. A numpy column of
+    text (a plain CSV's) has no missing cell, only empty ones."""
+    if isinstance(series, np.ndarray) and series.dtype == object:
+        raw, distinct = _factorize(series.tolist())
+        numeric = False
+    else:
+        import pandas as pd  # a frame's column: pandas is loaded already
+
+        raw, distinct = pd.factorize(series, sort=False)  # missing cells: -1
+        numeric = pd.api.types.is_float_dtype(series.dtype)
     texts = np.asarray([_id_text(c, numeric) for c in distinct.tolist()] + [""], dtype=object)
     raw = np.where(raw < 0, len(texts) - 1, raw)
     blank = (texts == "")[raw]
     if blank.any():
         raise DataError("missing device id", file=file, column=column,
                         row=int(np.argmax(blank)) + 1)
-    merged, names = pd.factorize(texts[:-1], sort=False)  # first-appearance order kept
+    merged, names = _factorize(texts[:-1].tolist())  # first-appearance order kept
     return DeviceIds(np.asarray(merged, np.intp)[raw], [str(x) for x in names])
+
+
+def _factorize(values: list) -> tuple[np.ndarray, np.ndarray]:
+    """(code of each value, the distinct values in order of first appearance); the
+    values are hashable and none is missing."""
+    first: dict = {}
+    codes = np.fromiter((first.setdefault(v, len(first)) for v in values), np.intp, len(values))
+    return codes, np.asarray(list(first), dtype=object)

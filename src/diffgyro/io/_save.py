@@ -7,14 +7,16 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-import pyarrow as pa
-import pyarrow.csv as pcsv
-import pyarrow.parquet as pq
 
 from .._jsonio import AtomicFile
 from ..data import OPTIONAL_SIGNALS, SIGNALS, Batch, Recording
 from ..errors import DataError
+from ._float_text import float_texts
 from ._source import OPENERS, format_of
+
+#: Files of at most this many numbers are formatted in Python (io._float_text): quicker
+#: than importing pyarrow and pandas (0.2-0.3 s) up to about this size.
+SMALL_VALUES = 1 << 18
 
 
 def _as_recordings(data) -> list[Recording]:
@@ -83,6 +85,8 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
             _write_csv(cols, tmp, "\t" if ".tsv" in [s.lower() for s in path.suffixes] else ",",
                        compression)
         elif fmt == "parquet":
+            import pyarrow as pa
+            import pyarrow.parquet as pq
 
             table = pa.table({k: (pa.array(v.tolist(), pa.string()) if k == "device" else v)
                               for k, v in cols.items()})
@@ -96,13 +100,21 @@ def save(data: Recording | Batch | Sequence[Recording], path: str | os.PathLike)
 
 
 def _write_csv(cols: dict[str, np.ndarray], tmp: str, sep: str, compression: str | None) -> None:
-
-    table = pa.table({k: (pa.array(v.tolist(), pa.string()) if k == "device" else v)
-                      for k, v in cols.items()})
     plain = not any(ch in d for d in set(cols["device"].tolist()) for ch in (sep, '"', "\n", "\r"))
     opener = OPENERS[compression] if compression else open
+    n_values = sum(v.size for k, v in cols.items() if k != "device")
     with opener(tmp, "wb") as fh:
         fh.write((sep.join(cols) + "\n").encode())
+        if plain and n_values <= SMALL_VALUES:  # the same bytes as Arrow's, without pyarrow
+            texts = [cols["device"].tolist()] + [float_texts(v) for k, v in cols.items()
+                                                 if k != "device"]
+            fh.write("".join(sep.join(row) + "\n" for row in zip(*texts)).encode())
+            return
+        import pyarrow as pa  # loaded to write a large file, not by every reader of diffgyro.io
+        import pyarrow.csv as pcsv
+
+        table = pa.table({k: (pa.array(v.tolist(), pa.string()) if k == "device" else v)
+                          for k, v in cols.items()})
         # Arrow formats float64 in the shortest round-trip form, ~10x faster than pandas
         pcsv.write_csv(table, fh, pcsv.WriteOptions(include_header=False, delimiter=sep,
                                                    quoting_style="none" if plain else "needed"))

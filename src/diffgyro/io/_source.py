@@ -10,14 +10,16 @@ import warnings
 import zlib
 from collections.abc import Mapping
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
-import pyarrow as pa
-import pyarrow.parquet as pq
 
 from ..errors import DataError
 from ..logs import LOG_SUFFIXES, log_format, read_log
+from ._plain_csv import PlainTable, read_plain, split_plain
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 _CSV_SUFFIXES = {".csv": None, ".tsv": "\t", ".txt": None}
 COMPRESSION = {".gz": "gzip", ".bz2": "bz2", ".xz": "xz"}
@@ -70,6 +72,7 @@ class Source:
         self.sep = ","
         self.raw_names: list[str] = []
         self.log = None
+        self._plain: list[list[str]] | None = None  # a plain CSV's split lines
         if self.format in ("ulog", "rosbag", "dataflash"):  # read whole, as a frame
 
             self.log = read_log(path, self.format, file=file, **dict(log_options or {}))
@@ -115,6 +118,13 @@ class Source:
             self.sep = max(counts, key=lambda s: (counts[s], s == ","))
         if not first.strip():
             raise DataError("the first line is empty; expected the header line", file=self.file)
+        if self.compression is None and b"\n" in head:
+            self._plain = split_plain(self.path, self.sep)
+        if self._plain is not None:  # read without pandas (and its import)
+            self.raw_names = self._plain[0]
+            return
+        import pandas as pd
+
         try:
             frame = self._read_csv(header=None, nrows=1, dtype=str)
         except _ReadFailure as err:
@@ -124,6 +134,8 @@ class Source:
         self.raw_names = ["" if pd.isna(v) else str(v) for v in frame.iloc[0].tolist()]
 
     def _read_csv(self, na_filter: bool = False, **kw) -> pd.DataFrame:
+        import pandas as pd  # here, not at the top: a plain CSV is read without it
+
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("error", pd.errors.ParserWarning)
@@ -144,7 +156,11 @@ class Source:
         except (ValueError, OSError, EOFError, OverflowError, lzma.LZMAError, zlib.error) as err:
             raise _ReadFailure(err) from None
 
-    def _read_csv_columns(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame:
+    def _read_csv_columns(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame | PlainTable:
+        if self._plain is not None:
+            table = read_plain(self._plain, wanted, text_cols)
+            if table is not None:
+                return table
         raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
         dtype = {raw[n]: (str if n in text_cols else np.float64) for n in wanted}
         try:  # fast path: every wanted column parses as float64 (exact, round-trip)
@@ -164,6 +180,7 @@ class Source:
 
     # -- Parquet
     def _open_parquet(self) -> None:
+        import pyarrow.parquet as pq
 
         try:
             self._schema = pq.read_schema(self.path)  # the stored types, read once
@@ -191,6 +208,7 @@ class Source:
             return set()
         raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
         if self.format == "parquet":
+            import pyarrow as pa
 
             kinds = {n: self._schema.field(raw[n]).type for n in names}
             return {n for n, k in kinds.items() if not (pa.types.is_integer(k) or pa.types.is_floating(k))}
@@ -198,6 +216,11 @@ class Source:
             return {n for n in names if self._arrays[raw[n]].dtype.kind not in "iuf"}
         if self.log is not None:
             return {n for n in names if self.log.frame[raw[n]].dtype.kind not in "iuf"}
+        if self._plain is not None:
+            at = {name.strip(): k for k, name in enumerate(self._plain[0])}
+            head = self._plain[1:_PEEK_ROWS + 1]
+            return {n for n in names if not all(is_number(r[at[n]]) or
+                                                r[at[n]].strip().lower() in NA_TEXT for r in head)}
         try:
             head = self._read_csv(header=0, nrows=_PEEK_ROWS, dtype=str,
                                   usecols=[raw[n] for n in names])
@@ -207,12 +230,15 @@ class Source:
         return {n for n in names if not all(is_number(v) or v.strip().lower() in NA_TEXT
                                             for v in head[n].tolist())}
 
-    def read(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame:
+    def read(self, wanted: list[str], text_cols: set[str]) -> pd.DataFrame | PlainTable:
         if self.log is not None:
             return self.log.frame[wanted]
         if self.format == "csv":
             return self._read_csv_columns(wanted, text_cols)
+        import pandas as pd
+
         if self.format == "parquet":
+            import pyarrow.parquet as pq
 
             raw = {n: r for n, r in zip(self.names, self.raw_names, strict=True)}
             try:
@@ -252,6 +278,7 @@ def release_read_buffers() -> None:
 
 
 def _is_text(kind) -> bool:
+    import pyarrow as pa
 
     return pa.types.is_string(kind) or pa.types.is_large_string(kind) or \
         pa.types.is_binary(kind) or pa.types.is_large_binary(kind)

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
-import pandas as pd
 
 from ..errors import DataError
+
+if TYPE_CHECKING:
+    import pandas as pd
 
 __all__ = ["LogTable", "cut_at", "interp_join", "require", "table", "truncated"]
 
@@ -52,6 +55,8 @@ def table(devices: list[dict[str, np.ndarray | str]], file: str,
     An optional group (temperature, accelerometer) that some devices lack is
     left out for all of them, with a warning (a table has one set of columns).
     """
+    import pandas as pd  # a log's frame (a CSV is read without pandas)
+
     warnings = list(warnings or [])
     if not devices:
         raise DataError("no gyro data in the log", file=file)
