@@ -45,6 +45,7 @@ import math
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf
 from scipy.linalg.lapack import dpotri as _potri
+from scipy.linalg.lapack import dtrtrs as _trtrs
 
 #: Blocks of a record at least (the block length b = n // BLOCKS samples, at least 1): fewer
 #: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their cube.
@@ -52,8 +53,10 @@ BLOCKS = 256
 #: A Gauss–Markov process of the wavelet-variance choice with T below this many blocks is
 #: part of the fast structure, kept as chosen: the block means see it as white noise.
 FAST_BLOCKS = 0.5
-#: Levenberg–Marquardt iterations per candidate.
+#: Levenberg–Marquardt iterations per candidate at most.
 ITERATIONS = 20
+#: A candidate whose accepted step lowers −2 log L by less than this has converged.
+TOLERANCE = 1e-4
 #: Criterion per parameter: the 99 % point of χ² with one degree of freedom. A parameter
 #: on its boundary (a random walk or ramp of power 0) enters a record that does not hold
 #: it with probability about 0.5 %.
@@ -138,6 +141,7 @@ class BlockLikelihood:
         self.unit = short_acov(self.b, self.dt, self.m)  # (3, M)
         i = np.arange(self.m)
         self.lag = np.abs(i[:, None] - i[None, :])
+        self.rhs = np.stack([self.d, np.ones(self.m)], axis=1)
         self.w = periodogram(np.zeros(self.m))[1]
 
     def _gm(self, log_t):
@@ -162,37 +166,31 @@ class BlockLikelihood:
         d[:, 6] = p[:, 6, None] * self.unit[2]
         return d[:, [0, 1, 2, 4, 6]].sum(axis=1), d
 
-    def deviance(self, c: np.ndarray, ramp: np.ndarray, grad: bool = False):
-        """−2 log L (C,) (less its constant) for autocovariances ``c`` (C, M); ``ramp`` (C,):
-        the mean of the differences is free (its generalised least-squares estimate). With
-        ``grad``: also (tr(Σ⁻¹T_h) − αᵀT_hα) for each lag's Toeplitz indicator T_h (C, M),
-        α = Σ⁻¹(d − mean), whose product with ∂c/∂θ is the gradient."""
-        sig = c[:, self.lag]
-        sinv = np.empty_like(sig)
-        logdet = np.empty(c.shape[0])
-        for k in range(c.shape[0]):  # LAPACK's Cholesky and its inverse, per candidate
-            low, info = _potrf(sig[k], lower=1)
-            if info:
-                raise np.linalg.LinAlgError("covariance not positive definite")
-            logdet[k] = 2.0 * np.log(np.diagonal(low)).sum()
-            inv, info = _potri(low, lower=1)
-            sinv[k] = np.tril(inv) + np.tril(inv, -1).T
-        one = np.ones(self.m)
-        a1 = sinv @ one
+    def deviance(self, c: np.ndarray, ramp: bool, grad: bool = False):
+        """−2 log L (less its constant) for the autocovariance ``c`` (M,) of one candidate
+        (inf where its covariance is not positive definite); ``ramp``: the mean of the
+        differences is free (its generalised least-squares estimate). With ``grad``: also
+        tr(Σ⁻¹T_h) − αᵀT_hα for each lag's Toeplitz indicator T_h (M,), α = Σ⁻¹(d − mean),
+        whose product with ∂c/∂θ is the gradient."""
+        low, info = _potrf(c[self.lag], lower=1)
+        if info:
+            return (np.inf, None) if grad else np.inf
+        logdet = 2.0 * np.log(np.diagonal(low)).sum()
+        if not grad:  # the cost alone: two triangular solves
+            z = _trtrs(low, self.rhs, lower=1)[0]
+            zd, z1 = z[:, 0], z[:, 1]
+            quad = zd @ zd - ((z1 @ zd) ** 2 / (z1 @ z1) if ramp else 0.0)
+            return logdet + quad
+        inv = _potri(low, lower=1)[0]
+        sinv = np.tril(inv) + np.tril(inv, -1).T
+        a1 = sinv.sum(axis=1)
         ad = sinv @ self.d
-        mean = np.where(ramp, (a1 @ self.d) / (a1 @ one), 0.0)
-        alpha = ad - mean[:, None] * a1
-        resid = self.d[None, :] - mean[:, None] * one
-        dev = logdet + np.sum(resid * alpha, 1)
-        if not grad:
-            return dev
-        flat = self.lag.ravel()
-        out = np.empty_like(c)
-        for k in range(c.shape[0]):
-            s = np.bincount(flat, sinv[k].ravel(), minlength=self.m)
-            q = np.bincount(flat, np.outer(alpha[k], alpha[k]).ravel(), minlength=self.m)
-            out[k] = s - q
-        return dev, out
+        mean = (a1 @ self.d) / a1.sum() if ramp else 0.0
+        alpha = ad - mean * a1
+        dev = logdet + (self.d - mean) @ alpha
+        corr = np.correlate(alpha, alpha, "full")[self.m - 1:]
+        corr[1:] *= 2.0
+        return dev, np.bincount(self.lag.ravel(), sinv.ravel(), minlength=self.m) - corr
 
     def fisher(self, c: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """The Whittle approximation of the Fisher information (C, 8, 8): the step's metric."""
@@ -210,29 +208,37 @@ class BlockLikelihood:
         on = (masks if free is None else masks & free).astype(np.float64)
         on[:, 7] = 0.0  # the ramp is the profiled mean, not a covariance parameter
         ramp = masks[:, 7]
+        lo = np.broadcast_to(lo, masks.shape)
+        hi = np.broadcast_to(hi, masks.shape)
         th = np.clip(np.asarray(theta0, np.float64), lo, hi)
         eye = np.eye(8)
-        lam = np.full(th.shape[0], 1e-2)
+        count = th.shape[0]
+        lam = np.full(count, 1e-2)
         c, dc = self.acov(th, masks)
-        cost, gl = self.deviance(c, ramp, grad=True)
+        cost, gl = np.empty(count), np.empty((count, self.m))
+        for k in range(count):
+            cost[k], gl[k] = self.deviance(c[k], ramp[k], grad=True)
+        done = ~np.isfinite(cost)
         for _ in range(iterations):
-            g = np.einsum("cpm,cm->cp", dc, gl) * on
-            f = self.fisher(c, dc) * on[:, :, None] * on[:, None, :]
-            damp = lam[:, None] * (np.diagonal(f, axis1=1, axis2=2) + 1e-9) + (1.0 - on)
-            step = -np.linalg.solve(f + damp[:, :, None] * eye, g[:, :, None])[..., 0] * on
-            trial = np.clip(th + step, lo, hi)
-            c_t, dc_t = self.acov(trial, masks)
-            try:
-                cost_t, gl_t = self.deviance(c_t, ramp, grad=True)
-            except np.linalg.LinAlgError:
-                cost_t, gl_t = np.full_like(cost, np.inf), gl
-            better = np.isfinite(cost_t) & (cost_t < cost)
-            th = np.where(better[:, None], trial, th)
-            c = np.where(better[:, None], c_t, c)
-            dc = np.where(better[:, None, None], dc_t, dc)
-            gl = np.where(better[:, None], gl_t, gl)
-            cost = np.where(better, cost_t, cost)
-            lam = np.clip(np.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9)
+            act = np.flatnonzero(~done)
+            if act.size == 0:
+                break
+            g = np.einsum("cpm,cm->cp", dc[act], gl[act]) * on[act]
+            f = self.fisher(c[act], dc[act]) * on[act, :, None] * on[act, None, :]
+            damp = lam[act, None] * (np.diagonal(f, axis1=1, axis2=2) + 1e-9) + (1.0 - on[act])
+            step = -np.linalg.solve(f + damp[:, :, None] * eye, g[:, :, None])[..., 0] * on[act]
+            trial = np.clip(th[act] + step, lo[act], hi[act])
+            c_t, dc_t = self.acov(trial, masks[act])
+            for r, k in enumerate(act):
+                new = self.deviance(c_t[r], ramp[k])
+                if not (np.isfinite(new) and new < cost[k]):
+                    lam[k] = min(lam[k] * 4.0, 1e9)
+                    done[k] = lam[k] > 1e4  # no step of any length lowers it: converged
+                    continue
+                done[k] = cost[k] - new < TOLERANCE
+                th[k], c[k], dc[k] = trial[r], c_t[r], dc_t[r]
+                cost[k], gl[k] = self.deviance(c[k], ramp[k], grad=True)
+                lam[k] = max(lam[k] / 5.0, 1e-9)
         return th, cost
 
 

@@ -9,7 +9,10 @@ Per series (vmapped over devices × axes, one compiled program):
    candidate that step 2 scores best; every candidate refitted with it and
    scored by the criterion (:mod:`.selection`);
 4. the chosen structure's intervals from the sandwich (:mod:`.intervals`) with
-   Ω_ref as the weight and Σ at the chosen estimate.
+   Ω_ref as the weight and Σ at the chosen estimate;
+5. outside the compiled program, per series: the slow part chosen again by the exact
+   likelihood of the record's block means (:mod:`.block_likelihood`), the intervals
+   recomputed (step 4) where the choice moved.
 """
 
 from __future__ import annotations
