@@ -4,6 +4,7 @@ intervals and structure choice (a small version of benchmarks/noise_identificati
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import json
 import math
@@ -381,3 +382,23 @@ def test_the_block_likelihood_finds_a_ramp_beside_a_gauss_markov_bias():
     assert sum(right) >= 7, [label(res.reported_structure(i)) for i in range(8)]
     ci = [_flat(res.components(int(i)))["r"]["ci"] for i in np.flatnonzero(right)]
     assert sum(lo <= 1e-5 <= hi for lo, hi in ci) >= len(ci) - 1, ci
+
+
+def test_structures_the_record_hardly_tells_apart_are_stated(identified):
+    """``resolution.close``: the slow alternatives within 2 of the chosen structure on the block
+    likelihood's criterion, each with a sentence in the notes, as ``rejected`` scores them;
+    an alternative moved to 1.0 from the chosen one joins them, one at 3.0 does not."""
+    _, res = identified
+    for i in range(12):
+        r = res.resolution(i)
+        alt = {x["structure"]: x["likelihood_delta"] for x in res.rejected(i) if "likelihood_delta" in x}
+        assert {c["structure"] for c in r["close"]} == {s for s, d in alt.items() if d < 2.0}
+    i = next(i for i in range(12) if np.sum(np.isfinite(res.slow_criterion[i])) >= 3)
+    slow = res.slow_criterion.copy()
+    best = int(res.choice[i])
+    near, far = [int(k) for k in np.flatnonzero(np.isfinite(slow[i])) if k != best][:2]
+    slow[i, near], slow[i, far] = slow[i, best] + 1.0, slow[i, best] + 3.0
+    r = dataclasses.replace(res, slow_criterion=slow).resolution(i)
+    assert [c["structure"] for c in r["close"]] == [label(res.structures[near])]
+    assert r["close"][0]["likelihood_delta"] == pytest.approx(1.0)
+    assert any(label(res.structures[near]) in n and "hardly tells" in n for n in r["notes"])

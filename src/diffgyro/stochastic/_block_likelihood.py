@@ -57,6 +57,10 @@ FAST_BLOCKS = 0.5
 ITERATIONS = 20
 #: A candidate whose accepted step lowers −2 log L by less than this has converged.
 TOLERANCE = 1e-4
+#: Criterion difference below which an alternative is reported as hardly told apart from
+#: the chosen structure (2 log L of 2: evidence "not worth more than a bare mention",
+#: Kass & Raftery 1995).
+CLOSE = 2.0
 #: Criterion per parameter: the 99 % point of χ² with one degree of freedom. A parameter
 #: on its boundary (a random walk or ramp of power 0) enters a record that does not hold
 #: it with probability about 0.5 %.

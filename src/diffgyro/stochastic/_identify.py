@@ -38,7 +38,7 @@ from ._estimator import (
     tau_grid,
     whitener,
 )
-from ._block_likelihood import BLOCKS, choose_slow
+from ._block_likelihood import BLOCKS, CLOSE, choose_slow
 from ._block_likelihood import PENALTY as SLOW_PENALTY
 from ._intervals import Z95, sandwich
 from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
@@ -256,8 +256,23 @@ class NoiseModels:
                "merged": [{"kind": "gauss_markov", "sigma": s, "tau": t, "into": "white"}
                           for s, t in merged],
                "excluded": excluded}
+        out["close"] = self._close(idx)
         out["notes"] = notes(out, list(self.reported_structure(*idx)))
         return out
+
+    def _close(self, idx) -> list[dict]:
+        """The slow part's alternatives within :data:`.block_likelihood.CLOSE` of the chosen
+        one on the block-mean likelihood's criterion: structures this record hardly tells
+        from the chosen one."""
+        if self.slow_criterion is None:
+            return []
+        slow = self.slow_criterion[idx]
+        best = int(self.choice[idx])
+        if not np.isfinite(slow[best]):
+            return []
+        return [{"structure": label(self.structures[i]), "likelihood_delta": float(slow[i] - slow[best])}
+                for i in np.argsort(slow) if i != best and np.isfinite(slow[i])
+                and slow[i] - slow[best] < CLOSE]
 
     def rejected(self, *idx) -> list[dict]:
         """The other candidates with their criterion values (``delta``: the wavelet-variance
