@@ -27,7 +27,8 @@ module. This is the one module that may import another package's private modules
   ``qconj``, ``qlog``, ``qmul``), ``first_order_hold_lag``, noise (``flicker``,
   ``gyro_noise``), populations (``FOG``, ``MEMS``, ``draw_params``);
 - the stochastic model: ``LAYOUT``, ``avar_gauss_markov``, ``model_wv``, ``psd``,
-  ``wv_covariance``, ``dyadic_m``, ``haar_wv``.
+  ``wv_covariance``, ``dyadic_m``, ``haar_wv``; the block means' likelihood
+  (``BlockLikelihood``, ``gm_acov``, ``short_acov``).
 """
 
 from __future__ import annotations
@@ -71,6 +72,7 @@ from .simulate._motion import DEG, EARTH_RATE, G0, qconj, qlog, qmul
 from .simulate._noise import flicker, gyro_noise
 from .simulate._population import FOG, MEMS, draw_params
 from .simulate._thermal import first_order_hold_lag
+from .stochastic._block_likelihood import BlockLikelihood, gm_acov, short_acov
 from .stochastic._components import LAYOUT, avar_gauss_markov, model_wv
 from .stochastic._covariance import psd, wv_covariance
 from .stochastic._wavelet_variance import dyadic_m, haar_wv
@@ -91,4 +93,5 @@ __all__ = [
     "DEG", "EARTH_RATE", "G0", "qconj", "qlog", "qmul", "first_order_hold_lag", "flicker",
     "gyro_noise", "FOG", "MEMS", "draw_params",
     "LAYOUT", "avar_gauss_markov", "model_wv", "psd", "wv_covariance", "dyadic_m", "haar_wv",
+    "BlockLikelihood", "gm_acov", "short_acov",
 ]

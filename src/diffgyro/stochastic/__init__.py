@@ -6,6 +6,7 @@
 * :mod:`.covariance`: the covariance of that estimate under a model (the efficient weight);
 * :mod:`.estimator`: the GMWM fit of one structure;
 * :mod:`.selection`: the catalogue of structures and the criterion;
+* :mod:`.block_likelihood`: the slow part chosen by the exact likelihood of the block means;
 * :mod:`.intervals`: asymptotic confidence intervals;
 * :mod:`.resolution`: what a record resolves (Gauss–Markov times too short or too long for
   it, parameters it does not determine, the smallest walk it would see) and the units;

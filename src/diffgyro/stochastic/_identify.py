@@ -9,7 +9,10 @@ Per series (vmapped over devices × axes, one compiled program):
    candidate that step 2 scores best; every candidate refitted with it and
    scored by the criterion (:mod:`.selection`);
 4. the chosen structure's intervals from the sandwich (:mod:`.intervals`) with
-   Ω_ref as the weight and Σ at the chosen estimate.
+   Ω_ref as the weight and Σ at the chosen estimate;
+5. outside the compiled program, per series: the slow part chosen again by the exact
+   likelihood of the record's block means (:mod:`.block_likelihood`), the intervals
+   recomputed (step 4) where the choice moved.
 """
 
 from __future__ import annotations
@@ -35,6 +38,8 @@ from ._estimator import (
     tau_grid,
     whitener,
 )
+from ._block_likelihood import BLOCKS, CLOSE, choose_slow
+from ._block_likelihood import PENALTY as SLOW_PENALTY
 from ._intervals import Z95, sandwich
 from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
 from ._selection import PENALTY, catalogue, effective_rank, label, structure_mask
@@ -102,18 +107,35 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     admissible = ~((masks[:, 2] & (th2[:, 3] > jnp.log(long)))
                    | (masks[:, 4] & (th2[:, 5] > jnp.log(long))))
     pick = jnp.argmin(jnp.where(jnp.isfinite(crit) & admissible, crit, jnp.inf))
-    mask = masks[pick]
-    th = th2[pick]
-    rel_at = rel_cov(th, mask)
+    at = _at_pick(th2[pick], masks[pick], valid, tau, dt, mf, cnt, n, chol_ref, penalty)
+    return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
+                admissible=admissible, chol_ref=chol_ref, **at)
+
+
+def _at_pick(th, mask, valid, tau, dt, mf, cnt, n, chol_ref, penalty):
+    """The chosen model's covariance (the sandwich with the weight ``chol_ref``), the wavelet
+    variances' model standard deviation and the detection limits."""
+    nu = model_wv(th, mask, tau, dt)
+    rel_at = wv_covariance(th, mask, mf, cnt, n, dt) / (nu[:, None] * nu[None, :])
     cov_log_at, _ = log_moments(rel_at)
     vv = valid[:, None] & valid[None, :]
     d = jacobian_log(th, mask, valid, tau, dt)
     cov_theta = sandwich(d, chol_ref, jnp.where(vv, cov_log_at, 0.0), mask)
-    nu = model_wv(th, mask, tau, dt)
     wv_sd = jnp.sqrt(jnp.diag(rel_at)) * nu
     limits = detection_limits(d, mask, valid, tau, dt, nu, scaled_chol(cov_log_at, valid), penalty)
-    return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
-                theta=th, cov=cov_theta, wv_sd=wv_sd, admissible=admissible, limits=limits)
+    return dict(theta=th, cov=cov_theta, wv_sd=wv_sd, limits=limits)
+
+
+@filter_jit(persistent=True)
+def _at_pick_batch(wv_hat, count, n, dt, m, theta, mask, chol_ref, penalty):
+    """:func:`_at_pick` for a batch of series whose structure the likelihood of the slow part
+    changed."""
+    def one(w, c, nn, d, th, mk, ch):
+        valid = jnp.isfinite(w) & (w > 0) & (c > 1)
+        mf = m.astype(w.dtype)
+        return _at_pick(th, mk, valid, mf * d, d, mf, c.astype(w.dtype), nn, ch, penalty)
+
+    return jax.vmap(one)(wv_hat, count, n, dt, theta, mask, chol_ref)
 
 
 def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
@@ -170,6 +192,7 @@ class NoiseModels:
     admissible: np.ndarray | None = None
     limits: np.ndarray | None = None
     n_valid: np.ndarray | None = None
+    slow_criterion: np.ndarray | None = None
 
     @property
     def lead(self) -> tuple[int, ...]:
@@ -214,16 +237,16 @@ class NoiseModels:
         record = self.record_length(*idx)
         _, _, _, merged = self._resolved(idx)
         crit = self.criterion[idx]
-        best = int(self.choice[idx])
         excluded = []
         adm = self.admissible[idx] if self.admissible is not None else np.ones(len(crit), bool)
+        floor = np.min(np.where(adm & np.isfinite(crit), crit, np.inf))
         for i in np.argsort(crit, kind="stable"):
             i = int(i)
-            if adm[i] or not np.isfinite(crit[i]) or crit[i] >= crit[best]:
+            if adm[i] or not np.isfinite(crit[i]) or crit[i] >= floor:
                 continue
             th, mk = self.theta_all[idx][i], self.masks[i]
             taus = [math.exp(th[t]) for v, t in ((2, 3), (4, 5)) if mk[v]]
-            excluded.append({"structure": label(self.structures[i]), "better_by": float(crit[best] - crit[i]),
+            excluded.append({"structure": label(self.structures[i]), "better_by": float(floor - crit[i]),
                              "tau": max(taus)})
         lim = self.limits[idx] if self.limits is not None else (np.nan, np.nan)
         out = {"sample_interval": dt, "record_length": record,
@@ -233,23 +256,51 @@ class NoiseModels:
                "merged": [{"kind": "gauss_markov", "sigma": s, "tau": t, "into": "white"}
                           for s, t in merged],
                "excluded": excluded}
+        out["close"] = self._close(idx)
         out["notes"] = notes(out, list(self.reported_structure(*idx)))
         return out
 
+    def _close(self, idx) -> list[dict]:
+        """The slow part's alternatives within :data:`.block_likelihood.CLOSE` of the chosen
+        one on the block-mean likelihood's criterion: structures this record hardly tells
+        from the chosen one."""
+        if self.slow_criterion is None:
+            return []
+        slow = self.slow_criterion[idx]
+        best = int(self.choice[idx])
+        if not np.isfinite(slow[best]):
+            return []
+        return [{"structure": label(self.structures[i]), "likelihood_delta": float(slow[i] - slow[best])}
+                for i in np.argsort(slow) if i != best and np.isfinite(slow[i])
+                and slow[i] - slow[best] < CLOSE]
+
     def rejected(self, *idx) -> list[dict]:
-        """The other candidates, best first, with their criterion values; those the record
-        cannot resolve (a Gauss–Markov time beyond its share) last, ``resolvable`` false."""
+        """The other candidates with their criterion values (``delta``: the wavelet-variance
+        criterion's difference from the chosen one). First the slow part's alternatives
+        (:mod:`.block_likelihood`), best first by ``likelihood_delta``; then the rest by
+        ``delta``; those the record cannot resolve (a Gauss–Markov time beyond its share)
+        last, ``resolvable`` false."""
         crit = self.criterion[idx]
         best = int(self.choice[idx])
         adm = self.admissible[idx] if self.admissible is not None else np.ones(len(crit), bool)
+        slow = (self.slow_criterion[idx] if self.slow_criterion is not None
+                else np.full(len(crit), np.nan))
         order = [int(i) for i in np.argsort(crit, kind="stable") if int(i) != best]
-        order = [i for i in order if adm[i]] + [i for i in order if not adm[i]]
-        return [{"structure": label(self.structures[i]), "kinds": list(self.structures[i]),
+        alt = sorted((i for i in order if np.isfinite(slow[i])), key=lambda i: slow[i])
+        order = alt + [i for i in order if adm[i] and i not in alt] \
+            + [i for i in order if not adm[i] and i not in alt]
+        out = []
+        for i in order:
+            r = {"structure": label(self.structures[i]), "kinds": list(self.structures[i]),
                  "criterion": float(crit[i]) if np.isfinite(crit[i]) else None,
-                 "delta": float(crit[i] - crit[best]) if np.isfinite(crit[i]) else None,
-                 **({} if adm[i] else {"resolvable": False, "why": "a Gauss–Markov correlation "
-                    f"time beyond {LONG_SHARE:g} of the record"})}
-                for i in order]
+                 "delta": float(crit[i] - crit[best]) if np.isfinite(crit[i]) else None}
+            if np.isfinite(slow[i]) and np.isfinite(slow[best]):
+                r["likelihood_delta"] = float(slow[i] - slow[best])
+            if not adm[i] and i not in alt:
+                r.update(resolvable=False, why="a Gauss–Markov correlation time beyond "
+                         f"{LONG_SHARE:g} of the record")
+            out.append(r)
+        return out
 
     def model_curve(self, idx, tau) -> tuple[np.ndarray, np.ndarray]:
         """(per-component Allan variance (6, len τ), total) of one series' chosen model."""
@@ -299,7 +350,8 @@ def components_of(theta, cov, mask) -> list[dict]:
     return out
 
 
-def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> NoiseModels:
+def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
+             slow_penalty: float | None = SLOW_PENALTY) -> NoiseModels:
     """Identify the stochastic model of every series ``y`` (..., n) in rad/s sampled every ``dt``
     seconds (scalar or per series); ``n_valid``: real samples of each padded series;
     ``structures``: the candidates (default :func:`~.selection.catalogue`), each with white
@@ -312,6 +364,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
     - ``n_valid``: the real samples of each padded series (default: all n).
     - ``structures``: the candidate structures (default: :func:`~.selection.catalogue`).
     - ``penalty``: the criterion's factor per parameter.
+    - ``slow_penalty``: the slow part's likelihood criterion per parameter, or None.
     """
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
@@ -343,6 +396,10 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
                               jnp.asarray(float(penalty)), len(m))
         parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+    slow = np.full((total, len(structures)), np.nan)
+    if slow_penalty is not None:
+        slow = _choose_slow(np.asarray(y).reshape(total, n), args, out, masks, m, step,
+                            float(penalty), float(slow_penalty))
     out = {k: v.reshape(lead + v.shape[1:]) for k, v in out.items()}
     tau = m[None, :] * dtb.reshape(-1, 1)
     return NoiseModels(structures=structures, masks=masks, tau=tau.reshape(lead + (len(m),)),
@@ -350,7 +407,38 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY) -> 
                        choice=out["pick"], theta=out["theta"], cov=out["cov"],
                        criterion=out["criterion"], theta_all=out["theta_all"],
                        objective=out["objective"], rank=out["rank"], admissible=out["admissible"],
-                       limits=out["limits"], n_valid=nv)
+                       limits=out["limits"], n_valid=nv,
+                       slow_criterion=slow.reshape(lead + (len(structures),)))
+
+
+def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty):
+    """Per series, the slow part chosen by the block-mean likelihood
+    (:func:`.block_likelihood.choose_slow`); ``out`` (flat over series) updated in place where
+    the choice changed, the chosen model's intervals recomputed. Returns the likelihood
+    criterion of every candidate (NaN off the slow alternatives)."""
+    wv, count, nv, dtb = args
+    total = y.shape[0]
+    crit = np.full((total, masks.shape[0]), np.nan)
+    changed = []
+    for i in range(total):
+        if nv[i] < 4 * BLOCKS:  # too short for blocks: the wavelet variances decide alone
+            continue
+        res = choose_slow(y[i], int(nv[i]), float(dtb[i]), masks, int(out["pick"][i]),
+                          out["theta_all"][i], LONG_SHARE * nv[i] * dtb[i], slow_penalty)
+        crit[i] = res["criterion"]
+        if res["pick"] != out["pick"][i]:
+            out["pick"][i] = res["pick"]
+            changed.append(i)
+    for lo in range(0, len(changed), step):
+        idx = np.array(changed[lo:lo + step])
+        idx = np.concatenate([idx, np.repeat(idx[:1], step - len(idx))])
+        res = _at_pick_batch(*(jnp.asarray(a[idx]) for a in (wv, count, nv, dtb)), jnp.asarray(m),
+                             jnp.asarray(out["theta_all"][idx, out["pick"][idx]]),
+                             jnp.asarray(masks[out["pick"][idx]]), jnp.asarray(out["chol_ref"][idx]),
+                             jnp.asarray(penalty))
+        for k, v in res.items():
+            out[k][idx] = np.asarray(v)
+    return crit
 
 
 def model_wv_np(theta, mask, tau, dt) -> np.ndarray:

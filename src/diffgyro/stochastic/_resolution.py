@@ -174,6 +174,9 @@ def notes(resolution: dict, structure: list[str]) -> list[str]:
     if r is not None and "rate_ramp" not in structure:
         out.append(f"a rate ramp below R = {r['value']:.2g} rad/s² ({r['display']['value']:.2g} °/h²) "
                    f"is not resolvable in {fmt_time(record)}")
+    for c in resolution.get("close", ()):
+        out.append(f"{c['structure']} is within {c['likelihood_delta']:.2g} of the chosen structure on "
+                   "the block means' likelihood criterion: this record hardly tells the two apart")
     out.append(f"a Gauss–Markov bias is resolvable only with τ between {fmt_time(lo)} and "
                f"{fmt_time(hi)}")
     return out
