@@ -95,13 +95,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=4)
     ap.add_argument("--cases", type=str, default=None, help="comma-separated case indices")
+    ap.add_argument("--slow-part", action="store_true",
+                    help="choose the slow part again by the block means' likelihood (identify's step 5)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from diffgyro.stochastic import identify, label
+    from diffgyro.stochastic import SLOW_PENALTY, identify, label
 
     pick = range(len(CASES)) if args.cases is None else [int(c) for c in args.cases.split(",")]
     rows, total_right, total_axes = [], 0, 0
@@ -115,7 +117,7 @@ def main(argv=None) -> int:
         y = np.stack([np.stack([generate(rng, n, dt, tr) for tr in truths])
                       for _ in range(args.seeds)])  # (seeds, 3, n)
         t0 = time.perf_counter()
-        res = identify(y, dt)
+        res = identify(y, dt, slow_penalty=SLOW_PENALTY if args.slow_part else None)
         t_id += time.perf_counter() - t0
         right, cover, wrong = 0, {}, {}
         err: dict[str, list] = {}
@@ -148,7 +150,7 @@ def main(argv=None) -> int:
     out = {"benchmark": "noise_acceptance", "seeds": args.seeds, "axes": total_axes,
            "structure_right": total_right / max(total_axes, 1),
            "coverage_95": float(np.mean(cover_all)) if cover_all else None,
-           "intervals": len(cover_all), "identify_s": t_id,
+           "intervals": len(cover_all), "identify_s": t_id, "slow_part": bool(args.slow_part),
            "machine": f"{platform.machine()} {platform.processor()}".strip(),
            "jax_backend": jax.default_backend(), "cases": rows}
     print(f"structure right on {total_right}/{total_axes} axes ({100 * out['structure_right']:.1f} %); "

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from diffgyro.internal import avar_gauss_markov, dyadic_m, haar_wv, model_wv, psd, wv_covariance
-from diffgyro.stochastic import identify, label, simulate_noise, structure_mask
+from diffgyro.stochastic import SLOW_PENALTY, identify, label, simulate_noise, structure_mask
 
 DT = 0.01
 #: Every identification test runs 12 series of this length and interval (655 s, as the
@@ -135,7 +135,7 @@ def _simulate(truths, seed):
 @pytest.fixture(scope="module")
 def identified():
     y = _simulate(list(TRUTHS.values()), 500)
-    return y, identify(y, DT_ID)
+    return y, identify(y, DT_ID, slow_penalty=SLOW_PENALTY)
 
 
 def _flat(components):
@@ -377,7 +377,7 @@ def test_the_block_likelihood_finds_a_ramp_beside_a_gauss_markov_bias():
     kw = dict(arw=1e-3, gm=((1e-3, 10.0),), ramp=1e-5)
     f = jax.jit(jax.vmap(lambda k: simulate_noise(k, N, DT_ID, **kw)))
     y = f(jax.random.split(jax.random.PRNGKey(77), 8))
-    res = identify(y, DT_ID)
+    res = identify(y, DT_ID, slow_penalty=SLOW_PENALTY)
     right = [label(res.reported_structure(i)) == "white + gauss_markov + rate_ramp" for i in range(8)]
     assert sum(right) >= 7, [label(res.reported_structure(i)) for i in range(8)]
     ci = [_flat(res.components(int(i)))["r"]["ci"] for i in np.flatnonzero(right)]

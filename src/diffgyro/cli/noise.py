@@ -48,6 +48,10 @@ def noise_command(
     penalty: Annotated[float | None, typer.Option(
         "--penalty", min=0.0, help="Criterion's factor on the parameters the data determine "
                                    "(2: WVIC; default: the documented one).", show_default=False)] = None,
+    slow_part: Annotated[bool, typer.Option(
+        "--slow-part", help="Choose the slow components (a second Gauss–Markov process, a random "
+                            "walk, a ramp) again by the exact likelihood of the record's block means: "
+                            "better on long records with several of them; about 0.5 s per axis.")] = False,
     columns: Columns = None,
     gyro_unit: GyroUnit = None,
     acc_unit: AccUnit = None,
@@ -73,7 +77,8 @@ def noise_command(
                               sampling_rate, drop_invalid, min_samples=2,
                               topic=topic, temp_topic=temp_topic)
         _warn_uneven(batch)
-        doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty, progress=step)
+        doc, models = identify_batch(batch, max_gm=max_gm, penalty=penalty, progress=step,
+                                     slow_part=slow_part)
         if report is not None:
             step(f"writing the report to {report}")
             _write_report(doc, models, report)
@@ -83,7 +88,8 @@ def noise_command(
         _print_text(doc, report)
 
 
-def identify_batch(batch, max_gm: int = 2, penalty: float | None = None, progress=None):
+def identify_batch(batch, max_gm: int = 2, penalty: float | None = None, progress=None,
+                   slow_part: bool = False):
     """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro
     (``progress``: told each stage)."""
     from diffgyro.stochastic import identify_devices
@@ -93,7 +99,7 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None, progres
     motion = moved_reasons(batch)
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
                                        motion=motion, max_gm=max_gm, penalty=penalty,
-                                       progress=progress)
+                                       progress=progress, slow_part=slow_part)
     from diffgyro.stochastic import INTERVAL_LEVEL
 
     return {"interval_level": INTERVAL_LEVEL, "devices": entries}, models

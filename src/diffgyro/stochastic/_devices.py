@@ -15,7 +15,7 @@ import math
 import numpy as np
 
 from ..allan import sample_interval
-from ._identify import identify
+from ._identify import SLOW_PENALTY, identify
 from ._resolution import INTERVAL_LEVEL
 from ._selection import PENALTY, catalogue
 
@@ -37,7 +37,7 @@ def axis_entry(res, *idx) -> dict:
 
 
 def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 2,
-                     penalty: float | None = None, progress=None):
+                     penalty: float | None = None, progress=None, slow_part: bool = False):
     """(entries, {device index: (NoiseModels, row)}) for rates ``values`` (d, n, 3) in rad/s.
 
     ``motion``: per device None (static) or a one-line status detail saying why not
@@ -55,6 +55,8 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
     - ``penalty``: the criterion's factor per parameter (default:
       :data:`~.selection.PENALTY`).
     - ``progress``: called with a line of text before each group of devices.
+    - ``slow_part``: choose the slow components again by the block means' exact likelihood
+      (:func:`~.identify.identify`'s step 5).
     """
 
     pen = PENALTY if penalty is None else penalty
@@ -92,7 +94,8 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
         done += len(idx)
         y = np.stack([np.asarray(values[i, :n], np.float64).T for i in idx])  # (d, 3, n)
         dts = np.array([[dt] * 3 for _, dt in members])
-        res = identify(y, dts, structures=catalogue(max_gm), penalty=pen)
+        res = identify(y, dts, structures=catalogue(max_gm), penalty=pen,
+                       slow_penalty=SLOW_PENALTY if slow_part else None)
         for j, i in enumerate(idx):
             models[i] = (res, j)
             entries[i]["axes"] = {ax: axis_entry(res, j, a) for a, ax in enumerate(AXES)}
