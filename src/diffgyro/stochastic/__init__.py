@@ -15,8 +15,9 @@
 """
 
 from ._bias_filter import bias_filter, state_space
+from ._block_likelihood import PENALTY as SLOW_PENALTY
 from ._devices import identify_devices
-from ._identify import SLOW_PENALTY, NoiseModels, components_of, identify
+from ._identify import NoiseModels, components_of, identify
 from ._resolution import DISPLAY, INTERVAL_LEVEL, SHORT_SAMPLES, SPAN_LIMIT, gm_white_power
 from ._selection import catalogue, label, structure_mask
 from ._simulate import simulate_noise

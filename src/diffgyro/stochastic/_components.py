@@ -95,10 +95,6 @@ def component_avar(theta: Float[Array, " 8"], tau: Float[Array, " J"], dt) -> Fl
     ])
 
 
-#: Which of the six component rows each parameter switches on.
-_ROW_OF_PARAM = jnp.array([0, 1, 2, 2, 3, 3, 4, 5])
-
-
 def row_mask(mask: Bool[Array, " 8"]) -> Bool[Array, " 6"]:
     """The component rows a parameter mask switches on."""
     return jnp.array([mask[0], mask[1], mask[2], mask[4], mask[6], mask[7]])

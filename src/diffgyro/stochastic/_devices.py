@@ -15,7 +15,8 @@ import math
 import numpy as np
 
 from ..allan import sample_interval
-from ._identify import SLOW_PENALTY, identify
+from ._block_likelihood import PENALTY as SLOW_PENALTY
+from ._identify import identify
 from ._resolution import INTERVAL_LEVEL
 from ._selection import PENALTY, catalogue
 

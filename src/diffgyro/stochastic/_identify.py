@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import filter_jit
+from ._block_likelihood import BLOCKS, CLOSE, choose_slow
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
 from ._estimator import (
@@ -38,8 +39,6 @@ from ._estimator import (
     tau_grid,
     whitener,
 )
-from ._block_likelihood import BLOCKS, CLOSE, choose_slow
-from ._block_likelihood import PENALTY as SLOW_PENALTY
 from ._intervals import Z95, sandwich
 from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
 from ._selection import PENALTY, catalogue, effective_rank, label, structure_mask
