@@ -57,8 +57,12 @@ def registered(*classes):
 
 def pytest_runtest_teardown(item, nextitem):
     # a worker compiles hundreds of programs; XLA's CPU JIT holds memory mappings for
-    # each, and at vm.max_map_count the next compile failed and crashed the worker
-    release_compiled_if_crowded()
+    # each, and at vm.max_map_count the next compile failed and crashed the worker. At
+    # most one count a second (as fit() and the other compiling entry points check): a
+    # count reads all of /proc/self/maps (tens of ms at the tens of thousands of mappings a
+    # worker holds), after each of the suite's hundreds of tests of a few milliseconds,
+    # while no second of compiling comes near the half of the limit left as headroom.
+    release_compiled_if_crowded(interval=1.0)
 
 
 @pytest.hookimpl(tryfirst=True)

@@ -1,6 +1,7 @@
 """Long commands show a progress display on stderr when it is a terminal (a pseudo-terminal
-here), none under --quiet or when stderr is not a terminal; stdout stays the command's.
-``demo``'s display is checked on the run test_demo.py makes."""
+here, around the command in its own process), none under --quiet (checked in this process,
+stderr answering that it is a terminal) or when stderr is not a terminal; stdout stays the
+command's. ``demo``'s display is checked on the run test_demo.py makes."""
 
 from __future__ import annotations
 
@@ -14,9 +15,9 @@ import threading
 
 import pytest
 
-from diffgyro.cli import _progress
+from diffgyro.cli import _progress, main
 
-ANSI = re.compile(rb"\x1b\[[0-9;?]*[A-Za-z]")
+ANSI = re.compile(r"\x1b\[[0-9;?]*[A-Za-z]")
 
 
 def _on_terminal(argv: list[str], cwd, python: tuple[str, ...] = ("-m", "diffgyro")
@@ -48,7 +49,7 @@ def _on_terminal(argv: list[str], cwd, python: tuple[str, ...] = ("-m", "diffgyr
     out, _ = proc.communicate(timeout=300)
     reader.join(timeout=10)
     os.close(master)
-    err = ANSI.sub(b"", b"".join(drawn)).decode("utf-8", "replace")
+    err = ANSI.sub("", b"".join(drawn).decode("utf-8", "replace"))
     return proc.returncode, out.decode(), err
 
 
@@ -82,9 +83,17 @@ def test_allan_and_simulate_show_their_stages_on_a_terminal(recording):
     assert "simulating 1 device(s), plan static" in err and "wrote s.csv" in err, err
 
 
-def test_quiet_draws_nothing(recording):
-    code, out, err = _on_terminal(["--quiet", "diagnose", "x.csv", "--model", "bias_poly(1)",
-                                   "--json"], recording)
+def test_quiet_draws_nothing(recording, capsys, monkeypatch):
+    """In this process, stderr made to answer that it is a terminal (without --quiet the
+    same call draws the display into it, control codes, redraws and all)."""
+    monkeypatch.setitem(_progress._state, "quiet", False)   # --quiet sets it; put back after
+    monkeypatch.setitem(_progress._state, "said_compiling", False)
+    monkeypatch.chdir(recording)
+    monkeypatch.setattr(sys.stderr, "isatty", lambda: True)
+    capsys.readouterr()
+    code = main(["--quiet", "diagnose", "x.csv", "--model", "bias_poly(1)", "--json"])
+    captured = capsys.readouterr()
+    out, err = captured.out, ANSI.sub("", captured.err)
     assert code == 0, err
     assert json.loads(out)["model"] == "bias_poly(1)"
     assert "fitting" not in err and "\r" not in err and _progress.COMPILING not in err, err
