@@ -68,7 +68,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
         x = np.asarray(x)
         out = np.broadcast_to(x[rows, :1], (len(rows), k) + x.shape[2:]).copy()
-        s = _sums(_rows(x[:, :m], read, whole, n_dev, valid, every), w, k)
+        s = _sums(_rows(x[:, :m], read, whole, valid, every), w, k)
         out[fill] = _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
         out[spare] = out[first]
         return out
@@ -122,7 +122,7 @@ def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray
     return explained(stats, noise, valid, residual, todo, w, quantiles, limit)
 
 
-def _rows(x, read, whole: bool, n_dev: int, valid, every: bool):
+def _rows(x, read, whole: bool, valid, every: bool):
     """The rows ``read`` of ``x`` (devices first), zero where not ``valid``: a copy of those
     rows only (not of a broadcast or memory-mapped whole)."""
     part = x if whole else x[read]

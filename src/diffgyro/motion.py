@@ -506,18 +506,21 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         left, noise = explain(_pad(idx, rows), w, stats[0], stats[3], stats[2], todo, q,
                               QUANTILE_WINDOWS, at=at)
         stats = (left, stats[1], stats[2], noise)
+    window_s = w * np.asarray(dts, float)
     out = _numpy_out(judged(stats), d)
-    moved = todo[:d] & (_verdicts(_with_resolution(out, w, dts)) == IN_MOTION)
+    moved = todo[:d] & (_verdicts(_with_resolution(out, window_s)) == IN_MOTION)
     if moved.any():  # a residual that moves where the recording rests: the model's, not a turn
         raw = _numpy_out(judged(recorded_stats), d)
-        keep = moved & (_verdicts(_with_resolution(raw, w, dts)) == AT_REST)
+        keep = moved & (_verdicts(_with_resolution(raw, window_s)) == AT_REST)
         for key, value in out.items():
             value[keep] = raw[key][keep]
         todo[:d] &= ~keep
     num = {k: out[k] for k in _NUMBERS if k != "resolution"}
-    if todo.any():  # the rate held at rest is the recording's (the residual's is about 0)
-        num["rest_rate"][todo[:d]] = _rest_rate(recorded_stats[0][:d, :, 0], out["window_valid"],
-                                                out["window_moving"])[todo[:d]]
+    # the rate held at rest is the recording's (the residual's is about 0)
+    recorded_rate = recorded_stats[0][:d, :, 0]
+    if todo.any():
+        num["rest_rate"][todo[:d]] = _held_rate(
+            recorded_rate, out["window_valid"] & ~out["window_moving"])[todo[:d]]
     recorded = mask[idx]
     samples = min(k * w, n)
 
@@ -527,7 +530,6 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         return full
 
     static = ~per_sample(out["window_near"]) & recorded
-    window_s = w * np.asarray(dts, float)
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
@@ -536,11 +538,10 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     # windows stand as the compiled check left them)
     refined = (np.flatnonzero((num["moving_fraction"] > 0) & np.broadcast_to(final, (d,)))
                if not referenced else [])
-    win = out
     for i in refined:
-        acc = ({"accel": win["window_accel"][i], "accel_thr": win["accel_threshold"][i]}
-               if "window_accel" in win else {})
-        level = rest_stretches(*(win[k][i] for k in
+        acc = ({"accel": out["window_accel"][i], "accel_thr": out["accel_threshold"][i]}
+               if "window_accel" in out else {})
+        level = rest_stretches(*(out[k][i] for k in
                                   ("window_rate", "window_moving", "window_valid", "threshold_axes")),
                                 window_s[i], **acc)
         if level is not None:
@@ -551,9 +552,9 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
             num["moving_fraction"][i] = (per_sample(moving[None])[0] & recorded[i]).sum() / max(
                 recorded[i].sum(), 1)
             num["rate_peak"][i] = max(num["rate_peak"][i], rate_i)
-            still = win["window_valid"][i] & ~moving
+            still = out["window_valid"][i] & ~moving
             if still.any():
-                num["rest_rate"][i] = np.linalg.norm(win["window_rate"][i][still].mean(axis=0))
+                num["rest_rate"][i] = _held_rate(recorded_rate[i:i + 1], still[None])[0]
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
     return num, static, np.full(d, w), out["loud"]
 
@@ -589,9 +590,10 @@ def _numpy_out(out: dict, d: int) -> dict:
     return {k: np.array(v)[:d] for k, v in out.items()}
 
 
-def _with_resolution(out: dict, w: int, dts) -> dict:
-    """A judgement's numbers with the resolution (rad) the host forms for :func:`_verdicts`."""
-    return out | {"resolution": out["threshold"] * w * np.asarray(dts, float)}
+def _with_resolution(out: dict, window_s) -> dict:
+    """A judgement's numbers with the resolution (rad) the host forms for :func:`_verdicts`:
+    the threshold times the window's length (s)."""
+    return out | {"resolution": out["threshold"] * window_s}
 
 
 def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
@@ -599,24 +601,16 @@ def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
     """Devices whose mean rate over their valid windows a bias can hold (at most
     :data:`MAX_BIAS`): a fitted model's residual judges them. A rate beyond it is a spin,
     which a bias term would absorb: its recording is judged as it is."""
-    count = valid.sum(axis=1)
+    return valid.any(axis=1) & (_held_rate(mean, valid) <= MAX_BIAS)
+
+
+def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
+               ) -> Float[np.ndarray, " d"]:
+    """The rate (norm) of the mean of each device's window means over its windows ``use``
+    (0 where none; NaN elsewhere left out): one contraction, not a sum per window."""
     with np.errstate(invalid="ignore"):
-        held = _sum_over(valid, mean) / np.maximum(count, 1)[:, None]
-        return (count > 0) & (np.sqrt(np.sum(held**2, axis=1)) <= MAX_BIAS)
-
-
-def _sum_over(use: Bool[np.ndarray, "d k"], x: Float[np.ndarray, "d k 3"]
-              ) -> Float[np.ndarray, "d 3"]:
-    """Each device's sum of ``x`` over its windows ``use`` (NaN elsewhere left out)."""
-    return np.einsum("dk,dkc->dc", use.astype(x.dtype), np.where(use[..., None], x, 0.0))
-
-
-def _rest_rate(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
-               moving: Bool[np.ndarray, "d k"]) -> Float[np.ndarray, " d"]:
-    """The rate (norm) of the mean of each device's valid windows that did not move."""
-    still = valid & ~moving
-    with np.errstate(invalid="ignore"):
-        held = _sum_over(still, mean) / np.maximum(still.sum(axis=1), 1)[:, None]
+        total = np.einsum("dk,dkc->dc", use.astype(mean.dtype), np.where(use[..., None], mean, 0.0))
+        held = total / np.maximum(use.sum(axis=1), 1)[:, None]
     return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 
 
