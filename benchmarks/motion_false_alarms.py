@@ -95,24 +95,21 @@ def _without_reference(batch):
     return eqx.tree_at(lambda b: b.rate, batch, None, is_leaf=lambda x: x is None)
 
 
-#: The model a fit judges by (``--fit``); None: the recording alone.
-FIT: str | None = None
-
-
-def _verdict(batch) -> np.ndarray:
-    """Each device's verdict: of the recording alone, or as a fit of :data:`FIT` gives it."""
-    if FIT is None:
+def _verdict(batch, spec: str | None) -> np.ndarray:
+    """Each device's verdict: of the recording alone (``spec`` None), or as a fit of the
+    model ``spec`` gives it."""
+    if spec is None:
         return np.asarray(motion_check(batch).verdict)
     from diffgyro.fit import fit
 
-    return np.asarray(fit(FIT, batch).motion.verdict)
+    return np.asarray(fit(spec, batch).motion.verdict)
 
 
-def _verdicts(batches) -> np.ndarray:
-    return np.concatenate([_verdict(b) for b in batches])
+def _verdicts(batches, spec: str | None) -> np.ndarray:
+    return np.concatenate([_verdict(b, spec) for b in batches])
 
 
-def run(seeds: int, rates, durations, motion_seeds: int) -> list[dict]:
+def run(seeds: int, rates, durations, motion_seeds: int, spec: str | None = None) -> list[dict]:
     rows = []
     rng = np.random.default_rng(0)
     for duration in durations:
@@ -121,10 +118,10 @@ def run(seeds: int, rates, durations, motion_seeds: int) -> list[dict]:
             row = {"rate_hz": rate, "duration_s": duration, "devices": seeds,
                    "moving_devices": motion_seeds}
             for plan in ("static", "thermal"):
-                v = _verdicts(_rest(plan, seeds, rate, duration, 1000))
+                v = _verdicts(_rest(plan, seeds, rate, duration, 1000), spec)
                 row[f"{plan}_false_alarm"] = float(np.mean(v == IN_MOTION))
                 row[f"{plan}_unverified"] = float(np.mean(v == UNVERIFIED))
-            v = _verdicts(_rest("attitude", motion_seeds, rate, duration, 2000))
+            v = _verdicts(_rest("attitude", motion_seeds, rate, duration, 2000), spec)
             row["attitude_detected"] = float(np.mean(v != AT_REST))
             row["attitude_in_motion"] = float(np.mean(v == IN_MOTION))
             # the turn of a slow turn and its return take 60 s
@@ -132,7 +129,7 @@ def run(seeds: int, rates, durations, motion_seeds: int) -> list[dict]:
             got = {kind: [] for kind in kinds}
             for b in _rest("static", motion_seeds, rate, duration, 3000):
                 for kind in kinds:
-                    got[kind].append(_verdict(_turned(b, kind, rng)))
+                    got[kind].append(_verdict(_turned(b, kind, rng), spec))
             for kind, parts in got.items():
                 v = np.concatenate(parts)
                 row[f"{kind}_detected"] = float(np.mean(v != AT_REST))
@@ -165,11 +162,9 @@ def main() -> None:
     ap.add_argument("--fit", help="judge as a fit of this model does (default: the recording alone)")
     ap.add_argument("--json")
     args = ap.parse_args()
-    global FIT
-    FIT = args.fit
     diffgyro.enable_x64()
     rows = run(args.seeds, [float(x) for x in args.rates.split(",")],
-               [float(x) for x in args.durations.split(",")], args.motion_seeds)
+               [float(x) for x in args.durations.split(",")], args.motion_seeds, args.fit)
     worst = max(max(r["static_false_alarm"], r["thermal_false_alarm"]) for r in rows)
     print(table(rows))
     print(f"largest false-alarm rate: {100 * worst:.1f} % (goal ≤ 1 %)")
@@ -177,7 +172,7 @@ def main() -> None:
         with open(args.json, "w") as fh:
             json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),
                        "goal": "false alarms ≤ 1 %", "largest_false_alarm": worst,
-                       "judged_by": f"fit({FIT!r})" if FIT else "the recording"}, fh, indent=1)
+                       "judged_by": f"fit({args.fit!r})" if args.fit else "the recording"}, fh, indent=1)
 
 
 if __name__ == "__main__":
