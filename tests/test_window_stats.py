@@ -65,3 +65,36 @@ def test_the_compiled_pass_gives_numpys_numbers(w, windows, limit, referenced):
     np.testing.assert_array_equal(v1, v2)
     np.testing.assert_allclose(n1, n2, rtol=1e-6)
     assert np.isnan(n1[0]).all() and not v1[0].any()  # the device with no valid sample
+
+
+@pytest.mark.parametrize("channels", [(), (3,)])
+def test_window_means_compiled_equal_numpys(channels, monkeypatch):
+    """Means over windows of a signal with gaps, leading and trailing empty windows and
+    windows past the samples: the compiled pass gives numpy's numbers (an empty window
+    holds its earlier neighbour's, the first one's before any), and a window of one valid
+    sample its value."""
+    import diffgyro._window_stats as ws
+
+    rng = np.random.default_rng(1)
+    d, n, h, k = 4, 203, 8, 30  # 26 windows hold samples, 4 lie past them
+    x = rng.normal(size=(d, n) + channels)
+    mask = rng.random((d, n)) > 0.3
+    mask[1, :40] = False  # leading empty windows
+    mask[2, 100:136] = False
+    mask[2, 131] = True  # a window holding one sample
+    rows = np.array([2, 0, 1])
+    outs = []
+    for compiled in (True, False):
+        monkeypatch.setattr(ws, "_loaded", compiled)
+        monkeypatch.setattr(ws, "COMPILED_SAMPLES", 1 << 40)
+        outs.append(ws.window_means(x, mask, rows, h, k))
+    np.testing.assert_allclose(outs[0], outs[1], rtol=1e-12, atol=1e-15)
+    m = outs[0]
+    assert m.shape == (3, k) + channels
+    np.testing.assert_allclose(m[0, 16], x[2, 131])  # the window 128..135 holds one sample
+    first = next(j for j in range(k) if mask[1, j * h:(j + 1) * h].any())
+    np.testing.assert_allclose(m[2, :first], np.broadcast_to(m[2, first], m[2, :first].shape))
+    np.testing.assert_allclose(m[1, 26:], np.broadcast_to(m[1, 25], m[1, 26:].shape))
+    j = 5
+    sel = mask[0, j * h:(j + 1) * h]
+    np.testing.assert_allclose(m[1, j], x[0, j * h:(j + 1) * h][sel].mean(axis=0))

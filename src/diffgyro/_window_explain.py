@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-from ._window_stats import spread_quantile
+from ._window_stats import spread_quantile, windowed_sums, window_means
 from .data import Batch
 
 
@@ -54,23 +54,22 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     n_dev, n = np.shape(batch.mask)
     m = min(n, k * w)
     read = np.asarray(rows)[fill]
-    whole = len(read) == n_dev and np.array_equal(read, np.arange(n_dev))
-    valid = np.asarray(batch.mask)[:, :m] if whole else np.asarray(batch.mask)[read, :m]
+    batch_mask = np.asarray(batch.mask)
+    valid = batch_mask[read, :m]
     every = bool(valid.all())
-    counts = (_sums(valid, w, k) if not every else
-              np.broadcast_to(_sums(np.ones((1, m), bool), w, k), (len(read), k)))
+    counts = (windowed_sums(valid, w, k) if not every else
+              np.broadcast_to(windowed_sums(np.ones((1, m), bool), w, k), (len(read), k)))
     mask = np.zeros((len(rows), k), bool)
     mask[fill] = counts > 0
     spare, first = ~fill, int(np.argmax(fill))  # (rows not read repeat the first one read)
     mask[spare] = mask[first]
-    safe = np.maximum(counts, 1.0)
 
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
         x = np.asarray(x)
-        out = np.broadcast_to(x[rows, :1], (len(rows), k) + x.shape[2:]).copy()
-        s = _sums(_rows(x[:, :m], read, whole, valid, every), w, k)
-        out[fill] = _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
-        out[spare] = out[first]
+        s = window_means(x, batch_mask, read, w, k)
+        out = np.empty((len(rows),) + s.shape[1:])
+        out[fill] = s
+        out[spare] = s[0]
         return out
 
     def times(t):  # a window's time: its first sample's, plus half its span
@@ -78,16 +77,17 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
             return means(t)
         out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
-        start = t[:, :m:w] if whole else t[:, :m:w][read]
+        start = t[read, :m:w]
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
-        out[fill, :start.shape[1]] = start + 0.5 * (w - 1) * step
-        out[fill] = _held(out[fill], counts > 0)
+        held = start.shape[1]  # (the windows past the samples hold the last one's time)
+        out[fill, :held] = start + 0.5 * (w - 1) * step
+        out[fill, held:] = out[fill, held - 1:held]
         out[spare] = out[first]
         return out
 
     kw = {f: None if getattr(batch, f) is None or f not in reads else
           means(getattr(batch, f)) for f in ("temp", "temp_ext", "accel", "mag")}
-    return Batch(t=times(batch.t), gyro=mean.astype(float), mask=mask, n_valid=mask.sum(axis=1),
+    return Batch(t=times(batch.t), gyro=np.asarray(mean, float), mask=mask, n_valid=mask.sum(axis=1),
                  devices=tuple(batch.devices[i] for i in rows) if batch.devices else (),
                  aux={a: means(v) for a, v in batch.aux.items() if f"aux:{a}" in reads}, **kw)
 
@@ -101,9 +101,11 @@ def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
     half the half-window difference. It needs no fitted model: a fit reads it beside its
     solve (:func:`diffgyro.motion.check_ahead`)."""
     r, k = stats.shape[:2]
-    mean, half = stats[:, :, 0].astype(float), stats[:, :, 2].astype(float)
-    gyro = np.stack([mean + half / 2, mean - half / 2], axis=2).reshape(r, 2 * k, 3)
-    return windows(batch, rows, w // 2, 2 * k, todo, gyro, reads)
+    mean, half = stats[:, :, 0], 0.5 * stats[:, :, 2]
+    gyro = np.empty((r, k, 2, 3))
+    np.add(mean, half, out=gyro[:, :, 0], dtype=float)
+    np.subtract(mean, half, out=gyro[:, :, 1], dtype=float)
+    return windows(batch, rows, w // 2, 2 * k, todo, gyro.reshape(r, 2 * k, 3), reads)
 
 
 def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray, " r"], w: int,
@@ -122,40 +124,6 @@ def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray
     return explained(stats, noise, valid, residual, todo, w, quantiles, limit)
 
 
-def _rows(x, read, whole: bool, valid, every: bool):
-    """The rows ``read`` of ``x`` (devices first), zero where not ``valid``: a copy of those
-    rows only (not of a broadcast or memory-mapped whole)."""
-    part = x if whole else x[read]
-    if not every:
-        part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
-    return part
-
-
-def _sums(x, h: int, k: int):
-    """Sums over windows of ``h`` samples along axis 1, ``k`` of them (those past the
-    samples empty; a boolean ``x`` counts)."""
-    d, n = x.shape[:2]
-    whole = n // h
-    out = np.zeros((d, k) + x.shape[2:])
-    out[:, :whole] = x[:, :whole * h].reshape((d, whole, h) + x.shape[2:]).sum(
-        axis=2, dtype=np.int32 if x.dtype == bool else None)
-    if n > whole * h:
-        out[:, whole] = x[:, whole * h:].sum(axis=1)
-    return out
-
-
-def _held(x, has):
-    """``x`` (rows, m, ...) with the entries without ``has`` holding the nearest earlier
-    one (the first one, before any)."""
-    if has.all():
-        return x
-    at = np.where(has, np.arange(has.shape[1]), -1)
-    at = np.maximum.accumulate(at, axis=1)
-    first = np.argmax(has, axis=1)[:, None]
-    at = np.where(at < 0, first, at)
-    return np.take_along_axis(x, at.reshape(at.shape + (1,) * (x.ndim - 2)), axis=1)
-
-
 def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2 3"],
               valid: Bool[np.ndarray, "r k"], residual: Float[np.ndarray, "r k 2 3"],
               rows: Bool[np.ndarray, " r"], w: int, quantiles: tuple[float, ...], limit: int
@@ -165,7 +133,9 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     window mean and half-window difference, the local noise as recorded, and a window
     mean's noise from those differences. A device whose residual is not finite keeps the
     recording's."""
-    ok = rows & np.all(np.isfinite(residual) | ~valid[:, :, None, None], axis=(1, 2, 3))
+    with np.errstate(invalid="ignore", over="ignore"):  # (a NaN or an infinity sums to one)
+        finite = np.isfinite(residual.sum(axis=(2, 3)))
+    ok = rows & np.all(finite | ~valid, axis=1)
     ok = slice(None) if ok.all() else ok  # (every row: views, not copies)
     stats, noise = stats.copy(), noise.copy()
     first, second = residual[ok, :, 0], residual[ok, :, 1]

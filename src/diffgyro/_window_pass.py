@@ -170,19 +170,56 @@ def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quant
     """:func:`diffgyro._window_stats.window_stats` of a large batch, into its outputs
     (``rate`` of shape (0, 1, 3) where there is none): chunks of devices side by side on
     threads, one per core (the pass holds no GIL)."""
-    parts = min(available_cores(), len(rows))
-    cuts = np.linspace(0, len(rows), parts + 1).astype(int)
+    _on_threads(len(rows), lambda a, b: _pass(
+        x, mask, rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
+        quantiles, limit))
 
-    def run(a: int, b: int) -> None:
-        _pass(x, mask, rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
-              quantiles, limit)
 
+def _on_threads(rows: int, run) -> None:
+    """``run(a, b)`` over chunks of ``rows`` side by side on threads, one per core (the
+    compiled passes hold no GIL)."""
+    parts = min(available_cores(), rows)
+    cuts = np.linspace(0, rows, parts + 1).astype(int)
     if parts <= 1:
-        run(0, len(rows))
+        run(0, rows)
         return
     with ThreadPoolExecutor(parts, thread_name_prefix="diffgyro-windows") as pool:
         for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
             job.result()
 
 
-__all__ = ["compiled_pass"]
+@njit(cache=True, nogil=True)
+def _means(x, mask, rows, h, out):  # pragma: no cover - compiled
+    n, c = x.shape[1], x.shape[2]
+    k = out.shape[1]
+    for r in range(rows.shape[0]):
+        i = rows[r]
+        last = -1  # the last window with a valid sample (an empty one holds it)
+        for j in range(k):
+            lo, hi = j * h, min(j * h + h, n)
+            m = 0
+            for t in range(lo, hi):
+                m += mask[i, t]
+            if m:
+                for a in range(c):  # a channel at a time: a loop without branches
+                    s = 0.0
+                    for t in range(lo, hi):
+                        s += x[i, t, a] if mask[i, t] else 0.0
+                    out[r, j, a] = s / m
+                if last < 0:  # windows before the first valid one hold it
+                    for e in range(j):
+                        out[r, e] = out[r, j]
+                last = j
+            elif last >= 0:
+                out[r, j] = out[r, last]
+
+
+def compiled_means(x, mask, rows, h: int, k: int):
+    """:func:`diffgyro._window_stats.window_means` of a large batch: one read of each device's
+    samples (``x`` with its channels last, a view)."""
+    out = np.zeros((len(rows), k, x.shape[2]))
+    _on_threads(len(rows), lambda a, b: _means(x, mask, rows[a:b], int(h), out[a:b]))
+    return out
+
+
+__all__ = ["compiled_pass", "compiled_means"]

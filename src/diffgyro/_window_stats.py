@@ -40,7 +40,6 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     between neighbouring valid samples); NaN where it has no valid window. The outputs hold
     ``out_rows`` devices (default ``len(rows)``) and ``windows`` windows: those past the
     data are empty (invalid)."""
-    global _loaded
     rows = np.ascontiguousarray(rows, np.int64)
     total = len(rows) if out_rows is None else out_rows
     stats = np.zeros((total, windows, 3, 3), np.float32)
@@ -50,10 +49,9 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     x = np.asarray(x)
     mask = np.asarray(mask, bool)
     q = np.asarray(quantiles, np.float64)
-    if len(rows) * x.shape[1] >= COMPILED_SAMPLES or _loaded:
+    if _compiled(len(rows) * x.shape[1]):
         from ._window_pass import compiled_pass  # numba: imported for a large batch only
 
-        _loaded = True
         rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
         compiled_pass(x, mask, rate, rows, int(w), stats, count, valid, noise, q, int(limit))
     elif len(rows):
@@ -112,12 +110,15 @@ def spread_quantile(x: Float[np.ndarray, "r k 3"], valid: Bool[np.ndarray, "r k"
     r, k = valid.shape
     if not k:
         return np.full((r, 3), np.nan)
-    span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)[:, None]
-    j = np.arange(min(k, limit))[None]
-    at = np.minimum(np.where(span > limit, (j * span) // limit, j), k - 1)
-    use = np.take_along_axis(valid, at, axis=1) & (j < span)
-    v = np.sort(np.where(use[..., None], np.take_along_axis(x, at[..., None], axis=1), np.inf),
-                axis=1)
+    if k <= limit:  # every window (none lies past a device's last valid one)
+        use, picked = valid, x
+    else:
+        span = np.where(valid.any(axis=1), k - np.argmax(valid[:, ::-1], axis=1), 0)[:, None]
+        j = np.arange(limit)[None]
+        at = np.minimum(np.where(span > limit, (j * span) // limit, j), k - 1)
+        use = np.take_along_axis(valid, at, axis=1) & (j < span)
+        picked = np.take_along_axis(x, at[..., None], axis=1)
+    v = np.sort(np.where(use[..., None], picked, np.inf), axis=1)
     u = use.sum(axis=1)[:, None]
     pos = q * np.maximum(u - 1, 0)
     lo = np.floor(pos).astype(int)
@@ -129,4 +130,63 @@ def spread_quantile(x: Float[np.ndarray, "r k 3"], valid: Bool[np.ndarray, "r k"
     return np.where(u > 0, out, np.nan)
 
 
-__all__ = ["window_stats", "spread_quantile", "COMPILED_SAMPLES"]
+def window_means(x: Float[np.ndarray, "d n *c"], mask: Bool[np.ndarray, "d n"],
+                 rows: Int[np.ndarray, " r"], h: int, k: int) -> Float[np.ndarray, "r k *c"]:
+    """The means of the valid samples of devices ``rows`` of ``x`` over ``k`` windows of
+    ``h`` samples (those past the samples empty); a window without a valid sample holds
+    its nearest earlier neighbour's mean (the first one's, before any). A large batch (or
+    any, once the compiled pass is loaded) is read by the compiled pass, one read of each
+    device's samples; a small one by numpy."""
+    x = np.asarray(x)
+    rows = np.ascontiguousarray(rows, np.int64)
+    if _compiled(len(rows) * x.shape[1]):
+        from ._window_pass import compiled_means
+
+        out = compiled_means(x.reshape(x.shape[:2] + (-1,)), np.asarray(mask, bool), rows, h, k)
+        return out.reshape((len(rows), k) + x.shape[2:])
+    m = min(x.shape[1], k * h)
+    valid = np.asarray(mask, bool)[rows, :m]
+    part = x[rows, :m]
+    counts = windowed_sums(valid, h, k)
+    if not valid.all():
+        part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
+    s = windowed_sums(part, h, k)
+    safe = np.maximum(counts, 1.0)
+    return held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
+
+
+def windowed_sums(x: np.ndarray, h: int, k: int) -> np.ndarray:
+    """Sums over windows of ``h`` samples along axis 1, ``k`` of them (those past the
+    samples empty; a boolean ``x`` counts its True entries)."""
+    d, n = x.shape[:2]
+    whole = n // h
+    out = np.zeros((d, k) + x.shape[2:])
+    out[:, :whole] = x[:, :whole * h].reshape((d, whole, h) + x.shape[2:]).sum(
+        axis=2, dtype=np.int32 if x.dtype == bool else None)
+    if n > whole * h:
+        out[:, whole] = x[:, whole * h:].sum(axis=1)
+    return out
+
+
+def held(x: np.ndarray, has: Bool[np.ndarray, "r m"]) -> np.ndarray:
+    """``x`` (rows, m, ...) with the entries without ``has`` holding the nearest earlier
+    one (the first one, before any)."""
+    if has.all():
+        return x
+    at = np.where(has, np.arange(has.shape[1]), -1)
+    at = np.maximum.accumulate(at, axis=1)
+    first = np.argmax(has, axis=1)[:, None]
+    at = np.where(at < 0, first, at)
+    return np.take_along_axis(x, at.reshape(at.shape + (1,) * (x.ndim - 2)), axis=1)
+
+
+def _compiled(samples: int) -> bool:
+    """Whether a batch of ``samples`` (devices × samples) is read by the compiled pass
+    (which then reads every batch of this process)."""
+    global _loaded
+    _loaded = _loaded or samples >= COMPILED_SAMPLES
+    return _loaded
+
+
+__all__ = ["window_stats", "window_means", "windowed_sums", "held", "spread_quantile",
+           "COMPILED_SAMPLES"]
