@@ -170,15 +170,20 @@ def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quant
     """:func:`diffgyro._window_stats.window_stats` of a large batch, into its outputs
     (``rate`` of shape (0, 1, 3) where there is none): chunks of devices side by side on
     threads, one per core (the pass holds no GIL)."""
-    _on_threads(len(rows), lambda a, b: _pass(
+    _on_threads(len(rows), x.shape[1], lambda a, b: _pass(
         x, mask, rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
         quantiles, limit))
 
 
-def _on_threads(rows: int, run) -> None:
-    """``run(a, b)`` over chunks of ``rows`` side by side on threads, one per core (the
-    compiled passes hold no GIL)."""
-    parts = min(available_cores(), rows)
+#: Device-samples below which a pass runs on the caller's thread (starting threads costs
+#: about a millisecond, what the pass of this many samples takes).
+THREAD_SAMPLES = 1 << 18
+
+
+def _on_threads(rows: int, samples: int, run) -> None:
+    """``run(a, b)`` over chunks of ``rows`` (of ``samples`` each) side by side on threads,
+    one per core (the compiled passes hold no GIL)."""
+    parts = min(available_cores(), rows) if rows * samples >= THREAD_SAMPLES else 1
     cuts = np.linspace(0, rows, parts + 1).astype(int)
     if parts <= 1:
         run(0, rows)
@@ -218,7 +223,7 @@ def compiled_means(x, mask, rows, h: int, k: int):
     """:func:`diffgyro._window_stats.window_means` of a large batch: one read of each device's
     samples (``x`` with its channels last, a view)."""
     out = np.zeros((len(rows), k, x.shape[2]))
-    _on_threads(len(rows), lambda a, b: _means(x, mask, rows[a:b], int(h), out[a:b]))
+    _on_threads(len(rows), x.shape[1], lambda a, b: _means(x, mask, rows[a:b], int(h), out[a:b]))
     return out
 
 
