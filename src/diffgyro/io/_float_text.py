@@ -21,9 +21,24 @@ def float_texts(values: np.ndarray) -> list[str]:
     texts = list(map(repr, values.tolist()))
     with np.errstate(invalid="ignore"):
         a = np.abs(values)
+        whole = values == np.trunc(values)
         # repr's layout already is Arrow's for these: fixed, not whole, 1e-4 <= |v| < 1e10
-        same = (a >= 1e-4) & (a < 1e10) & (values != np.trunc(values))
-    for i in np.flatnonzero(~same).tolist():
+        same = (a >= 1e-4) & (a < 1e10) & ~whole
+        # a whole number below 1e10: repr's "N.0" less its ".0" (0 and -0 too)
+        point = whole & (a < 1e10)
+        # below 1e-6: repr's "d.ddde-XX", the exponent unpadded
+        small = (a > 0) & (a < 1e-6)
+        # from 1e-6 to 1e-4: repr's "d.ddde-0X" in fixed notation
+        tenths = (a >= 1e-6) & (a < 1e-4)
+    for i in np.flatnonzero(point).tolist():
+        texts[i] = texts[i][:-2]
+    for i in np.flatnonzero(small).tolist():
+        texts[i] = texts[i].replace("e-0", "e-")
+    for i in np.flatnonzero(tenths).tolist():
+        mantissa, _, exp = texts[i].partition("e")
+        sign = "-" if mantissa[0] == "-" else ""
+        texts[i] = sign + "0." + "0" * (-int(exp) - 1) + mantissa.lstrip("-").replace(".", "")
+    for i in np.flatnonzero(~(same | point | small | tenths)).tolist():
         texts[i] = _layout(texts[i])
     return texts
 
