@@ -360,7 +360,7 @@ def test_models_with_time_constants_run_in_small_groups(monkeypatch):
         sizes[model.n_nonlinear > 0] = gyro.shape[0]
         raise Seen  # the group size is all this test needs: nothing is compiled
 
-    for program in (fs.group_fused, fs.group_compact):
+    for program in (fs.group_fused, fs.group_compact, fs.group_small):
         monkeypatch.setattr(program, "eval_shape", spy)
     n, d = 10_000, 40
     rng = np.random.default_rng(0)

@@ -83,14 +83,15 @@ from .groups import (
 from .inputs import GroupInputs, group_inputs, host_arrays
 from .layout import INPUTS, Layout, covariance_pairs, layout_of, moving_columns, varying_products
 from .newton import newton
-from .programs import group_compact, group_finish, group_for, group_fused, pack, unpack_results
+from .programs import (group_compact, group_finish, group_for, group_fused, group_small, pack,
+                       unpack_results)
 from .sums import ALIGNED, block_starts, fold_sums
 
 __all__ = ["ALIGNED", "CHUNK", "FAST_COMPILE", "FUSED_GROUP_FACTOR", "GROUP_SAMPLES", "INPUTS",
            "GroupInputs", "Layout", "MAX_GROUP_DEVICES", "NONLINEAR_GROUP_DIVISOR", "ONCE", "REASSOCIATE",
            "block_starts", "chunk_size", "covariance_pairs", "fold_sums", "group_compact",
-           "group_finish", "group_for", "group_fused", "group_size", "groups", "layout_of",
-           "moving_columns", "newton", "pack", "solve_sums", "unpack_results", "valid_counts",
+           "group_finish", "group_for", "group_fused", "group_size", "group_small", "groups",
+           "layout_of", "moving_columns", "newton", "pack", "solve_sums", "unpack_results", "valid_counts",
            "varying_products"]
 
 def _compile_first(group, apart: bool, args, finish: tuple, device):
@@ -129,7 +130,7 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
-    group = group_for(model, fused)
+    group = group_for(model, fused, d * n)
     # a program compiled for compile time finishes in a program of its own, compiled
     # without optimisation beside it; a fused linear model's finishes inline
     apart = group is group_compact

@@ -12,6 +12,7 @@ from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE
 from ..model import ErrorModel
 from .device import device
 from .finish import finish
+from .groups import SMALL_SAMPLES
 
 
 def group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
@@ -46,9 +47,17 @@ group_compact = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(gro
 group_finish = filter_jit(compiler_options=ONCE)(finished)
 
 
-def group_for(model: ErrorModel, fused: bool):
-    """The compiled group program: a fused linear model's with XLA's fusion emitters (its
-    sums at memory speed), any other compiled for compile time (:data:`FAST_COMPILE`)."""
+#: A small batch's group program, its finish inline: compiled without optimisation.
+group_small = filter_jit(compiler_options={**REASSOCIATE, **ONCE})(group_program)
+
+
+def group_for(model: ErrorModel, fused: bool, samples: int):
+    """The compiled group program for a batch of ``samples`` (devices × samples): a small
+    batch's compiled without optimisation (:data:`~.groups.SMALL_SAMPLES`), a fused linear
+    model's with XLA's fusion emitters (its sums at memory speed), any other compiled for
+    compile time (:data:`FAST_COMPILE`)."""
+    if samples <= SMALL_SAMPLES:
+        return group_small
     return group_fused if fused and not model.n_nonlinear else group_compact
 
 
