@@ -28,7 +28,7 @@ from ._motion_constants import (
     STRETCH_CHUNK,
     TILT_FLOOR,
 )
-from ._xla_options import FAST_COMPILE, ONCE
+from ._xla_options import FAST_COMPILE, ONCE, SMALL_WORK
 from .data import device_bucket
 
 
@@ -322,13 +322,11 @@ def _vmapped(gyro, accel, w: int, b: int):
 
 #: The check of a large batch, of a small (padded) one and of a tiny one: a small batch's
 #: check runs in milliseconds, and compiles in about 60 % of the time with XLA's loop
-#: emitters; a tiny one's (at most :data:`TINY_WINDOWS`) in about a third of that without
-#: optimisation (its run 0.4 ms to 1.6 ms for 2 devices × 2048 windows).
+#: emitters; a tiny one's (the samples of its layout at most
+#: :data:`~diffgyro._xla_options.SMALL_WORK`) in about a third of that without optimisation.
 _check = filter_jit(_vmapped)
 _check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
 _check_tiny = filter_jit(_vmapped, compiler_options=ONCE)
-#: Windows (devices × windows of a padded layout) of a batch checked by :data:`_check_tiny`.
-TINY_WINDOWS = 1 << 14
 
 
 class Layout(NamedTuple):
@@ -346,7 +344,8 @@ class Layout(NamedTuple):
     def check(self):
         if not self.padded:
             return _check
-        return _check_tiny if self.shape[0] * self.shape[1] <= TINY_WINDOWS else _check_small
+        return (_check_tiny if self.shape[0] * self.shape[1] * self.w <= SMALL_WORK
+                else _check_small)
 
 
 def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:

@@ -10,12 +10,6 @@ from jaxtyping import Bool
 CHUNK = 32
 #: About this many samples (devices × samples) go into one compiled call.
 GROUP_SAMPLES = 1 << 17
-#: A batch of at most this many samples (devices × samples) is fitted by programs compiled
-#: without optimisation (:data:`diffgyro._xla_options.ONCE`): a command line's walkthrough
-#: file, a test's. Its first fit of a model compiles in about half the time (2.9 s to
-#: 1.6 s for bias_poly(2)+gradient), and its fits run in milliseconds either way (10 ms
-#: to 30 ms for 14 400 samples).
-SMALL_SAMPLES = 1 << 16
 #: Models whose columns are all shared by the three axes and pointwise (temperature
 #: polynomials, gradient, temp_diff) sum in one fused pass with no group-sized
 #: temporaries: their groups are this many times larger (fewer calls). Others

@@ -8,11 +8,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import TRACE_COUNTS, filter_jit
-from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE
+from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE, SMALL_WORK
 from ..model import ErrorModel
 from .device import device
 from .finish import finish
-from .groups import SMALL_SAMPLES
 
 
 def group_program(model, layout, opts, c, prefix, t, gyro, mask, rate, temp, temp_ext, accel,
@@ -53,10 +52,10 @@ group_small = filter_jit(compiler_options={**REASSOCIATE, **ONCE})(group_program
 
 def group_for(model: ErrorModel, fused: bool, samples: int):
     """The compiled group program for a batch of ``samples`` (devices × samples): a small
-    batch's compiled without optimisation (:data:`~.groups.SMALL_SAMPLES`), a fused linear
+    batch's compiled without optimisation (:data:`~diffgyro._xla_options.SMALL_WORK`), a fused linear
     model's with XLA's fusion emitters (its sums at memory speed), any other compiled for
     compile time (:data:`FAST_COMPILE`)."""
-    if samples <= SMALL_SAMPLES:
+    if samples <= SMALL_WORK:
         return group_small
     return group_fused if fused and not model.n_nonlinear else group_compact
 

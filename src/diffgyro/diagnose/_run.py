@@ -23,6 +23,7 @@ from .. import allan as allan_mod
 from .._jit import filter_jit, release_compiled_if_crowded
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
+from .._xla_options import ONCE, SMALL_WORK
 from ..channel import GRAVITY, UNITS, as_channel, check_channel, reads_gravity
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
@@ -122,8 +123,7 @@ def _column_skips(every: list[CandidateSpec], ranges: np.ndarray, problems: dict
     return skips
 
 
-@filter_jit(persistent=True)
-def _ranges(cands, inputs, dtemp_window):
+def _ranges_of(cands, inputs, dtemp_window):
     """Per device of a chunk: > 0 where its data cannot support a candidate (``dtemp_window``
     an array: traced, one program for every window)."""
     def one(inp):
@@ -131,6 +131,12 @@ def _ranges(cands, inputs, dtemp_window):
         return jnp.stack([c.term.range_problem(s) for c in cands]) if cands else jnp.zeros((0,))
 
     return jax.lax.map(one, inputs)
+
+
+#: :func:`_ranges_of` compiled, and for a small batch without optimisation
+#: (:data:`~diffgyro._xla_options.SMALL_WORK`).
+_ranges, _ranges_small = (filter_jit(persistent=True, compiler_options=o)(_ranges_of)
+                          for o in (None, ONCE))
 
 
 def _white_noise(batch: Batch) -> np.ndarray:
@@ -196,8 +202,7 @@ def _fields(module: eqx.Module) -> dict:
     return {f.name: getattr(module, f.name) for f in dataclasses.fields(module)}
 
 
-@filter_jit(persistent=True)
-def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
+def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_window, inputs,
             beta, theta, floors, idx, inside, dt0):
     def one(args):
         inp, b, th, fl, ix, ins, dt = args
@@ -205,6 +210,12 @@ def _engine(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
                               dtemp_window, inp, b, th, fl, ix, ins, dt)
 
     return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside, dt0))
+
+
+#: :func:`_scores` compiled (the diagnosis engine), and for a small batch without
+#: optimisation (:data:`~diffgyro._xla_options.SMALL_WORK`).
+_engine, _engine_small = (filter_jit(persistent=True, compiler_options=o)(_scores)
+                          for o in (None, ONCE))
 
 
 def _median_steps(t: np.ndarray) -> np.ndarray:
@@ -235,7 +246,8 @@ def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
     window_s = _windows(res.options.dtemp_window)[1]
-    ranges = [np.asarray(_ranges(tuple(every), _inputs(batch, res, idx, aux), window_s))
+    program = _ranges_small if n_dev * length <= SMALL_WORK else _ranges
+    ranges = [np.asarray(program(tuple(every), _inputs(batch, res, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
@@ -252,13 +264,14 @@ def _score(model, cands, batch, res, floors, aux: dict, say=lambda _text: None) 
     windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
     log_min_lag, window_s = _windows(opts.dtemp_window)
     dt0 = _median_steps(np.asarray(batch.t))
+    engine = _engine_small if n_dev * length <= SMALL_WORK else _engine
     out = []
     for start, idx in _chunks(n_dev, size):
         say(f"scoring {len(cands)} candidate(s) on devices {start + 1}-{min(start + size, n_dev)} "
             f"of {n_dev}")
         ix = np.stack([windows[i][0] for i in idx])
         ins = np.stack([windows[i][1] for i in idx])
-        o = _engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
+        o = engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
                     window_s, _inputs(batch, res, idx, aux), _put(beta[idx]), _put(theta[idx]),
                     _put(floors[idx]), _put(ix), _put(ins), _put(dt0[idx]))
         out.append(jax.device_get(o))

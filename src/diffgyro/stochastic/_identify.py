@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import filter_jit
+from .._xla_options import FAST_COMPILE, ONCE, SMALL_WORK
 from ._block_likelihood import BLOCKS, CLOSE, choose_slow
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
@@ -159,10 +160,17 @@ def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
     return jnp.stack([power(walk), power(ramp)])
 
 
-@filter_jit(persistent=True)  # a later process skips the trace (1.6 s) and the lowering
-def _identify_batch(wv_hat, count, n, dt, m, masks, penalty, n_scales):
+def _identify_series(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     f = lambda w, c, nn, d: _identify_one(w, c, nn, d, m, masks, penalty, n_scales)  # noqa: E731
     return jax.vmap(f)(wv_hat, count, n, dt)
+
+
+#: :func:`_identify_series` compiled, kept on disk (a later process skips the trace and the
+#: lowering); a large batch's with XLA's loop emitters (they compile in 80 % of the time,
+#: and it runs as fast), a small one's without optimisation
+#: (:data:`~diffgyro._xla_options.SMALL_WORK`).
+_identify_batch, _identify_small = (filter_jit(persistent=True, compiler_options=o)(_identify_series)
+                                    for o in (FAST_COMPILE, ONCE))
 
 
 @dataclass
@@ -388,14 +396,15 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     # for any batch
     step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
                1 << (max(total, 1) - 1).bit_length())
+    program = _identify_small if total * n <= SMALL_WORK else _identify_batch
     parts = []
     for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
         short = step - chunk[0].shape[0]
         if short:  # pad the last chunk with copies of its first series
             chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
-        res = _identify_batch(*map(jnp.asarray, chunk), jnp.asarray(m), jnp.asarray(masks),
-                              jnp.asarray(float(penalty)), len(m))
+        res = program(*map(jnp.asarray, chunk), jnp.asarray(m), jnp.asarray(masks),
+                      jnp.asarray(float(penalty)), len(m))
         parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     slow = np.full((total, len(structures)), np.nan)
