@@ -30,7 +30,8 @@ of the record's low-frequency content. Here it is exact, for a short series that
 
 Each candidate is refitted by Levenberg–Marquardt steps (the exact gradient
 ``tr(Σ⁻¹∂Σ) − αᵀ∂Σα``, α = Σ⁻¹r; the Whittle approximation of the Fisher information
-as the metric) from its wavelet-variance estimate. The criterion is
+as the metric; the deviance and its gradient in O(M²) by the Durbin–Levinson recursion
+and the Gohberg–Semencul form of Σ⁻¹, :mod:`.toeplitz`) from its wavelet-variance estimate. The criterion is
 ``−2 log L + penalty × k``: a likelihood-ratio test of each added parameter at the
 level :data:`PENALTY` states. Only the slow part is chosen here (:func:`choose_slow`):
 the white noise, quantization and the Gauss–Markov processes faster than
@@ -43,12 +44,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dpotri as _potri
-from scipy.linalg.lapack import dtrtrs as _trtrs
 
 #: Blocks of a record at least (the block length b = n // BLOCKS samples, at least 1): fewer
-#: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their cube.
+#: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their square.
 BLOCKS = 256
 #: A Gauss–Markov process of the wavelet-variance choice with T below this many blocks is
 #: part of the fast structure, kept as chosen: the block means see it as white noise.
@@ -143,10 +141,9 @@ class BlockLikelihood:
         self.dt = float(dt)
         self.m = self.d.shape[-1]
         self.unit = short_acov(self.b, self.dt, self.m)  # (3, M)
-        i = np.arange(self.m)
-        self.lag = np.abs(i[:, None] - i[None, :])
-        self.rhs = np.stack([self.d, np.ones(self.m)], axis=1)
         self.w = periodogram(np.zeros(self.m))[1]
+        from ._toeplitz import toeplitz_deviance  # numba: compiled on first use
+        self._deviance = toeplitz_deviance
 
     def _gm(self, log_t):
         """(c, ∂c/∂log T) (..., M) of unit-variance Gauss–Markov processes of times exp(log_t)."""
@@ -176,25 +173,11 @@ class BlockLikelihood:
         differences is free (its generalised least-squares estimate). With ``grad``: also
         tr(Σ⁻¹T_h) − αᵀT_hα for each lag's Toeplitz indicator T_h (M,), α = Σ⁻¹(d − mean),
         whose product with ∂c/∂θ is the gradient."""
-        low, info = _potrf(c[self.lag], lower=1)
-        if info:
-            return (np.inf, None) if grad else np.inf
-        logdet = 2.0 * np.log(np.diagonal(low)).sum()
-        if not grad:  # the cost alone: two triangular solves
-            z = _trtrs(low, self.rhs, lower=1)[0]
-            zd, z1 = z[:, 0], z[:, 1]
-            quad = zd @ zd - ((z1 @ zd) ** 2 / (z1 @ z1) if ramp else 0.0)
-            return logdet + quad
-        inv = _potri(low, lower=1)[0]
-        sinv = np.tril(inv) + np.tril(inv, -1).T
-        a1 = sinv.sum(axis=1)
-        ad = sinv @ self.d
-        mean = (a1 @ self.d) / a1.sum() if ramp else 0.0
-        alpha = ad - mean * a1
-        dev = logdet + (self.d - mean) @ alpha
-        corr = np.correlate(alpha, alpha, "full")[self.m - 1:]
-        corr[1:] *= 2.0
-        return dev, np.bincount(self.lag.ravel(), sinv.ravel(), minlength=self.m) - corr
+        if not grad:
+            return self._deviance(c, self.d, ramp)
+        g = np.empty(self.m)
+        dev = self._deviance(c, self.d, ramp, g)
+        return (dev, g) if np.isfinite(dev) else (np.inf, np.full(self.m, np.nan))
 
     def fisher(self, c: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """The Whittle approximation of the Fisher information (C, 8, 8): the step's metric."""
