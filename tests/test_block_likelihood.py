@@ -159,3 +159,28 @@ def test_not_positive_definite_is_infinite():
     g = np.empty(16)
     assert toeplitz_deviance(c, np.ones(16), False, g) == math.inf
     assert toeplitz_deviance(c, np.ones(16), True) == math.inf
+
+
+def test_series_fitted_side_by_side_as_each_alone():
+    """Two records (their own rates and lengths, the same number of blocks) refitted in one
+    Levenberg–Marquardt loop give each record's own fit, to the last bit."""
+    rng = np.random.default_rng(11)
+    masks = np.zeros((3, 8), bool)
+    masks[:, 0] = True
+    masks[1, 6] = True
+    masks[2, [2, 3]] = True
+    lo, hi = np.full(8, -150.0), np.full(8, 150.0)
+    th0 = np.full((3, 8), -150.0)
+    th0[:, 0] = math.log(1e-6)
+    th0[1, 6] = math.log(1e-8)
+    th0[2, [2, 3]] = [math.log(1e-6), math.log(5.0)]
+    n, dts = np.array([256 * 16, 256 * 16 + 9]), np.array([0.01, 0.05])
+    y = np.cumsum(1e-4 * rng.standard_normal((2, n.max())), axis=1) * 0.01 \
+        + 1e-3 * rng.standard_normal((2, n.max()))
+    both = BlockLikelihood(y, n, dts)
+    th, dev = both.fit(np.concatenate([th0, th0]), np.concatenate([masks, masks]), lo, hi,
+                       rows=np.repeat([0, 1], 3))
+    for r in range(2):
+        th_r, dev_r = BlockLikelihood(y[r], n[r], dts[r]).fit(th0, masks, lo, hi)
+        np.testing.assert_array_equal(th[3 * r:3 * r + 3], th_r)
+        np.testing.assert_array_equal(dev[3 * r:3 * r + 3], dev_r)
