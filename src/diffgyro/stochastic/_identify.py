@@ -366,7 +366,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     - ``slow_penalty``: the slow part chosen again by the block means' exact likelihood
       (step 5), with this criterion per parameter (:data:`SLOW_PENALTY`: a test at 1 %);
       None (default) skips it: it decides the slow components better on long records
-      with several of them, at about half a second of numpy per series.
+      with several of them, at about the cost of the rest of identify again.
     """
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
