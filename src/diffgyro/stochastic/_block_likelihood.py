@@ -168,16 +168,16 @@ class BlockLikelihood:
         """(c (C, M), ∂c/∂θ (C, 8, M)) for log-parameters ``theta`` (C, 8) under ``mask`` in
         the series ``rows`` (C,)."""
         p = np.exp(theta) * mask
-        g1, dg1 = self._gm(theta[:, 3], rows)
-        g2, dg2 = self._gm(theta[:, 5], rows)
         unit = self.units[rows]
         d = np.zeros((theta.shape[0], 8, self.m))
         d[:, 0] = p[:, 0, None] * unit[:, 0]
         d[:, 1] = p[:, 1, None] * unit[:, 1]
-        d[:, 2] = p[:, 2, None] * g1
-        d[:, 3] = p[:, 2, None] * dg1
-        d[:, 4] = p[:, 4, None] * g2
-        d[:, 5] = p[:, 4, None] * dg2
+        for iv in (2, 4):  # the Gauss–Markov slots, where a candidate has them
+            on = np.flatnonzero(mask[:, iv])
+            if on.size:
+                g, dg = self._gm(theta[on, iv + 1], rows[on])
+                d[on, iv] = p[on, iv, None] * g
+                d[on, iv + 1] = p[on, iv, None] * dg
         d[:, 6] = p[:, 6, None] * unit[:, 2]
         return d[:, [0, 1, 2, 4, 6]].sum(axis=1), d
 
