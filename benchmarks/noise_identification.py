@@ -184,6 +184,9 @@ def main(argv=None) -> int:
                     help="only time identify on DEVICES × 3 axes of --n samples against the "
                          "allan-variance fit of the same series (and allantools on 3)")
     ap.add_argument("--repeat", type=int, default=3, help="warm repeats of --timing (median)")
+    ap.add_argument("--slow-part", action="store_true",
+                    help="--timing: identify with the slow part chosen by the block likelihood, "
+                         "and without it in the same run (process and wall times of both)")
     args = ap.parse_args(argv)
     if args.timing:
         return timing(args)
@@ -285,16 +288,17 @@ def timing(args) -> int:
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
 
-    from diffgyro.stochastic import identify, simulate_noise
+    from diffgyro.stochastic import SLOW_PENALTY, identify, simulate_noise
 
     f = jax.jit(jax.vmap(lambda k: simulate_noise(k, args.n, DT, arw=1e-3, gm=((1e-3, 10.0),))))
     keys = jax.random.split(jax.random.PRNGKey(0), args.timing * 3)
     y = jnp.concatenate([f(keys[i:i + 30]) for i in range(0, len(keys), 30)])
     y = y.reshape(args.timing, 3, args.n).block_until_ready()
+    slow = SLOW_PENALTY if args.slow_part else None
     t0 = time.perf_counter()
-    identify(y, DT)
+    identify(y, DT, slow_penalty=slow)
     first = time.perf_counter() - t0
-    peer = {}
+    peer, bare, cpu, bare_cpu = {}, [], [], []
     try:
         from allan_variance import compute_avar, estimate_parameters
     except ImportError:
@@ -302,9 +306,15 @@ def timing(args) -> int:
     yy = np.asarray(y)
     ours, theirs = [], []
     for _ in range(args.repeat):  # interleaved, medians (timings vary between runs)
-        t0 = time.perf_counter()
-        res = identify(y, DT)
+        t0, c0 = time.perf_counter(), time.process_time()
+        res = identify(y, DT, slow_penalty=slow)
         ours.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        if args.slow_part:
+            t0, c0 = time.perf_counter(), time.process_time()
+            identify(y, DT)
+            bare.append(time.perf_counter() - t0)
+            bare_cpu.append(time.process_time() - c0)
         if compute_avar is not None:
             t0 = time.perf_counter()
             for d in range(args.timing):
@@ -328,11 +338,15 @@ def timing(args) -> int:
         pass
     out = {"benchmark": "noise_identification_timing", "devices": args.timing, "axes": 3,
            "samples": args.n, "identify_first_call_s": first, "identify_warm_s": warm,
-           "identify_warm_runs_s": ours, "backend": jax.default_backend(), "device": str(jax.devices()[0]),
+           "identify_warm_runs_s": ours, "identify_warm_process_s": float(np.median(cpu)),
+           "slow_part": bool(args.slow_part), "backend": jax.default_backend(), "device": str(jax.devices()[0]),
            "chosen_white_gm": float(np.mean([len(res.structure(i, a)) == 2 and
                                              res.structure(i, a)[1] == "gauss_markov"
                                              for i in range(args.timing) for a in range(3)])),
            **peer}
+    if bare:  # the same identification without the slow part, interleaved
+        out["identify_no_slow_part_warm_s"] = float(np.median(bare))
+        out["identify_no_slow_part_warm_process_s"] = float(np.median(bare_cpu))
     if peer:
         out["allantools_dyadic_curves_only_s"] = peer["allantools_oadev_s_per_series"] * args.timing * 3
     print(json.dumps(out, indent=1))

@@ -212,6 +212,7 @@ DEFERRED = {
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
+    "diffgyro.stochastic._block_likelihood": {"diffgyro.stochastic._toeplitz"},  # numba
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     # the solvers' libraries load when a solve is traced, not in a process whose programs
     # are stored (a warm command: 0.1-0.25 s of its start)
@@ -509,6 +510,7 @@ PRIVATE_UNDER_TEST = {
     "test_term_info.py": {"diffgyro._term_info"},
     "test_synthesis.py": {"diffgyro.diagnose._synthesis"},  # its claims table
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
+    "test_block_likelihood.py": {"diffgyro.stochastic._toeplitz"},  # the O(M²) deviance
     # open elsewhere when diffgyro.internal came
     "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
     "test_sharding.py": {"diffgyro.pipeline._chunkfit", "diffgyro._fit_sums"},

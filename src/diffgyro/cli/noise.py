@@ -51,7 +51,7 @@ def noise_command(
     slow_part: Annotated[bool, typer.Option(
         "--slow-part", help="Choose the slow components (a second Gauss–Markov process, a random "
                             "walk, a ramp) again by the exact likelihood of the record's block means: "
-                            "better on long records with several of them; about 0.5 s per axis.")] = False,
+                            "better on long records with several of them; takes about twice as long.")] = False,
     columns: Columns = None,
     gyro_unit: GyroUnit = None,
     acc_unit: AccUnit = None,

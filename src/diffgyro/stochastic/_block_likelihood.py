@@ -30,7 +30,8 @@ of the record's low-frequency content. Here it is exact, for a short series that
 
 Each candidate is refitted by Levenberg–Marquardt steps (the exact gradient
 ``tr(Σ⁻¹∂Σ) − αᵀ∂Σα``, α = Σ⁻¹r; the Whittle approximation of the Fisher information
-as the metric) from its wavelet-variance estimate. The criterion is
+as the metric; the deviance and its gradient in O(M²) by the Durbin–Levinson recursion
+and the Gohberg–Semencul form of Σ⁻¹, :mod:`.toeplitz`) from its wavelet-variance estimate. The criterion is
 ``−2 log L + penalty × k``: a likelihood-ratio test of each added parameter at the
 level :data:`PENALTY` states. Only the slow part is chosen here (:func:`choose_slow`):
 the white noise, quantization and the Gauss–Markov processes faster than
@@ -43,12 +44,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf as _potrf
-from scipy.linalg.lapack import dpotri as _potri
-from scipy.linalg.lapack import dtrtrs as _trtrs
 
 #: Blocks of a record at least (the block length b = n // BLOCKS samples, at least 1): fewer
-#: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their cube.
+#: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their square.
 BLOCKS = 256
 #: A Gauss–Markov process of the wavelet-variance choice with T below this many blocks is
 #: part of the fast structure, kept as chosen: the block means see it as white noise.
@@ -135,66 +133,65 @@ def expected_periodogram(acov: np.ndarray) -> np.ndarray:
 
 
 class BlockLikelihood:
-    """The exact Gaussian likelihood of one record's block-mean differences, for models in
-    the wavelet-variance fit's log-parameters (:data:`.components.LAYOUT`)."""
+    """The exact Gaussian likelihood of the block-mean differences of one record, or of
+    several with the same number of differences (one row each), for models in the
+    wavelet-variance fit's log-parameters (:data:`.components.LAYOUT`)."""
 
-    def __init__(self, y: np.ndarray, n_valid: int, dt: float, blocks: int = BLOCKS):
-        self.d, self.b = block_differences(y, n_valid, blocks)
-        self.dt = float(dt)
-        self.m = self.d.shape[-1]
-        self.unit = short_acov(self.b, self.dt, self.m)  # (3, M)
-        i = np.arange(self.m)
-        self.lag = np.abs(i[:, None] - i[None, :])
-        self.rhs = np.stack([self.d, np.ones(self.m)], axis=1)
+    def __init__(self, y: np.ndarray, n_valid, dt, blocks: int = BLOCKS):
+        """``y`` (n,) or (S, n); ``n_valid`` and ``dt`` a scalar or one per series."""
+        y = np.asarray(y)
+        ys = y.reshape((-1, y.shape[-1]))
+        nv = np.broadcast_to(np.asarray(n_valid), ys.shape[:1])
+        parts = [block_differences(ys[i], int(nv[i]), blocks) for i in range(ys.shape[0])]
+        if len({p[0].shape[-1] for p in parts}) != 1:
+            raise ValueError("the series of one BlockLikelihood need the same number of blocks")
+        self.ds = np.stack([p[0] for p in parts])  # (S, M)
+        self.bs = np.array([p[1] for p in parts])
+        self.dts = np.broadcast_to(np.asarray(dt, np.float64), ys.shape[:1]).copy()
+        self.m = self.ds.shape[-1]
+        self.units = np.stack([short_acov(int(b), float(t), self.m)
+                               for b, t in zip(self.bs, self.dts)])  # (S, 3, M)
+        self.d, self.b, self.dt, self.unit = self.ds[0], int(self.bs[0]), float(self.dts[0]), self.units[0]
         self.w = periodogram(np.zeros(self.m))[1]
+        from ._toeplitz import toeplitz_deviance  # numba: compiled on first use
+        self._deviance = toeplitz_deviance
 
-    def _gm(self, log_t):
-        """(c, ∂c/∂log T) (..., M) of unit-variance Gauss–Markov processes of times exp(log_t)."""
+    def _gm(self, log_t, rows):
+        """(c, ∂c/∂log T) (C, M) of unit-variance Gauss–Markov processes of times exp(log_t)
+        (C,) in the series ``rows`` (C,)."""
         h = 1e-5
         lt = np.stack([log_t, log_t + h, log_t - h], axis=-1)
-        c = gm_acov(np.exp(lt), self.b, self.dt, self.m)
+        c = gm_acov(np.exp(lt), self.bs[rows, None, None], self.dts[rows, None, None], self.m)
         return c[..., 0, :], (c[..., 1, :] - c[..., 2, :]) / (2.0 * h)
 
-    def acov(self, theta: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(c (C, M), ∂c/∂θ (C, 8, M)) for log-parameters ``theta`` (C, 8) under ``mask``."""
+    def acov(self, theta: np.ndarray, mask: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(c (C, M), ∂c/∂θ (C, 8, M)) for log-parameters ``theta`` (C, 8) under ``mask`` in
+        the series ``rows`` (C,)."""
         p = np.exp(theta) * mask
-        g1, dg1 = self._gm(theta[:, 3])
-        g2, dg2 = self._gm(theta[:, 5])
+        unit = self.units[rows]
         d = np.zeros((theta.shape[0], 8, self.m))
-        d[:, 0] = p[:, 0, None] * self.unit[0]
-        d[:, 1] = p[:, 1, None] * self.unit[1]
-        d[:, 2] = p[:, 2, None] * g1
-        d[:, 3] = p[:, 2, None] * dg1
-        d[:, 4] = p[:, 4, None] * g2
-        d[:, 5] = p[:, 4, None] * dg2
-        d[:, 6] = p[:, 6, None] * self.unit[2]
+        d[:, 0] = p[:, 0, None] * unit[:, 0]
+        d[:, 1] = p[:, 1, None] * unit[:, 1]
+        for iv in (2, 4):  # the Gauss–Markov slots, where a candidate has them
+            on = np.flatnonzero(mask[:, iv])
+            if on.size:
+                g, dg = self._gm(theta[on, iv + 1], rows[on])
+                d[on, iv] = p[on, iv, None] * g
+                d[on, iv + 1] = p[on, iv, None] * dg
+        d[:, 6] = p[:, 6, None] * unit[:, 2]
         return d[:, [0, 1, 2, 4, 6]].sum(axis=1), d
 
-    def deviance(self, c: np.ndarray, ramp: bool, grad: bool = False):
-        """−2 log L (less its constant) for the autocovariance ``c`` (M,) of one candidate
-        (inf where its covariance is not positive definite); ``ramp``: the mean of the
-        differences is free (its generalised least-squares estimate). With ``grad``: also
-        tr(Σ⁻¹T_h) − αᵀT_hα for each lag's Toeplitz indicator T_h (M,), α = Σ⁻¹(d − mean),
+    def deviance(self, c: np.ndarray, ramp: bool, grad: bool = False, row: int = 0):
+        """−2 log L (less its constant) of series ``row`` for the autocovariance ``c`` (M,) of
+        one candidate (inf where its covariance is not positive definite); ``ramp``: the mean
+        of the differences is free (its generalised least-squares estimate). With ``grad``:
+        also tr(Σ⁻¹T_h) − αᵀT_hα for each lag's Toeplitz indicator T_h (M,), α = Σ⁻¹(d − mean),
         whose product with ∂c/∂θ is the gradient."""
-        low, info = _potrf(c[self.lag], lower=1)
-        if info:
-            return (np.inf, None) if grad else np.inf
-        logdet = 2.0 * np.log(np.diagonal(low)).sum()
-        if not grad:  # the cost alone: two triangular solves
-            z = _trtrs(low, self.rhs, lower=1)[0]
-            zd, z1 = z[:, 0], z[:, 1]
-            quad = zd @ zd - ((z1 @ zd) ** 2 / (z1 @ z1) if ramp else 0.0)
-            return logdet + quad
-        inv = _potri(low, lower=1)[0]
-        sinv = np.tril(inv) + np.tril(inv, -1).T
-        a1 = sinv.sum(axis=1)
-        ad = sinv @ self.d
-        mean = (a1 @ self.d) / a1.sum() if ramp else 0.0
-        alpha = ad - mean * a1
-        dev = logdet + (self.d - mean) @ alpha
-        corr = np.correlate(alpha, alpha, "full")[self.m - 1:]
-        corr[1:] *= 2.0
-        return dev, np.bincount(self.lag.ravel(), sinv.ravel(), minlength=self.m) - corr
+        if not grad:
+            return self._deviance(c, self.ds[row], ramp)
+        g = np.empty(self.m)
+        dev = self._deviance(c, self.ds[row], ramp, g)
+        return (dev, g) if np.isfinite(dev) else (np.inf, np.full(self.m, np.nan))
 
     def fisher(self, c: np.ndarray, dc: np.ndarray) -> np.ndarray:
         """The Whittle approximation of the Fisher information (C, 8, 8): the step's metric."""
@@ -203,12 +200,15 @@ class BlockLikelihood:
         return np.einsum("j,cpj,cqj->cpq", self.w, de, de)
 
     def fit(self, theta0: np.ndarray, masks: np.ndarray, lo: np.ndarray, hi: np.ndarray,
-            free: np.ndarray | None = None,
-            iterations: int = ITERATIONS) -> tuple[np.ndarray, np.ndarray]:
+            free: np.ndarray | None = None, iterations: int = ITERATIONS,
+            rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """(θ (C, 8), −2 log L (C,)): every candidate refitted by Levenberg–Marquardt steps
         (the exact gradient, the Whittle metric) within the bounds ``lo``, ``hi``; ``free``
-        (C, 8): the parameters refitted (default: all those switched on)."""
+        (C, 8): the parameters refitted (default: all those switched on); ``rows`` (C,): the
+        series of each candidate (default: the first). The candidates' steps are taken side
+        by side, each on its own."""
         masks = np.asarray(masks, bool)
+        rows = np.zeros(masks.shape[0], int) if rows is None else np.asarray(rows, int)
         on = (masks if free is None else masks & free).astype(np.float64)
         on[:, 7] = 0.0  # the ramp is the profiled mean, not a covariance parameter
         ramp = masks[:, 7]
@@ -218,10 +218,10 @@ class BlockLikelihood:
         eye = np.eye(8)
         count = th.shape[0]
         lam = np.full(count, 1e-2)
-        c, dc = self.acov(th, masks)
+        c, dc = self.acov(th, masks, rows)
         cost, gl = np.empty(count), np.empty((count, self.m))
         for k in range(count):
-            cost[k], gl[k] = self.deviance(c[k], ramp[k], grad=True)
+            cost[k], gl[k] = self.deviance(c[k], ramp[k], True, rows[k])
         done = ~np.isfinite(cost)
         for _ in range(iterations):
             act = np.flatnonzero(~done)
@@ -232,16 +232,19 @@ class BlockLikelihood:
             damp = lam[act, None] * (np.diagonal(f, axis1=1, axis2=2) + 1e-9) + (1.0 - on[act])
             step = -np.linalg.solve(f + damp[:, :, None] * eye, g[:, :, None])[..., 0] * on[act]
             trial = np.clip(th[act] + step, lo[act], hi[act])
-            c_t, dc_t = self.acov(trial, masks[act])
+            c_t, dc_t = self.acov(trial, masks[act], rows[act])
             for r, k in enumerate(act):
-                new = self.deviance(c_t[r], ramp[k])
+                new = self.deviance(c_t[r], ramp[k], False, rows[k])
                 if not (np.isfinite(new) and new < cost[k]):
                     lam[k] = min(lam[k] * 4.0, 1e9)
                     done[k] = lam[k] > 1e4  # no step of any length lowers it: converged
                     continue
                 done[k] = cost[k] - new < TOLERANCE
                 th[k], c[k], dc[k] = trial[r], c_t[r], dc_t[r]
-                cost[k], gl[k] = self.deviance(c[k], ramp[k], grad=True)
+                if done[k]:  # converged: no further step needs the gradient
+                    cost[k] = new
+                else:
+                    cost[k], gl[k] = self.deviance(c[k], ramp[k], True, rows[k])
                 lam[k] = max(lam[k] / 5.0, 1e-9)
         return th, cost
 
@@ -261,11 +264,44 @@ def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick:
     starts from the chosen fit and stays fast; the slow part starts from each candidate's
     own wavelet-variance fit and from the low frequencies' level, the better kept.
     Returns ``pick`` and, per candidate, ``deviance`` and ``criterion`` (NaN off the set)."""
-    lik = BlockLikelihood(y, n_valid, dt, blocks)
+    return choose_slow_many(np.asarray(y)[None], [n_valid], [dt], masks, [pick],
+                            np.asarray(theta_all)[None], [long_time], penalty, blocks)[0]
+
+
+def choose_slow_many(y: np.ndarray, n_valid, dt, masks: np.ndarray, picks, theta_all: np.ndarray,
+                     long_time, penalty: float = PENALTY, blocks: int = BLOCKS) -> list[dict]:
+    """:func:`choose_slow` of every series ``y`` (S, n) (``n_valid``, ``dt``, ``picks``,
+    ``long_time`` (S,); ``theta_all`` (S, K, 8)): the series with the same number of
+    blocks refitted side by side (one Levenberg–Marquardt loop over all their candidates)."""
     masks = np.asarray(masks, bool)
+    nv = np.asarray(n_valid, np.int64)
+    count = [int(v) // max(1, int(v) // blocks) - 1 for v in nv]  # the differences of each
+    out: list[dict] = [{}] * len(nv)
+    for m in sorted(set(count)):
+        group = [i for i in range(len(nv)) if count[i] == m]
+        lik = BlockLikelihood(np.asarray(y)[group], nv[group], np.asarray(dt, np.float64)[group], blocks)
+        sets = [_candidates(lik, r, int(nv[i]), masks, int(picks[i]),
+                            np.asarray(theta_all[i], np.float64)) for r, i in enumerate(group)]
+        rows = np.concatenate([np.full(len(c[0]), r) for r, c in enumerate(sets)])
+        th, dev = lik.fit(*(np.concatenate([c[k] for c in sets]) for k in (1, 2, 3, 4, 5)),
+                          rows=rows)
+        at = 0
+        for r, i in enumerate(group):
+            alt = sets[r][0]
+            part = slice(at, at + len(alt))
+            at += len(alt)
+            out[i] = _chosen(masks, alt, th[part], dev[part], int(picks[i]), float(long_time[i]),
+                             penalty, np.shape(theta_all[i]), int(lik.bs[r]))
+    return out
+
+
+def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray, pick: int,
+                theta_all: np.ndarray):
+    """(alt, starts, masks, lo, hi, free) of :func:`choose_slow`'s candidates of series ``row``."""
+    b, dt = int(lik.bs[row]), float(lik.dts[row])
     record = n_valid * dt
-    fast_time = FAST_BLOCKS * lik.b * dt
-    chosen, th_s = masks[pick], np.asarray(theta_all[pick], np.float64)
+    fast_time = FAST_BLOCKS * b * dt
+    chosen, th_s = masks[pick], theta_all[pick]
     fast = sorted((th_s[iv], th_s[it]) for iv, it in _slots(chosen) if math.exp(th_s[it]) < fast_time)
     fast = sorted(fast, key=lambda p: p[1])
     gm_count = masks[:, 2].astype(int) + masks[:, 4].astype(int)
@@ -273,13 +309,14 @@ def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick:
                          & (gm_count >= len(fast)))
     # the level of the lowest frequencies, for the slow powers' second start
     low = slice(1, 5)
-    level = float(np.mean(periodogram(lik.d)[0][low]))
-    unit_rw = float(np.mean(expected_periodogram(lik.unit[2])[low]))
+    level = float(np.mean(periodogram(lik.ds[row])[0][low]))
+    unit_rw = float(np.mean(expected_periodogram(lik.units[row, 2])[low]))
     slow_t0 = max(2.0 * fast_time, 0.02 * record)
-    unit_gm = float(np.mean(expected_periodogram(lik._gm(np.array([math.log(slow_t0)]))[0][0])[low]))
+    unit_gm = float(np.mean(expected_periodogram(
+        lik._gm(np.array([math.log(slow_t0)]), np.array([row]))[0][0])[low]))
     starts, lo, hi, free = [], [], [], []
     for i in alt:
-        th_i = np.asarray(theta_all[i], np.float64)
+        th_i = theta_all[i]
         a = np.full(8, -150.0)
         a[[0, 1]] = th_s[[0, 1]]
         lo_i, hi_i, free_i = np.full(8, -150.0), np.full(8, 150.0), np.ones(8, bool)
@@ -300,7 +337,11 @@ def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick:
         lo.append(lo_i)
         hi.append(hi_i)
         free.append(free_i)
-    th, dev = lik.fit(np.array(starts), masks[alt], np.array(lo), np.array(hi), np.array(free))
+    return alt, np.array(starts), masks[alt], np.array(lo), np.array(hi), np.array(free)
+
+
+def _chosen(masks, alt, th, dev, pick, long_time, penalty, shape, block) -> dict:
+    """:func:`choose_slow`'s answer from its candidates' refits."""
     k = masks[alt].sum(axis=1)
     crit = dev + penalty * k
     long = np.array([any(th[r][it] > math.log(long_time) for _, it in _slots(masks[i]))
@@ -311,7 +352,7 @@ def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick:
     crit_all = np.full(masks.shape[0], np.nan)
     dev_all[alt] = dev
     crit_all[alt] = np.where(long, np.nan, crit)
-    theta_w = np.full(np.shape(theta_all), np.nan)
+    theta_w = np.full(shape, np.nan)
     theta_w[alt] = th
     return {"pick": best, "deviance": dev_all, "criterion": crit_all, "theta": theta_w,
-            "block": lik.b}
+            "block": block}

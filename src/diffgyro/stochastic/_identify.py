@@ -26,7 +26,7 @@ import numpy as np
 
 from .._jit import filter_jit
 from .._xla_options import FAST_COMPILE, ONCE, SMALL_WORK
-from ._block_likelihood import BLOCKS, CLOSE, choose_slow
+from ._block_likelihood import BLOCKS, CLOSE, choose_slow_many
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
 from ._estimator import (
@@ -374,7 +374,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     - ``slow_penalty``: the slow part chosen again by the block means' exact likelihood
       (step 5), with this criterion per parameter (:data:`SLOW_PENALTY`: a test at 1 %);
       None (default) skips it: it decides the slow components better on long records
-      with several of them, at about half a second of numpy per series.
+      with several of them, at about the cost of the rest of identify again.
     """
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
@@ -424,22 +424,23 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
 
 def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty):
     """Per series, the slow part chosen by the block-mean likelihood
-    (:func:`.block_likelihood.choose_slow`); ``out`` (flat over series) updated in place where
+    (:func:`.block_likelihood.choose_slow_many`); ``out`` (flat over series) updated in place where
     the choice changed, the chosen model's intervals recomputed. Returns the likelihood
     criterion of every candidate (NaN off the slow alternatives)."""
     wv, count, nv, dtb = args
     total = y.shape[0]
     crit = np.full((total, masks.shape[0]), np.nan)
     changed = []
-    for i in range(total):
-        if nv[i] < 4 * BLOCKS:  # too short for blocks: the wavelet variances decide alone
-            continue
-        res = choose_slow(y[i], int(nv[i]), float(dtb[i]), masks, int(out["pick"][i]),
-                          out["theta_all"][i], LONG_SHARE * nv[i] * dtb[i], slow_penalty)
-        crit[i] = res["criterion"]
-        if res["pick"] != out["pick"][i]:
-            out["pick"][i] = res["pick"]
-            changed.append(i)
+    idx = np.flatnonzero(nv >= 4 * BLOCKS)  # shorter: too short for blocks, the wavelet variances decide
+    if idx.size:
+        answers = choose_slow_many(y[idx], nv[idx].astype(np.int64), dtb[idx], masks,
+                                   out["pick"][idx], out["theta_all"][idx],
+                                   LONG_SHARE * nv[idx] * dtb[idx], slow_penalty)
+        for i, res in zip(idx, answers):
+            crit[i] = res["criterion"]
+            if res["pick"] != out["pick"][i]:
+                out["pick"][i] = res["pick"]
+                changed.append(int(i))
     for lo in range(0, len(changed), step):
         idx = np.array(changed[lo:lo + step])
         idx = np.concatenate([idx, np.repeat(idx[:1], step - len(idx))])
