@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-from ._window_stats import spread_quantile, windowed_sums, window_means
+from ._window_stats import spread_quantile, window_means, windowed_sums
 from .data import Batch
 
 

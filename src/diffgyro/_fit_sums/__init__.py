@@ -83,8 +83,15 @@ from .groups import (
 from .inputs import GroupInputs, group_inputs, host_arrays
 from .layout import INPUTS, Layout, covariance_pairs, layout_of, moving_columns, varying_products
 from .newton import newton
-from .programs import (group_compact, group_finish, group_for, group_fused, group_small, pack,
-                       unpack_results)
+from .programs import (
+    group_compact,
+    group_finish,
+    group_for,
+    group_fused,
+    group_small,
+    pack,
+    unpack_results,
+)
 from .sums import ALIGNED, block_starts, fold_sums
 
 __all__ = ["ALIGNED", "CHUNK", "FAST_COMPILE", "FUSED_GROUP_FACTOR", "GROUP_SAMPLES", "INPUTS",
