@@ -21,6 +21,13 @@ TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimiza
 os.environ["XLA_FLAGS"] = " ".join(
     [f for f in os.environ.get("XLA_FLAGS", "").split() if f not in TEST_XLA_FLAGS]
     + list(TEST_XLA_FLAGS))
+# numpy's OpenBLAS splits even a dot product of ten thousand numbers over a thread per
+# core; with a worker per core busy compiling, its second thread waits for a core: a
+# 20 µs dot then took 5-40 ms (diagnose's evidence makes hundreds). One thread each.
+# Set here for the processes started after this (xdist's workers, the subprocesses of
+# the suite): the library is loaded before this file is read, so it holds for them, not
+# for a run without -n.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from pathlib import Path  # noqa: E402
 
