@@ -1,6 +1,6 @@
-"""Shared test set-up: XLA flags for compile time, float64, the persistent compilation
-cache, compiled programs released before a worker runs out of memory mappings, module
-fixtures built on one xdist worker only, and shared paths."""
+"""Shared test set-up: XLA flags for compile time, one OpenBLAS thread, float64, the
+persistent compilation cache, compiled programs released before a worker runs out of memory
+mappings, module fixtures built on one xdist worker only, and shared paths."""
 
 from __future__ import annotations
 
@@ -21,6 +21,13 @@ TEST_XLA_FLAGS = ("--xla_cpu_use_fusion_emitters=false", "--xla_backend_optimiza
 os.environ["XLA_FLAGS"] = " ".join(
     [f for f in os.environ.get("XLA_FLAGS", "").split() if f not in TEST_XLA_FLAGS]
     + list(TEST_XLA_FLAGS))
+# numpy's OpenBLAS splits a product (even a dot of ten thousand numbers) over a thread
+# per core; with a worker per core busy, its second thread waits for a core, and the
+# product takes many times longer than on one thread (synthesis's block sums, diagnose's
+# evidence). One thread each. Set here for the processes started after this (xdist's
+# workers, the suite's subprocesses): numpy is loaded before this file is read, so a run
+# without -n keeps its threads.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 from pathlib import Path  # noqa: E402
 

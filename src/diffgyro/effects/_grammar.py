@@ -34,6 +34,7 @@ factors into powers, so ``term(az*temp*temp)`` is written ``term(temp^2*az)``.
 
 from __future__ import annotations
 
+import functools
 import re
 from typing import ClassVar
 
@@ -98,6 +99,14 @@ def parse_factors(text: str) -> tuple[tuple[str, bool, int], ...]:
 
     - ``text``: the product inside ``term(...)``.
     """
+    # term synthesis reads the factors of the same few hundred products tens of thousands
+    # of times (Term.factors): parsed once per text and catalogue (the order and the rate
+    # check follow the catalogue, which register_signal extends)
+    return _parse_factors(text, tuple((k, v.rate) for k, v in CATALOGUE.items()))
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_factors(text: str, _catalogue: tuple) -> tuple[tuple[str, bool, int], ...]:
     toks = _tokens(text)
     if not toks:
         _fail(text, 0, "empty product")
