@@ -42,31 +42,15 @@ class Explanation(NamedTuple):
     trusted: Bool[np.ndarray, " d"]
 
 
-def signal_means(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
-                 reads: frozenset[str]) -> dict[str, np.ndarray]:
-    """The means of the valid samples of devices ``rows`` over each of ``k`` windows of
-    ``w`` samples of every signal in ``reads`` (a model's ``requires()``: ``temp``,
-    ``accel``, ``aux:name`` ...) the batch holds, by name (``aux:name`` for a column):
-    what :func:`windows` reads, which needs no window statistics (a fit reads it while
-    the gyro's are read, :func:`diffgyro.motion.check_ahead`)."""
-    mask = np.asarray(batch.mask)
-    named = {f: getattr(batch, f) for f in ("temp", "temp_ext", "accel", "mag")}
-    named |= {f"aux:{a}": v for a, v in batch.aux.items()}
-    return {f: window_means(np.asarray(x), mask, rows, w, k) for f, x in named.items()
-            if x is not None and f in reads}
-
-
 def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
             fill: Bool[np.ndarray, " r"], mean: Float[np.ndarray, "r k 3"],
-            reads: frozenset[str], signals: dict[str, np.ndarray] | None = None) -> Batch:
+            reads: frozenset[str]) -> Batch:
     """The devices ``rows`` of ``batch`` as the means of their valid samples over each of
     ``k`` windows of ``w`` samples: time, the signals in ``reads`` (a model's
     ``requires()``: ``temp``, ``accel``, ``aux:name`` ...) and the gyro (given: its
     windows' ``mean``). Only the devices ``fill`` are read; the others repeat the first
     one read (the shape stays the batch's, and a row not judged is still a well-formed
-    recording). A window with no valid sample is masked and holds its neighbour's values.
-    ``signals``: the signals' means over these windows of every device of ``rows``, where
-    already read (:func:`signal_means`)."""
+    recording). A window with no valid sample is masked and holds its neighbour's values."""
     n_dev, n = np.shape(batch.mask)
     m = min(n, k * w)
     read = np.asarray(rows)[fill]
@@ -80,21 +64,18 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     spare, first = ~fill, int(np.argmax(fill))  # (rows not read repeat the first one read)
     mask[spare] = mask[first]
 
-    if signals is None:
-        signals = signal_means(batch, read, w, k, reads)
-    else:
-        signals = {f: v[fill] for f, v in signals.items()}
-
-    def means(x):  # (read, k[, c]) -> (len(rows), k[, c]), the rows not read as the first
-        out = np.empty((len(rows),) + x.shape[1:])
-        out[fill] = x
-        out[spare] = x[0]
+    def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
+        x = np.asarray(x)
+        s = window_means(x, batch_mask, read, w, k)
+        out = np.empty((len(rows),) + s.shape[1:])
+        out[fill] = s
+        out[spare] = s[0]
         return out
 
     def times(t):  # a window's time: its first sample's, plus half its span
         t = np.asarray(t)
         if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
-            return means(window_means(t, batch_mask, read, w, k))
+            return means(t)
         out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
         start = t[read, :m:w]
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
@@ -104,29 +85,27 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         out[spare] = out[first]
         return out
 
-    kw = {f: means(signals[f]) if f in signals else None
-          for f in ("temp", "temp_ext", "accel", "mag")}
+    kw = {f: None if getattr(batch, f) is None or f not in reads else
+          means(getattr(batch, f)) for f in ("temp", "temp_ext", "accel", "mag")}
     return Batch(t=times(batch.t), gyro=np.asarray(mean, float), mask=mask, n_valid=mask.sum(axis=1),
                  devices=tuple(batch.devices[i] for i in rows) if batch.devices else (),
-                 aux={a: means(signals[f"aux:{a}"]) for a in batch.aux if f"aux:{a}" in signals},
-                 **kw)
+                 aux={a: means(v) for a, v in batch.aux.items() if f"aux:{a}" in reads}, **kw)
 
 
 def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
                  stats: Float[np.ndarray, "r k 3 3"], todo: Bool[np.ndarray, " r"],
-                 reads: frozenset[str], signals: dict[str, np.ndarray] | None = None) -> Batch:
+                 reads: frozenset[str]) -> Batch:
     """The devices ``rows`` of ``batch`` (in windows of ``w`` samples, their ``stats``) at
     the means of each half window (:func:`windows`), of the devices ``todo``: what a model
     reading ``reads`` is evaluated at. The gyro's half-window means are the window mean ±
     half the half-window difference. It needs no fitted model: a fit reads it beside its
-    solve (:func:`diffgyro.motion.check_ahead`). ``signals``: the signals' half-window
-    means of every device of ``rows``, where already read (:func:`signal_means`)."""
+    solve (:func:`diffgyro.motion.check_ahead`)."""
     r, k = stats.shape[:2]
     mean, half = stats[:, :, 0], 0.5 * stats[:, :, 2]
     gyro = np.empty((r, k, 2, 3))
     np.add(mean, half, out=gyro[:, :, 0], dtype=float)
     np.subtract(mean, half, out=gyro[:, :, 1], dtype=float)
-    return windows(batch, rows, w // 2, 2 * k, todo, gyro.reshape(r, 2 * k, 3), reads, signals)
+    return windows(batch, rows, w // 2, 2 * k, todo, gyro.reshape(r, 2 * k, 3), reads)
 
 
 def explain_windows(batch: Batch, explanation: Explanation, rows: Int[np.ndarray, " r"], w: int,
@@ -169,5 +148,4 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     return stats, noise
 
 
-__all__ = ["Explanation", "explain_windows", "half_windows", "signal_means", "windows",
-           "explained"]
+__all__ = ["Explanation", "explain_windows", "half_windows", "windows", "explained"]

@@ -53,7 +53,6 @@ import functools
 import math
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import equinox as eqx
 import jax
@@ -80,7 +79,7 @@ from ._motion_constants import (
 from ._motion_windows import Layout, layout
 from ._rest_stretches import rest_stretches
 from ._vocabulary import MAX_INTERVALS, VERDICT_NAMES
-from ._window_explain import Explanation, explain_windows, half_windows, signal_means
+from ._window_explain import Explanation, explain_windows, half_windows
 from ._window_stats import window_stats
 
 #: Verdicts, in :attr:`Motion.verdict`.
@@ -651,27 +650,19 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     rate = None if batch.rate is None else np.asarray(batch.rate)
     accel = np.asarray(batch.accel) if use_accel else None
 
-    beside = ThreadPoolExecutor(1, thread_name_prefix="diffgyro-motion-signals")
-
     def read():
         try:
             for key, idx in groups.items():
-                rows = _pad(idx, lays[key].shape[0])
-                # the signals' half-window means need no window statistics: read beside them
-                signals = None if reads is None else beside.submit(
-                    signal_means, batch, rows, key[0] // 2, 2 * lays[key].shape[1], reads)
                 stats, acc = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
                 todo = at = None
                 if reads is not None:
                     todo = _explained_rows(stats, len(idx))
-                    at = half_windows(batch, rows, key[0], stats[0], todo, reads,
-                                      signals.result()) \
+                    rows = _pad(idx, lays[key].shape[0])
+                    at = half_windows(batch, rows, key[0], stats[0], todo, reads) \
                         if todo.any() else None
                 out[key] = (stats, acc, todo, at)
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
-        finally:
-            beside.shutdown(wait=False)
 
     thread = threading.Thread(target=read, name="diffgyro-motion-ahead", daemon=True)
     thread.start()
