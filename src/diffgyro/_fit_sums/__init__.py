@@ -46,6 +46,8 @@ the group program stops at the sums and the finish (:func:`.finish.finish`: solv
 covariance, rank check, status; small dense algebra) is a program of its own,
 compiled without optimisation on a thread while the group program compiles: the
 model-discovery loop compiles a program per spec, and each kernel costs compile time.
+A small batch (:data:`diffgyro._xla_options.SMALL_WORK`) takes one program, its finish
+inline, compiled without optimisation (:data:`.programs.group_small`).
 
 The package, one part per file: :mod:`.layout` (which columns and products a model
 needs), :mod:`.sums` (blocked per-fold sums), :mod:`.normal_equations` (solves from
