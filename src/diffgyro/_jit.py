@@ -32,6 +32,7 @@ import jax
 
 from . import _jax_setup
 from ._program_cache import program
+from ._xla_options import ONCE, SMALL_WORK
 
 
 def filter_jit(fun: Callable[..., Any] | None = None, *,
@@ -90,6 +91,31 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     call.compile_ahead = _compile_ahead(fun.__name__, lower)  # type: ignore[attr-defined]
     call.eval_shape = eval_shape  # type: ignore[attr-defined]
     return call
+
+
+def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None = None,
+            persistent: bool | None = None) -> Callable[[int], Callable[..., Any]]:
+    """``fun`` compiled (:func:`filter_jit`) for the size of the batch it runs: a function of
+    the batch's samples (devices × samples, or series × samples) that gives the program
+    compiled with ``compiler_options``, or for a batch of at most
+    :data:`~diffgyro._xla_options.SMALL_WORK` the one compiled without optimisation
+    (:data:`~diffgyro._xla_options.ONCE`): it compiles in a fraction of the time, and at
+    that size runs in milliseconds either way.
+
+    **Arguments:**
+
+    - ``fun``: the function to compile.
+    - ``compiler_options``: XLA's options for a larger batch (:func:`filter_jit`).
+    - ``persistent``: whether the traced programs are kept on disk (:func:`filter_jit`).
+    """
+    large = filter_jit(fun, compiler_options=compiler_options, persistent=persistent)
+    small = filter_jit(fun, compiler_options={**(compiler_options or {}), **ONCE},
+                       persistent=persistent)
+
+    def for_work(samples: int) -> Callable[..., Any]:
+        return small if samples <= SMALL_WORK else large
+
+    return for_work
 
 
 def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread]:

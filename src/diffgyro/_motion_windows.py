@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Bool, Float
 
-from ._jit import filter_jit
+from ._jit import by_work, filter_jit
 from ._motion_constants import (
     ACCEL_FLOOR,
     BLOCK_WINDOWS,
@@ -28,7 +28,7 @@ from ._motion_constants import (
     STRETCH_CHUNK,
     TILT_FLOOR,
 )
-from ._xla_options import FAST_COMPILE, ONCE, SMALL_WORK
+from ._xla_options import FAST_COMPILE
 from .data import device_bucket
 
 
@@ -320,13 +320,11 @@ def _vmapped(gyro, accel, w: int, b: int):
 
 
 
-#: The check of a large batch, of a small (padded) one and of a tiny one: a small batch's
-#: check runs in milliseconds, and compiles in about 60 % of the time with XLA's loop
-#: emitters; a tiny one's (the samples of its layout at most
-#: :data:`~diffgyro._xla_options.SMALL_WORK`) in about a third of that without optimisation.
+#: The check of a large batch, and of a small (padded) one for its size
+#: (:func:`~diffgyro._jit.by_work`): a small batch's check runs in milliseconds, and
+#: compiles in about 60 % of the time with XLA's loop emitters.
 _check = filter_jit(_vmapped)
-_check_small = filter_jit(_vmapped, compiler_options=FAST_COMPILE)
-_check_tiny = filter_jit(_vmapped, compiler_options=ONCE)
+_check_small = by_work(_vmapped, compiler_options=FAST_COMPILE)
 
 
 class Layout(NamedTuple):
@@ -342,10 +340,7 @@ class Layout(NamedTuple):
 
     @property
     def check(self):
-        if not self.padded:
-            return _check
-        return (_check_tiny if self.shape[0] * self.shape[1] * self.w <= SMALL_WORK
-                else _check_small)
+        return _check_small(self.shape[0] * self.shape[1] * self.w) if self.padded else _check
 
 
 def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:

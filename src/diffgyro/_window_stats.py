@@ -152,7 +152,7 @@ def window_means(x: Float[np.ndarray, "d n *c"], mask: Bool[np.ndarray, "d n"],
         part = np.where(valid.reshape(valid.shape + (1,) * (part.ndim - 2)), part, 0.0)
     s = windowed_sums(part, h, k)
     safe = np.maximum(counts, 1.0)
-    return held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
+    return _held(s / safe.reshape(safe.shape + (1,) * (s.ndim - 2)), counts > 0)
 
 
 def windowed_sums(x: np.ndarray, h: int, k: int) -> np.ndarray:
@@ -168,7 +168,7 @@ def windowed_sums(x: np.ndarray, h: int, k: int) -> np.ndarray:
     return out
 
 
-def held(x: np.ndarray, has: Bool[np.ndarray, "r m"]) -> np.ndarray:
+def _held(x: np.ndarray, has: Bool[np.ndarray, "r m"]) -> np.ndarray:
     """``x`` (rows, m, ...) with the entries without ``has`` holding the nearest earlier
     one (the first one, before any)."""
     if has.all():
@@ -188,5 +188,5 @@ def _compiled(samples: int) -> bool:
     return _loaded
 
 
-__all__ = ["window_stats", "window_means", "windowed_sums", "held", "spread_quantile",
+__all__ = ["window_stats", "window_means", "windowed_sums", "spread_quantile",
            "COMPILED_SAMPLES"]

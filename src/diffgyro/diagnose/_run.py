@@ -20,10 +20,9 @@ import numpy as np
 from .. import _aux as aux_cols
 from .. import _noise as noise
 from .. import allan as allan_mod
-from .._jit import filter_jit, release_compiled_if_crowded
+from .._jit import by_work, release_compiled_if_crowded
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
-from .._xla_options import ONCE, SMALL_WORK
 from ..channel import GRAVITY, UNITS, as_channel, check_channel, reads_gravity
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
@@ -133,10 +132,8 @@ def _ranges_of(cands, inputs, dtemp_window):
     return jax.lax.map(one, inputs)
 
 
-#: :func:`_ranges_of` compiled, and for a small batch without optimisation
-#: (:data:`~diffgyro._xla_options.SMALL_WORK`).
-_ranges, _ranges_small = (filter_jit(persistent=True, compiler_options=o)(_ranges_of)
-                          for o in (None, ONCE))
+#: :func:`_ranges_of` compiled for a batch's size (:func:`~diffgyro._jit.by_work`).
+_ranges = by_work(_ranges_of, persistent=True)
 
 
 def _white_noise(batch: Batch) -> np.ndarray:
@@ -212,10 +209,9 @@ def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
     return jax.lax.map(one, (inputs, beta, theta, floors, idx, inside, dt0))
 
 
-#: :func:`_scores` compiled (the diagnosis engine), and for a small batch without
-#: optimisation (:data:`~diffgyro._xla_options.SMALL_WORK`).
-_engine, _engine_small = (filter_jit(persistent=True, compiler_options=o)(_scores)
-                          for o in (None, ONCE))
+#: :func:`_scores` compiled for a batch's size (the diagnosis engine,
+#: :func:`~diffgyro._jit.by_work`).
+_engine = by_work(_scores, persistent=True)
 
 
 def _median_steps(t: np.ndarray) -> np.ndarray:
@@ -246,7 +242,7 @@ def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
     window_s = _windows(res.options.dtemp_window)[1]
-    program = _ranges_small if n_dev * length <= SMALL_WORK else _ranges
+    program = _ranges(n_dev * length)
     ranges = [np.asarray(program(tuple(every), _inputs(batch, res, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
@@ -264,7 +260,7 @@ def _score(model, cands, batch, res, floors, aux: dict, say=lambda _text: None) 
     windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
     log_min_lag, window_s = _windows(opts.dtemp_window)
     dt0 = _median_steps(np.asarray(batch.t))
-    engine = _engine_small if n_dev * length <= SMALL_WORK else _engine
+    engine = _engine(n_dev * length)
     out = []
     for start, idx in _chunks(n_dev, size):
         say(f"scoring {len(cands)} candidate(s) on devices {start + 1}-{min(start + size, n_dev)} "

@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._jit import filter_jit
-from .._xla_options import FAST_COMPILE, ONCE, SMALL_WORK
+from .._jit import by_work, filter_jit
+from .._xla_options import FAST_COMPILE
 from ._block_likelihood import BLOCKS, CLOSE, choose_slow_many
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
@@ -165,12 +165,10 @@ def _identify_series(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     return jax.vmap(f)(wv_hat, count, n, dt)
 
 
-#: :func:`_identify_series` compiled, kept on disk (a later process skips the trace and the
-#: lowering); a large batch's with XLA's loop emitters (they compile in 80 % of the time,
-#: and it runs as fast), a small one's without optimisation
-#: (:data:`~diffgyro._xla_options.SMALL_WORK`).
-_identify_batch, _identify_small = (filter_jit(persistent=True, compiler_options=o)(_identify_series)
-                                    for o in (FAST_COMPILE, ONCE))
+#: :func:`_identify_series` compiled for a batch's size (:func:`~diffgyro._jit.by_work`),
+#: kept on disk (a later process skips the trace and the lowering); a large batch's with
+#: XLA's loop emitters (they compile in 80 % of the time, and it runs as fast).
+_identify_batch = by_work(_identify_series, compiler_options=FAST_COMPILE, persistent=True)
 
 
 @dataclass
@@ -396,7 +394,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     # for any batch
     step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
                1 << (max(total, 1) - 1).bit_length())
-    program = _identify_small if total * n <= SMALL_WORK else _identify_batch
+    program = _identify_batch(total * n)
     parts = []
     for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
