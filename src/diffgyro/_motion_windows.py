@@ -53,7 +53,7 @@ def _masked_quantile(x, valid, q: float, axis: int = 0):
     along ``axis``, NaN where none: for a few values (up to 16) a sorting network of
     elementwise min/max, else one integer sort (XLA on CPU sorts integers several times
     faster than floats, whose comparator must also order NaN)."""
-    n = _sum(valid.astype(jnp.int32), axis, keepdims=True)
+    n = jnp.sum(valid, axis=axis, keepdims=True)
     h = q * (jnp.maximum(n, 1) - 1).astype(x.dtype)
     lo = jnp.floor(h).astype(jnp.int32)
     hi = jnp.minimum(lo + 1, jnp.maximum(n - 1, 0)).astype(jnp.int32)
@@ -114,8 +114,7 @@ def _baseline(mean, use, valid, b: int):
     # past the recording's end (padding), the line through its last two blocks: the last
     # block's second half is then extrapolated as without the padding, so a device's
     # baseline does not depend on the length of the batch it is checked in
-    data = _sum(jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b).astype(jnp.int32),
-                1) > 0
+    data = jnp.any(jnp.concatenate([valid, jnp.zeros((pad,), bool)]).reshape(kb, b), axis=1)
     end = jnp.max(jnp.where(data, idx, 0))
     line = 2.0 * med[end] - med[jnp.maximum(end - 1, 0)]
     med = jnp.where((idx > end)[:, None], line[None, :], med)
@@ -129,16 +128,15 @@ def _baseline(mean, use, valid, b: int):
     pos = (np.arange(k).astype(dtype) + dtype.type(0.5)) / dtype.type(b) - dtype.type(0.5)
     j = np.clip(np.floor(pos).astype(np.int32), 0, kb - 2)
     frac = jnp.asarray((pos - j.astype(dtype))[:, None])
+    blocks = np.arange(kb)
     second = (np.arange(b) >= b // 2)[None, :, None]
 
-    def spread(first, second_half):  # a block value per window, by the half it lies in
-        v = jnp.where(second, second_half[:, None, :], first[:, None, :])
+    def spread(jb_first, jb_second):  # med[j] per window, j per block and half
+        v = jnp.where(second, med[jb_second][:, None, :], med[jb_first][:, None, :])
         return v.reshape(kb * b, -1)[:k]
 
-    # j per block is B − 1 in its first half and B in its second, clipped to 0 … kb − 2:
-    # shifted slices of the block values (XLA's gathers of constant indices run slower)
-    lo = spread(jnp.concatenate([med[:1], med[:-1]]), jnp.concatenate([med[:-1], med[-2:-1]]))
-    hi = spread(jnp.concatenate([med[1:2], med[1:]]), jnp.concatenate([med[1:], med[-1:]]))
+    first_j, second_j = np.clip(blocks - 1, 0, kb - 2), np.clip(blocks, 0, kb - 2)
+    lo, hi = spread(first_j, second_j), spread(first_j + 1, second_j + 1)
     return lo + frac * (hi - lo)
 
 
