@@ -97,6 +97,8 @@ def main(argv=None) -> int:
     ap.add_argument("--cases", type=str, default=None, help="comma-separated case indices")
     ap.add_argument("--slow-part", action="store_true",
                     help="choose the slow part again by the block means' likelihood (identify's step 5)")
+    ap.add_argument("--chi2", action="store_true",
+                    help="with --slow-part: the χ² rule alone (no bootstrap of its close calls)")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
 
@@ -117,7 +119,8 @@ def main(argv=None) -> int:
         y = np.stack([np.stack([generate(rng, n, dt, tr) for tr in truths])
                       for _ in range(args.seeds)])  # (seeds, 3, n)
         t0 = time.perf_counter()
-        res = identify(y, dt, slow_penalty=SLOW_PENALTY if args.slow_part else None)
+        res = identify(y, dt, slow_penalty=SLOW_PENALTY if args.slow_part else None,
+                       slow_bootstrap=not args.chi2)
         t_id += time.perf_counter() - t0
         right, cover, wrong = 0, {}, {}
         err: dict[str, list] = {}

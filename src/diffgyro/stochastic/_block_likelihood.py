@@ -45,6 +45,8 @@ import math
 
 import numpy as np
 
+from ._slow_bootstrap import Settle, settle
+
 #: Blocks of a record at least (the block length b = n // BLOCKS samples, at least 1): fewer
 #: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their square.
 BLOCKS = 256
@@ -156,6 +158,23 @@ class BlockLikelihood:
         from ._toeplitz import toeplitz_deviance  # numba: compiled on first use
         self._deviance = toeplitz_deviance
 
+    @classmethod
+    def of_differences(cls, ds: np.ndarray, b: int, dt: float) -> "BlockLikelihood":
+        """The likelihood of given block-mean differences ``ds`` (S, M) of blocks of ``b``
+        samples every ``dt`` seconds (one row each): the bootstrap's draws."""
+        from ._toeplitz import toeplitz_deviance
+
+        self = cls.__new__(cls)
+        self.ds = np.atleast_2d(np.asarray(ds, np.float64))
+        count, self.m = self.ds.shape
+        self.bs = np.full(count, int(b))
+        self.dts = np.full(count, float(dt))
+        self.units = np.broadcast_to(short_acov(int(b), float(dt), self.m), (count, 3, self.m))
+        self.d, self.b, self.dt, self.unit = self.ds[0], int(b), float(dt), self.units[0]
+        self.w = periodogram(np.zeros(self.m))[1]
+        self._deviance = toeplitz_deviance
+        return self
+
     def _gm(self, log_t, rows):
         """(c, ∂c/∂log T) (C, M) of unit-variance Gauss–Markov processes of times exp(log_t)
         (C,) in the series ``rows`` (C,)."""
@@ -256,20 +275,24 @@ def _slots(mask):
 
 def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick: int,
                 theta_all: np.ndarray, long_time: float, penalty: float = PENALTY,
-                blocks: int = BLOCKS) -> dict:
+                blocks: int = BLOCKS, bootstrap: bool = True) -> dict:
     """The candidate of least ``−2 log L + penalty × k`` among those that keep the chosen
     one's fast part (its white noise, quantization and the Gauss–Markov processes with T
     below :data:`FAST_BLOCKS` blocks) and differ in the slow part only: Gauss–Markov
     processes with T between that and ``long_time``, a random walk, a ramp. The fast part
     starts from the chosen fit and stays fast; the slow part starts from each candidate's
     own wavelet-variance fit and from the low frequencies' level, the better kept.
-    Returns ``pick`` and, per candidate, ``deviance`` and ``criterion`` (NaN off the set)."""
+    ``bootstrap``: the close calls settled by the statistic's drawn law
+    (:mod:`.slow_bootstrap`). Returns ``pick`` and, per candidate, ``deviance`` and
+    ``criterion`` (NaN off the set), and ``tests`` (the bootstrap tests made)."""
     return choose_slow_many(np.asarray(y)[None], [n_valid], [dt], masks, [pick],
-                            np.asarray(theta_all)[None], [long_time], penalty, blocks)[0]
+                            np.asarray(theta_all)[None], [long_time], penalty, blocks,
+                            bootstrap)[0]
 
 
 def choose_slow_many(y: np.ndarray, n_valid, dt, masks: np.ndarray, picks, theta_all: np.ndarray,
-                     long_time, penalty: float = PENALTY, blocks: int = BLOCKS) -> list[dict]:
+                     long_time, penalty: float = PENALTY, blocks: int = BLOCKS,
+                     bootstrap: bool = True) -> list[dict]:
     """:func:`choose_slow` of every series ``y`` (S, n) (``n_valid``, ``dt``, ``picks``,
     ``long_time`` (S,); ``theta_all`` (S, K, 8)): the series with the same number of
     blocks refitted side by side (one Levenberg–Marquardt loop over all their candidates)."""
@@ -282,22 +305,45 @@ def choose_slow_many(y: np.ndarray, n_valid, dt, masks: np.ndarray, picks, theta
         lik = BlockLikelihood(np.asarray(y)[group], nv[group], np.asarray(dt, np.float64)[group], blocks)
         sets = [_candidates(lik, r, int(nv[i]), masks, int(picks[i]),
                             np.asarray(theta_all[i], np.float64)) for r, i in enumerate(group)]
-        rows = np.concatenate([np.full(len(c[0]), r) for r, c in enumerate(sets)])
-        th, dev = lik.fit(*(np.concatenate([c[k] for c in sets]) for k in (1, 2, 3, 4, 5)),
-                          rows=rows)
+        rows = np.concatenate([np.full(len(c[1]), r) for r, c in enumerate(sets)])
+        th_x, dev_x = lik.fit(*(np.concatenate([c[k] for c in sets]) for k in (1, 2, 3, 4, 5)),
+                              rows=rows)
         at = 0
         for r, i in enumerate(group):
-            alt = sets[r][0]
-            part = slice(at, at + len(alt))
-            at += len(alt)
-            out[i] = _chosen(masks, alt, th[part], dev[part], int(picks[i]), float(long_time[i]),
-                             penalty, np.shape(theta_all[i]), int(lik.bs[r]))
+            alt, owner = sets[r][0], sets[r][6]
+            part = slice(at, at + len(owner))
+            at += len(owner)
+            th, dev = _best_start(th_x[part], dev_x[part], owner, sets[r][2], float(long_time[i]))
+            own = [v[:len(alt)] for v in sets[r][2:6]]  # masks, lo, hi, free per candidate
+            st = (Settle(lik, r, th, dev, *own, float(long_time[i]), penalty)
+                  if bootstrap else None)
+            out[i] = _chosen(masks, alt, th, dev, int(picks[i]), float(long_time[i]),
+                             penalty, np.shape(theta_all[i]), int(lik.bs[r]), st)
     return out
+
+
+def _best_start(th, dev, owner, masks, long_time):
+    """(θ, −2 log L) per candidate from its starts' refits (``owner``: the candidate of each
+    refit, the first one each in order; ``masks`` per refit): the best within the record's
+    share of Gauss–Markov times, else the best."""
+    long = np.array([any(t[it] > math.log(long_time) for _, it in _slots(masks[o]))
+                     for t, o in zip(th, owner)])
+    count = int(np.max(owner)) + 1
+    th_b, dev_b = th[:count].copy(), dev[:count].copy()
+    for x in range(count, len(owner)):
+        o = owner[x]
+        long_o = any(th_b[o][it] > math.log(long_time) for _, it in _slots(masks[o]))
+        if (not long[x] and (long_o or dev[x] < dev_b[o])) or (long[x] and long_o and dev[x] < dev_b[o]):
+            th_b[o], dev_b[o] = th[x], dev[x]
+    return th_b, dev_b
 
 
 def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray, pick: int,
                 theta_all: np.ndarray):
-    """(alt, starts, masks, lo, hi, free) of :func:`choose_slow`'s candidates of series ``row``."""
+    """(alt, starts, masks, lo, hi, free, owner) of :func:`choose_slow`'s candidates of series
+    ``row``: one start per candidate (``alt``, in order), then a second start of the slowest
+    Gauss–Markov time for those whose first came from their wavelet-variance fit (``owner``:
+    the candidate of each start; ``masks``, ``lo``, ``hi``, ``free`` per candidate)."""
     b, dt = int(lik.bs[row]), float(lik.dts[row])
     record = n_valid * dt
     fast_time = FAST_BLOCKS * b * dt
@@ -314,8 +360,8 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
     slow_t0 = max(2.0 * fast_time, 0.02 * record)
     unit_gm = float(np.mean(expected_periodogram(
         lik._gm(np.array([math.log(slow_t0)]), np.array([row]))[0][0])[low]))
-    starts, lo, hi, free = [], [], [], []
-    for i in alt:
+    starts, lo, hi, free, second = [], [], [], [], []
+    for x, i in enumerate(alt):
         th_i = theta_all[i]
         a = np.full(8, -150.0)
         a[[0, 1]] = th_s[[0, 1]]
@@ -337,22 +383,36 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
         lo.append(lo_i)
         hi.append(hi_i)
         free.append(free_i)
-    return alt, np.array(starts), masks[alt], np.array(lo), np.array(hi), np.array(free)
+        if len(slots) > len(fast) and len(own_slow) >= len(slots) - len(fast):
+            iv, it = slots[-1]  # the slowest process again, from the low frequencies' level
+            a2 = a.copy()
+            a2[iv], a2[it] = math.log(0.5 * level / unit_gm), math.log(slow_t0)
+            second.append((x, a2))
+    owner = np.array(list(range(len(alt))) + [x for x, _ in second], int)
+    starts += [a2 for _, a2 in second]
+    lo, hi, free = (np.array(v)[owner] for v in (lo, hi, free))
+    return alt, np.array(starts), masks[alt][owner], lo, hi, free, owner
 
 
-def _chosen(masks, alt, th, dev, pick, long_time, penalty, shape, block) -> dict:
-    """:func:`choose_slow`'s answer from its candidates' refits."""
+def _chosen(masks, alt, th, dev, pick, long_time, penalty, shape, block, st=None) -> dict:
+    """:func:`choose_slow`'s answer from its candidates' refits; ``st``: the close calls'
+    bootstrap (:class:`.slow_bootstrap.Settle`), or None."""
     k = masks[alt].sum(axis=1)
     crit = dev + penalty * k
     long = np.array([any(th[r][it] > math.log(long_time) for _, it in _slots(masks[i]))
                      for r, i in enumerate(alt)])
     crit_ok = np.where(np.isfinite(crit) & ~long, crit, np.inf)
-    best = int(alt[int(np.argmin(crit_ok))]) if np.isfinite(crit_ok).any() else int(pick)
+    best = int(pick)
+    if np.isfinite(crit_ok).any():
+        first = int(np.argmin(crit_ok))
+        best = int(alt[settle(st, first, crit_ok) if st is not None else first])
     dev_all = np.full(masks.shape[0], np.nan)
     crit_all = np.full(masks.shape[0], np.nan)
     dev_all[alt] = dev
     crit_all[alt] = np.where(long, np.nan, crit)
     theta_w = np.full(shape, np.nan)
     theta_w[alt] = th
+    tests = [] if st is None else [{**t, "simpler": int(alt[t["simpler"]]),
+                                    "richer": int(alt[t["richer"]])} for t in st.tests]
     return {"pick": best, "deviance": dev_all, "criterion": crit_all, "theta": theta_w,
-            "block": block}
+            "block": block, "tests": tests}

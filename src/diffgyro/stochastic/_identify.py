@@ -356,7 +356,7 @@ def components_of(theta, cov, mask) -> list[dict]:
 
 
 def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
-             slow_penalty: float | None = None) -> NoiseModels:
+             slow_penalty: float | None = None, slow_bootstrap: bool = True) -> NoiseModels:
     """Identify the stochastic model of every series ``y`` (..., n) in rad/s sampled every ``dt``
     seconds (scalar or per series); ``n_valid``: real samples of each padded series;
     ``structures``: the candidates (default :func:`~.selection.catalogue`), each with white
@@ -373,6 +373,9 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
       (step 5), with this criterion per parameter (:data:`SLOW_PENALTY`: a test at 1 %);
       None (default) skips it: it decides the slow components better on long records
       with several of them, at about the cost of the rest of identify again.
+    - ``slow_bootstrap``: with ``slow_penalty``, the close calls between slow structures
+      settled by a parametric bootstrap of the likelihood ratio
+      (:mod:`.slow_bootstrap`); False keeps the χ² rule alone.
     """
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
@@ -408,7 +411,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     slow = np.full((total, len(structures)), np.nan)
     if slow_penalty is not None:
         slow = _choose_slow(np.asarray(y).reshape(total, n), args, out, masks, m, step,
-                            float(penalty), float(slow_penalty))
+                            float(penalty), float(slow_penalty), slow_bootstrap)
     out = {k: v.reshape(lead + v.shape[1:]) for k, v in out.items()}
     tau = m[None, :] * dtb.reshape(-1, 1)
     return NoiseModels(structures=structures, masks=masks, tau=tau.reshape(lead + (len(m),)),
@@ -420,7 +423,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
                        slow_criterion=slow.reshape(lead + (len(structures),)))
 
 
-def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty):
+def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty, bootstrap=True):
     """Per series, the slow part chosen by the block-mean likelihood
     (:func:`.block_likelihood.choose_slow_many`); ``out`` (flat over series) updated in place where
     the choice changed, the chosen model's intervals recomputed. Returns the likelihood
@@ -433,7 +436,8 @@ def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty):
     if idx.size:
         answers = choose_slow_many(y[idx], nv[idx].astype(np.int64), dtb[idx], masks,
                                    out["pick"][idx], out["theta_all"][idx],
-                                   LONG_SHARE * nv[idx] * dtb[idx], slow_penalty)
+                                   LONG_SHARE * nv[idx] * dtb[idx], slow_penalty,
+                                   bootstrap=bootstrap)
         for i, res in zip(idx, answers):
             crit[i] = res["criterion"]
             if res["pick"] != out["pick"][i]:
