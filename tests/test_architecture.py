@@ -511,6 +511,7 @@ PRIVATE_UNDER_TEST = {
     "test_synthesis.py": {"diffgyro.diagnose._synthesis"},  # its claims table
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
     "test_block_likelihood.py": {"diffgyro.stochastic._toeplitz"},  # the O(M²) deviance
+    "test_slow_bootstrap.py": {"diffgyro.stochastic._slow_bootstrap"},  # the drawn law
     # open elsewhere when diffgyro.internal came
     "test_diagnose.py": {"diffgyro._temperature", "diffgyro.effects._common"},
     "test_sharding.py": {"diffgyro.pipeline._chunkfit", "diffgyro._fit_sums"},
