@@ -41,6 +41,7 @@ import math
 
 import numpy as np
 from jaxtyping import Float
+from scipy.linalg import cholesky, solve_toeplitz, toeplitz
 
 #: Level of each test (the χ²₁ penalty's).
 LEVEL = 0.01
@@ -67,8 +68,6 @@ def simulate(c: Float[np.ndarray, " m"], mean: float, draws: int,
              rng: np.random.Generator) -> Float[np.ndarray, "draws m"]:
     """``draws`` series of M block-mean differences with autocovariance ``c`` (M,) and mean
     ``mean`` (the Cholesky factor of the Toeplitz covariance)."""
-    from scipy.linalg import cholesky, toeplitz
-
     chol = cholesky(toeplitz(c), lower=True)
     return mean + rng.standard_normal((draws, c.shape[0])) @ chol.T
 
@@ -76,8 +75,6 @@ def simulate(c: Float[np.ndarray, " m"], mean: float, draws: int,
 def gls_mean(c: Float[np.ndarray, " m"], d: Float[np.ndarray, " m"]) -> float:
     """The generalised least-squares mean of ``d`` under the Toeplitz covariance of ``c``: a
     ramp's fitted mean of the differences."""
-    from scipy.linalg import solve_toeplitz
-
     w = solve_toeplitz(c, np.ones_like(d))
     return float(w @ d / w.sum())
 
