@@ -305,45 +305,24 @@ def choose_slow_many(y: np.ndarray, n_valid, dt, masks: np.ndarray, picks, theta
         lik = BlockLikelihood(np.asarray(y)[group], nv[group], np.asarray(dt, np.float64)[group], blocks)
         sets = [_candidates(lik, r, int(nv[i]), masks, int(picks[i]),
                             np.asarray(theta_all[i], np.float64)) for r, i in enumerate(group)]
-        rows = np.concatenate([np.full(len(c[1]), r) for r, c in enumerate(sets)])
-        th_x, dev_x = lik.fit(*(np.concatenate([c[k] for c in sets]) for k in (1, 2, 3, 4, 5)),
-                              rows=rows)
+        rows = np.concatenate([np.full(len(c[0]), r) for r, c in enumerate(sets)])
+        th, dev = lik.fit(*(np.concatenate([c[k] for c in sets]) for k in (1, 2, 3, 4, 5)),
+                          rows=rows)
         at = 0
         for r, i in enumerate(group):
-            alt, owner = sets[r][0], sets[r][6]
-            part = slice(at, at + len(owner))
-            at += len(owner)
-            th, dev = _best_start(th_x[part], dev_x[part], owner, sets[r][2], float(long_time[i]))
-            own = [v[:len(alt)] for v in sets[r][2:6]]  # masks, lo, hi, free per candidate
-            st = (Settle(lik, r, th, dev, *own, float(long_time[i]), penalty)
+            alt = sets[r][0]
+            part = slice(at, at + len(alt))
+            at += len(alt)
+            st = (Settle(lik, r, th[part], dev[part], *sets[r][2:], float(long_time[i]), penalty)
                   if bootstrap else None)
-            out[i] = _chosen(masks, alt, th, dev, int(picks[i]), float(long_time[i]),
+            out[i] = _chosen(masks, alt, th[part], dev[part], int(picks[i]), float(long_time[i]),
                              penalty, np.shape(theta_all[i]), int(lik.bs[r]), st)
     return out
 
 
-def _best_start(th, dev, owner, masks, long_time):
-    """(θ, −2 log L) per candidate from its starts' refits (``owner``: the candidate of each
-    refit, the first one each in order; ``masks`` per refit): the best within the record's
-    share of Gauss–Markov times, else the best."""
-    long = np.array([any(t[it] > math.log(long_time) for _, it in _slots(masks[o]))
-                     for t, o in zip(th, owner)])
-    count = int(np.max(owner)) + 1
-    th_b, dev_b = th[:count].copy(), dev[:count].copy()
-    for x in range(count, len(owner)):
-        o = owner[x]
-        long_o = any(th_b[o][it] > math.log(long_time) for _, it in _slots(masks[o]))
-        if (not long[x] and (long_o or dev[x] < dev_b[o])) or (long[x] and long_o and dev[x] < dev_b[o]):
-            th_b[o], dev_b[o] = th[x], dev[x]
-    return th_b, dev_b
-
-
 def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray, pick: int,
                 theta_all: np.ndarray):
-    """(alt, starts, masks, lo, hi, free, owner) of :func:`choose_slow`'s candidates of series
-    ``row``: one start per candidate (``alt``, in order), then a second start of the slowest
-    Gauss–Markov time for those whose first came from their wavelet-variance fit (``owner``:
-    the candidate of each start; ``masks``, ``lo``, ``hi``, ``free`` per candidate)."""
+    """(alt, starts, masks, lo, hi, free) of :func:`choose_slow`'s candidates of series ``row``."""
     b, dt = int(lik.bs[row]), float(lik.dts[row])
     record = n_valid * dt
     fast_time = FAST_BLOCKS * b * dt
@@ -360,8 +339,8 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
     slow_t0 = max(2.0 * fast_time, 0.02 * record)
     unit_gm = float(np.mean(expected_periodogram(
         lik._gm(np.array([math.log(slow_t0)]), np.array([row]))[0][0])[low]))
-    starts, lo, hi, free, second = [], [], [], [], []
-    for x, i in enumerate(alt):
+    starts, lo, hi, free = [], [], [], []
+    for i in alt:
         th_i = theta_all[i]
         a = np.full(8, -150.0)
         a[[0, 1]] = th_s[[0, 1]]
@@ -383,15 +362,7 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
         lo.append(lo_i)
         hi.append(hi_i)
         free.append(free_i)
-        if len(slots) > len(fast) and len(own_slow) >= len(slots) - len(fast):
-            iv, it = slots[-1]  # the slowest process again, from the low frequencies' level
-            a2 = a.copy()
-            a2[iv], a2[it] = math.log(0.5 * level / unit_gm), math.log(slow_t0)
-            second.append((x, a2))
-    owner = np.array(list(range(len(alt))) + [x for x, _ in second], int)
-    starts += [a2 for _, a2 in second]
-    lo, hi, free = (np.array(v)[owner] for v in (lo, hi, free))
-    return alt, np.array(starts), masks[alt][owner], lo, hi, free, owner
+    return alt, np.array(starts), masks[alt], np.array(lo), np.array(hi), np.array(free)
 
 
 def _chosen(masks, alt, th, dev, pick, long_time, penalty, shape, block, st=None) -> dict:

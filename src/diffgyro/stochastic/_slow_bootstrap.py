@@ -45,9 +45,9 @@ from scipy.linalg import cholesky, solve_toeplitz, toeplitz
 
 #: Level of each test (the χ²₁ penalty's).
 LEVEL = 0.01
-#: Draws of the statistic at most per test (with a p-value (1 + e)/(B + 1), B = 199 takes
-#: R at one exceedance or none).
-DRAWS = 199
+#: Draws of the statistic at most per test: the p-value (1 + e)/(B + 1) with B = 99 takes R
+#: where no draw reaches the record's statistic, and a test is stopped at its first exceedance.
+DRAWS = 99
 #: Draws per batch; the test stops once the exceedances rule R out.
 BATCH = 50
 #: A statistic beyond this many units per added parameter is no close call (the χ² rule
