@@ -7,6 +7,7 @@
 * :mod:`.estimator`: the GMWM fit of one structure;
 * :mod:`.selection`: the catalogue of structures and the criterion;
 * :mod:`.block_likelihood`: the slow part chosen by the exact likelihood of the block means;
+  :mod:`.slow_bootstrap`: its close calls settled by a parametric bootstrap;
 * :mod:`.intervals`: asymptotic confidence intervals;
 * :mod:`.resolution`: what a record resolves (Gauss–Markov times too short or too long for
   it, parameters it does not determine, the smallest walk it would see) and the units;

@@ -33,7 +33,8 @@ Each candidate is refitted by Levenberg–Marquardt steps (the exact gradient
 as the metric; the deviance and its gradient in O(M²) by the Durbin–Levinson recursion
 and the Gohberg–Semencul form of Σ⁻¹, :mod:`.toeplitz`) from its wavelet-variance estimate. The criterion is
 ``−2 log L + penalty × k``: a likelihood-ratio test of each added parameter at the
-level :data:`PENALTY` states. Only the slow part is chosen here (:func:`choose_slow`):
+level :data:`PENALTY` states; where that test is close, the statistic's law is drawn instead
+(:mod:`.slow_bootstrap`). Only the slow part is chosen here (:func:`choose_slow`):
 the white noise, quantization and the Gauss–Markov processes faster than
 :data:`FAST_BLOCKS` blocks, which the block means average into white noise, stay
 those of the wavelet-variance choice.

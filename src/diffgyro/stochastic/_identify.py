@@ -12,7 +12,8 @@ Per series (vmapped over devices × axes, one compiled program):
    Ω_ref as the weight and Σ at the chosen estimate;
 5. where asked (``slow_penalty``), outside the compiled program, per series: the slow
    part chosen again by the exact likelihood of the record's block means
-   (:mod:`.block_likelihood`), the intervals recomputed (step 4) where the choice moved.
+   (:mod:`.block_likelihood`; its close calls by a parametric bootstrap,
+   :mod:`.slow_bootstrap`), the intervals recomputed (step 4) where the choice moved.
 """
 
 from __future__ import annotations
