@@ -50,8 +50,9 @@ def noise_command(
                                    "(2: WVIC; default: the documented one).", show_default=False)] = None,
     slow_part: Annotated[bool, typer.Option(
         "--slow-part", help="Choose the slow components (a second Gauss–Markov process, a random "
-                            "walk, a ramp) again by the exact likelihood of the record's block means: "
-                            "better on long records with several of them; takes about twice as long.")] = False,
+                            "walk, a ramp) again by the exact likelihood of the record's block means, "
+                            "close calls by a parametric bootstrap: better on long records with "
+                            "several of them; takes two to three times as long.")] = False,
     columns: Columns = None,
     gyro_unit: GyroUnit = None,
     acc_unit: AccUnit = None,
