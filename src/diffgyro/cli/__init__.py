@@ -120,6 +120,7 @@ def _engine_first(command):
             _check_inputs(command, kwargs)
             if _progress.shown():  # a first run says once that it compiles
                 _jax_setup.on_new_program = _progress.compiling
+            _jax_setup.when_jax_imported(_jax_setup.lapack_tables_only)
             settings = _jax_setup.cache_settings()
             stored, _jax_setup.store_programs = _jax_setup.store_programs, bool(settings)
             try:
