@@ -204,8 +204,9 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None,
     - ``terms``: the numpy columns of terms registered outside diffgyro, by name (see the
       module's notes); None: built-in terms only.
     - ``kept``: a dict that this call fills with the columns of the terms that do not read
-      the rate (bias_poly, gradient, thermal_lag, ...) and a later call with the same ``spec``, ``dev`` and
-      ``env`` reads instead of building them again (the same arrays); None: none kept.
+      the rate (``bias_poly``, ``gradient``, ``thermal_lag``, ...) and a later call with
+      the same ``spec``, ``dev`` and ``env`` reads instead of building them again (the same
+      arrays); None: none kept.
     """
     cols, q = [], 0
     theta = np.asarray(dev["theta"], float)
