@@ -498,7 +498,8 @@ PRIVATE_UNDER_TEST = {
     "test_jsonio.py": {"diffgyro._jsonio"},
     "test_demo.py": {"diffgyro._demo"},
     "test_cli_progress.py": {"diffgyro.cli._progress"},
-    "test_stochastic.py": {"diffgyro.cli.noise"},  # the noise command's text table
+    # the noise command's text table; the identification's program loaded ahead
+    "test_stochastic.py": {"diffgyro.cli.noise", "diffgyro.stochastic._identify"},
     "test_report.py": {"diffgyro.report"},  # the report's private text helpers
     "test_diagnose_scoring.py": {"diffgyro.diagnose._scoring"},
     "test_fit_sums.py": {"diffgyro._fit_sums"},

@@ -213,3 +213,74 @@ def test_the_program_ends_at_once_with_its_output_and_exit_code(tmp_path):
     run = subprocess.run([sys.executable, "-m", "diffgyro", "effects"], capture_output=True,
                          text=True, cwd=tmp_path, timeout=60, check=False)
     assert run.returncode == 0 and "bias_poly" in run.stdout and run.stdout.endswith("\n")
+
+
+LAPACK_PROBE = """
+import json, sys
+import numpy as np
+from diffgyro import _jax_setup
+_jax_setup.when_jax_imported(_jax_setup.lapack_tables_only)
+import jax, jax.numpy as jnp
+jax.config.update("jax_enable_x64", True)
+a = np.array([[4.0, 1.0, 0.5], [1.0, 3.0, 0.2], [0.5, 0.2, 2.0]])
+chol = np.asarray(jnp.linalg.cholesky(jnp.asarray(a)))
+eig = np.asarray(jnp.linalg.eigh(jnp.asarray(a))[0])
+package = "scipy.linalg" in sys.modules
+import scipy.linalg, scipy.signal
+from scipy.linalg import cython_blas
+print(json.dumps({"package_before": package, "tables": [m in sys.modules for m in
+                  _jax_setup.LAPACK_TABLES],
+                  "chol": float(np.max(np.abs(chol @ chol.T - a))),
+                  "eig": float(np.max(np.abs(eig - np.linalg.eigvalsh(a)))),
+                  "scipy": float(np.max(np.abs(scipy.linalg.cholesky(a, lower=True) - chol))),
+                  "lfilter": scipy.signal.lfilter([1.0], [1.0, -0.5], [1.0, 0.0]).tolist(),
+                  "same": cython_blas is sys.modules["scipy.linalg.cython_blas"]}))
+"""
+
+
+def test_lapack_starts_without_scipy_linalg():
+    """A command's first factorisation loads scipy's two BLAS and LAPACK tables, not the
+    package ``scipy.linalg`` (0.14 s of its start); JAX's factorisations are right, and a
+    later ``import scipy.linalg`` (and scipy.signal, which uses it) works as usual, with
+    the same table modules."""
+    out = subprocess.run([sys.executable, "-c", LAPACK_PROBE], capture_output=True, text=True,
+                         timeout=120, check=True).stdout
+    seen = json.loads(out.splitlines()[-1])
+    assert seen["package_before"] is False and seen["tables"] == [True, True]
+    assert seen["chol"] < 1e-14 and seen["eig"] < 1e-13 and seen["scipy"] < 1e-15
+    assert seen["lfilter"] == [1.0, 0.5] and seen["same"] is True
+
+
+ONE_COMMAND_PROBE = """
+import json, sys
+from diffgyro import cli
+code = cli.main({argv!r}, one_command=True)
+print(json.dumps([code, sorted(m.rsplit(".", 1)[1] for m in sys.modules
+                               if m.startswith("diffgyro.cli.") and "._" not in m)]),
+      file=sys.stderr)
+"""
+
+
+def test_a_process_registers_only_the_command_it_runs(tmp_path):
+    """``python -m diffgyro COMMAND`` imports that command's module alone (building the
+    others took 0.04-0.07 s of every start); help, a root option first or a misspelt
+    command load them all, and a command's help reads the same either way."""
+
+    def run(argv):
+        done = subprocess.run([sys.executable, "-c", ONE_COMMAND_PROBE.format(argv=argv)],
+                              capture_output=True, text=True, cwd=tmp_path, timeout=60)
+        return json.loads(done.stderr.strip().splitlines()[-1]), done.stdout
+
+    every = sorted(["allan", "compensate", "demo", "diagnose", "effects", "export", "fit",
+                    "noise", "recipe", "simulate"])
+    assert run(["effects"])[0] == [0, ["effects"]]
+    assert run(["demo", "--help"])[0] == [0, ["demo", "diagnose"]]  # demo prints diagnose's tables
+    (code, loaded), out = run(["--help"])
+    assert code == 0 and loaded == every and all(f"  {c}" in out for c in every)
+    assert run(["-q", "effects"])[0] == [0, every]
+    assert run(["fitt", "x.csv"])[0] == [2, every]
+    alone = run(["fit", "--help"])[1]
+    everything = subprocess.run([sys.executable, "-c", "from diffgyro.cli import main; "
+                                 "main(['fit', '--help'])"], capture_output=True, text=True,
+                                cwd=tmp_path, timeout=60).stdout
+    assert alone == everything and "--model" in alone

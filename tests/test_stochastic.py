@@ -412,3 +412,33 @@ def test_structures_the_record_hardly_tells_apart_are_stated(identified_slow):
     assert [c["structure"] for c in r["close"]] == [label(res.structures[near])]
     assert r["close"][0]["likelihood_delta"] == pytest.approx(1.0)
     assert any(label(res.structures[near]) in n and "hardly tells" in n for n in r["notes"])
+
+
+class _Called(Exception):
+    """Raised by the spy below once it has seen the program's arguments."""
+
+
+@pytest.mark.parametrize("series,n,max_gm", [(3, 12000, 2), (11, 700, 1)])
+def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series, n, max_gm):
+    """``noise`` loads the identification's program on a thread while it checks the devices
+    for motion (:func:`diffgyro.stochastic.identify_ahead`): the arguments it loads it for
+    have the shapes, dtypes and weak types of those :func:`identify` then calls it with (else
+    it would load a second program), for a chunk under the batch and one over it."""
+    from diffgyro.stochastic import _identify, catalogue
+
+    seen = []
+
+    def spy(samples):
+        def call(*args):
+            seen.append([(a.shape, np.dtype(a.dtype), bool(getattr(a, "weak_type", False)))
+                         for a in args[:-1]] + [args[-1]])
+            raise _Called
+        return call
+
+    monkeypatch.setattr(_identify, "_identify_batch", spy)
+    y = np.random.default_rng(1).standard_normal((series, n)) * 1e-3
+    with pytest.raises(_Called):
+        identify(y, 0.1, structures=catalogue(max_gm))
+    specs = _identify.chunk_specs(series, n, catalogue(max_gm))
+    assert seen == [[(s.shape, np.dtype(s.dtype), s.weak_type) for s in specs]
+                    + [len(dyadic_m(n))]]

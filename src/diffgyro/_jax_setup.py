@@ -10,6 +10,7 @@ running, so whichever code imports JAX first gets them. No JAX here.
 
 from __future__ import annotations
 
+import importlib.machinery
 import importlib.util
 import os
 import sys
@@ -127,3 +128,43 @@ def when_jax_imported(callback: Callable) -> None:
     _AFTER_IMPORT.append(callback)
     if not any(isinstance(f, _JaxImportFinder) for f in sys.meta_path):
         sys.meta_path.insert(0, _JaxImportFinder())
+
+
+#: The two modules of scipy whose tables of BLAS and LAPACK functions jaxlib's CPU kernels
+#: read (:func:`lapack_tables_only`).
+LAPACK_TABLES = ("scipy.linalg.cython_blas", "scipy.linalg.cython_lapack")
+
+
+def lapack_tables_only(jax=None) -> None:
+    """Load scipy's BLAS and LAPACK function tables (two compiled modules) without the
+    rest of ``scipy.linalg``.
+
+    The first program with a factorisation that a process lowers or loads (every stored
+    program, on the CPU) makes jaxlib import these two modules for their function
+    pointers; importing them the usual way runs ``scipy.linalg``'s package first, 0.14 s
+    of CPU (its array-API layer imports ``numpy.f2py``), of which the tables take
+    0.01 s. Loaded here under their full names, jaxlib's import finds them and the
+    package is not run; a later ``import scipy.linalg`` runs it as usual and finds them
+    loaded. Nothing where the package is loaded already, and nothing (jaxlib imports as
+    usual) where scipy or its modules are not where they are expected. ``jax``: unused
+    (the signature of :func:`when_jax_imported`'s callbacks)."""
+    if "scipy.linalg" in sys.modules:
+        return
+    try:
+        top = importlib.util.find_spec("scipy")
+        folders = [os.path.join(p, "linalg") for p in (top.submodule_search_locations or [])]
+        for name in LAPACK_TABLES:
+            if name in sys.modules:
+                continue
+            spec = importlib.machinery.PathFinder.find_spec(name, folders)
+            if spec is None or not isinstance(spec.loader, importlib.machinery.ExtensionFileLoader):
+                return
+            module = importlib.util.module_from_spec(spec)
+            sys.modules[name] = module
+            try:
+                spec.loader.exec_module(module)
+            except BaseException:
+                del sys.modules[name]
+                raise
+    except Exception:  # noqa: BLE001 - jaxlib imports scipy.linalg itself
+        return

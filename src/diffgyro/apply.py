@@ -170,13 +170,10 @@ def latched_heating(dtemp: np.ndarray) -> np.ndarray:
     active = np.abs(dtemp) > HEATING_THRESHOLD
     if not active.any():
         return np.zeros_like(dtemp)
-    state = np.sign(dtemp[np.argmax(active)])
-    out = np.empty_like(dtemp)
-    for k, (a, d) in enumerate(zip(active, dtemp)):
-        if a:
-            state = np.sign(d)
-        out[k] = state
-    return out
+    # the sign of the latest active sample (before the first, of the first)
+    latest = np.maximum.accumulate(np.where(active, np.arange(len(dtemp)), -1))
+    latest[latest < 0] = np.argmax(active)
+    return np.sign(dtemp[latest])
 
 
 def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
@@ -188,7 +185,14 @@ def first_order_lag(t: np.ndarray, x: np.ndarray, tau: float) -> np.ndarray:
     return y
 
 
-def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None) -> np.ndarray:
+#: Terms whose columns do not read the rate: :func:`compensate` builds them once per device,
+#: not at each of its Newton steps.
+_RATE_FREE = frozenset({"bias_poly", "g_sens", "gradient", "temp_diff", "hysteresis",
+                       "thermal_lag", "aux", "warmup", "random_walk"})
+
+
+def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None,
+            kept: dict | None = None) -> np.ndarray:
     """Regressor columns (n, 3, p) of every term of ``spec`` at the true rate.
 
     **Arguments:**
@@ -199,71 +203,86 @@ def columns(spec: str, dev: dict, rate: np.ndarray, env: dict, terms=None) -> np
     - ``env``: the derived signals of :func:`environment`.
     - ``terms``: the numpy columns of terms registered outside diffgyro, by name (see the
       module's notes); None: built-in terms only.
+    - ``kept``: a dict that this call fills with the columns of the terms that do not read
+      the rate (``bias_poly``, ``gradient``, ``thermal_lag``, ...) and a later call with
+      the same ``spec``, ``dev`` and ``env`` reads instead of building them again (the same
+      arrays); None: none kept.
     """
-    n = rate.shape[0]
     cols, q = [], 0
     theta = np.asarray(dev["theta"], float)
-    ts = env.get("temp_s")
-    for name, k in _terms(spec):
-        if name == "bias_poly":
-            c = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
-            cols.append(np.repeat(c[:, None, :], 3, axis=1))
-        elif name == "scale_poly":
-            p = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
-            cols.append(rate[:, :, None] * p[:, None, :])
-        elif name == "scale_asym":
-            cols.append(np.abs(rate)[:, :, None])
-        elif name == "scale_nonlin":
-            cols.append((rate**3)[:, :, None])
-        elif name == "misalignment":
-            cols.append(np.stack([rate[:, list(o)] for o in _OTHERS], axis=1))
-        elif name == "g_sens":
-            cols.append(np.repeat(env["accel"][:, None, :], 3, axis=1))
-        elif name == "gradient":
-            cols.append(np.repeat(env["dtemp"][:, None, None], 3, axis=1))
-        elif name == "temp_diff":
-            d = env["temp"] - env["temp_ext"]
-            cols.append(np.repeat(d[:, None, None], 3, axis=1))
-        elif name == "hysteresis":
-            cols.append(np.repeat(env["heating"][:, None, None], 3, axis=1))
-        elif name == "thermal_lag":
-            k = 1 if k is None else k
-            tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
-            q += 1
-            lag = first_order_lag(env["t"], env["temp"], tau)
-            lag_s = (lag - dev["temp_centre"]) / dev["temp_scale"]
-            c = np.stack([lag_s**j - ts**j for j in range(1, k + 1)], -1)
-            cols.append(np.repeat(c[:, None, :], 3, axis=1))
-        elif name == "aux":
-            column, order = k
-            xs = env["aux_s"][column]
-            c = np.stack([xs**j for j in range(1, order + 1)], -1)
-            cols.append(np.repeat(c[:, None, :], 3, axis=1))
-        elif name == "term":
-            prod = np.ones((n, 3))
-            for sname, lagged, power in k:
-                x = _signal(sname, dev, rate, env)
-                if lagged:
-                    tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
-                    q += 1
-                    x = first_order_lag(env["t"], x, tau)
-                x = x**power
-                prod = prod * (x if x.ndim == 2 else x[:, None])
-            cols.append(prod[:, :, None])
-        elif name == "random_walk":
-            continue
-        elif name == "warmup":
-            tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
-            q += 1
-            cols.append(np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1))
-        elif terms and name in terms:
-            c, used = terms[name](k, dev, rate, env, theta[q:])
-            q += int(used)
-            cols.append(np.asarray(c, float))
+    for index, (name, k) in enumerate(_terms(spec)):
+        if kept is not None and index in kept:
+            c, used = kept[index]
         else:
-            raise ValueError(f"apply.py knows the built-in terms only, not {name!r}; "
-                             f"pass its numpy columns as terms={{{name!r}: fn}}")
-    return np.concatenate(cols, axis=-1) if cols else np.zeros((n, 3, 0))
+            c, used = _term_columns(name, k, dev, rate, env, theta[q:], terms)
+            if kept is not None and name in _RATE_FREE:
+                kept[index] = c, used
+        q += used
+        if c is not None:
+            cols.append(c)
+    return np.concatenate(cols, axis=-1) if cols else np.zeros((rate.shape[0], 3, 0))
+
+
+def _term_columns(name: str, k, dev: dict, rate: np.ndarray, env: dict, theta: np.ndarray,
+                  terms) -> tuple[np.ndarray | None, int]:
+    """(columns (n, 3, p) or None for a term without any, time constants it read from the
+    start of ``theta``) of one term of a spec (:func:`columns`)."""
+    n = rate.shape[0]
+    ts = env.get("temp_s")
+    if name == "bias_poly":
+        c = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
+        return np.repeat(c[:, None, :], 3, axis=1), 0
+    if name == "scale_poly":
+        p = np.stack([np.ones(n) if j == 0 else ts**j for j in range(k + 1)], -1)
+        return rate[:, :, None] * p[:, None, :], 0
+    if name == "scale_asym":
+        return np.abs(rate)[:, :, None], 0
+    if name == "scale_nonlin":
+        return (rate**3)[:, :, None], 0
+    if name == "misalignment":
+        return np.stack([rate[:, list(o)] for o in _OTHERS], axis=1), 0
+    if name == "g_sens":
+        return np.repeat(env["accel"][:, None, :], 3, axis=1), 0
+    if name == "gradient":
+        return np.repeat(env["dtemp"][:, None, None], 3, axis=1), 0
+    if name == "temp_diff":
+        d = env["temp"] - env["temp_ext"]
+        return np.repeat(d[:, None, None], 3, axis=1), 0
+    if name == "hysteresis":
+        return np.repeat(env["heating"][:, None, None], 3, axis=1), 0
+    if name == "thermal_lag":
+        k = 1 if k is None else k
+        tau = float(np.exp(np.clip(theta[0], -6.9, 16.1)))
+        lag = first_order_lag(env["t"], env["temp"], tau)
+        lag_s = (lag - dev["temp_centre"]) / dev["temp_scale"]
+        c = np.stack([lag_s**j - ts**j for j in range(1, k + 1)], -1)
+        return np.repeat(c[:, None, :], 3, axis=1), 1
+    if name == "aux":
+        column, order = k
+        xs = env["aux_s"][column]
+        c = np.stack([xs**j for j in range(1, order + 1)], -1)
+        return np.repeat(c[:, None, :], 3, axis=1), 0
+    if name == "term":
+        prod, q = np.ones((n, 3)), 0
+        for sname, lagged, power in k:
+            x = _signal(sname, dev, rate, env)
+            if lagged:
+                tau = float(np.exp(np.clip(theta[q], -6.9, 16.1)))
+                q += 1
+                x = first_order_lag(env["t"], x, tau)
+            x = x**power
+            prod = prod * (x if x.ndim == 2 else x[:, None])
+        return prod[:, :, None], q
+    if name == "random_walk":
+        return None, 0
+    if name == "warmup":
+        tau = float(np.exp(np.clip(theta[0], -6.9, 16.1)))
+        return np.repeat(np.exp(-env["t"] / tau)[:, None, None], 3, axis=1), 1
+    if terms and name in terms:
+        c, used = terms[name](k, dev, rate, env, theta)
+        return np.asarray(c, float), int(used)
+    raise ValueError(f"apply.py knows the built-in terms only, not {name!r}; "
+                     f"pass its numpy columns as terms={{{name!r}: fn}}")
 
 
 def environment(dev: dict, t, temp=None, temp_ext=None, accel=None, dtemp_window=60.0,
@@ -388,8 +407,10 @@ def compensate(calibration: dict, device: str, t, gyro, temp=None, temp_ext=None
     env = environment(dev, t, temp, temp_ext, accel, calibration.get("dtemp_window", 60.0), aux)
     gyro = np.asarray(gyro, float)
 
+    kept: dict = {}  # the columns that do not read the rate, built at the first step
+
     def err(omega):
-        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env, terms), beta)
+        return np.einsum("nip,ip->ni", columns(spec, dev, omega, env, terms, kept), beta)
 
     omega = gyro - err(np.zeros_like(gyro))
     eps = 1e-7

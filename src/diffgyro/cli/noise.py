@@ -93,11 +93,14 @@ def identify_batch(batch, max_gm: int = 2, penalty: float | None = None, progres
                    slow_part: bool = False):
     """(``noise --json`` object, {device index: (NoiseModels, row)}) of a batch's gyro
     (``progress``: told each stage)."""
-    from diffgyro.stochastic import identify_devices
+    from diffgyro.stochastic import identify_ahead, identify_devices
 
+    # the identification's program loads on a thread while the motion check runs
+    loaded = identify_ahead(batch.n_valid, max_gm)
     if progress is not None:
         progress(f"checking that the {batch.n_devices} device(s) are at rest")
     motion = moved_reasons(batch)
+    loaded()
     entries, models = identify_devices(batch.gyro, batch.n_valid, batch.t, batch.devices,
                                        motion=motion, max_gm=max_gm, penalty=penalty,
                                        progress=progress, slow_part=slow_part)

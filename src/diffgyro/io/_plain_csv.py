@@ -4,8 +4,9 @@ need not import pandas and pyarrow (0.2-0.35 s of a command's start).
 "Plain" is narrow on purpose: UTF-8 text, uncompressed, at most :data:`MAX_BYTES`, no
 quote character, no NUL, no blank line, no lone carriage return, and every line with
 as many fields as the header. The numeric columns read hold only plain decimal numbers
-(digits, point, sign, exponent): each cell goes through Python's ``float``, which
-rounds correctly, as pandas' C parser does for such cells. Anything else (a missing
+(digits, point, sign, exponent): each cell is converted as Python's ``float`` converts
+it (numpy's conversion of a list of texts, in one call), which rounds correctly, as
+pandas' C parser does for such cells. Anything else (a missing
 cell, an NA marker, a quoted field, a row of the wrong length, text in a numeric column)
 makes :func:`read_plain` return None, and the caller reads the file with pandas, whose
 messages name what is wrong; so the errors are the same either way.
@@ -13,14 +14,15 @@ messages name what is wrong; so the errors are the same either way.
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
 
 #: Larger files are read by pandas (its C parser is faster past a few megabytes).
 MAX_BYTES = 8 << 20
-#: The characters of a plain decimal number.
-_NUMBER_CHARS = frozenset("0123456789.eE+-")
+#: Text of plain decimal numbers only (digits, point, sign, exponent).
+_NUMBERS_ONLY = re.compile(r"[0-9.eE+\-]*")
 
 
 class PlainTable:
@@ -75,10 +77,10 @@ def read_plain(rows: list[list[str]], wanted: list[str], text_cols: set[str]) ->
         if name in text_cols:
             columns[name] = np.asarray(cells, dtype=object)
             continue
-        if not set("".join(cells)) <= _NUMBER_CHARS:
+        if _NUMBERS_ONLY.fullmatch("".join(cells)) is None:
             return None
-        try:
-            values = np.fromiter(map(float, cells), np.float64, len(cells))
+        try:  # numpy's conversion of each text is Python's float (correctly rounded)
+            values = np.array(cells, dtype=np.float64)
         except ValueError:  # an empty cell, '1e', '--1' ...
             return None
         columns[name] = values

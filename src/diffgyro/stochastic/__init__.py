@@ -17,12 +17,12 @@
 
 from ._bias_filter import bias_filter, state_space
 from ._block_likelihood import PENALTY as SLOW_PENALTY
-from ._devices import identify_devices
+from ._devices import identify_ahead, identify_devices
 from ._identify import NoiseModels, components_of, identify
 from ._resolution import DISPLAY, INTERVAL_LEVEL, SHORT_SAMPLES, SPAN_LIMIT, gm_white_power
 from ._selection import catalogue, label, structure_mask
 from ._simulate import simulate_noise
 
-__all__ = ["identify", "SLOW_PENALTY", "identify_devices", "NoiseModels", "label", "bias_filter", "catalogue",
+__all__ = ["identify", "SLOW_PENALTY", "identify_devices", "identify_ahead", "NoiseModels", "label", "bias_filter", "catalogue",
            "components_of", "simulate_noise", "state_space", "structure_mask", "DISPLAY",
            "INTERVAL_LEVEL", "SHORT_SAMPLES", "SPAN_LIMIT", "gm_white_power"]

@@ -11,12 +11,14 @@ batch's ``n_valid`` and ``t``), whose noise is what a filter must carry.
 from __future__ import annotations
 
 import math
+from collections import Counter
+from collections.abc import Callable
 
 import numpy as np
 
 from ..allan import sample_interval
 from ._block_likelihood import PENALTY as SLOW_PENALTY
-from ._identify import identify
+from ._identify import identify, load_ahead
 from ._resolution import INTERVAL_LEVEL
 from ._selection import PENALTY, catalogue
 
@@ -101,3 +103,27 @@ def identify_devices(values, n_valid, t, devices, *, motion=None, max_gm: int = 
             models[i] = (res, j)
             entries[i]["axes"] = {ax: axis_entry(res, j, a) for a, ax in enumerate(AXES)}
     return entries, models
+
+
+def identify_ahead(n_valid, max_gm: int = 2) -> Callable[[], None]:
+    """Start loading the programs :func:`identify_devices` of devices with ``n_valid``
+    samples each will run (every device long enough taken to be at rest, as most are):
+    each group's program lowered here and read or compiled on a thread of its own
+    (:func:`~.identify.load_ahead`), while the caller checks the devices for motion.
+    Returns a function that waits for them; call it before :func:`identify_devices`.
+    A device the checks then leave out only leaves a program loaded for nothing.
+
+    **Arguments:**
+
+    - ``n_valid``: each device's valid samples (d,).
+    - ``max_gm``: Gauss–Markov processes per structure at most, as for
+      :func:`identify_devices`.
+    """
+    lengths = Counter(int(n) for n in np.asarray(n_valid) if int(n) >= MIN_SAMPLES)
+    threads = [load_ahead(len(AXES) * d, n, catalogue(max_gm)) for n, d in lengths.items()]
+
+    def wait() -> None:
+        for thread in threads:
+            thread.join()
+
+    return wait

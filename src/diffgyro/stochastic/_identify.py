@@ -19,6 +19,7 @@ Per series (vmapped over devices × axes, one compiled program):
 from __future__ import annotations
 
 import math
+import threading
 from dataclasses import dataclass
 
 import jax
@@ -381,23 +382,17 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     y = jnp.asarray(y, jnp.float64)
     lead = y.shape[:-1]
     n = y.shape[-1]
-    structures = list(structures) if structures is not None else catalogue()
-    masks = np.stack([structure_mask(s) for s in structures])
-    # candidates ordered by their number of parameters (ties keep the given order)
-    order = np.argsort(masks.sum(1), kind="stable")
-    structures = [structures[i] for i in order]
-    masks = masks[order]
+    structures, masks = _ordered(structures)
     nv = np.broadcast_to(np.asarray(n if n_valid is None else n_valid, np.int64), lead)
     dtb = np.broadcast_to(np.asarray(dt, np.float64), lead)
     m = dyadic_m(n)
-    wv, count = haar_wv(y, jnp.asarray(dtb), None if n_valid is None else jnp.asarray(nv), m)
-    flat = lambda a: jnp.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
-    args = [np.asarray(flat(a)) for a in (wv, count, nv.astype(np.float64), dtb)]
+    # numpy in and out around the compiled programs: an eager operation on a JAX array is a
+    # program of its own (lowered and read from the cache: milliseconds each)
+    wv, count = haar_wv(y, dtb, None if n_valid is None else nv, m)
+    flat = lambda a: np.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
+    args = [flat(a) for a in (wv, count, nv.astype(np.float64), dtb)]
     total = args[0].shape[0]
-    # fixed-size chunks, a power of two under it for fewer series: a few compiled programs
-    # for any batch
-    step = min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
-               1 << (max(total, 1) - 1).bit_length())
+    step = _chunk(total)
     program = _identify_batch(total * n)
     parts = []
     for lo in range(0, total, step):
@@ -405,8 +400,7 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
         short = step - chunk[0].shape[0]
         if short:  # pad the last chunk with copies of its first series
             chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
-        res = program(*map(jnp.asarray, chunk), jnp.asarray(m), jnp.asarray(masks),
-                      jnp.asarray(float(penalty)), len(m))
+        res = program(*chunk, m, masks, jnp.asarray(float(penalty)), len(m))
         parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     slow = np.full((total, len(structures)), np.nan)
@@ -422,6 +416,46 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
                        objective=out["objective"], rank=out["rank"], admissible=out["admissible"],
                        limits=out["limits"], n_valid=nv,
                        slow_criterion=slow.reshape(lead + (len(structures),)))
+
+
+def _ordered(structures) -> tuple[list[tuple[str, ...]], np.ndarray]:
+    """The candidates (default :func:`~.selection.catalogue`) and their masks, ordered by
+    their number of parameters (ties keep the given order)."""
+    structures = list(structures) if structures is not None else catalogue()
+    masks = np.stack([structure_mask(s) for s in structures])
+    order = np.argsort(masks.sum(1), kind="stable")
+    return [structures[i] for i in order], masks[order]
+
+
+def _chunk(series: int) -> int:
+    """Series per call: a fixed chunk, or the power of two at or above fewer series (a few
+    compiled programs for any batch)."""
+    return min(CHUNK if jax.default_backend() == "cpu" else ACCEL_CHUNK,
+               1 << (max(series, 1) - 1).bit_length())
+
+
+def chunk_specs(series: int, n: int, structures=None) -> tuple[jax.ShapeDtypeStruct, ...]:
+    """Shapes and dtypes of the arguments :func:`identify` passes its program for
+    ``series`` series of ``n`` samples: the wavelet variances, their counts, the samples,
+    the intervals (one row per series of a chunk), the cluster sizes, the candidates'
+    masks and the penalty."""
+    step, scales = _chunk(series), len(dyadic_m(n))
+    masks = _ordered(structures)[1]
+    real, whole = np.dtype(np.float64), np.dtype(np.int64)
+    spec = jax.ShapeDtypeStruct
+    return (spec((step, scales), real), spec((step, scales), whole), spec((step,), real),
+            spec((step,), real), spec((scales,), whole), spec(masks.shape, np.bool_),
+            spec((), jax.dtypes.canonicalize_dtype(real), weak_type=True))
+
+
+def load_ahead(series: int, n: int, structures=None) -> threading.Thread:
+    """Start what :func:`identify` of ``series`` series of ``n`` samples (``structures``:
+    its candidates) will run: its program lowered here and compiled, or read from the
+    persistent cache, on a thread of its own (XLA holds no GIL meanwhile), while the
+    caller does other work (``noise`` checks that the devices are at rest). Join the
+    thread before :func:`identify`, which then finds the program loaded."""
+    program = _identify_batch(series * n)
+    return program.compile_ahead(*chunk_specs(series, n, structures), len(dyadic_m(n)))
 
 
 def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty, bootstrap=True):

@@ -33,9 +33,11 @@ def dyadic_m(n: int) -> np.ndarray:
 def haar_wv(y: Float[Array, "... n"], dt, n_valid: Int[Array, "..."] | None = None,
             m: Int[Array, " J"] | None = None) -> tuple[Float[Array, "... J"], Int[Array, "... J"]]:
     """Haar wavelet variance (rad²/s²) at τ = m·dt for every leading index of ``y``, and the
-    number of terms averaged at each scale. NaN where a series is too short for the scale."""
+    number of terms averaged at each scale, as numpy arrays (one compiled program, no
+    eager operation after it). NaN where a series is too short for the scale."""
     y = jnp.asarray(y)
     if m is None:
         m = dyadic_m(y.shape[-1])
-    adev, count = oadev(y, dt, jnp.asarray(m), n_valid)
-    return 0.5 * adev**2, count
+    adev, count = oadev(y, dt, np.asarray(m), n_valid)
+    adev = np.asarray(adev)
+    return 0.5 * adev**2, np.asarray(count)
