@@ -24,7 +24,7 @@ from ._options import FitOptions
 from ._signal_builder import signal_inputs, stacked_signals
 from .data import Batch
 from .model import ErrorModel, Params
-from .motion import Motion
+from ._motion_result import Motion
 from .signals import Signals, TempNorm
 from .status import STATUS_NAMES
 

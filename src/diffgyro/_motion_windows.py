@@ -276,7 +276,7 @@ def _chunk(gyro, accel, w: int, b: int):
 
 
 def _numbers(win: _Windows, moving, dev, turn, tilt, count):
-    """One device's numbers (:data:`_NUMBERS`, but the resolution the host forms) and its
+    """One device's numbers (:data:`~diffgyro._motion_result.NUMBERS`, but the resolution the host forms) and its
     windows not at rest (moving, or next to a moving one: the transitions)."""
     rate = _norm(dev, 1)
     n_mov = jnp.sum(moving)

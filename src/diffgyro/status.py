@@ -24,7 +24,7 @@ from ._vocabulary import (
     residual_note,
     residual_verdict,
 )
-from .motion import describe, reason
+from ._motion_result import describe, reason
 
 __all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK_DEFICIENT",
            "INSUFFICIENT_RANGE", "INSUFFICIENT_DATA", "FAILED", "IN_MOTION", "REST_UNVERIFIED", "min_samples",
