@@ -15,8 +15,12 @@ from ._jsonio import number
 from ._motion_constants import MAX_BIAS, MAX_RESOLUTION, MIN_PEAK_RATIO, MIN_TILT, MIN_WINDOWS
 from ._vocabulary import MAX_INTERVALS, VERDICT_NAMES
 
-#: Verdicts, in :attr:`Motion.verdict`.
-AT_REST, IN_MOTION, UNVERIFIED = 0, 1, 2
+#: The verdict of a device judged at rest (:attr:`Motion.verdict`).
+AT_REST = 0
+#: The verdict of a device that moved.
+IN_MOTION = 1
+#: The verdict of a device whose rest its recording cannot show.
+UNVERIFIED = 2
 _STATUS = ("ok", "in_motion", "rest_unverified")
 NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak", "rest_rate",
             "rest_noise", "threshold", "resolution", "n_windows")
