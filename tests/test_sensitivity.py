@@ -208,7 +208,7 @@ def test_correlated_noise_corrected_intervals_stay_honest(correlated):
     ar = coverage(est, tru, hac_covariance(result, batch)["cov"])
     nw = hac_covariance(result, batch, method="kernel")
     kernel = coverage(est, tru, nw["cov"])
-    boot = block_bootstrap(result, batch, n_boot=100)
+    boot = block_bootstrap(result, batch, n_boot=50)  # coverage 90.8 % with 100 draws, 90.6 % with 50
     bootstrap = coverage(est, tru, boot["cov"])
     print(f"Gauss–Markov noise, {N_DEVICES} devices, nominal 95 %: plain {100 * plain:.1f} %, "
           f"HAC AR-spectral {100 * ar:.1f} %, Newey–West {100 * kernel:.1f} % "
@@ -216,7 +216,7 @@ def test_correlated_noise_corrected_intervals_stay_honest(correlated):
           f"{100 * bootstrap:.1f} % (block {float(np.median(boot['block'])):.0f})")
     assert plain < 0.75
     # coverage claims hold from both sides: near the nominal 95 %, and not bought with
-    # intervals so wide that they cover nearly always (measured 93.4, 91.4, 90.8 %)
+    # intervals so wide that they cover nearly always (measured 93.4, 91.4, 90.6 %)
     assert 0.90 <= ar <= 0.98
     assert 0.85 <= kernel <= 0.98 and 0.85 <= bootstrap <= 0.98
     assert ar > plain + 0.15
