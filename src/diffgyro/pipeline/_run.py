@@ -50,7 +50,6 @@ from ..limits import check as check_limits
 from ..model import ErrorModel
 from ..status import STATUS_NAMES
 from ._chunkfit import ChunkFitter
-from ._cluster import run_on_dask
 from ._dataset import ReadConfig, expand_inputs, fingerprint, index_dataset, read_devices
 from ._progress import RunProgress
 from ._workdir import FORMAT, FORMAT_VERSION, WorkDir
@@ -718,6 +717,7 @@ def _run_pending(work: WorkDir, manifest: dict, pending: list[dict], setup: dict
             on_chunk(res)
 
     if dask:
+        from ._cluster import run_on_dask
 
         run_on_dask(dask, run_chunk, pending, setup, finished)
     else:
