@@ -20,11 +20,11 @@ from jaxtyping import Array, Float, Int
 
 from . import _aux as aux_cols
 from ._jsonio import number
+from ._motion_result import Motion
 from ._options import FitOptions
 from ._signal_builder import signal_inputs, stacked_signals
 from .data import Batch
 from .model import ErrorModel, Params
-from ._motion_result import Motion
 from .signals import Signals, TempNorm
 from .status import STATUS_NAMES
 

@@ -16,6 +16,7 @@ import math
 import jax.numpy as jnp
 import numpy as np
 
+from ._motion_result import describe, reason
 from ._vocabulary import (
     RESIDUAL_REFUSE,
     RESIDUAL_WARN,
@@ -24,7 +25,6 @@ from ._vocabulary import (
     residual_note,
     residual_verdict,
 )
-from ._motion_result import describe, reason
 
 __all__ = ["explain", "fit_status", "STATUS_NAMES", "OK", "NOT_CONVERGED", "RANK_DEFICIENT",
            "INSUFFICIENT_RANGE", "INSUFFICIENT_DATA", "FAILED", "IN_MOTION", "REST_UNVERIFIED", "min_samples",
