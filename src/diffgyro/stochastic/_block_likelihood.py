@@ -46,7 +46,7 @@ import math
 
 import numpy as np
 
-from ._slow_bootstrap import Settle, settle
+from ._slow_bootstrap import Settle, beyond, gm_slots, settle
 
 #: Blocks of a record at least (the block length b = n // BLOCKS samples, at least 1): fewer
 #: blocks say less on a slow Gauss–Markov beside a walk; the cost grows as their square.
@@ -269,11 +269,6 @@ class BlockLikelihood:
         return th, cost
 
 
-def _slots(mask):
-    """The Gauss–Markov slots ((2, 3) then (4, 5)) a mask switches on."""
-    return [(iv, it) for iv, it in ((2, 3), (4, 5)) if mask[iv]]
-
-
 def choose_slow(y: np.ndarray, n_valid: int, dt: float, masks: np.ndarray, pick: int,
                 theta_all: np.ndarray, long_time: float, penalty: float = PENALTY,
                 blocks: int = BLOCKS, bootstrap: bool = True) -> dict:
@@ -328,7 +323,7 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
     record = n_valid * dt
     fast_time = FAST_BLOCKS * b * dt
     chosen, th_s = masks[pick], theta_all[pick]
-    fast = sorted((th_s[iv], th_s[it]) for iv, it in _slots(chosen) if math.exp(th_s[it]) < fast_time)
+    fast = sorted((th_s[iv], th_s[it]) for iv, it in gm_slots(chosen) if math.exp(th_s[it]) < fast_time)
     fast = sorted(fast, key=lambda p: p[1])
     gm_count = masks[:, 2].astype(int) + masks[:, 4].astype(int)
     alt = np.flatnonzero((masks[:, 0] == chosen[0]) & (masks[:, 1] == chosen[1])
@@ -346,7 +341,7 @@ def _candidates(lik: BlockLikelihood, row: int, n_valid: int, masks: np.ndarray,
         a = np.full(8, -150.0)
         a[[0, 1]] = th_s[[0, 1]]
         lo_i, hi_i, free_i = np.full(8, -150.0), np.full(8, 150.0), np.ones(8, bool)
-        slots = _slots(masks[i])
+        slots = gm_slots(masks[i])
         own_slow = sorted(((th_i[iv], th_i[it]) for iv, it in slots
                            if math.exp(th_i[it]) >= fast_time), key=lambda p: p[1])
         for k, (iv, it) in enumerate(slots):
@@ -371,8 +366,7 @@ def _chosen(masks, alt, th, dev, pick, long_time, penalty, shape, block, st=None
     bootstrap (:class:`.slow_bootstrap.Settle`), or None."""
     k = masks[alt].sum(axis=1)
     crit = dev + penalty * k
-    long = np.array([any(th[r][it] > math.log(long_time) for _, it in _slots(masks[i]))
-                     for r, i in enumerate(alt)])
+    long = beyond(th, masks[alt], math.log(long_time))
     crit_ok = np.where(np.isfinite(crit) & ~long, crit, np.inf)
     best = int(pick)
     if np.isfinite(crit_ok).any():

@@ -64,6 +64,19 @@ MAX_TESTS = 4
 SEED = 20261128
 
 
+def gm_slots(mask) -> list[tuple[int, int]]:
+    """The Gauss–Markov slots (variance, time: (2, 3) then (4, 5) of the parameter vector) a
+    mask switches on."""
+    return [(iv, it) for iv, it in ((2, 3), (4, 5)) if mask[iv]]
+
+
+def beyond(th, masks, log_long: float) -> np.ndarray:
+    """Per candidate (rows of ``th`` and ``masks``): a Gauss–Markov time beyond
+    ``exp(log_long)`` (the record's share, where the candidate does not fit)."""
+    return np.array([any(t[it] > log_long for _, it in gm_slots(mk)) for t, mk in zip(th, masks)],
+                    bool)
+
+
 def simulate(c: Float[np.ndarray, " m"], mean: float, draws: int,
              rng: np.random.Generator) -> Float[np.ndarray, "draws m"]:
     """``draws`` series of M block-mean differences with autocovariance ``c`` (M,) and mean
@@ -93,11 +106,6 @@ class Settle:
         self.tests: list[dict] = []
         self._won: dict[tuple[int, int], int] = {}
 
-    def _long(self, th, masks):
-        """Per candidate: a Gauss–Markov time beyond the record's share."""
-        return np.array([any(t[it] > self.log_long for iv, it in ((2, 3), (4, 5)) if mk[iv])
-                         for t, mk in zip(th, masks)], bool)
-
     def draws(self, s: int, r: int, d: np.ndarray) -> np.ndarray:
         """T = −2 log L(S) − (−2 log L(R)) on each row of simulated differences ``d``; −inf
         where R's refit runs beyond the record's share."""
@@ -108,7 +116,8 @@ class Settle:
         rows = np.tile(np.arange(count), 2)
         th, dev = rep.fit(self.th[pick], self.masks[pick], self.lo[pick], self.hi[pick],
                           self.free[pick], rows=rows)
-        alt = np.where(self._long(th[count:], self.masks[pick][count:]), np.inf, dev[count:])
+        alt = np.where(beyond(th[count:], self.masks[pick][count:], self.log_long), np.inf,
+                       dev[count:])
         return dev[:count] - alt
 
     def p_value(self, s: int, r: int, t: float) -> tuple[float, int]:
