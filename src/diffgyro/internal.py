@@ -61,9 +61,9 @@ from .effects._base import _REGISTRY as REGISTRY
 from .effects._common import per_axis
 from .io._headers import header_units, merge_units, split_header
 from .limits._units import unit_scale
+from .pipeline._chunk import calibration_entries
 from .pipeline._chunkfit import ChunkFitter, local_mesh
 from .pipeline._dataset import ReadConfig, expand_inputs, index_dataset
-from .pipeline._run import calibration_entries
 from .pipeline._workdir import WorkDir
 from .recipes._attitude_reference import joint_affine
 from .recipes._fog_one_run import s2_design, sign_change_mask

@@ -4,9 +4,9 @@
 directory of files, many devices each) in chunks of devices, writing each
 chunk's results atomically to a work directory so that a killed run resumes
 where it stopped, then merges them into a calibration file and a per-device
-results table. See :mod:`.run` for the steps, :mod:`.dataset` for reading,
-:mod:`.chunkfit` for sharding over local accelerators and :mod:`.cluster` for
-Dask.
+results table. See :mod:`._run` for the steps, :mod:`._dataset` for reading,
+:mod:`._chunk` for one chunk's work, :mod:`._chunkfit` for sharding over local
+accelerators, :mod:`._merge` for the outputs and :mod:`._cluster` for Dask.
 """
 
 from __future__ import annotations

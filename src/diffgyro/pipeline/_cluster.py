@@ -1,7 +1,7 @@
 """Chunks as Dask tasks (``--dask ADDRESS`` or ``--dask local:N``); needs ``diffgyro[dask]``.
 
 Each chunk is one task, the chunk function the caller gives
-(:func:`diffgyro.pipeline._run.run_chunk`): the worker
+(:func:`diffgyro.pipeline._chunk.run_chunk`): the worker
 reads the chunk's rows itself (the data files must be readable at the same
 paths on every worker: a shared file system or object store mount), fits
 them and returns the JSON-ready results; the client writes each chunk's
