@@ -35,7 +35,15 @@ import numpy as np
 from jax.scipy.special import digamma, polygamma
 from jaxtyping import Array, Bool, Float
 
-from ._components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
+from ._components import (
+    N_PARAMS,
+    POWER_INDEX,
+    TAU_INDEX,
+    component_avar,
+    model_wv,
+    model_wv_jac,
+    row_mask,
+)
 
 #: Levenberg–Marquardt iterations per stage (from the grid's starting values, and the
 #: second stage from the first's estimate, the steps have settled by then).
@@ -104,6 +112,14 @@ def residual(theta, mask, target, valid, tau, dt, linv):
     return linv @ r
 
 
+def residual_jac(theta, mask, target, valid, tau, dt, linv):
+    """:func:`residual` and its Jacobian in the log-parameters (switched-off columns zero)."""
+    nu, d = model_wv_jac(theta, mask, tau, dt)
+    r = jnp.where(valid, target - jnp.log(nu), 0.0)
+    d = jnp.where(valid[:, None], d / nu[:, None], 0.0)
+    return linv @ r, -(linv @ d)
+
+
 def _bounds(dt, n):
     lo = jnp.full((N_PARAMS,), _LOG_FLOOR)
     hi = jnp.full((N_PARAMS,), -_LOG_FLOOR)
@@ -121,8 +137,7 @@ def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, linv, iteration
 
     def step(carry, _):
         th, lam, cost = carry
-        r = fun(th)
-        jac = jax.jacfwd(fun)(th) * on[None, :]
+        r, jac = residual_jac(th, mask, target, valid, tau, dt, linv)
         g = jac.T @ r
         a = jac.T @ jac
         damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
@@ -161,28 +176,27 @@ def start_pairs(n_scales: int) -> tuple[jax.Array, jax.Array]:
     return jnp.asarray(a), jnp.asarray(b)
 
 
-def _nnls_powers(cols, target, active, sweeps=6):
-    """Non-negative least squares ‖cols·p − target‖ over the active columns (an active set
-    shrunk by dropping negative coefficients; columns normalised first)."""
-    norm = jnp.sqrt(jnp.sum(cols**2, 0)) + 1e-300
-    c = cols / norm
-    act = active
+def _nnls_powers(c, gram, cty, target, active, sweeps=6):
+    """Non-negative least squares ‖c·p − target‖ over the active columns of ``c`` (columns
+    normalised; ``gram`` = cᵀc, ``cty`` = cᵀ·target), an active set shrunk by dropping
+    negative coefficients. The products with the columns are formed once, outside the
+    structures' vmap: a structure only masks them."""
+
+    def solve(act):
+        w = act.astype(c.dtype)
+        a = gram * (w[:, None] * w[None, :]) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
+        return spd_solve(a, cty * w) * w
 
     def sweep(act, _):
-        w = act.astype(c.dtype)
-        a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-        p = spd_solve(a, (c * w).T @ target) * w
+        p = solve(act)
         return act & (p > 0), p
 
-    act, ps = jax.lax.scan(sweep, act, None, length=sweeps)
-    w = act.astype(c.dtype)
-    a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-    p = spd_solve(a, (c * w).T @ target) * w
-    p = jnp.maximum(p, 0.0)
+    act, ps = jax.lax.scan(sweep, active, None, length=sweeps)
+    p = jnp.maximum(solve(act), 0.0)
     misfit = jnp.sum((c @ p - target) ** 2)
     # a switched-on component the data do not ask for starts small, not at zero
     p = jnp.where(active & (p <= 0), 1e-3 * jnp.sqrt(jnp.sum(target**2)), p)
-    return p / norm, misfit
+    return p, misfit
 
 
 def pair_columns(grid, pairs, tau, dt):
@@ -204,7 +218,12 @@ def starting_values(mask, wv_hat, valid, tau, dt, weight, grid, pairs):
 
     ths, cols = pair_columns(grid, pairs, tau, dt)
     cols = cols / s[None, :, None] * sw[None, :, None]  # (K, J, 6)
-    ps, misfits = jax.vmap(lambda c: _nnls_powers(c, sw, rows_on))(cols)
+    norm = jnp.sqrt(jnp.sum(cols**2, 1)) + 1e-300  # (K, 6)
+    c = cols / norm[:, None, :]
+    gram = jnp.einsum("kji,kjl->kil", c, c)
+    cty = jnp.einsum("kji,j->ki", c, sw)
+    ps, misfits = jax.vmap(lambda ck, g, b: _nnls_powers(ck, g, b, sw, rows_on))(c, gram, cty)
+    ps = ps / norm
     best = jnp.argmin(misfits)
     th, p = ths[best], ps[best]
     logp = jnp.log(jnp.maximum(p, 1e-300))
@@ -220,5 +239,5 @@ def diag_rel_cov(count, m):
 
 def jacobian_log(theta, mask, valid, tau, dt):
     """∂ log ν(θ)/∂θ on the valid scales, switched-off columns zero: (J, 8)."""
-    f = lambda th: jnp.where(valid, jnp.log(model_wv(th, mask, tau, dt)), 0.0)  # noqa: E731
-    return jax.jacfwd(f)(theta) * mask.astype(theta.dtype)[None, :]
+    nu, d = model_wv_jac(theta, mask, tau, dt)
+    return jnp.where(valid[:, None], d / nu[:, None], 0.0)
