@@ -40,7 +40,6 @@ from ._components import (
     POWER_INDEX,
     TAU_INDEX,
     component_avar,
-    model_wv,
     model_wv_jac,
     row_mask,
 )
@@ -105,15 +104,10 @@ def whitener(chol: Float[Array, "J J"]) -> Float[Array, "J J"]:
                                              lower=True)
 
 
-def residual(theta, mask, target, valid, tau, dt, linv):
-    """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias; zero on
-    invalid scales; ``linv``: L⁻¹ (:func:`whitener`)."""
-    r = jnp.where(valid, target - jnp.log(model_wv(theta, mask, tau, dt)), 0.0)
-    return linv @ r
-
-
 def residual_jac(theta, mask, target, valid, tau, dt, linv):
-    """:func:`residual` and its Jacobian in the log-parameters (switched-off columns zero)."""
+    """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias, zero on
+    invalid scales (``linv``: L⁻¹, :func:`whitener`), and its Jacobian in the
+    log-parameters (switched-off columns zero)."""
     nu, d = model_wv_jac(theta, mask, tau, dt)
     r = jnp.where(valid, target - jnp.log(nu), 0.0)
     d = jnp.where(valid[:, None], d / nu[:, None], 0.0)
@@ -132,28 +126,31 @@ def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, linv, iteration
     """Minimise ‖residual‖² over the switched-on log-parameters (``linv``: the weight's
     :func:`whitener`); returns (θ, objective)."""
     lo, hi = _bounds(dt, n)
-    fun = lambda th: residual(th, mask, target, valid, tau, dt, linv)  # noqa: E731
+    fun = lambda th: residual_jac(th, mask, target, valid, tau, dt, linv)  # noqa: E731
     on = mask.astype(theta0.dtype)
 
     def step(carry, _):
-        th, lam, cost = carry
-        r, jac = residual_jac(th, mask, target, valid, tau, dt, linv)
+        # the residual and Jacobian at θ are carried: one evaluation an iteration, at the
+        # trial point, which becomes θ's when the step is taken
+        th, lam, cost, r, jac = carry
         g = jac.T @ r
         a = jac.T @ jac
         damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
         delta = jnp.linalg.solve(a + jnp.diag(damp), -g[:, None])[:, 0] * on
         trial = jnp.clip(th + delta, lo, hi)
-        tr = fun(trial)
+        tr, tjac = fun(trial)
         new_cost = tr @ tr
         better = jnp.isfinite(new_cost) & (new_cost < cost)
         th = jnp.where(better, trial, th)
         cost = jnp.where(better, new_cost, cost)
+        r = jnp.where(better, tr, r)
+        jac = jnp.where(better, tjac, jac)
         lam = jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9)
-        return (th, lam, cost), None
+        return (th, lam, cost, r, jac), None
 
-    r0 = fun(theta0)
-    (th, _, cost), _ = jax.lax.scan(step, (theta0, jnp.asarray(1e-2, theta0.dtype), r0 @ r0),
-                                    None, length=iterations)
+    r0, jac0 = fun(theta0)
+    carry = (theta0, jnp.asarray(1e-2, theta0.dtype), r0 @ r0, r0, jac0)
+    (th, _, cost, _, _), _ = jax.lax.scan(step, carry, None, length=iterations)
     return th, cost
 
 
@@ -191,8 +188,10 @@ def _nnls_powers(c, gram, cty, target, active, sweeps=6):
         p = solve(act)
         return act & (p > 0), p
 
-    act, ps = jax.lax.scan(sweep, active, None, length=sweeps)
-    p = jnp.maximum(solve(act), 0.0)
+    # the seventh solve is the final one, with the set the six sweeps left: one solve in
+    # the program, not two
+    _, ps = jax.lax.scan(sweep, active, None, length=sweeps + 1)
+    p = jnp.maximum(ps[-1], 0.0)
     misfit = jnp.sum((c @ p - target) ** 2)
     # a switched-on component the data do not ask for starts small, not at zero
     p = jnp.where(active & (p <= 0), 1e-3 * jnp.sqrt(jnp.sum(target**2)), p)
