@@ -374,7 +374,8 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     - ``slow_penalty``: the slow part chosen again by the block means' exact likelihood
       (step 5), with this criterion per parameter (:data:`SLOW_PENALTY`: a test at 1 %);
       None (default) skips it: it decides the slow components better on long records
-      with several of them, at about the cost of the rest of identify again.
+      with several of them, at about twice the cost of the rest of identify (the
+      bootstrap's draws more).
     - ``slow_bootstrap``: with ``slow_penalty``, the close calls between slow structures
       settled by a parametric bootstrap of the likelihood ratio
       (:mod:`.slow_bootstrap`); False keeps the χ² rule alone.
