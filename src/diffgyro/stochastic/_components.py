@@ -121,13 +121,10 @@ def model_wv_jac(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], tau: Float[
     need a derivative (one forward tangent each): the fit's Jacobian at a fraction of the
     cost of pushing eight tangents through every component."""
     p = jnp.exp(theta)
-
-    def gm(iv, it):
-        return jax.jvp(lambda lt: avar_gauss_markov(p[iv], jnp.exp(lt), tau, dt), (theta[it],),
-                       (jnp.ones_like(theta[it]),))
-
-    g1, dg1 = gm(2, 3)
-    g2, dg2 = gm(4, 5)
+    # both processes in one (2, J) evaluation: one copy of the formula in a program
+    s2, log_t = p[jnp.array([2, 4])][:, None], theta[jnp.array([3, 5])][:, None]
+    (g1, g2), (dg1, dg2) = jax.jvp(lambda lt: avar_gauss_markov(s2, jnp.exp(lt), tau, dt),
+                                   (log_t,), (jnp.ones_like(log_t),))
     rows = jnp.stack([avar_white(p[0], tau), avar_quantization(p[1], tau), g1, g2,
                       avar_random_walk(p[6], tau, dt), avar_rate_ramp(p[7], tau)])
     rows = 0.5 * jnp.where(row_mask(mask)[:, None], rows, 0.0)

@@ -129,28 +129,30 @@ def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, linv, iteration
     fun = lambda th: residual_jac(th, mask, target, valid, tau, dt, linv)  # noqa: E731
     on = mask.astype(theta0.dtype)
 
-    def step(carry, _):
-        # the residual and Jacobian at θ are carried: one evaluation an iteration, at the
-        # trial point, which becomes θ's when the step is taken
-        th, lam, cost, r, jac = carry
-        g = jac.T @ r
-        a = jac.T @ jac
-        damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
-        delta = jnp.linalg.solve(a + jnp.diag(damp), -g[:, None])[:, 0] * on
-        trial = jnp.clip(th + delta, lo, hi)
+    def step(carry, k):
+        # evaluate the trial point (θ₀ itself first), take it if it lowers the cost, then
+        # the next trial from the residual and Jacobian at θ: one evaluation an iteration,
+        # one copy of the model in the program
+        th, lam, cost, r, jac, trial = carry
         tr, tjac = fun(trial)
         new_cost = tr @ tr
-        better = jnp.isfinite(new_cost) & (new_cost < cost)
+        first = k == 0
+        better = first | (jnp.isfinite(new_cost) & (new_cost < cost))
         th = jnp.where(better, trial, th)
         cost = jnp.where(better, new_cost, cost)
         r = jnp.where(better, tr, r)
         jac = jnp.where(better, tjac, jac)
-        lam = jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9)
-        return (th, lam, cost, r, jac), None
+        lam = jnp.where(first, lam, jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9))
+        g = jac.T @ r
+        a = jac.T @ jac
+        damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
+        delta = jnp.linalg.solve(a + jnp.diag(damp), -g[:, None])[:, 0] * on
+        return (th, lam, cost, r, jac, jnp.clip(th + delta, lo, hi)), None
 
-    r0, jac0 = fun(theta0)
-    carry = (theta0, jnp.asarray(1e-2, theta0.dtype), r0 @ r0, r0, jac0)
-    (th, _, cost, _, _), _ = jax.lax.scan(step, carry, None, length=iterations)
+    carry = (theta0, jnp.asarray(1e-2, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype),
+             jnp.zeros(target.shape, theta0.dtype),
+             jnp.zeros(target.shape + theta0.shape, theta0.dtype), theta0)
+    (th, _, cost, _, _, _), _ = jax.lax.scan(step, carry, jnp.arange(iterations + 1))
     return th, cost
 
 
@@ -237,6 +239,7 @@ def diag_rel_cov(count, m):
 
 
 def jacobian_log(theta, mask, valid, tau, dt):
-    """∂ log ν(θ)/∂θ on the valid scales, switched-off columns zero: (J, 8)."""
+    """The model's wavelet variances ν(θ) and ∂ log ν/∂θ on the valid scales, switched-off
+    columns zero: ((J,), (J, 8))."""
     nu, d = model_wv_jac(theta, mask, tau, dt)
-    return jnp.where(valid[:, None], d / nu[:, None], 0.0)
+    return nu, jnp.where(valid[:, None], d / nu[:, None], 0.0)
