@@ -76,7 +76,6 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
         cov_log, bias = log_moments(rel)
         return scaled_chol(cov_log, valid), log_wv - bias
 
-    chol0, target0 = weights(rel0)
     k_nominal = jnp.sum(masks, axis=1)
 
     def stage(carry, k):
@@ -84,9 +83,7 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
         # under the candidate that stage 0 scored best (its own objective + 2 per parameter)
         th, obj = carry
         ref = jnp.argmin(jnp.where(jnp.isfinite(obj), obj + 2.0 * k_nominal, jnp.inf))
-        chol1, target1 = weights(rel_cov(th[ref], masks[ref]))
-        chol = jnp.where(k == 0, chol0, chol1)
-        target = jnp.where(k == 0, target0, target1)
+        chol, target = weights(jnp.where(k == 0, rel0, rel_cov(th[ref], masks[ref])))
         linv = whitener(chol)
         th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, linv))(
             th, masks)
