@@ -19,6 +19,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -57,15 +58,21 @@ SETUP = {"compensate": ["simulate thermal", "fit"], "export px4": ["simulate the
 NO_COLUMN = "device,t,gx,gy,temp\nimu0,0,0.1,0.2,25\nimu0,0.5,0.1,0.2,25\n"
 
 
-def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int]:
-    t0 = time.perf_counter()
+def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int, float]:
+    """(wall s, exit code, the child's CPU s: user + system, every thread)."""
+    t0, c0 = time.perf_counter(), _children_cpu()
     done = subprocess.run([sys.executable, "-m", "diffgyro", *args], cwd=cwd, env=env,
                           capture_output=True, text=True)
-    return time.perf_counter() - t0, done.returncode
+    return time.perf_counter() - t0, done.returncode, _children_cpu() - c0
 
 
-def _walkthrough(only: list[str]) -> list[tuple[float, float, int]]:
-    """(cold s, warm s, exit code) of every command in ``only``, in a fresh folder and cache
+def _children_cpu() -> float:
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+def _walkthrough(only: list[str]) -> list[tuple[float, float, int, float, float]]:
+    """(cold s, warm s, exit code, cold CPU s, warm CPU s) of every command in ``only``, in a fresh folder and cache
     (the commands whose files they read run first, once)."""
     work = Path(tempfile.mkdtemp())
     (work / "nocol.csv").write_text(NO_COLUMN)
@@ -77,9 +84,9 @@ def _walkthrough(only: list[str]) -> list[tuple[float, float, int]]:
             _run(cmd, work, env)
         if name not in only:
             continue
-        cold, code = _run(cmd, work, env)
-        warm, _ = _run(cmd, work, env)
-        out.append((cold, warm, code))
+        cold, code, cold_cpu = _run(cmd, work, env)
+        warm, _, warm_cpu = _run(cmd, work, env)
+        out.append((cold, warm, code, cold_cpu, warm_cpu))
     return out
 
 
@@ -102,14 +109,17 @@ def main() -> None:
         code = runs[0][k][2]
         met = None if goal is None else (warm <= goal and cold <= 2 * max(warm, 1e-9))
         rows.append({"command": name, "cold_s": round(cold, 3), "warm_s": round(warm, 3),
+                     "cold_cpu_s": round(statistics.median(r[k][3] for r in runs), 3),
+                     "warm_cpu_s": round(statistics.median(r[k][4] for r in runs), 3),
                      "goal_warm_s": goal, "exit": code, "met": met,
                      "runs": [[round(r[k][0], 3), round(r[k][1], 3)] for r in runs]})
-    print("| command | cold s | warm s | goal (warm; cold ≤ 2× warm) | met |")
-    print("|---|---|---|---|---|")
+    print("| command | cold s | warm s | cold CPU s | warm CPU s | goal (warm; cold ≤ 2× warm) | met |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         goal = "—" if r["goal_warm_s"] is None else f"≤ {r['goal_warm_s']} s"
         met = "—" if r["met"] is None else ("yes" if r["met"] else "no")
-        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {goal} | {met} |")
+        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {r['cold_cpu_s']:.2f} | "
+              f"{r['warm_cpu_s']:.2f} | {goal} | {met} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),

@@ -15,8 +15,24 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgyro.internal import avar_gauss_markov, dyadic_m, haar_wv, model_wv, psd, wv_covariance
-from diffgyro.stochastic import SLOW_PENALTY, identify, label, simulate_noise, structure_mask
+from diffgyro.internal import (
+    COV_GRID,
+    avar_gauss_markov,
+    dyadic_m,
+    haar_wv,
+    model_wv,
+    model_wv_jac,
+    psd,
+    wv_covariance,
+)
+from diffgyro.stochastic import (
+    SLOW_PENALTY,
+    catalogue,
+    identify,
+    label,
+    simulate_noise,
+    structure_mask,
+)
 
 DT = 0.01
 #: Every identification test runs 12 series of this length and interval (655 s, as the
@@ -111,6 +127,58 @@ def test_a_ramps_wavelet_variance_spreads_as_the_model_says():
     ramp = 0.25 * r**2 * (m * DT) ** 2 > 10 * 0.5 * arw**2 / (m * DT)  # the ramp dominates
     assert ramp.sum() >= 3 and theory[-1] > 100 * 0.5 * arw**2 / (m[-1] * DT)
     assert np.all((ratio > 0.75) & (ratio < 1.3)), ratio
+
+
+def test_the_covariance_quadrature_is_the_rule_written_out():
+    """covariance.py sums its integrand as two products of (scales × frequencies) matrices;
+    the rule its docstring states, summed over a (scales, scales, frequencies) array here,
+    gives the same covariance to rounding, for every component switched on."""
+    n, m = 8192, 2.0 ** np.arange(11)
+    count = n + 1 - 2 * m
+    th = _theta(white=1e-6, quantization=1e-9, gm1_var=4e-6, gm1_tau=0.2, gm2_var=1e-6,
+                gm2_tau=30.0, random_walk=1e-8)
+    mask = jnp.asarray(structure_mask(("white", "quantization", "gauss_markov", "gauss_markov",
+                                       "random_walk")))
+    lf = np.linspace(np.log(0.02 / n), np.log(0.5), COV_GRID)
+    f = np.exp(lf)
+    s = np.asarray(psd(th, mask, jnp.asarray(f), DT))
+    sin2 = np.sin(np.pi * f) ** 2
+    arg = np.pi * f[None, :] * m[:, None]
+    slow = arg < 6.0 * np.pi  # beyond: sin⁴ replaced by its average
+    gain = np.where(slow, np.sin(arg) ** 4, 0.375) / (m[:, None] ** 2 * sin2)
+    octaves = np.abs(np.round(np.log2(m[:, None] / m[None, :])))
+    both = np.select([octaves == 0, octaves == 1], [35 / 128, 7 / 64], 9 / 64)
+    prod = gain[:, None, :] * gain[None, :, :]
+    fast = ~slow[:, None, :] & ~slow[None, :, :]
+    prod = np.where(fast, both[:, :, None] / (m[:, None, None] ** 2 * m[None, :, None] ** 2
+                                             * sin2**2), prod)
+    integrand = prod * s**2 * f
+    integral = (lf[1] - lf[0]) * (integrand.sum(-1) - 0.5 * (integrand[..., 0] + integrand[..., -1]))
+    expect = 4.0 * integral / np.maximum(count[:, None], count[None, :])
+    got = np.asarray(wv_covariance(th, mask, jnp.asarray(m), jnp.asarray(count), n, DT))
+    np.testing.assert_allclose(got, expect, rtol=1e-12)
+
+
+def test_the_fits_jacobian_equals_forward_differentiation():
+    """The closed-form derivative of log ν(θ) the fit steps with (components.py) equals JAX's
+    forward differentiation of the model and central differences, every structure."""
+    tau = DT * 2.0 ** np.arange(12)
+    th = _theta(white=1e-6, quantization=1e-9, gm1_var=4e-6, gm1_tau=0.2, gm2_var=1e-6,
+                gm2_tau=30.0, random_walk=1e-8, rate_ramp=1e-10)
+    log_wv = jax.jit(lambda t, mask: jnp.log(model_wv(t, mask, tau, DT)))
+    closed = jax.jit(lambda t, mask: model_wv_jac(t, mask, tau, DT))
+    forward = jax.jit(lambda t, mask: jax.jacfwd(log_wv)(t, mask) * mask)
+    h = 1e-6
+    for structure in catalogue():
+        mask = jnp.asarray(structure_mask(structure))
+        nu, d = closed(th, mask)
+        got = np.asarray(d / nu[:, None])
+        np.testing.assert_allclose(got, np.asarray(forward(th, mask)), rtol=1e-12, atol=1e-14)
+        np.testing.assert_allclose(np.asarray(nu), np.asarray(model_wv(th, mask, tau, DT)), rtol=1e-13)
+        fd = np.stack([(np.asarray(log_wv(th.at[i].add(h), mask))
+                        - np.asarray(log_wv(th.at[i].add(-h), mask))) / (2 * h) for i in range(8)],
+                      axis=1)
+        np.testing.assert_allclose(got, fd, rtol=1e-6, atol=1e-8)
 
 
 #: A small version of the benchmark: truth per structure (SI units), two seeds each.

@@ -26,8 +26,9 @@ module. This is the one module that may import another package's private modules
 - the simulator: motion constants and quaternions (``DEG``, ``EARTH_RATE``, ``G0``,
   ``qconj``, ``qlog``, ``qmul``), ``first_order_hold_lag``, noise (``flicker``,
   ``gyro_noise``), populations (``FOG``, ``MEMS``, ``draw_params``);
-- the stochastic model: ``LAYOUT``, ``avar_gauss_markov``, ``model_wv``, ``psd``,
-  ``wv_covariance``, ``dyadic_m``, ``haar_wv``; the block means' likelihood
+- the stochastic model: ``LAYOUT``, ``avar_gauss_markov``, ``model_wv`` (and
+  ``model_wv_jac``, with its derivative), ``psd``, ``wv_covariance`` (its quadrature's
+  ``COV_GRID``), ``dyadic_m``, ``haar_wv``; the block means' likelihood
   (``BlockLikelihood``, ``gm_acov``, ``short_acov``).
 """
 
@@ -73,7 +74,8 @@ from .simulate._noise import flicker, gyro_noise
 from .simulate._population import FOG, MEMS, draw_params
 from .simulate._thermal import first_order_hold_lag
 from .stochastic._block_likelihood import BlockLikelihood, gm_acov, short_acov
-from .stochastic._components import LAYOUT, avar_gauss_markov, model_wv
+from .stochastic._components import LAYOUT, avar_gauss_markov, model_wv, model_wv_jac
+from .stochastic._covariance import GRID as COV_GRID
 from .stochastic._covariance import psd, wv_covariance
 from .stochastic._wavelet_variance import dyadic_m, haar_wv
 
@@ -92,6 +94,7 @@ __all__ = [
     "joint_affine", "s2_design", "sign_change_mask", "offset_filter",
     "DEG", "EARTH_RATE", "G0", "qconj", "qlog", "qmul", "first_order_hold_lag", "flicker",
     "gyro_noise", "FOG", "MEMS", "draw_params",
-    "LAYOUT", "avar_gauss_markov", "model_wv", "psd", "wv_covariance", "dyadic_m", "haar_wv",
+    "LAYOUT", "avar_gauss_markov", "model_wv", "model_wv_jac", "psd", "wv_covariance", "COV_GRID",
+    "dyadic_m", "haar_wv",
     "BlockLikelihood", "gm_acov", "short_acov",
 ]

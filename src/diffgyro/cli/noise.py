@@ -52,7 +52,7 @@ def noise_command(
         "--slow-part", help="Choose the slow components (a second Gauss–Markov process, a random "
                             "walk, a ramp) again by the exact likelihood of the record's block means, "
                             "close calls by a parametric bootstrap: better on long records with "
-                            "several of them; takes two to three times as long.")] = False,
+                            "several of them; the identification takes several times as long.")] = False,
     columns: Columns = None,
     gyro_unit: GyroUnit = None,
     acc_unit: AccUnit = None,

@@ -32,6 +32,7 @@ some components switched off by a mask: one compiled program serves them all.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -110,3 +111,26 @@ def model_avar(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], tau: Float[Ar
 def model_wv(theta, mask, tau, dt):
     """Haar wavelet variance of the composite model: half its Allan variance."""
     return 0.5 * model_avar(theta, mask, tau, dt)
+
+
+def model_wv_jac(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], tau: Float[Array, " J"],
+                 dt) -> tuple[Float[Array, " J"], Float[Array, "J 8"]]:
+    """The model's Haar wavelet variance and its derivative in the log-parameters
+    (switched-off columns zero). A component's variance is proportional to its power, so
+    the derivative in a log-power is the component itself; only the correlation times
+    need a derivative (one forward tangent each): the fit's Jacobian at a fraction of the
+    cost of pushing eight tangents through every component."""
+    p = jnp.exp(theta)
+    # both processes in one (2, J) evaluation: one copy of the formula in a program
+    s2, log_t = p[jnp.array([2, 4])][:, None], theta[jnp.array([3, 5])][:, None]
+    (g1, g2), (dg1, dg2) = jax.jvp(lambda lt: avar_gauss_markov(s2, jnp.exp(lt), tau, dt),
+                                   (log_t,), (jnp.ones_like(log_t),))
+    rows = jnp.stack([avar_white(p[0], tau), avar_quantization(p[1], tau), g1, g2,
+                      avar_random_walk(p[6], tau, dt), avar_rate_ramp(p[7], tau)])
+    rows = 0.5 * jnp.where(row_mask(mask)[:, None], rows, 0.0)
+    nu = jnp.sum(rows, axis=0)
+    on = mask.astype(theta.dtype)
+    d_tau = 0.5 * jnp.stack([dg1 * on[2], dg2 * on[4]])
+    jac = jnp.stack([rows[0], rows[1], rows[2], d_tau[0], rows[3], d_tau[1], rows[4], rows[5]],
+                    axis=1)
+    return nu, jac * on[None, :]

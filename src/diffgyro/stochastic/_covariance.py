@@ -59,21 +59,21 @@ def wv_covariance(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], m: Float[A
     s = psd(theta, mask, f, dt)
     sin2 = jnp.sin(jnp.pi * f) ** 2
     arg = jnp.pi * f[None, :] * m[:, None]  # (J, G)
-    slow = arg < _U
-    s4 = jnp.where(slow, jnp.sin(arg) ** 4, 0.375)
-    gain = s4 / (m[:, None] ** 2 * sin2[None, :])  # |H|² with the fast factor averaged
-    # both factors fast: the average of the product, by the octaves between the scales
+    fast = arg >= _U
+    env = 1.0 / (m[:, None] ** 2 * sin2[None, :])  # |H|² with sin⁴ at its bound, 1
+    gain = jnp.where(fast, 0.375, jnp.sin(arg) ** 4) * env  # |H|² with the fast factor averaged
+    # the trapezoid rule's weights times S² f (the integral runs over log f)
+    h = lf[1] - lf[0]
+    ends = jnp.ones_like(f).at[0].set(0.5).at[-1].set(0.5)
+    w = h * ends * s**2 * f
+    # Σ_g gain_i gain_j w: both factors averaged where both are fast (3/8 · 3/8 = 9/64);
+    # there the average of the product is 35/128 at one scale, 7/64 an octave apart and
+    # 9/64 further, so the difference is added where both are fast: two products of
+    # (J, G) matrices instead of a (J, J, G) array
     octaves = jnp.abs(jnp.round(jnp.log2(m[:, None] / m[None, :])))
     both = jnp.where(octaves == 0, 35.0 / 128.0, jnp.where(octaves == 1, 7.0 / 64.0, 9.0 / 64.0))
-    prod = gain[:, None, :] * gain[None, :, :]
-    fast_both = (~slow)[:, None, :] & (~slow)[None, :, :]
-    exact_fast = both[:, :, None] / (m[:, None, None] ** 2 * m[None, :, None] ** 2
-                                     * sin2[None, None, :] ** 2)
-    prod = jnp.where(fast_both, exact_fast, prod)
-    # same scale, slow: sin⁸ exactly (gain² already is)
-    integrand = prod * (s**2 * f)[None, None, :]
-    h = lf[1] - lf[0]
-    integral = h * (jnp.sum(integrand, -1) - 0.5 * (integrand[..., 0] + integrand[..., -1]))
+    fe = jnp.where(fast, env, 0.0)
+    integral = (gain * w) @ gain.T + (both - 9.0 / 64.0) * ((fe * w) @ fe.T)
     big_m = jnp.maximum(count[:, None], count[None, :])
     cov = 4.0 * integral / big_m  # 2/M ∫_{−½}^{½} = 4/M ∫_0^{½}
     # the ramp's deterministic coefficients times the mean of the noise's: the random walk's

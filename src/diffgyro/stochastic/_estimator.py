@@ -35,7 +35,14 @@ import numpy as np
 from jax.scipy.special import digamma, polygamma
 from jaxtyping import Array, Bool, Float
 
-from ._components import N_PARAMS, POWER_INDEX, TAU_INDEX, component_avar, model_wv, row_mask
+from ._components import (
+    N_PARAMS,
+    POWER_INDEX,
+    TAU_INDEX,
+    component_avar,
+    model_wv_jac,
+    row_mask,
+)
 
 #: Levenberg–Marquardt iterations per stage (from the grid's starting values, and the
 #: second stage from the first's estimate, the steps have settled by then).
@@ -97,11 +104,14 @@ def whitener(chol: Float[Array, "J J"]) -> Float[Array, "J J"]:
                                              lower=True)
 
 
-def residual(theta, mask, target, valid, tau, dt, linv):
-    """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias; zero on
-    invalid scales; ``linv``: L⁻¹ (:func:`whitener`)."""
-    r = jnp.where(valid, target - jnp.log(model_wv(theta, mask, tau, dt)), 0.0)
-    return linv @ r
+def residual_jac(theta, mask, target, valid, tau, dt, linv):
+    """Whitened log residual L⁻¹(target − log ν(θ)), target = log ν̂ less its bias, zero on
+    invalid scales (``linv``: L⁻¹, :func:`whitener`), and its Jacobian in the
+    log-parameters (switched-off columns zero)."""
+    nu, d = model_wv_jac(theta, mask, tau, dt)
+    r = jnp.where(valid, target - jnp.log(nu), 0.0)
+    d = jnp.where(valid[:, None], d / nu[:, None], 0.0)
+    return linv @ r, -(linv @ d)
 
 
 def _bounds(dt, n):
@@ -116,29 +126,33 @@ def levenberg_marquardt(theta0, mask, target, valid, tau, dt, n, linv, iteration
     """Minimise ‖residual‖² over the switched-on log-parameters (``linv``: the weight's
     :func:`whitener`); returns (θ, objective)."""
     lo, hi = _bounds(dt, n)
-    fun = lambda th: residual(th, mask, target, valid, tau, dt, linv)  # noqa: E731
+    fun = lambda th: residual_jac(th, mask, target, valid, tau, dt, linv)  # noqa: E731
     on = mask.astype(theta0.dtype)
 
-    def step(carry, _):
-        th, lam, cost = carry
-        r = fun(th)
-        jac = jax.jacfwd(fun)(th) * on[None, :]
+    def step(carry, k):
+        # evaluate the trial point (θ₀ itself first), take it if it lowers the cost, then
+        # the next trial from the residual and Jacobian at θ: one evaluation an iteration,
+        # one copy of the model in the program
+        th, lam, cost, r, jac, trial = carry
+        tr, tjac = fun(trial)
+        new_cost = tr @ tr
+        first = k == 0
+        better = first | (jnp.isfinite(new_cost) & (new_cost < cost))
+        th = jnp.where(better, trial, th)
+        cost = jnp.where(better, new_cost, cost)
+        r = jnp.where(better, tr, r)
+        jac = jnp.where(better, tjac, jac)
+        lam = jnp.where(first, lam, jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9))
         g = jac.T @ r
         a = jac.T @ jac
         damp = lam * (jnp.diag(a) + 1e-12) + (1.0 - on)
         delta = jnp.linalg.solve(a + jnp.diag(damp), -g[:, None])[:, 0] * on
-        trial = jnp.clip(th + delta, lo, hi)
-        tr = fun(trial)
-        new_cost = tr @ tr
-        better = jnp.isfinite(new_cost) & (new_cost < cost)
-        th = jnp.where(better, trial, th)
-        cost = jnp.where(better, new_cost, cost)
-        lam = jnp.clip(jnp.where(better, lam / 5.0, lam * 4.0), 1e-9, 1e9)
-        return (th, lam, cost), None
+        return (th, lam, cost, r, jac, jnp.clip(th + delta, lo, hi)), None
 
-    r0 = fun(theta0)
-    (th, _, cost), _ = jax.lax.scan(step, (theta0, jnp.asarray(1e-2, theta0.dtype), r0 @ r0),
-                                    None, length=iterations)
+    carry = (theta0, jnp.asarray(1e-2, theta0.dtype), jnp.asarray(jnp.inf, theta0.dtype),
+             jnp.zeros(target.shape, theta0.dtype),
+             jnp.zeros(target.shape + theta0.shape, theta0.dtype), theta0)
+    (th, _, cost, _, _, _), _ = jax.lax.scan(step, carry, jnp.arange(iterations + 1))
     return th, cost
 
 
@@ -161,28 +175,29 @@ def start_pairs(n_scales: int) -> tuple[jax.Array, jax.Array]:
     return jnp.asarray(a), jnp.asarray(b)
 
 
-def _nnls_powers(cols, target, active, sweeps=6):
-    """Non-negative least squares ‖cols·p − target‖ over the active columns (an active set
-    shrunk by dropping negative coefficients; columns normalised first)."""
-    norm = jnp.sqrt(jnp.sum(cols**2, 0)) + 1e-300
-    c = cols / norm
-    act = active
+def _nnls_powers(c, gram, cty, target, active, sweeps=6):
+    """Non-negative least squares ‖c·p − target‖ over the active columns of ``c`` (columns
+    normalised; ``gram`` = cᵀc, ``cty`` = cᵀ·target), an active set shrunk by dropping
+    negative coefficients. The products with the columns are formed once, outside the
+    structures' vmap: a structure only masks them."""
+
+    def solve(act):
+        w = act.astype(c.dtype)
+        a = gram * (w[:, None] * w[None, :]) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
+        return spd_solve(a, cty * w) * w
 
     def sweep(act, _):
-        w = act.astype(c.dtype)
-        a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-        p = spd_solve(a, (c * w).T @ target) * w
+        p = solve(act)
         return act & (p > 0), p
 
-    act, ps = jax.lax.scan(sweep, act, None, length=sweeps)
-    w = act.astype(c.dtype)
-    a = (c * w).T @ (c * w) + jnp.diag(1.0 - w) + 1e-12 * jnp.eye(c.shape[1])
-    p = spd_solve(a, (c * w).T @ target) * w
-    p = jnp.maximum(p, 0.0)
+    # the seventh solve is the final one, with the set the six sweeps left: one solve in
+    # the program, not two
+    _, ps = jax.lax.scan(sweep, active, None, length=sweeps + 1)
+    p = jnp.maximum(ps[-1], 0.0)
     misfit = jnp.sum((c @ p - target) ** 2)
     # a switched-on component the data do not ask for starts small, not at zero
     p = jnp.where(active & (p <= 0), 1e-3 * jnp.sqrt(jnp.sum(target**2)), p)
-    return p / norm, misfit
+    return p, misfit
 
 
 def pair_columns(grid, pairs, tau, dt):
@@ -204,7 +219,12 @@ def starting_values(mask, wv_hat, valid, tau, dt, weight, grid, pairs):
 
     ths, cols = pair_columns(grid, pairs, tau, dt)
     cols = cols / s[None, :, None] * sw[None, :, None]  # (K, J, 6)
-    ps, misfits = jax.vmap(lambda c: _nnls_powers(c, sw, rows_on))(cols)
+    norm = jnp.sqrt(jnp.sum(cols**2, 1)) + 1e-300  # (K, 6)
+    c = cols / norm[:, None, :]
+    gram = jnp.einsum("kji,kjl->kil", c, c)
+    cty = jnp.einsum("kji,j->ki", c, sw)
+    ps, misfits = jax.vmap(lambda ck, g, b: _nnls_powers(ck, g, b, sw, rows_on))(c, gram, cty)
+    ps = ps / norm
     best = jnp.argmin(misfits)
     th, p = ths[best], ps[best]
     logp = jnp.log(jnp.maximum(p, 1e-300))
@@ -219,6 +239,7 @@ def diag_rel_cov(count, m):
 
 
 def jacobian_log(theta, mask, valid, tau, dt):
-    """∂ log ν(θ)/∂θ on the valid scales, switched-off columns zero: (J, 8)."""
-    f = lambda th: jnp.where(valid, jnp.log(model_wv(th, mask, tau, dt)), 0.0)  # noqa: E731
-    return jax.jacfwd(f)(theta) * mask.astype(theta.dtype)[None, :]
+    """The model's wavelet variances ν(θ) and ∂ log ν/∂θ on the valid scales, switched-off
+    columns zero: ((J,), (J, 8))."""
+    nu, d = model_wv_jac(theta, mask, tau, dt)
+    return nu, jnp.where(valid[:, None], d / nu[:, None], 0.0)

@@ -76,7 +76,6 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
         cov_log, bias = log_moments(rel)
         return scaled_chol(cov_log, valid), log_wv - bias
 
-    chol0, target0 = weights(rel0)
     k_nominal = jnp.sum(masks, axis=1)
 
     def stage(carry, k):
@@ -84,9 +83,7 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
         # under the candidate that stage 0 scored best (its own objective + 2 per parameter)
         th, obj = carry
         ref = jnp.argmin(jnp.where(jnp.isfinite(obj), obj + 2.0 * k_nominal, jnp.inf))
-        chol1, target1 = weights(rel_cov(th[ref], masks[ref]))
-        chol = jnp.where(k == 0, chol0, chol1)
-        target = jnp.where(k == 0, target0, target1)
+        chol, target = weights(jnp.where(k == 0, rel0, rel_cov(th[ref], masks[ref])))
         linv = whitener(chol)
         th, obj = jax.vmap(lambda t, mk: levenberg_marquardt(t, mk, target, valid, tau, dt, n, linv))(
             th, masks)
@@ -97,11 +94,8 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     chol_ref = chols[1]
     linv_ref = whitener(chol_ref)
 
-    def rank_of(th, mask):
-        d = jacobian_log(th, mask, valid, tau, dt)
-        return effective_rank(linv_ref @ d)
-
-    rank = jax.vmap(rank_of)(th2, masks)
+    nus, ds = jax.vmap(lambda th, mask: jacobian_log(th, mask, valid, tau, dt))(th2, masks)
+    rank = jax.vmap(lambda d: effective_rank(linv_ref @ d))(ds)
     crit = obj + penalty * k_nominal
     # a Gauss–Markov time beyond the record's share is a walk or ramp: not a candidate
     # (:mod:`.resolution`)
@@ -109,19 +103,20 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
     admissible = ~((masks[:, 2] & (th2[:, 3] > jnp.log(long)))
                    | (masks[:, 4] & (th2[:, 5] > jnp.log(long))))
     pick = jnp.argmin(jnp.where(jnp.isfinite(crit) & admissible, crit, jnp.inf))
-    at = _at_pick(th2[pick], masks[pick], valid, tau, dt, mf, cnt, n, chol_ref, penalty)
+    at = _at_pick(th2[pick], masks[pick], valid, tau, dt, mf, cnt, n, chol_ref, penalty,
+                  (nus[pick], ds[pick]))
     return dict(valid=valid, theta_all=th2, objective=obj, rank=rank, criterion=crit, pick=pick,
                 admissible=admissible, chol_ref=chol_ref, **at)
 
 
-def _at_pick(th, mask, valid, tau, dt, mf, cnt, n, chol_ref, penalty):
+def _at_pick(th, mask, valid, tau, dt, mf, cnt, n, chol_ref, penalty, nu_d=None):
     """The chosen model's covariance (the sandwich with the weight ``chol_ref``), the wavelet
-    variances' model standard deviation and the detection limits."""
-    nu = model_wv(th, mask, tau, dt)
+    variances' model standard deviation and the detection limits; ``nu_d``: its wavelet
+    variances and log-Jacobian (:func:`.estimator.jacobian_log`) where already computed."""
+    nu, d = jacobian_log(th, mask, valid, tau, dt) if nu_d is None else nu_d
     rel_at = wv_covariance(th, mask, mf, cnt, n, dt) / (nu[:, None] * nu[None, :])
     cov_log_at, _ = log_moments(rel_at)
     vv = valid[:, None] & valid[None, :]
-    d = jacobian_log(th, mask, valid, tau, dt)
     cov_theta = sandwich(d, chol_ref, jnp.where(vv, cov_log_at, 0.0), mask)
     wv_sd = jnp.sqrt(jnp.diag(rel_at)) * nu
     limits = detection_limits(d, mask, valid, tau, dt, nu, scaled_chol(cov_log_at, valid), penalty)
@@ -374,7 +369,8 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     - ``slow_penalty``: the slow part chosen again by the block means' exact likelihood
       (step 5), with this criterion per parameter (:data:`SLOW_PENALTY`: a test at 1 %);
       None (default) skips it: it decides the slow components better on long records
-      with several of them, at about the cost of the rest of identify again.
+      with several of them, at about twice the cost of the rest of identify (the
+      bootstrap's draws more).
     - ``slow_bootstrap``: with ``slow_penalty``, the close calls between slow structures
       settled by a parametric bootstrap of the likelihood ratio
       (:mod:`.slow_bootstrap`); False keeps the χ² rule alone.
