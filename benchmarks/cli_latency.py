@@ -2,7 +2,8 @@
 persistent cache) and warm (the same command again, the caches filled), in one run.
 
 Each command runs as its own process (``python -m diffgyro ...``) in a fresh folder, on
-the walkthrough's files; the table gives the wall time from start to exit, the goal of
+the walkthrough's files; the table gives the wall time from start to exit (and the child's CPU
+time, user + system over its threads, which a shared machine disturbs less), the goal of
 each command (issue 45: fit ≤ 1.5 s, diagnose ≤ 2.5 s, noise ≤ 1.5 s, the commands that
 need no compiled program ≤ 0.5 s, cold ≤ 2× warm) and whether it is met.
 
@@ -19,6 +20,7 @@ import argparse
 import json
 import os
 import platform
+import resource
 import statistics
 import subprocess
 import sys
@@ -57,15 +59,20 @@ SETUP = {"compensate": ["simulate thermal", "fit"], "export px4": ["simulate the
 NO_COLUMN = "device,t,gx,gy,temp\nimu0,0,0.1,0.2,25\nimu0,0.5,0.1,0.2,25\n"
 
 
-def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int]:
+def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int, float]:
+    """(wall s, exit code, the child's CPU s: user + system, all its threads)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "diffgyro", *args], cwd=cwd, env=env,
                           capture_output=True, text=True)
-    return time.perf_counter() - t0, done.returncode
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, done.returncode, cpu
 
 
-def _walkthrough(only: list[str]) -> list[tuple[float, float, int]]:
-    """(cold s, warm s, exit code) of every command in ``only``, in a fresh folder and cache
+def _walkthrough(only: list[str]) -> list[tuple[float, float, int, float, float]]:
+    """(cold s, warm s, exit code, cold CPU s, warm CPU s) of every command in ``only``, in a fresh folder and cache
     (the commands whose files they read run first, once)."""
     work = Path(tempfile.mkdtemp())
     (work / "nocol.csv").write_text(NO_COLUMN)
@@ -77,9 +84,9 @@ def _walkthrough(only: list[str]) -> list[tuple[float, float, int]]:
             _run(cmd, work, env)
         if name not in only:
             continue
-        cold, code = _run(cmd, work, env)
-        warm, _ = _run(cmd, work, env)
-        out.append((cold, warm, code))
+        cold, code, cold_cpu = _run(cmd, work, env)
+        warm, _, warm_cpu = _run(cmd, work, env)
+        out.append((cold, warm, code, cold_cpu, warm_cpu))
     return out
 
 
@@ -100,16 +107,21 @@ def main() -> None:
         cold = statistics.median(r[k][0] for r in runs)
         warm = statistics.median(r[k][1] for r in runs)
         code = runs[0][k][2]
+        cold_cpu = statistics.median(r[k][3] for r in runs)
+        warm_cpu = statistics.median(r[k][4] for r in runs)
         met = None if goal is None else (warm <= goal and cold <= 2 * max(warm, 1e-9))
         rows.append({"command": name, "cold_s": round(cold, 3), "warm_s": round(warm, 3),
                      "goal_warm_s": goal, "exit": code, "met": met,
-                     "runs": [[round(r[k][0], 3), round(r[k][1], 3)] for r in runs]})
-    print("| command | cold s | warm s | goal (warm; cold ≤ 2× warm) | met |")
-    print("|---|---|---|---|---|")
+                     "cold_cpu_s": round(cold_cpu, 3), "warm_cpu_s": round(warm_cpu, 3),
+                     "runs": [[round(r[k][0], 3), round(r[k][1], 3)] for r in runs],
+                     "runs_cpu": [[round(r[k][3], 3), round(r[k][4], 3)] for r in runs]})
+    print("| command | cold s | warm s | goal (warm; cold ≤ 2× warm) | met | cold CPU s | warm CPU s |")
+    print("|---|---|---|---|---|---|---|")
     for r in rows:
         goal = "—" if r["goal_warm_s"] is None else f"≤ {r['goal_warm_s']} s"
         met = "—" if r["met"] is None else ("yes" if r["met"] else "no")
-        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {goal} | {met} |")
+        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {goal} | {met} "
+              f"| {r['cold_cpu_s']:.2f} | {r['warm_cpu_s']:.2f} |")
     if args.json:
         with open(args.json, "w") as fh:
             json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),

@@ -118,6 +118,15 @@ def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None 
     return for_work
 
 
+def signature(*args, **kwargs) -> tuple:
+    """What a call of a :func:`filter_jit` program is compiled for: the argument tree, the
+    static leaves and every array's shape and dtype (a ``jax.ShapeDtypeStruct`` counts as
+    the array it stands for). Two calls with equal signatures run one compiled program."""
+    treedef, static, dynamic = _split(args, kwargs)
+    return treedef, static, tuple(None if x is None else (tuple(x.shape), str(x.dtype))
+                                  for x in dynamic)
+
+
 def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread]:
     """A program's ``compile_ahead`` (``lower``: its arguments to a lowered program)."""
     ahead: set = set()  # the signatures compiled ahead in this process
@@ -130,9 +139,7 @@ def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread
         A signature compiled ahead before is not lowered again. An error is left for the
         call itself to raise."""
         log = logging.getLogger("diffgyro")
-        treedef, static, dynamic = _split(a, k)
-        key = (treedef, static, jax.default_backend(),
-               tuple(None if x is None else (tuple(x.shape), str(x.dtype)) for x in dynamic))
+        key = (signature(*a, **k), jax.default_backend())
         if key in ahead:
             done = threading.Thread(target=lambda: None, daemon=True)
             done.start()
