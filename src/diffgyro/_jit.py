@@ -94,7 +94,8 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
 
 def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None = None,
-            persistent: bool | None = None) -> Callable[[int], Callable[..., Any]]:
+            persistent: bool | None = None, small_options: dict[str, Any] | None = None
+            ) -> Callable[[int], Callable[..., Any]]:
     """``fun`` compiled (:func:`filter_jit`) for the size of the batch it runs: a function of
     the batch's samples (devices × samples, or series × samples) that gives the program
     compiled with ``compiler_options``, or for a batch of at most
@@ -107,9 +108,11 @@ def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None 
     - ``fun``: the function to compile.
     - ``compiler_options``: XLA's options for a larger batch (:func:`filter_jit`).
     - ``persistent``: whether the traced programs are kept on disk (:func:`filter_jit`).
+    - ``small_options``: XLA's options added for the small batch's program.
     """
     large = filter_jit(fun, compiler_options=compiler_options, persistent=persistent)
-    small = filter_jit(fun, compiler_options={**(compiler_options or {}), **ONCE},
+    small = filter_jit(fun, compiler_options={**(compiler_options or {}), **ONCE,
+                                              **(small_options or {})},
                        persistent=persistent)
 
     def for_work(samples: int) -> Callable[..., Any]:

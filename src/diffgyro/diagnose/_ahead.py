@@ -44,7 +44,11 @@ class Setting(NamedTuple):
     dtemp_window: float
 
 
+#: Every fit option, and the defaults of the three the setting reads (read from the class:
+#: an instance puts its tolerances on the device).
 _OPTIONS = frozenset(f.name for f in dataclasses.fields(FitOptions))
+_DEFAULTS = {f.name: f.default for f in dataclasses.fields(FitOptions)
+             if f.name in ("n_blocks", "n_folds", "dtemp_window")}
 
 
 def predicted(model: ErrorModel, batch: Batch, fit_options: dict) -> Setting | None:
@@ -55,7 +59,7 @@ def predicted(model: ErrorModel, batch: Batch, fit_options: dict) -> Setting | N
     prediction does not follow."""
     if not set(fit_options) <= _OPTIONS:
         return None
-    opts = FitOptions().replace(**fit_options)
+    opts = {**_DEFAULTS, **{k: v for k, v in fit_options.items() if k in _DEFAULTS}}
     norm = None
     if "temp" in model.requires() and batch.temp is not None:
         mask = np.asarray(batch.mask, bool)
@@ -70,7 +74,8 @@ def predicted(model: ErrorModel, batch: Batch, fit_options: dict) -> Setting | N
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # an empty column: the fit names it
         aux = aux_cols.norms(batch, names)
-    return Setting(model, norm, aux, opts.n_blocks, opts.n_folds, float(opts.dtemp_window))
+    return Setting(model, norm, aux, opts["n_blocks"], opts["n_folds"],
+                   float(opts["dtemp_window"]))
 
 
 def of_fit(res) -> Setting:

@@ -31,6 +31,7 @@ from .. import allan as allan_mod
 from .._jit import by_work, release_compiled_if_crowded, signature
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
+from .._xla_options import ONE_PART
 from ..channel import GRAVITY, UNITS, as_channel, check_channel, reads_gravity
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
@@ -230,8 +231,9 @@ def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
 
 
 #: :func:`_scores` compiled for a batch's size (the diagnosis engine,
-#: :func:`~diffgyro._jit.by_work`).
-_engine = by_work(_scores, persistent=True)
+#: :func:`~diffgyro._jit.by_work`); a small batch's as one part
+#: (:data:`~diffgyro._xla_options.ONE_PART`): it compiles beside the base fit.
+_engine = by_work(_scores, persistent=True, small_options=ONE_PART)
 
 
 #: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`) compiled for a batch's
