@@ -65,9 +65,10 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         inside = any(isinstance(d, jax.core.Tracer) for d in dynamic)  # part of another trace
         if not inside and (persistent or (persistent is None and _jax_setup.store_programs
                                           and cpu)):
-            kept = program(fun, treedef, static, dynamic,
-                           functools.partial(_unsplit, fun, treedef, static),
-                           options=compiler_options if cpu else None)
+            with collector_paused():  # a new program is traced and exported here
+                kept = program(fun, treedef, static, dynamic,
+                               functools.partial(_unsplit, fun, treedef, static),
+                               options=compiler_options if cpu else None)
             if kept is not None:
                 return kept, (dynamic,)
         return (on_cpu if cpu else elsewhere), (treedef, static, dynamic)
