@@ -497,10 +497,10 @@ def _planned_ahead(model, batch: Batch, names, fit_options: dict, say) -> _Plan 
     its programs started (:func:`_ahead_programs`); None where the setting is not foreseen
     or forming the plan fails (the fit then raises its own error, or the plan is formed
     after it)."""
-    st = predicted(model, batch, fit_options)
-    if st is None:
-        return None
     try:
+        st = predicted(model, batch, fit_options)
+        if st is None:
+            return None
         plan = _plan(model, batch, st, names, say)
         return plan._replace(ahead=_ahead_programs(model, batch, plan))
     except Exception:  # noqa: BLE001 - formed again after the fit, which raises what is wrong
