@@ -2,7 +2,8 @@
 persistent cache) and warm (the same command again, the caches filled), in one run.
 
 Each command runs as its own process (``python -m diffgyro ...``) in a fresh folder, on
-the walkthrough's files; the table gives the wall time from start to exit, the goal of
+the walkthrough's files; the table gives the wall time from start to exit (and the child's CPU
+time, user + system over its threads, which a shared machine disturbs less), the goal of
 each command (issue 45: fit ≤ 1.5 s, diagnose ≤ 2.5 s, noise ≤ 1.5 s, the commands that
 need no compiled program ≤ 0.5 s, cold ≤ 2× warm) and whether it is met.
 
@@ -11,6 +12,9 @@ need no compiled program ≤ 0.5 s, cold ≤ 2× warm) and whether it is met.
 ``--repeat N`` runs the walkthrough N times, each in a fresh folder and cache, and gives
 the median of each command's cold and warm times (on a shared machine one run is noisy).
 ``--only NAMES`` times those commands alone (the ones whose files they read run once first).
+``--trees main=../main/src,branch=src`` runs each walkthrough of each repeat on every source
+tree in turn (a change of the machine's load touches both alike), one table per tree, to
+compare a change with the tree before it.
 """
 
 from __future__ import annotations
@@ -59,24 +63,27 @@ NO_COLUMN = "device,t,gx,gy,temp\nimu0,0,0.1,0.2,25\nimu0,0.5,0.1,0.2,25\n"
 
 
 def _run(args: list[str], cwd: Path, env: dict) -> tuple[float, int, float]:
-    """(wall s, exit code, the child's CPU s: user + system, every thread)."""
-    t0, c0 = time.perf_counter(), _children_cpu()
+    """(wall s, exit code, the child's CPU s: user + system, all its threads)."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
     done = subprocess.run([sys.executable, "-m", "diffgyro", *args], cwd=cwd, env=env,
                           capture_output=True, text=True)
-    return time.perf_counter() - t0, done.returncode, _children_cpu() - c0
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, done.returncode, cpu
 
 
-def _children_cpu() -> float:
-    use = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return use.ru_utime + use.ru_stime
-
-
-def _walkthrough(only: list[str]) -> list[tuple[float, float, int, float, float]]:
-    """(cold s, warm s, exit code, cold CPU s, warm CPU s) of every command in ``only``, in a fresh folder and cache
-    (the commands whose files they read run first, once)."""
+def _walkthrough(only: list[str], src: str | None = None
+                 ) -> list[tuple[float, float, int, float, float]]:
+    """(cold s, warm s, exit code, cold CPU s, warm CPU s) of every command in ``only``, in
+    a fresh folder and cache (the commands whose files they read run first, once); ``src``:
+    the source tree the commands run (put first on PYTHONPATH), default the installed one."""
     work = Path(tempfile.mkdtemp())
     (work / "nocol.csv").write_text(NO_COLUMN)
     env = {**os.environ, "DIFFGYRO_CACHE_DIR": str(work / "cache")}
+    if src is not None:
+        env["PYTHONPATH"] = os.pathsep.join([src, *filter(None, [env.get("PYTHONPATH")])])
     setup = {s for name in only for s in SETUP.get(name, [])} - set(only)
     out = []
     for name, cmd, _ in COMMANDS:
@@ -90,40 +97,69 @@ def _walkthrough(only: list[str]) -> list[tuple[float, float, int, float, float]
     return out
 
 
+def _rows(only: list[str], runs: list) -> list[dict]:
+    """Each command's medians over ``runs`` (walkthroughs), its goal and whether it is met."""
+    rows = []
+    for k, (name, _, goal) in enumerate(c for c in COMMANDS if c[0] in only):
+        cold = statistics.median(r[k][0] for r in runs)
+        warm = statistics.median(r[k][1] for r in runs)
+        cold_cpu = statistics.median(r[k][3] for r in runs)
+        warm_cpu = statistics.median(r[k][4] for r in runs)
+        met = None if goal is None else (warm <= goal and cold <= 2 * max(warm, 1e-9))
+        rows.append({"command": name, "cold_s": round(cold, 3), "warm_s": round(warm, 3),
+                     "goal_warm_s": goal, "exit": runs[0][k][2], "met": met,
+                     "cold_cpu_s": round(cold_cpu, 3), "warm_cpu_s": round(warm_cpu, 3),
+                     "cold_over_warm": round(cold / max(warm, 1e-9), 3),
+                     "runs": [[round(r[k][0], 3), round(r[k][1], 3)] for r in runs],
+                     "runs_cpu": [[round(r[k][3], 3), round(r[k][4], 3)] for r in runs]})
+    return rows
+
+
+def _print(rows: list[dict], tree: str | None = None) -> None:
+    first = "| tree " if tree is not None else ""
+    print(f"{first}| command | cold s | warm s | goal (warm; cold ≤ 2× warm) | met "
+          "| cold / warm | cold CPU s | warm CPU s |")
+    print("|---" * (8 + (tree is not None)) + "|")
+    for r in rows:
+        goal = "—" if r["goal_warm_s"] is None else f"≤ {r['goal_warm_s']} s"
+        met = "—" if r["met"] is None else ("yes" if r["met"] else "no")
+        lead = f"| {tree} " if tree is not None else ""
+        print(f"{lead}| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {goal} | {met} "
+              f"| {r['cold_over_warm']:.2f} | {r['cold_cpu_s']:.2f} | {r['warm_cpu_s']:.2f} |")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--json")
     ap.add_argument("--repeat", type=int, default=1, help="walkthroughs; medians reported")
     ap.add_argument("--only", help="comma-separated command names (default: all), e.g. "
                     "'compensate,export px4,effects,bad input,bad column'")
+    ap.add_argument("--trees", help="NAME=SRC,...: source trees run in turn, each walkthrough "
+                    "of each repeat in a fresh cache (e.g. 'main=../main/src,branch=src')")
     args = ap.parse_args()
     only = [c[0] for c in COMMANDS] if not args.only else [n.strip() for n in args.only.split(",")]
     unknown = set(only) - {c[0] for c in COMMANDS}
     if unknown:
         ap.error(f"unknown command(s) {sorted(unknown)}; one of {[c[0] for c in COMMANDS]}")
-    runs = [_walkthrough(only) for _ in range(max(args.repeat, 1))]
-    rows = []
-    for k, (name, _, goal) in enumerate(c for c in COMMANDS if c[0] in only):
-        cold = statistics.median(r[k][0] for r in runs)
-        warm = statistics.median(r[k][1] for r in runs)
-        code = runs[0][k][2]
-        met = None if goal is None else (warm <= goal and cold <= 2 * max(warm, 1e-9))
-        rows.append({"command": name, "cold_s": round(cold, 3), "warm_s": round(warm, 3),
-                     "cold_cpu_s": round(statistics.median(r[k][3] for r in runs), 3),
-                     "warm_cpu_s": round(statistics.median(r[k][4] for r in runs), 3),
-                     "goal_warm_s": goal, "exit": code, "met": met,
-                     "runs": [[round(r[k][0], 3), round(r[k][1], 3)] for r in runs]})
-    print("| command | cold s | warm s | cold CPU s | warm CPU s | goal (warm; cold ≤ 2× warm) | met |")
-    print("|---|---|---|---|---|---|---|")
-    for r in rows:
-        goal = "—" if r["goal_warm_s"] is None else f"≤ {r['goal_warm_s']} s"
-        met = "—" if r["met"] is None else ("yes" if r["met"] else "no")
-        print(f"| {r['command']} | {r['cold_s']:.2f} | {r['warm_s']:.2f} | {r['cold_cpu_s']:.2f} | "
-              f"{r['warm_cpu_s']:.2f} | {goal} | {met} |")
+    trees = dict(t.split("=", 1) for t in args.trees.split(",")) if args.trees else {None: None}
+    runs: dict = {name: [] for name in trees}
+    loads = []
+    for _ in range(max(args.repeat, 1)):
+        for name, src in trees.items():  # in turn: a change of load touches every tree alike
+            loads.append(round(os.getloadavg()[0], 2))
+            runs[name].append(_walkthrough(only, src))
+    rows = {name: _rows(only, r) for name, r in runs.items()}
+    for name, r in rows.items():
+        _print(r, name)
+    out = {"machine": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+           "repeat": max(args.repeat, 1), "load_1min": loads}
+    if args.trees:
+        out["trees"] = {name: {"src": src, "rows": rows[name]} for name, src in trees.items()}
+    else:
+        out["rows"] = rows[None]
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),
-                       "cores": os.cpu_count(), "repeat": len(runs)}, fh, indent=1)
+            json.dump(out, fh, indent=1)
 
 
 if __name__ == "__main__":

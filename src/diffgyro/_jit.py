@@ -65,9 +65,10 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         inside = any(isinstance(d, jax.core.Tracer) for d in dynamic)  # part of another trace
         if not inside and (persistent or (persistent is None and _jax_setup.store_programs
                                           and cpu)):
-            kept = program(fun, treedef, static, dynamic,
-                           functools.partial(_unsplit, fun, treedef, static),
-                           options=compiler_options if cpu else None)
+            with collector_paused():  # a new program is traced and exported here
+                kept = program(fun, treedef, static, dynamic,
+                               functools.partial(_unsplit, fun, treedef, static),
+                               options=compiler_options if cpu else None)
             if kept is not None:
                 return kept, (dynamic,)
         return (on_cpu if cpu else elsewhere), (treedef, static, dynamic)
@@ -94,7 +95,8 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
 
 def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None = None,
-            persistent: bool | None = None) -> Callable[[int], Callable[..., Any]]:
+            persistent: bool | None = None, small_options: dict[str, Any] | None = None
+            ) -> Callable[[int], Callable[..., Any]]:
     """``fun`` compiled (:func:`filter_jit`) for the size of the batch it runs: a function of
     the batch's samples (devices × samples, or series × samples) that gives the program
     compiled with ``compiler_options``, or for a batch of at most
@@ -107,15 +109,26 @@ def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None 
     - ``fun``: the function to compile.
     - ``compiler_options``: XLA's options for a larger batch (:func:`filter_jit`).
     - ``persistent``: whether the traced programs are kept on disk (:func:`filter_jit`).
+    - ``small_options``: XLA's options added for the small batch's program.
     """
     large = filter_jit(fun, compiler_options=compiler_options, persistent=persistent)
-    small = filter_jit(fun, compiler_options={**(compiler_options or {}), **ONCE},
+    small = filter_jit(fun, compiler_options={**(compiler_options or {}), **ONCE,
+                                              **(small_options or {})},
                        persistent=persistent)
 
     def for_work(samples: int) -> Callable[..., Any]:
         return small if samples <= SMALL_WORK else large
 
     return for_work
+
+
+def signature(*args, **kwargs) -> tuple:
+    """What a call of a :func:`filter_jit` program is compiled for: the argument tree, the
+    static leaves and every array's shape and dtype (a ``jax.ShapeDtypeStruct`` counts as
+    the array it stands for). Two calls with equal signatures run one compiled program."""
+    treedef, static, dynamic = _split(args, kwargs)
+    return treedef, static, tuple(None if x is None else (tuple(x.shape), str(x.dtype))
+                                  for x in dynamic)
 
 
 def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread]:
@@ -130,9 +143,7 @@ def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread
         A signature compiled ahead before is not lowered again. An error is left for the
         call itself to raise."""
         log = logging.getLogger("diffgyro")
-        treedef, static, dynamic = _split(a, k)
-        key = (treedef, static, jax.default_backend(),
-               tuple(None if x is None else (tuple(x.shape), str(x.dtype)) for x in dynamic))
+        key = (signature(*a, **k), jax.default_backend())
         if key in ahead:
             done = threading.Thread(target=lambda: None, daemon=True)
             done.start()

@@ -23,6 +23,12 @@ REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=T
 FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: XLA options of a tiny program run once (LLVM without optimisation passes).
 ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
+#: XLA options of an unoptimised program compiled on a thread beside other work: LLVM
+#: compiles its module as one part instead of splitting it over XLA's threads. The
+#: diagnosis's scoring program of the walkthrough compiles in 15 % less CPU time so, with
+#: the same bits on every simulated plan tried (thermal, warm-up, rate table, six faces);
+#: the noise identification's results moved in their last bits, so it keeps the split.
+ONE_PART = dict(xla_cpu_parallel_codegen_split_count=1)
 #: Samples (devices × samples, or series × samples) of a batch at most this large: its
 #: fit, motion check, diagnosis and noise identification run programs compiled with
 #: :data:`ONCE`. Such a batch (a command line walkthrough's file, a test's) is computed in

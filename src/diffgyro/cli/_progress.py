@@ -69,6 +69,7 @@ class Step:
         if self._bar is not None:
             self._bar.update(self._task, description=text, total=total, completed=done,
                              count=_count(done, total))
+            self._bar.refresh()  # drawn now: a stage shorter than a redraw is still shown
 
     def advance(self, n: int = 1) -> None:
         self.count(self._done + n, self._total)

@@ -4,13 +4,21 @@ Devices go through the compiled programs a chunk at a time (about
 :data:`CHUNK_SAMPLES` samples per chunk, a power-of-two number of devices so
 that few shapes compile), one device at a time inside (``lax.map``): memory
 is that of one device's per-sample arrays, whatever the batch.
+
+What the scoring reads of the base fit besides its coefficients is known before the fit
+(:mod:`._ahead`), so the candidates' ranges run first and the scoring program and the
+residuals' Allan deviation are compiled, or read from the caches, on threads while the
+fit runs (:func:`_ahead_programs`); after the fit the prediction is checked bit for bit.
 """
 
 from __future__ import annotations
 
+import collections
 import dataclasses
+import logging
 import math
 import warnings
+from typing import NamedTuple
 
 import equinox as eqx
 import jax
@@ -20,9 +28,10 @@ import numpy as np
 from .. import _aux as aux_cols
 from .. import _noise as noise
 from .. import allan as allan_mod
-from .._jit import by_work, release_compiled_if_crowded
+from .._jit import by_work, release_compiled_if_crowded, signature
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
+from .._xla_options import ONE_PART
 from ..channel import GRAVITY, UNITS, as_channel, check_channel, reads_gravity
 from ..data import Batch, Recording, as_batch, as_slice, aux_key, device_bucket
 from ..effects import AbstractNoise, RandomWalk, is_column_name
@@ -30,6 +39,7 @@ from ..errors import SpecError
 from ..fit import fit as fit_fn
 from ..model import ErrorModel
 from ..signals import TempNorm
+from ._ahead import Setting, of_fit, predicted, same
 from ._candidates import CandidateSpec, candidate_specs, term_column, unnamed_columns
 from ._decision import allan_slope, decide, not_judged
 from ._evidence import evidence
@@ -58,6 +68,12 @@ CHUNK_SAMPLES = 1 << 18
 
 NOISE_UNSCORED = "diagnose scores one noise process, the random walk; fit this one directly"
 
+#: How the programs prepared before the fit served (``"hit"``: the scoring's call ran the
+#: program compiled ahead; ``"miss"``: its arguments' shapes differed from those foreseen;
+#: ``"refit"``: the fit's setting differed from the prediction, so the ranges and the
+#: candidates were formed again from the fit). Tests read it; nothing else does.
+AHEAD: collections.Counter = collections.Counter()
+
 
 def chunk_size(n_devices: int, length: int) -> int:
     """Devices per compiled call: a power of two, about :data:`CHUNK_SAMPLES` samples."""
@@ -77,15 +93,20 @@ def _put(x: np.ndarray) -> jax.Array:
     return jax.device_put(np.asarray(x))
 
 
-def _inputs(batch: Batch, res, idx: np.ndarray, aux: dict) -> dict:
-    """One chunk's samples, the fit's temperature normalisation and sampling intervals and
-    the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
+def _spec(x: np.ndarray) -> jax.ShapeDtypeStruct:
+    """The shape and dtype :func:`_put` gives ``x`` on the device, without moving it."""
+    x = np.asarray(x)
+    return jax.ShapeDtypeStruct(x.shape, jax.dtypes.canonicalize_dtype(x.dtype))
+
+
+def _inputs(batch: Batch, st: Setting, idx: np.ndarray, aux: dict, put=_put) -> dict:
+    """One chunk's samples, the fit's temperature normalisation (``st``) and sampling
+    intervals and the extra columns ``aux`` (centred and scaled, :func:`_extra_columns`)."""
     take = as_slice(idx)  # devices in order: views of the batch, not copies
-    norm = res.norm if res.model.requires() & {"temp"} else None
-    return batch_inputs(batch, take, norm, aux, put=_put)
+    return batch_inputs(batch, take, st.norm, aux, put=put)
 
 
-def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
+def _extra_columns(batch: Batch, model: ErrorModel, st: Setting) -> tuple[dict, dict]:
     """The extra columns diagnose reads, centred and scaled ((devices, n) each, zero where
     not finite): those the model reads with the base fit's centring, the others (candidate
     ``aux`` terms) with each device's own range; and, per column the model does not read,
@@ -96,7 +117,7 @@ def _extra_columns(batch: Batch, model: ErrorModel, res) -> tuple[dict, dict]:
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN devices: skipped below
         norms = {**{k: TempNorm(centre=np.asarray(v.centre), scale=np.asarray(v.scale))
-                    for k, v in res.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
+                    for k, v in st.aux_norm.items()}, **aux_cols.norms(batch, fresh)}
         scaled = aux_cols.scaled(batch, norms)
     return {k: np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0) for k, v in scaled.items()}, problems
 
@@ -210,8 +231,16 @@ def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
 
 
 #: :func:`_scores` compiled for a batch's size (the diagnosis engine,
-#: :func:`~diffgyro._jit.by_work`).
-_engine = by_work(_scores, persistent=True)
+#: :func:`~diffgyro._jit.by_work`); a small batch's as one part
+#: (:data:`~diffgyro._xla_options.ONE_PART`): it compiles beside the base fit.
+_engine = by_work(_scores, persistent=True, small_options=ONE_PART)
+
+
+#: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`) compiled for a batch's
+#: size (:func:`~diffgyro._jit.by_work`): a small batch's without optimisation compiles in
+#: a fifth of the time (0.08 against 0.39 CPU-s on the walkthrough's), with the same bits
+#: (its differences and sums run in the program's order either way).
+_oadev = by_work(allan_mod.oadev.__wrapped__)
 
 
 def _median_steps(t: np.ndarray) -> np.ndarray:
@@ -223,13 +252,13 @@ def _median_steps(t: np.ndarray) -> np.ndarray:
         return np.maximum(np.nanmedian(np.diff(t, axis=1), axis=1), 1e-12)
 
 
-def _windows(dtemp_window: float):
+def _windows(dtemp_window: float, put=_put):
     """The dT/dt window (s) as the compiled programs take it: arrays, traced, so that every
     window shares one program; and the log of the shortest time constant a lag term's grid
     starts at (the window, −inf for none), taken on the host."""
     w = float(dtemp_window)
     log_min_lag = math.log(w) if w > 0 else -math.inf
-    return _put(np.float64(log_min_lag)), _put(np.float64(w))
+    return put(np.float64(log_min_lag)), put(np.float64(w))
 
 
 def _gather(chunks: list[dict], n_dev: int) -> dict:
@@ -237,40 +266,55 @@ def _gather(chunks: list[dict], n_dev: int) -> dict:
     return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
 
 
-def _prepare(batch: Batch, res, every: list[CandidateSpec], aux: dict):
+def _prepare(batch: Batch, st: Setting, every: list[CandidateSpec], aux: dict):
     """Ranges of every candidate and floors, streamed per chunk of devices."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
-    window_s = _windows(res.options.dtemp_window)[1]
+    window_s = _windows(st.dtemp_window)[1]
     program = _ranges(n_dev * length)
-    ranges = [np.asarray(program(tuple(every), _inputs(batch, res, idx, aux), window_s))
+    ranges = [np.asarray(program(tuple(every), _inputs(batch, st, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
 
 
-def _score(model, cands, batch, res, floors, aux: dict, say=lambda _text: None) -> dict:
+def _chunk_args(model, cands, batch: Batch, st: Setting, floors, aux: dict, beta, theta, idx,
+                windows, dt0, put=_put) -> tuple:
+    """The scoring program's arguments for the devices ``idx`` (``windows``: their fold
+    blocks, :func:`block_windows`; ``put``: :func:`_put`, or :func:`_spec` for shapes)."""
+    length = batch.t.shape[1]
+    ix = np.stack([windows[i][0] for i in idx])
+    ins = np.stack([windows[i][1] for i in idx])
+    log_min_lag, window_s = _windows(st.dtemp_window, put)
+    return (model, tuple(cands), st.n_blocks, st.n_folds, log_min_lag,
+            segment_length(length, st.n_blocks), search_length(length, st.n_blocks), window_s,
+            _inputs(batch, st, idx, aux, put), put(beta[idx]), put(theta[idx]), put(floors[idx]),
+            put(ix), put(ins), put(dt0[idx]))
+
+
+def _score(model, cands, batch, st: Setting, params, floors, aux: dict, say=lambda _text: None,
+           ahead=None) -> dict:
     """Every device's scores (:func:`_device_scores`), one chunk of devices at a time
-    (``say``: told before each chunk)."""
-    opts = res.options
+    (``params``: the base fit's; ``say``: told before each chunk; ``ahead``: the signature
+    the program was compiled ahead for and the thread compiling it, :func:`_ahead_programs`)."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
-    rw_m = segment_length(length, opts.n_blocks)
-    search_m = search_length(length, opts.n_blocks)
-    beta, theta = np.asarray(res.params.beta), np.asarray(res.params.theta)
-    windows = [block_windows(np.asarray(batch.mask[i]), opts.n_blocks) for i in range(n_dev)]
-    log_min_lag, window_s = _windows(opts.dtemp_window)
+    beta, theta = np.asarray(params.beta), np.asarray(params.theta)
+    windows = [block_windows(np.asarray(batch.mask[i]), st.n_blocks) for i in range(n_dev)]
     dt0 = _median_steps(np.asarray(batch.t))
     engine = _engine(n_dev * length)
     out = []
     for start, idx in _chunks(n_dev, size):
         say(f"scoring {len(cands)} candidate(s) on devices {start + 1}-{min(start + size, n_dev)} "
             f"of {n_dev}")
-        ix = np.stack([windows[i][0] for i in idx])
-        ins = np.stack([windows[i][1] for i in idx])
-        o = engine(model, tuple(cands), opts.n_blocks, opts.n_folds, log_min_lag, rw_m, search_m,
-                    window_s, _inputs(batch, res, idx, aux), _put(beta[idx]), _put(theta[idx]),
-                    _put(floors[idx]), _put(ix), _put(ins), _put(dt0[idx]))
-        out.append(jax.device_get(o))
+        args = _chunk_args(model, cands, batch, st, floors, aux, beta, theta, idx, windows, dt0)
+        if ahead is not None:
+            foreseen, thread = ahead
+            hit = foreseen == signature(*args)
+            if hit:
+                thread.join()
+            AHEAD["hit" if hit else "miss"] += 1
+            ahead = None
+        out.append(jax.device_get(engine(*args)))
     out = _gather(out, n_dev)
     if not cands:
         for k in ("cand_sse", "cand_full", "cand_theta", "cand_blk", "cand_edge"):
@@ -278,16 +322,33 @@ def _score(model, cands, batch, res, floors, aux: dict, say=lambda _text: None) 
     return out
 
 
-def _allan(resid: np.ndarray, batch: Batch) -> AllanCurves:
-    """Overlapping Allan deviation of every device's residual (devices, 3, k)."""
-
+def _allan_args(resid: np.ndarray | None, batch: Batch, put=_put):
+    """The Allan deviation's arguments (``resid`` None: shapes only, the residual's as the
+    scoring returns it) and every device's sample interval and the cluster sizes."""
     n_dev = batch.n_devices
     pick = np.minimum(np.arange(device_bucket(n_dev, minimum=1)), n_dev - 1)  # few compiled shapes
     dts = np.array([allan_mod.sample_interval(batch.t[i], batch.n_valid[i]) for i in range(n_dev)])
     m = allan_mod.default_m(int(np.max(batch.n_valid)), per_decade=8)
     nv = np.repeat(np.asarray(batch.n_valid)[pick, None], 3, axis=1)
-    adev, _ = allan_mod.oadev(_put(np.moveaxis(resid, -1, 1)[pick]), _put(dts[pick, None]),
-                              _put(np.asarray(m)), _put(nv))
+    y = (jax.ShapeDtypeStruct((pick.size, 3, batch.t.shape[1]),
+                              jax.dtypes.canonicalize_dtype(np.float64))
+         if resid is None else put(np.moveaxis(resid, -1, 1)[pick]))
+    return (y, put(dts[pick, None]), put(np.asarray(m)), put(nv)), dts, m
+
+
+def _allan_program(batch: Batch):
+    """The Allan deviation's program for ``batch``'s residuals (:data:`_oadev`)."""
+    return _oadev(device_bucket(batch.n_devices, minimum=1) * 3 * batch.t.shape[1])
+
+
+def _allan(resid: np.ndarray, batch: Batch, ahead=None) -> AllanCurves:
+    """Overlapping Allan deviation of every device's residual (devices, 3, k) (``ahead``:
+    the thread compiling its program, joined first)."""
+    n_dev = batch.n_devices
+    args, dts, m = _allan_args(resid, batch)
+    if ahead is not None:
+        ahead.join()
+    adev, _ = _allan_program(batch)(*args)
     adev = np.asarray(adev)[:n_dev]
     tau = dts[:, None, None] * np.asarray(m)[None, None, :] * np.ones((1, 3, 1))
     return AllanCurves(tau=tau, adev=adev)
@@ -355,13 +416,13 @@ def _device(i, batch, res, out, cands, ranges, floors, al, rw_spec, th, model, u
     return d, slope, floor_allan
 
 
-def _candidates(model: ErrorModel, batch: Batch, res, names):
+def _candidates(model: ErrorModel, batch: Batch, st: Setting, names):
     """The deterministic candidates, the random walk's spec (or None), the extra columns
     their terms read (:func:`_extra_columns`), every column's problems per device, the
     column candidates no device can use (listed under skipped, never compiled) and the
     other noise processes offered (listed under skipped: the smoother scored here is the
     random walk's); the column terms that cannot be written (:func:`.unnamed_columns`)."""
-    aux, problems = _extra_columns(batch, model, res)
+    aux, problems = _extra_columns(batch, model, st)
     unnamed = unnamed_columns(problems, names)
     specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
                             names, columns=tuple(k for k in problems if is_column_name(k)))
@@ -370,9 +431,92 @@ def _candidates(model: ErrorModel, batch: Batch, res, names):
     noise = [c for c in specs if isinstance(c.term, AbstractNoise)]
     walk = next((c for c in noise if isinstance(c.term, RandomWalk)), None)
     unscored = [c.effect for c in noise if c is not walk]
-    read = set(res.aux_norm) | {term_column(c.term) for c in every}
+    read = set(st.aux_norm) | {term_column(c.term) for c in every}
     return (every, walk.spec if walk else None, {k: v for k, v in aux.items() if k in read},
             problems, dead, unscored, unnamed)
+
+
+class _Plan(NamedTuple):
+    """What is scored, decided before the scoring: the setting it was formed for, the
+    candidates (``every`` tried, ``cands`` those some device supports, ``unsupported``
+    those none does), the random walk's spec, the extra columns, every candidate's range
+    problem and the white-noise floors per device, what each device skips and why, and the
+    programs prepared ahead (:func:`_ahead_programs`: None, or the scoring's signature and
+    thread and the Allan deviation's thread)."""
+
+    setting: Setting
+    every: list
+    cands: list
+    unsupported: list
+    rw_spec: str | None
+    aux: dict
+    all_ranges: np.ndarray
+    usable: list
+    floors: np.ndarray
+    skips: list
+    ahead: tuple | None = None
+
+
+def _plan(model: ErrorModel, batch: Batch, st: Setting, names, say) -> _Plan:
+    """The :class:`_Plan` of ``model`` on ``batch`` with the base fit's setting ``st``: the
+    candidates, their ranges (a compiled program per chunk of devices) and the floors."""
+    every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, st, names)
+    say(f"checking which of {len(every)} candidate(s) the data support")
+    all_ranges, floors = _prepare(batch, st, every, aux)
+    skips = _skips(every, all_ranges, problems, batch, dead, unscored, unnamed)
+    # drop candidates no device can support (e.g. scale terms on a static run) before compiling
+    usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
+    cands = [every[j] for j in usable]
+    unsupported = [c for j, c in enumerate(every)
+                   if j not in usable and term_column(c.term) is None]
+    return _Plan(st, every, cands, unsupported, rw_spec, aux, all_ranges, usable, floors, skips)
+
+
+def _ahead_programs(model: ErrorModel, batch: Batch, plan: _Plan) -> tuple:
+    """Start compiling (or reading from the caches) the scoring program for the first chunk
+    of devices and the residuals' Allan deviation, each on a thread of its own, from their
+    arguments' shapes: the base fit's coefficients are the only inputs not known yet.
+    Returns (the scoring's signature, its thread, the Allan deviation's thread)."""
+    st = plan.setting
+    n_dev, length = batch.n_devices, batch.t.shape[1]
+    size = chunk_size(n_dev, length)
+    _, idx = next(_chunks(n_dev, size))
+    dtype = jax.dtypes.canonicalize_dtype(np.float64)
+    beta = np.zeros((n_dev, 3, model.n_params), dtype)
+    theta = np.zeros((n_dev, model.n_nonlinear), dtype)
+    windows = {i: block_windows(np.asarray(batch.mask[i]), st.n_blocks) for i in idx}
+    dt0 = np.zeros(n_dev, dtype)
+    args = _chunk_args(model, plan.cands, batch, st, plan.floors, plan.aux, beta, theta, idx,
+                       windows, dt0, put=_spec)
+    allan = _allan_program(batch).compile_ahead(*_allan_args(None, batch, put=_spec)[0])
+    return signature(*args), _engine(n_dev * length).compile_ahead(*args), allan
+
+
+def _planned_ahead(model, batch: Batch, names, fit_options: dict, say) -> _Plan | None:
+    """The plan formed before the base fit from the setting it will hold (:mod:`._ahead`),
+    its programs started (:func:`_ahead_programs`); None where the setting is not foreseen
+    or forming the plan fails (the fit then raises its own error, or the plan is formed
+    after it)."""
+    try:
+        st = predicted(model, batch, fit_options)
+        if st is None:
+            return None
+        plan = _plan(model, batch, st, names, say)
+        return plan._replace(ahead=_ahead_programs(model, batch, plan))
+    except Exception:  # noqa: BLE001 - formed again after the fit, which raises what is wrong
+        logging.getLogger("diffgyro").debug("diagnose: no plan before the fit", exc_info=True)
+        return None
+
+
+def _plan_of_fit(plan: _Plan | None, model, batch: Batch, res, names, say) -> _Plan:
+    """The plan formed before the fit where the fit's setting is the one foreseen, else the
+    plan formed from the fit (the programs started before it kept: they serve where their
+    arguments' shapes still hold, which :func:`_score` checks)."""
+    if plan is not None and same(plan.setting, of_fit(res)):
+        return plan
+    AHEAD["refit"] += plan is not None
+    return _plan(model, batch, of_fit(res), names, say)._replace(
+        ahead=None if plan is None else plan.ahead)
 
 
 def _skips(every, all_ranges, problems, batch, dead, unscored, unnamed) -> list[dict]:
@@ -504,23 +648,22 @@ def diagnose(
     th = thresholds or Thresholds()
     if "dtemp_window" not in fit_options and base_fit is None:
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
+    channel = check_channel(channel)
+    # on the gyro the batch scored is the one fitted: the plan can be formed before the fit
+    plan = _planned_ahead(model, batch, candidates, fit_options, say) \
+        if base_fit is None and channel == "gyro" else None
     if base_fit is None:
         say(f"fitting {model.spec} on {batch.n_devices} device(s)")
-    res, batch = _base_fit(model, batch, base_fit, check_channel(channel), fit_options)
-    every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, res,
-                                                                         candidates)
-    say(f"checking which of {len(every)} candidate(s) the data support")
-    all_ranges, floors = _prepare(batch, res, every, aux)
-    skips = _skips(every, all_ranges, problems, batch, dead, unscored, unnamed)
-    # drop candidates no device can support (e.g. scale terms on a static run) before compiling
-    usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
-    cands = [every[j] for j in usable]
-    unsupported = [c for j, c in enumerate(every)
-                   if j not in usable and term_column(c.term) is None]
-    out = _score(model, cands, batch, res, floors, aux, say)
-    ranges = all_ranges[:, usable]
+    res, batch = _base_fit(model, batch, base_fit, channel, fit_options)
+    plan = _plan_of_fit(plan, model, batch, res, candidates, say)
+    cands, unsupported, rw_spec, floors, skips = (plan.cands, plan.unsupported, plan.rw_spec,
+                                                  plan.floors, plan.skips)
+    ahead = plan.ahead or (None, None, None)
+    out = _score(model, cands, batch, plan.setting, res.params, floors, plan.aux, say,
+                 None if ahead[1] is None else ahead[:2])
+    ranges = plan.all_ranges[:, plan.usable]
     say("Allan deviation of the residuals")
-    al = _allan(out["residual"], batch)
+    al = _allan(out["residual"], batch, ahead[2])
     reported = _reported_floor(batch, res)
     devices, slopes, floor_allans = [], [], []
     host = res.on_host()  # read device by device: indexing JAX arrays compiles programs
