@@ -26,7 +26,7 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-from ._window_stats import spread_quantile, window_means, windowed_sums
+from ._window_stats import compiled, spread_quantile, window_means, windowed_sums
 from .data import Batch
 
 
@@ -132,7 +132,13 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     window's two halves, for the devices ``rows`` (the others as given): the residual's
     window mean and half-window difference, the local noise as recorded, and a window
     mean's noise from those differences. A device whose residual is not finite keeps the
-    recording's."""
+    recording's. A large batch (or any, once the compiled pass is loaded) is worked out in
+    one compiled loop (:func:`diffgyro._window_pass.compiled_explained`), a small one by
+    numpy here: the same numbers."""
+    if compiled(stats.shape[0] * stats.shape[1] * w):
+        from ._window_pass import compiled_explained
+
+        return compiled_explained(stats, noise, valid, residual, rows, w, quantiles, limit)
     with np.errstate(invalid="ignore", over="ignore"):  # (a NaN or an infinity sums to one)
         finite = np.isfinite(residual.sum(axis=(2, 3)))
     ok = rows & np.all(finite | ~valid, axis=1)
