@@ -265,8 +265,8 @@ def _chunk(gyro, accel, w: int, b: int, runs: bool = True):
     if runs:
         moving, dev = jax.lax.cond(jnp.any(flags), each(lambda v, d, f: _runs(v, d, f, b)),
                                    lambda v, d, f: (jnp.zeros_like(f), d), win, dev, flags)
-    else:
-        moving = jnp.zeros_like(flags)
+    else:  # (a value, not a constant: XLA would fold every sum over it while compiling)
+        moving = jax.lax.optimization_barrier(jnp.zeros_like(flags))
     out = dict(window_rate=win.mean, window_valid=win.valid, threshold_axes=win.threshold)
     tilt = jnp.zeros(moving.shape[:1], jnp.float32)
     if accel is not None:
@@ -279,7 +279,7 @@ def _chunk(gyro, accel, w: int, b: int, runs: bool = True):
         turn = jax.lax.cond(jnp.any(moving), each(_turned),
                             lambda m, d: jnp.zeros(m.shape[:1], d.dtype), moving, dev)
     else:
-        turn = jnp.zeros(moving.shape[:1], dev.dtype)
+        turn = jax.lax.optimization_barrier(jnp.zeros(moving.shape[:1], dev.dtype))
     out = out | each(_numbers)(win, moving, dev, turn, tilt, gyro[1]) | dict(window_moving=moving)
     if runs:
         return out

@@ -101,6 +101,10 @@ def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
     half the half-window difference. It needs no fitted model: a fit reads it beside its
     solve (:func:`diffgyro.motion.check_ahead`)."""
     r, k = stats.shape[:2]
+    if compiled(r * k * w):
+        from ._window_pass import compiled_halves
+
+        return windows(batch, rows, w // 2, 2 * k, todo, compiled_halves(stats), reads)
     mean, half = stats[:, :, 0], 0.5 * stats[:, :, 2]
     gyro = np.empty((r, k, 2, 3))
     np.add(mean, half, out=gyro[:, :, 0], dtype=float)

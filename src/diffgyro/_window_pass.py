@@ -312,7 +312,7 @@ def _explained(stats, noise, valid, residual, rows, w, half_q, zh, limit):  # pr
                 if valid[i, at]:
                     half[u] = abs(stats[i, at, 2, a])
                     u += 1
-            sigma = float(noise[i, 0, a]) / math.sqrt(w)
+            sigma = np.float64(noise[i, 0, a]) / math.sqrt(w)
             h = _quantile(half, u, half_q) / zh / 2.0
             noise[i, 1, a] = math.nan if math.isnan(sigma) or math.isnan(h) else max(sigma, h)
 
@@ -327,4 +327,24 @@ def compiled_explained(stats, noise, valid, residual, rows, w: int, quantiles, l
     return stats, noise
 
 
-__all__ = ["compiled_pass", "compiled_means", "compiled_explained"]
+@njit(cache=True, nogil=True)
+def _halves(stats, out):  # pragma: no cover - compiled
+    for i in range(stats.shape[0]):
+        for j in range(stats.shape[1]):
+            for a in range(3):
+                mean = np.float64(stats[i, j, 0, a])
+                half = np.float64(np.float32(0.5) * stats[i, j, 2, a])
+                out[i, 2 * j, a] = mean + half
+                out[i, 2 * j + 1, a] = mean - half
+
+
+def compiled_halves(stats):
+    """The gyro's means over each half window (rows, 2 × windows, 3; float64) from the window
+    statistics (rows, windows, 3, 3; float32): the window mean ± half the half-window
+    difference, as :func:`diffgyro._window_explain.half_windows` forms them."""
+    out = np.empty((stats.shape[0], 2 * stats.shape[1], 3))
+    _halves(stats, out)
+    return out
+
+
+__all__ = ["compiled_pass", "compiled_means", "compiled_explained", "compiled_halves"]

@@ -155,8 +155,15 @@ def _device_intervals(batch, dt: float | None) -> np.ndarray:
 def _spans(mask) -> np.ndarray:
     """Each device's samples up to its last valid one (the padding of a batch is not its)."""
     mask = np.asarray(mask, bool)
-    last = mask.shape[1] - np.argmax(mask[:, ::-1], axis=1)
-    return np.where(mask.any(axis=1), last, 0)
+    out = np.full(mask.shape[0], mask.shape[1])
+    if not mask.shape[1]:
+        return out
+    short = ~mask[:, -1]  # (most devices hold the batch's last sample: no search)
+    if short.any():
+        part = mask[short]
+        last = mask.shape[1] - np.argmax(part[:, ::-1], axis=1)
+        out[short] = np.where(part.any(axis=1), last, 0)
+    return out
 
 
 def _groups(dts, spans, fine: bool = False) -> dict[tuple[int, int], np.ndarray]:
