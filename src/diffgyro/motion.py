@@ -278,7 +278,8 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     rows, k = lay.shape
     referenced = rate is not None
     q = noise_quantiles()
-    stats, acc, todo, at = read or (*_read_group(gyro, accel, mask, rate, idx, lay), None, None)
+    stats, acc, todo, at, held = read or (*_read_group(gyro, accel, mask, rate, idx, lay), None,
+                                          None, None)
 
     def judged(stats):
         return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
@@ -288,7 +289,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     if explain is None:
         todo = np.zeros(rows, bool)
     elif todo is None:  # what the model leaves is judged, where a bias can hold the rate
-        todo = _explained_rows(stats, d)
+        todo, held = _explained_rows(stats, d)
     if explain is not None:  # and where the fit stands
         todo = todo & np.r_[trusted, np.zeros(rows - d, bool)]
     if todo.any():
@@ -307,18 +308,25 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     num = {k: out[k] for k in NUMBERS if k != "resolution"}
     # the rate held at rest is the recording's (the residual's is about 0)
     recorded_rate = recorded_stats[0][:d, :, 0]
-    if todo.any():
-        num["rest_rate"][todo[:d]] = _held_rate(
-            recorded_rate, out["window_valid"] & ~out["window_moving"])[todo[:d]]
-    recorded = mask[idx]
+    if todo.any():  # (held over the valid windows, where none moved: as read)
+        judged_rows = np.flatnonzero(todo[:d])
+        num["rest_rate"][judged_rows] = held[judged_rows]
+        moved_rows = judged_rows[out["window_moving"][judged_rows].any(axis=1)]
+        num["rest_rate"][moved_rows] = _held_rate(
+            recorded_rate[moved_rows], (out["window_valid"] & ~out["window_moving"])[moved_rows])
+    recorded = mask if len(idx) == len(mask) and (idx == np.arange(len(idx))).all() else mask[idx]
     samples = min(k * w, n)
+    whole = samples // w
 
-    def per_sample(flags):  # window flags (d, k) to the samples (d, n)
+    def per_sample(flags):  # window flags (d, k) to the samples (d, n), by broadcasting
         full = np.zeros((flags.shape[0], n), bool)
-        full[:, :samples] = np.repeat(flags, w, axis=1)[:, :samples]
+        full[:, :whole * w].reshape(-1, whole, w)[...] = flags[:, :whole, None]
+        full[:, whole * w:samples] = flags[:, whole:whole + 1]
         return full
 
-    static = ~per_sample(out["window_near"]) & recorded
+    static = per_sample(out["window_near"])
+    np.logical_not(static, out=static)
+    static &= recorded
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
@@ -365,12 +373,15 @@ def _pad(idx, rows: int):
     return idx[np.minimum(np.arange(rows), len(idx) - 1)]
 
 
-def _explained_rows(stats, d: int) -> Bool[np.ndarray, " r"]:
+def _explained_rows(stats, d: int) -> tuple[Bool[np.ndarray, " r"], Float[np.ndarray, " d"]]:
     """Rows of a layout (``stats``' leading axis, ``d`` devices then padding) judged by a
-    fitted model's residual: those whose mean rate a bias can hold (:func:`_bias_like`)."""
+    fitted model's residual: those whose mean rate a bias can hold (:func:`_bias_like`);
+    and each device's rate held over its valid windows (:func:`_held_rate`)."""
     todo = np.zeros(stats[0].shape[0], bool)
-    todo[:d] = _bias_like(stats[0][:d, :, 0], stats[2][:d])
-    return todo
+    mean, valid = stats[0][:d, :, 0], stats[2][:d]
+    held = _held_rate(mean, valid)
+    todo[:d] = _bias_like(mean, valid, held)
+    return todo, held
 
 
 def _numpy_out(out: dict, d: int) -> dict:
@@ -385,12 +396,13 @@ def _with_resolution(out: dict, window_s) -> dict:
     return out | {"resolution": out["threshold"] * window_s}
 
 
-def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
-               ) -> Bool[np.ndarray, " d"]:
-    """Devices whose mean rate over their valid windows a bias can hold (at most
-    :data:`MAX_BIAS`): a fitted model's residual judges them. A rate beyond it is a spin,
-    which a bias term would absorb: its recording is judged as it is."""
-    return valid.any(axis=1) & (_held_rate(mean, valid) <= MAX_BIAS)
+def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
+               held: Float[np.ndarray, " d"] | None = None) -> Bool[np.ndarray, " d"]:
+    """Devices whose mean rate over their valid windows (``held``, where already formed) a
+    bias can hold (at most :data:`MAX_BIAS`): a fitted model's residual judges them. A rate
+    beyond it is a spin, which a bias term would absorb: its recording is judged as it is."""
+    held = _held_rate(mean, valid) if held is None else held
+    return valid.any(axis=1) & (held <= MAX_BIAS)
 
 
 def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
@@ -443,13 +455,13 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
         try:
             for key, idx in groups.items():
                 stats, acc = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
-                todo = at = None
+                todo = at = held = None
                 if reads is not None:
-                    todo = _explained_rows(stats, len(idx))
+                    todo, held = _explained_rows(stats, len(idx))
                     rows = _pad(idx, lays[key].shape[0])
                     at = half_windows(batch, rows, key[0], stats[0], todo, reads) \
                         if todo.any() else None
-                out[key] = (stats, acc, todo, at)
+                out[key] = (stats, acc, todo, at, held)
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
 
