@@ -303,6 +303,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         raw = _numpy_out(judged(recorded_stats), d)
         keep = moved & (verdicts(_with_resolution(raw, window_s)) == AT_REST)
         for key, value in out.items():
+            value = out[key] = np.array(value)  # (writable)
             value[keep] = raw[key][keep]
         todo[:d] &= ~keep
     num = {k: out[k] for k in NUMBERS if k != "resolution"}
@@ -385,9 +386,10 @@ def _explained_rows(stats, d: int) -> tuple[Bool[np.ndarray, " r"], Float[np.nda
 
 
 def _numpy_out(out: dict, d: int) -> dict:
-    """A judgement's outputs on the host, its first ``d`` rows (numpy, writable: no
-    program per shape)."""
-    return {k: np.array(v)[:d] for k, v in out.items()}
+    """A judgement's outputs on the host, its first ``d`` rows (numpy: no program per
+    shape): the numbers per device writable copies, the windows' arrays read-only views
+    where the backend allows (no copy of 10⁶ windows)."""
+    return {k: (np.array(v) if np.ndim(v) < 2 else np.asarray(v))[:d] for k, v in out.items()}
 
 
 def _with_resolution(out: dict, window_s) -> dict:
