@@ -1,8 +1,10 @@
 """The motion check's compiled judgement of a group of devices from their window statistics
 (:mod:`diffgyro._window_stats`): the baseline of the window means, the windows that leave
 it, the rule on runs, the angle turned and gravity's tilt, and the numbers the host reads
-(:func:`diffgyro.motion.motion_check` says what they mean). JAX, vmapped over chunks of
-devices and compiled once per shape and window sizes.
+(:func:`diffgyro.motion.motion_check` says what they mean). JAX, compiled once per shape
+and window sizes: a large batch is judged as at rest vmapped over all its devices, then
+again, chunk by chunk of :data:`CHECK_CHUNK` devices, where some window moved (the rule on
+runs); a small one chunk by chunk.
 """
 
 from __future__ import annotations

@@ -68,6 +68,41 @@ def _quantile(values, n, q):  # pragma: no cover - compiled
     return a + (b - a) * (h - lo)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _halves_sums(xi, lo, h, w):  # pragma: no cover - compiled
+    """The sums of the two halves of a window of valid samples (``xi``: a device's (n, 3),
+    the window from ``lo``), each in its samples' order."""
+    a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+    for t in range(lo, lo + h):
+        a0 += xi[t, 0]
+        a1 += xi[t, 1]
+        a2 += xi[t, 2]
+    for t in range(lo + h, lo + w):
+        b0 += xi[t, 0]
+        b1 += xi[t, 1]
+        b2 += xi[t, 2]
+    return a0, a1, a2, b0, b1, b2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _differences(xi, lo, w):  # pragma: no cover - compiled
+    """The sums of the squared successive differences of a window of valid samples, in
+    their order, and the smallest nonzero difference per axis (a minimum: in any order,
+    without a branch)."""
+    e0 = e1 = e2 = 0.0
+    r0 = r1 = r2 = math.inf
+    for t in range(lo + 1, lo + w):
+        d0, d1, d2 = xi[t, 0] - xi[t - 1, 0], xi[t, 1] - xi[t - 1, 1], xi[t, 2] - xi[t - 1, 2]
+        e0 += d0 * d0
+        e1 += d1 * d1
+        e2 += d2 * d2
+        u0, u1, u2 = abs(d0), abs(d1), abs(d2)
+        r0 = u0 if u0 < r0 and d0 != 0.0 else r0
+        r1 = u1 if u1 < r1 and d1 != 0.0 else r1
+        r2 = u2 if u2 < r2 and d2 != 0.0 else r2
+    return e0, e1, e2, r0, r1, r2
+
+
 @njit(cache=True, nogil=True)
 def _pass(x, mask, full, rate, rows, w, stats, count, valid, noise, quantiles,
           limit):  # pragma: no cover - compiled
@@ -88,24 +123,8 @@ def _pass(x, mask, full, rate, rows, w, stats, count, valid, noise, quantiles,
             # every sample valid (the device's): the same sums without a branch per sample
             whole = full[r] and not rate.shape[0] and lo + w <= n
             if whole:
-                for t in range(lo, lo + h):
-                    a0 += xi[t, 0]
-                    a1 += xi[t, 1]
-                    a2 += xi[t, 2]
-                for t in range(lo + h, lo + w):
-                    b0 += xi[t, 0]
-                    b1 += xi[t, 1]
-                    b2 += xi[t, 2]
-                r0 = r1 = r2 = math.inf  # (the quantum: a minimum, in any order)
-                for t in range(lo + 1, lo + w):
-                    d0, d1, d2 = xi[t, 0] - xi[t - 1, 0], xi[t, 1] - xi[t - 1, 1], xi[t, 2] - xi[t - 1, 2]
-                    e0 += d0 * d0
-                    e1 += d1 * d1
-                    e2 += d2 * d2
-                    u0, u1, u2 = abs(d0), abs(d1), abs(d2)
-                    r0 = u0 if u0 < r0 and d0 != 0.0 else r0
-                    r1 = u1 if u1 < r1 and d1 != 0.0 else r1
-                    r2 = u2 if u2 < r2 and d2 != 0.0 else r2
+                a0, a1, a2, b0, b1, b2 = _halves_sums(xi, lo, h, w)
+                e0, e1, e2, r0, r1, r2 = _differences(xi, lo, w)
                 q0, q1, q2 = min(q0, r0), min(q1, r1), min(q2, r2)
                 c1, c, cp = float(h), float(w), float(w - 1)
             for s in range(0 if not whole else w, min(w, n - j * w)):

@@ -309,21 +309,13 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     num = {k: out[k] for k in NUMBERS if k != "resolution"}
     # the rate held at rest is the recording's (the residual's is about 0)
     recorded_rate = recorded_stats[0][:d, :, 0]
-    if todo.any():  # (held over the valid windows, where none moved: as read)
-        judged_rows = np.flatnonzero(todo[:d])
-        num["rest_rate"][judged_rows] = held[judged_rows]
-        moved_rows = judged_rows[out["window_moving"][judged_rows].any(axis=1)]
-        num["rest_rate"][moved_rows] = _held_rate(
-            recorded_rate[moved_rows], (out["window_valid"] & ~out["window_moving"])[moved_rows])
+    if todo.any():
+        _recorded_rest_rate(num["rest_rate"], np.flatnonzero(todo[:d]), held, out, recorded_rate)
     recorded = mask if len(idx) == len(mask) and (idx == np.arange(len(idx))).all() else mask[idx]
     samples = min(k * w, n)
-    whole = samples // w
 
-    def per_sample(flags):  # window flags (d, k) to the samples (d, n), by broadcasting
-        full = np.zeros((flags.shape[0], n), bool)
-        full[:, :whole * w].reshape(-1, whole, w)[...] = flags[:, :whole, None]
-        full[:, whole * w:samples] = flags[:, whole:whole + 1]
-        return full
+    def per_sample(flags):  # window flags (d, k) to the samples (d, n)
+        return _to_samples(flags, n, w, samples)
 
     static = per_sample(out["window_near"])
     np.logical_not(static, out=static)
@@ -355,6 +347,28 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
                 num["rest_rate"][i] = _held_rate(recorded_rate[i:i + 1], still[None])[0]
             num["turn_peak"][i] = max(num["turn_peak"][i], turn)
     return num, static, np.full(d, w), out["loud"]
+
+
+def _recorded_rest_rate(rest_rate: Float[np.ndarray, " d"], rows, held: Float[np.ndarray, " d"],
+                        out: dict, recorded: Float[np.ndarray, "d k 3"]) -> None:
+    """The rest rate of devices ``rows`` judged by a model's residual (whose own is about 0):
+    the recording's over the windows at rest, into ``rest_rate``. Where no window moved
+    that is its rate ``held`` over the valid windows, as read; else it is formed again."""
+    rest_rate[rows] = held[rows]
+    moved = rows[out["window_moving"][rows].any(axis=1)]
+    rest_rate[moved] = _held_rate(recorded[moved],
+                                  (out["window_valid"] & ~out["window_moving"])[moved])
+
+
+def _to_samples(flags: Bool[np.ndarray, "d k"], n: int, w: int, samples: int
+                ) -> Bool[np.ndarray, "d n"]:
+    """Window flags to the samples (``n`` per device, the first ``samples`` in windows of
+    ``w``), by broadcasting in place."""
+    full = np.zeros((flags.shape[0], n), bool)
+    whole = samples // w
+    full[:, :whole * w].reshape(-1, whole, w)[...] = flags[:, :whole, None]
+    full[:, whole * w:samples] = flags[:, whole:whole + 1]
+    return full
 
 
 def _read_group(gyro, accel, mask, rate, idx, lay: Layout) -> tuple:
