@@ -27,7 +27,7 @@ import numpy as np
 from jaxtyping import Bool, Float, Int
 
 from ._window_stats import compiled, spread_quantile, window_means, windowed_sums
-from .data import Batch
+from .data import Batch, aligned_empty
 
 
 class Explanation(NamedTuple):
@@ -67,7 +67,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
         x = np.asarray(x)
         s = window_means(x, batch_mask, read, w, k)
-        out = np.empty((len(rows),) + s.shape[1:])
+        out = aligned_empty((len(rows),) + s.shape[1:], s.dtype)  # (the Batch keeps it)
         out[fill] = s
         out[spare] = s[0]
         return out
@@ -76,7 +76,8 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         t = np.asarray(t)
         if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
             return means(t)
-        out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
+        out = aligned_empty((len(rows), k), t.dtype)
+        out[...] = t[rows, :1]
         start = t[read, :m:w]
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
         held = start.shape[1]  # (the windows past the samples hold the last one's time)
@@ -106,7 +107,7 @@ def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
 
         return windows(batch, rows, w // 2, 2 * k, todo, compiled_halves(stats), reads)
     mean, half = stats[:, :, 0], 0.5 * stats[:, :, 2]
-    gyro = np.empty((r, k, 2, 3))
+    gyro = aligned_empty((r, k, 2, 3), np.float64)
     np.add(mean, half, out=gyro[:, :, 0], dtype=float)
     np.subtract(mean, half, out=gyro[:, :, 1], dtype=float)
     return windows(batch, rows, w // 2, 2 * k, todo, gyro.reshape(r, 2 * k, 3), reads)

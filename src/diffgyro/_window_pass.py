@@ -17,6 +17,7 @@ import numpy as np
 from numba import njit
 
 from ._jit import available_cores
+from .data import aligned_empty
 
 
 @njit(cache=True, nogil=True)
@@ -340,9 +341,11 @@ def compiled_explained(stats, noise, valid, residual, rows, w: int, quantiles, l
     """:func:`diffgyro._window_explain.explained` in one compiled loop over the windows (its
     numbers), into copies of ``stats`` and ``noise``."""
     stats, noise = stats.copy(), noise.copy()
-    _explained(stats, noise, np.ascontiguousarray(valid, bool),
-               np.ascontiguousarray(residual, np.float64), np.ascontiguousarray(rows, bool),
-               int(w), float(quantiles[1]), float(quantiles[3]), int(limit))
+    valid, rows = np.ascontiguousarray(valid, bool), np.ascontiguousarray(rows, bool)
+    residual = np.ascontiguousarray(residual, np.float64)
+    _on_threads(len(rows), stats.shape[1] * w, lambda a, b: _explained(
+        stats[a:b], noise[a:b], valid[a:b], residual[a:b], rows[a:b], int(w),
+        float(quantiles[1]), float(quantiles[3]), int(limit)))
     return stats, noise
 
 
@@ -361,7 +364,7 @@ def compiled_halves(stats):
     """The gyro's means over each half window (rows, 2 × windows, 3; float64) from the window
     statistics (rows, windows, 3, 3; float32): the window mean ± half the half-window
     difference, as :func:`diffgyro._window_explain.half_windows` forms them."""
-    out = np.empty((stats.shape[0], 2 * stats.shape[1], 3))
+    out = aligned_empty((stats.shape[0], 2 * stats.shape[1], 3), np.float64)  # (a Batch keeps it)
     _halves(stats, out)
     return out
 
