@@ -64,7 +64,7 @@ def _quantile(values, n, q):  # pragma: no cover - compiled
         for i in range(n):
             x = values[i]
             ties += x <= a
-            above = min(above, x if x > a else math.inf)
+            above = min(above, x if x > a else above)  # (in the values' type)
         b = a if ties > hi else above
     return a + (b - a) * (h - lo)
 
