@@ -212,6 +212,7 @@ DEFERRED = {
     "diffgyro.sensitivity": {"matplotlib", "matplotlib.pyplot"},
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
+    "diffgyro._window_explain": {"diffgyro._window_pass"},  # numba, once the pass is loaded
     "diffgyro.stochastic._block_likelihood": {"diffgyro.stochastic._toeplitz"},  # numba
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     # the solvers' libraries load when a solve is traced, not in a process whose programs
@@ -508,7 +509,8 @@ PRIVATE_UNDER_TEST = {
     "test_diagnose_ahead.py": {"diffgyro.diagnose._ahead", "diffgyro.diagnose._run"},
     "test_fit_sums.py": {"diffgyro._fit_sums"},
     "test_fit_paths.py": {"diffgyro._fit_sums"},
-    "test_window_stats.py": {"diffgyro._window_pass", "diffgyro._window_stats"},
+    "test_window_stats.py": {"diffgyro._window_pass", "diffgyro._window_stats",
+                            "diffgyro._window_explain"},
     "test_window_explain.py": {"diffgyro._window_explain", "diffgyro._window_stats",
                                "diffgyro._motion_judge"},
     "test_cli_conventions.py": {"diffgyro.cli._tables"},  # the tables' width rule

@@ -98,3 +98,36 @@ def test_window_means_compiled_equal_numpys(channels, monkeypatch):
     j = 5
     sel = mask[0, j * h:(j + 1) * h]
     np.testing.assert_allclose(m[1, j], x[0, j * h:(j + 1) * h][sel].mean(axis=0))
+
+
+@pytest.mark.parametrize("w,windows,limit", [(16, 40, 512), (8, 300, 64)])
+def test_the_explanation_compiled_equals_numpys(w, windows, limit, monkeypatch):
+    """What a model leaves, at the windows (diffgyro._window_explain.explained): the compiled
+    loop gives numpy's numbers exactly, with invalid windows, a device whose residual holds
+    a NaN in a valid window (it keeps the recording's), one in an invalid window (ignored),
+    one not explained, and one with no valid window (NaN noise)."""
+    import diffgyro._window_stats as ws
+    from diffgyro._window_explain import explained
+
+    rng = np.random.default_rng(2)
+    r = 6
+    stats = rng.normal(size=(r, windows, 3, 3)).astype(np.float32) * 1e-3
+    noise = np.abs(rng.normal(size=(r, 2, 3))).astype(np.float32) * 1e-3
+    noise[5] = np.nan
+    valid = rng.random((r, windows)) > 0.2
+    valid[5] = False
+    residual = rng.normal(size=(r, windows, 2, 3)) * 1e-3
+    residual[1, np.flatnonzero(valid[1])[3], 0, 1] = np.nan
+    residual[2, np.flatnonzero(~valid[2])[0], 1, 2] = np.inf
+    rows = np.array([True, True, True, False, True, True])
+    outs = []
+    for compiled in (True, False):
+        monkeypatch.setattr(ws, "_loaded", compiled)
+        monkeypatch.setattr(ws, "COMPILED_SAMPLES", 1 << 40)
+        outs.append(explained(stats, noise, valid, residual, rows, w, tuple(Q), limit))
+    (s1, n1), (s2, n2) = outs
+    np.testing.assert_array_equal(s1, s2)
+    np.testing.assert_array_equal(n1, n2)
+    np.testing.assert_array_equal(s1[[1, 3]], stats[[1, 3]])  # kept: a NaN, not explained
+    assert not np.array_equal(s1[2], stats[2])  # an infinity in an invalid window: explained
+    assert np.isnan(n1[5, 1]).all() and not np.array_equal(n1[0, 1], noise[0, 1])

@@ -1,8 +1,10 @@
 """The motion check's compiled judgement of a group of devices from their window statistics
 (:mod:`diffgyro._window_stats`): the baseline of the window means, the windows that leave
 it, the rule on runs, the angle turned and gravity's tilt, and the numbers the host reads
-(:func:`diffgyro.motion.motion_check` says what they mean). JAX, vmapped over chunks of
-devices and compiled once per shape and window sizes.
+(:func:`diffgyro.motion.motion_check` says what they mean). JAX, compiled once per shape
+and window sizes: a large batch is judged as at rest vmapped over all its devices, then
+again, chunk by chunk of :data:`CHECK_CHUNK` devices, where some window moved (the rule on
+runs); a small one chunk by chunk.
 """
 
 from __future__ import annotations
@@ -252,16 +254,21 @@ def _tilted(accel, valid, moving, thr):
     return flag.reshape(-1)[:k], tilt
 
 
-def _chunk(gyro, accel, w: int, b: int):
+def _chunk(gyro, accel, w: int, b: int, runs: bool = True):
     """The judgement of a chunk of devices (leading axis) from their window statistics
     (gyro, and accelerometer or None): the numbers, and per window the flags and means
     the host reads. The rule on runs, and the angle turned, are worked out only in a chunk
-    where some window moved (at rest, nothing does)."""
+    where some window moved (at rest, nothing does). ``runs=False``: the judgement of
+    devices none of whose windows moved (no rule on runs, no angle), and per device
+    whether that holds (else it is judged again with ``runs``)."""
     each = jax.vmap
     win = each(lambda st: _windows(st, w, 2.0 * EARTH_RATE))(gyro)
     dev, flags = each(lambda v: _first_pass(v, b))(win)
-    moving, dev = jax.lax.cond(jnp.any(flags), each(lambda v, d, f: _runs(v, d, f, b)),
-                               lambda v, d, f: (jnp.zeros_like(f), d), win, dev, flags)
+    if runs:
+        moving, dev = jax.lax.cond(jnp.any(flags), each(lambda v, d, f: _runs(v, d, f, b)),
+                                   lambda v, d, f: (jnp.zeros_like(f), d), win, dev, flags)
+    else:  # (a value, not a constant: XLA would fold every sum over it while compiling)
+        moving = jax.lax.optimization_barrier(jnp.zeros_like(flags))
     out = dict(window_rate=win.mean, window_valid=win.valid, threshold_axes=win.threshold)
     tilt = jnp.zeros(moving.shape[:1], jnp.float32)
     if accel is not None:
@@ -270,9 +277,15 @@ def _chunk(gyro, accel, w: int, b: int):
         tilted, tilt = each(_tilted)(acc.mean, win.valid, moving, acc.threshold)
         moving = moving | tilted
         out |= dict(window_accel=acc.mean, accel_threshold=acc.threshold)
-    turn = jax.lax.cond(jnp.any(moving), each(_turned),
-                        lambda m, d: jnp.zeros(m.shape[:1], d.dtype), moving, dev)
-    return out | each(_numbers)(win, moving, dev, turn, tilt, gyro[1]) | dict(window_moving=moving)
+    if runs:
+        turn = jax.lax.cond(jnp.any(moving), each(_turned),
+                            lambda m, d: jnp.zeros(m.shape[:1], d.dtype), moving, dev)
+    else:
+        turn = jax.lax.optimization_barrier(jnp.zeros(moving.shape[:1], dev.dtype))
+    out = out | each(_numbers)(win, moving, dev, turn, tilt, gyro[1]) | dict(window_moving=moving)
+    if runs:
+        return out
+    return out, jnp.any(flags, axis=1) | jnp.any(moving, axis=1)
 
 
 def _numbers(win: _Windows, moving, dev, turn, tilt, count):
@@ -301,25 +314,54 @@ def _numbers(win: _Windows, moving, dev, turn, tilt, count):
 
 def _vmapped(gyro, accel, w: int, b: int):
     """The check of every device from its window statistics (devices first, a multiple of
-    :data:`CHECK_CHUNK` or fewer): chunk by chunk."""
+    :data:`CHECK_CHUNK` or fewer): every device as at rest, vmapped over the batch (no rule
+    on runs: elementwise work and sums over windows, which a loop over small chunks would
+    slow many times), then chunk by chunk, the chunks where some window moved."""
     d = gyro[0].shape[0]
     if d <= CHECK_CHUNK:
         return _chunk(gyro, accel, w, b)
+    rest, again = _chunk(gyro, accel, w, b, runs=False)
+    return _chunks(gyro, accel, w, b, rest, again)
 
-    def split(x):
-        return None if x is None else jax.tree.map(
-            lambda y: y.reshape((d // CHECK_CHUNK, CHECK_CHUNK) + y.shape[1:]), x)
 
-    out = jax.lax.map(lambda ga: _chunk(*ga, w, b), (split(gyro), split(accel)))
-    return jax.tree.map(lambda y: y.reshape((d,) + y.shape[2:]), out)
+def _chunks(gyro, accel, w: int, b: int, out=None, again=None):
+    """The check chunk by chunk (devices first, a multiple of :data:`CHECK_CHUNK`): the
+    chunks where ``again`` holds for some device, the others as in ``out``; every chunk
+    where there is no ``out``."""
+    d = gyro[0].shape[0]
+    if out is None:
+        def split(x):
+            return None if x is None else jax.tree.map(
+                lambda y: y.reshape((d // CHECK_CHUNK, CHECK_CHUNK) + y.shape[1:]), x)
 
+        out = jax.lax.map(lambda ga: _chunk(*ga, w, b), (split(gyro), split(accel)))
+        return jax.tree.map(lambda y: y.reshape((d,) + y.shape[2:]), out)
+    chunks = d // CHECK_CHUNK
+    again = jnp.any(again.reshape(chunks, CHECK_CHUNK), axis=1)
+    order = jnp.nonzero(again, size=chunks, fill_value=0)[0]
+
+    def judge(i, out):  # the i-th chunk where some window moved
+        at = order[i] * CHECK_CHUNK
+        part = jax.tree.map(lambda y: jax.lax.dynamic_slice_in_dim(y, at, CHECK_CHUNK), (gyro, accel))
+        got = _chunk(*part, w, b)
+        return {k: jax.lax.dynamic_update_slice_in_dim(v, got[k].astype(v.dtype), at, 0)
+                for k, v in out.items()}
+
+    return jax.lax.fori_loop(0, jnp.sum(again), judge, out)
+
+
+def _vmapped_small(gyro, accel, w: int, b: int):
+    """The check of a small (padded) batch: chunk by chunk, every chunk (it runs in
+    milliseconds either way)."""
+    d = gyro[0].shape[0]
+    return _chunk(gyro, accel, w, b) if d <= CHECK_CHUNK else _chunks(gyro, accel, w, b)
 
 
 #: The check of a large batch, and of a small (padded) one for its size
 #: (:func:`~diffgyro._jit.by_work`): a small batch's check runs in milliseconds, and
 #: compiles in about 60 % of the time with XLA's loop emitters.
 _check = filter_jit(_vmapped)
-_check_small = by_work(_vmapped, compiler_options=FAST_COMPILE)
+_check_small = by_work(_vmapped_small, compiler_options=FAST_COMPILE)
 
 
 class Layout(NamedTuple):

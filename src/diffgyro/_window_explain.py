@@ -26,8 +26,8 @@ from typing import NamedTuple
 import numpy as np
 from jaxtyping import Bool, Float, Int
 
-from ._window_stats import spread_quantile, window_means, windowed_sums
-from .data import Batch
+from ._window_stats import compiled, spread_quantile, window_means, windowed_sums
+from .data import Batch, aligned_empty
 
 
 class Explanation(NamedTuple):
@@ -67,7 +67,7 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     def means(x):  # (d, n[, c]) -> (len(rows), k[, c]), neighbours' values where empty
         x = np.asarray(x)
         s = window_means(x, batch_mask, read, w, k)
-        out = np.empty((len(rows),) + s.shape[1:])
+        out = aligned_empty((len(rows),) + s.shape[1:], s.dtype)  # (the Batch keeps it)
         out[fill] = s
         out[spare] = s[0]
         return out
@@ -76,7 +76,8 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
         t = np.asarray(t)
         if not every or m < 2 * w:  # (with gaps, the mean of its valid samples' times)
             return means(t)
-        out = np.broadcast_to(t[rows, :1], (len(rows), k)).copy()
+        out = aligned_empty((len(rows), k), t.dtype)
+        out[...] = t[rows, :1]
         start = t[read, :m:w]
         step = np.diff(start, axis=1, append=2 * start[:, -1:] - start[:, -2:-1]) / w
         held = start.shape[1]  # (the windows past the samples hold the last one's time)
@@ -101,8 +102,12 @@ def half_windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int,
     half the half-window difference. It needs no fitted model: a fit reads it beside its
     solve (:func:`diffgyro.motion.check_ahead`)."""
     r, k = stats.shape[:2]
+    if compiled(r * k * w):
+        from ._window_pass import compiled_halves
+
+        return windows(batch, rows, w // 2, 2 * k, todo, compiled_halves(stats), reads)
     mean, half = stats[:, :, 0], 0.5 * stats[:, :, 2]
-    gyro = np.empty((r, k, 2, 3))
+    gyro = aligned_empty((r, k, 2, 3), np.float64)
     np.add(mean, half, out=gyro[:, :, 0], dtype=float)
     np.subtract(mean, half, out=gyro[:, :, 1], dtype=float)
     return windows(batch, rows, w // 2, 2 * k, todo, gyro.reshape(r, 2 * k, 3), reads)
@@ -132,7 +137,13 @@ def explained(stats: Float[np.ndarray, "r k 3 3"], noise: Float[np.ndarray, "r 2
     window's two halves, for the devices ``rows`` (the others as given): the residual's
     window mean and half-window difference, the local noise as recorded, and a window
     mean's noise from those differences. A device whose residual is not finite keeps the
-    recording's."""
+    recording's. A large batch (or any, once the compiled pass is loaded) is worked out in
+    one compiled loop (:func:`diffgyro._window_pass.compiled_explained`), a small one by
+    numpy here: the same numbers."""
+    if compiled(stats.shape[0] * stats.shape[1] * w):
+        from ._window_pass import compiled_explained
+
+        return compiled_explained(stats, noise, valid, residual, rows, w, quantiles, limit)
     with np.errstate(invalid="ignore", over="ignore"):  # (a NaN or an infinity sums to one)
         finite = np.isfinite(residual.sum(axis=(2, 3)))
     ok = rows & np.all(finite | ~valid, axis=1)

@@ -17,61 +17,95 @@ import numpy as np
 from numba import njit
 
 from ._jit import available_cores
+from .data import aligned_empty
 
 
 @njit(cache=True, nogil=True)
-def _select(v, n, k):  # pragma: no cover - compiled
-    """The ``k``-th smallest of ``v[:n]``, in place (quickselect, middle-of-three pivots):
-    ``v[k]`` holds it, ``v[:k]`` the values not above it."""
-    lo, hi = 0, n - 1
-    while hi > lo:
-        mid = (lo + hi) // 2
-        if v[mid] < v[lo]:
-            v[mid], v[lo] = v[lo], v[mid]
-        if v[hi] < v[lo]:
-            v[hi], v[lo] = v[lo], v[hi]
-        if v[hi] < v[mid]:
-            v[hi], v[mid] = v[mid], v[hi]
-        pivot = v[mid]
-        i, j = lo, hi
-        while i <= j:
-            while v[i] < pivot:
-                i += 1
-            while pivot < v[j]:
-                j -= 1
-            if i <= j:
-                v[i], v[j] = v[j], v[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
+def _select(v, n, k, low, high):  # pragma: no cover - compiled
+    """The ``k``-th smallest of ``v[:n]`` (quickselect about a median of three), ``v``
+    unchanged: each round copies the values below the pivot to ``low`` and those above it
+    to ``high`` (scratch of ``n`` each) without a branch per value, since a comparison of
+    noise values mispredicts half the time."""
+    src = v
+    m = n
+    while True:
+        a, b, c = src[0], src[m // 2], src[m - 1]
+        pivot = max(min(a, b), min(max(a, b), c))
+        below = above = 0
+        for i in range(m):  # (a write never passes the read: the pass may run in place)
+            x = src[i]
+            low[below] = x
+            below += x < pivot
+            high[above] = x
+            above += x > pivot
+        if k < below:
+            src, m = low, below
+        elif k < m - above:
+            return pivot
         else:
-            break
-    return v[k]
+            src, m, k = high, above, k - (m - above)
 
 
 @njit(cache=True, nogil=True)
 def _quantile(values, n, q):  # pragma: no cover - compiled
-    """The ``q`` quantile of ``values[:n]`` (linear between order statistics; NaN if none);
-    ``values`` is reordered."""
+    """The ``q`` quantile of ``values[:n]`` (linear between order statistics; NaN if none)."""
     if n == 0:
         return math.nan
     h = q * (n - 1)
     lo = int(math.floor(h))
     hi = min(lo + 1, n - 1)
-    a = _select(values, n, lo)
+    low, high = np.empty_like(values[:n]), np.empty_like(values[:n])
+    a = _select(values, n, lo, low, high)
     b = a
-    if hi > lo:  # the next order statistic: the smallest of those above the lo-th
-        b = values[hi]
-        for i in range(hi + 1, n):
-            b = min(b, values[i])
+    if hi > lo:  # the next order statistic: a again where it repeats, else the smallest above it
+        ties = 0
+        low[0] = math.inf
+        above = low[0]  # (an infinity of the values' type)
+        for i in range(n):
+            x = values[i]
+            ties += x <= a
+            above = min(above, x if x > a else above)  # (in the values' type)
+        b = a if ties > hi else above
     return a + (b - a) * (h - lo)
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _halves_sums(xi, lo, h, w):  # pragma: no cover - compiled
+    """The sums of the two halves of a window of valid samples (``xi``: a device's (n, 3),
+    the window from ``lo``), each in its samples' order."""
+    a0 = a1 = a2 = b0 = b1 = b2 = 0.0
+    for t in range(lo, lo + h):
+        a0 += xi[t, 0]
+        a1 += xi[t, 1]
+        a2 += xi[t, 2]
+    for t in range(lo + h, lo + w):
+        b0 += xi[t, 0]
+        b1 += xi[t, 1]
+        b2 += xi[t, 2]
+    return a0, a1, a2, b0, b1, b2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _differences(xi, lo, w):  # pragma: no cover - compiled
+    """The sums of the squared successive differences of a window of valid samples, in
+    their order, and the smallest nonzero difference per axis (a minimum: in any order,
+    without a branch)."""
+    e0 = e1 = e2 = 0.0
+    r0 = r1 = r2 = math.inf
+    for t in range(lo + 1, lo + w):
+        d0, d1, d2 = xi[t, 0] - xi[t - 1, 0], xi[t, 1] - xi[t - 1, 1], xi[t, 2] - xi[t - 1, 2]
+        e0 += d0 * d0
+        e1 += d1 * d1
+        e2 += d2 * d2
+        u0, u1, u2 = abs(d0), abs(d1), abs(d2)
+        r0 = u0 if u0 < r0 and d0 != 0.0 else r0
+        r1 = u1 if u1 < r1 and d1 != 0.0 else r1
+        r2 = u2 if u2 < r2 and d2 != 0.0 else r2
+    return e0, e1, e2, r0, r1, r2
+
+
 @njit(cache=True, nogil=True)
-def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
+def _pass(x, mask, full, rate, rows, w, stats, count, valid, noise, quantiles,
           limit):  # pragma: no cover - compiled
     h = w // 2
     need = max(h, 2)
@@ -80,12 +114,21 @@ def _pass(x, mask, rate, rows, w, stats, count, valid, noise, quantiles,
         n = x.shape[1]
         k = (n + w - 1) // w
         q0 = q1 = q2 = math.inf
+        xi = x[i]
         for j in range(min(k, stats.shape[1])):
             a0 = a1 = a2 = b0 = b1 = b2 = e0 = e1 = e2 = 0.0
             c1 = c = cp = 0.0
             p0 = p1 = p2 = 0.0
             prev = False
-            for s in range(min(w, n - j * w)):
+            lo = j * w
+            # every sample valid (the device's): the same sums without a branch per sample
+            whole = full[r] and not rate.shape[0] and lo + w <= n
+            if whole:
+                a0, a1, a2, b0, b1, b2 = _halves_sums(xi, lo, h, w)
+                e0, e1, e2, r0, r1, r2 = _differences(xi, lo, w)
+                q0, q1, q2 = min(q0, r0), min(q1, r1), min(q2, r2)
+                c1, c, cp = float(h), float(w), float(w - 1)
+            for s in range(0 if not whole else w, min(w, n - j * w)):
                 t = j * w + s
                 if not mask[i, t]:
                     prev = False
@@ -170,9 +213,16 @@ def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quant
     """:func:`diffgyro._window_stats.window_stats` of a large batch, into its outputs
     (``rate`` of shape (0, 1, 3) where there is none): chunks of devices side by side on
     threads, one per core (the pass holds no GIL)."""
+    full = _full(mask, rows)
     _on_threads(len(rows), x.shape[1], lambda a, b: _pass(
-        x, mask, rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
+        x, mask, full[a:b], rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
         quantiles, limit))
+
+
+def _full(mask, rows):
+    """Whether every sample of each device ``rows`` is valid (numpy's vectorised reduction;
+    the passes then read no mask)."""
+    return np.ascontiguousarray(np.all(mask, axis=1)[rows])
 
 
 #: Device-samples below which a pass runs on the caller's thread (starting threads costs
@@ -194,22 +244,29 @@ def _on_threads(rows: int, samples: int, run) -> None:
 
 
 @njit(cache=True, nogil=True)
-def _means(x, mask, rows, h, out):  # pragma: no cover - compiled
+def _means(x, mask, full, rows, h, out):  # pragma: no cover - compiled
     n, c = x.shape[1], x.shape[2]
     k = out.shape[1]
     for r in range(rows.shape[0]):
         i = rows[r]
+        xi, mi = x[i], mask[i]
         last = -1  # the last window with a valid sample (an empty one holds it)
         for j in range(k):
             lo, hi = j * h, min(j * h + h, n)
-            m = 0
-            for t in range(lo, hi):
-                m += mask[i, t]
+            m = max(hi - lo, 0)
+            if not full[r]:
+                m = 0
+                for t in range(lo, hi):
+                    m += mi[t]
             if m:
                 for a in range(c):  # a channel at a time: a loop without branches
                     s = 0.0
-                    for t in range(lo, hi):
-                        s += x[i, t, a] if mask[i, t] else 0.0
+                    if m == hi - lo:  # (every sample valid: the same sum, no mask read)
+                        for t in range(lo, hi):
+                            s += xi[t, a]
+                    else:
+                        for t in range(lo, hi):
+                            s += xi[t, a] if mi[t] else 0.0
                     out[r, j, a] = s / m
                 if last < 0:  # windows before the first valid one hold it
                     for e in range(j):
@@ -223,8 +280,93 @@ def compiled_means(x, mask, rows, h: int, k: int):
     """:func:`diffgyro._window_stats.window_means` of a large batch: one read of each device's
     samples (``x`` with its channels last, a view)."""
     out = np.zeros((len(rows), k, x.shape[2]))
-    _on_threads(len(rows), x.shape[1], lambda a, b: _means(x, mask, rows[a:b], int(h), out[a:b]))
+    full = _full(mask, rows)
+    _on_threads(len(rows), x.shape[1], lambda a, b: _means(x, mask, full[a:b], rows[a:b], int(h),
+                                                         out[a:b]))
     return out
 
 
-__all__ = ["compiled_pass", "compiled_means"]
+@njit(cache=True, nogil=True)
+def _explained(stats, noise, valid, residual, rows, w, half_q, zh, limit):  # pragma: no cover
+    r, k = valid.shape
+    half = np.empty(min(k, limit), np.float32)
+    for i in range(r):
+        if not rows[i]:
+            continue
+        finite = True  # (a NaN or an infinity in a valid window keeps the recording's)
+        for j in range(k):
+            if not valid[i, j]:
+                continue
+            small = True  # (values this small sum to a finite number: no chain of adds)
+            for p in range(2):
+                for a in range(3):
+                    small = small and abs(residual[i, j, p, a]) < 1e300
+            if small:
+                continue
+            s = 0.0
+            for p in range(2):
+                for a in range(3):
+                    s += residual[i, j, p, a]
+            if not math.isfinite(s):
+                finite = False
+                break
+        if not finite:
+            continue
+        span = 0
+        for j in range(k):
+            p0, p1, p2 = residual[i, j, 0, 0], residual[i, j, 0, 1], residual[i, j, 0, 2]
+            q0, q1, q2 = residual[i, j, 1, 0], residual[i, j, 1, 1], residual[i, j, 1, 2]
+            stats[i, j, 0, 0] = 0.5 * (p0 + q0)
+            stats[i, j, 0, 1] = 0.5 * (p1 + q1)
+            stats[i, j, 0, 2] = 0.5 * (p2 + q2)
+            stats[i, j, 2, 0] = p0 - q0
+            stats[i, j, 2, 1] = p1 - q1
+            stats[i, j, 2, 2] = p2 - q2
+            if valid[i, j]:
+                span = j + 1
+        m = min(span, limit)
+        for a in range(3):
+            u = 0
+            for j in range(m):
+                at = (j * span) // limit if span > limit else j
+                if valid[i, at]:
+                    half[u] = abs(stats[i, at, 2, a])
+                    u += 1
+            sigma = np.float64(noise[i, 0, a]) / math.sqrt(w)
+            h = _quantile(half, u, half_q) / zh / 2.0
+            noise[i, 1, a] = math.nan if math.isnan(sigma) or math.isnan(h) else max(sigma, h)
+
+
+def compiled_explained(stats, noise, valid, residual, rows, w: int, quantiles, limit: int):
+    """:func:`diffgyro._window_explain.explained` in one compiled loop over the windows (its
+    numbers), into copies of ``stats`` and ``noise``."""
+    stats, noise = stats.copy(), noise.copy()
+    valid, rows = np.ascontiguousarray(valid, bool), np.ascontiguousarray(rows, bool)
+    residual = np.ascontiguousarray(residual, np.float64)
+    _on_threads(len(rows), stats.shape[1] * w, lambda a, b: _explained(
+        stats[a:b], noise[a:b], valid[a:b], residual[a:b], rows[a:b], int(w),
+        float(quantiles[1]), float(quantiles[3]), int(limit)))
+    return stats, noise
+
+
+@njit(cache=True, nogil=True)
+def _halves(stats, out):  # pragma: no cover - compiled
+    for i in range(stats.shape[0]):
+        for j in range(stats.shape[1]):
+            for a in range(3):
+                mean = np.float64(stats[i, j, 0, a])
+                half = np.float64(np.float32(0.5) * stats[i, j, 2, a])
+                out[i, 2 * j, a] = mean + half
+                out[i, 2 * j + 1, a] = mean - half
+
+
+def compiled_halves(stats):
+    """The gyro's means over each half window (rows, 2 × windows, 3; float64) from the window
+    statistics (rows, windows, 3, 3; float32): the window mean ± half the half-window
+    difference, as :func:`diffgyro._window_explain.half_windows` forms them."""
+    out = aligned_empty((stats.shape[0], 2 * stats.shape[1], 3), np.float64)  # (a Batch keeps it)
+    _halves(stats, out)
+    return out
+
+
+__all__ = ["compiled_pass", "compiled_means", "compiled_explained", "compiled_halves"]

@@ -49,7 +49,7 @@ def window_stats(x: Float[np.ndarray, "d n 3"], mask: Bool[np.ndarray, "d n"], w
     x = np.asarray(x)
     mask = np.asarray(mask, bool)
     q = np.asarray(quantiles, np.float64)
-    if _compiled(len(rows) * x.shape[1]):
+    if compiled(len(rows) * x.shape[1]):
         from ._window_pass import compiled_pass  # numba: imported for a large batch only
 
         rate = np.zeros((0, 1, 3), x.dtype) if rate is None else np.asarray(rate, x.dtype)
@@ -139,7 +139,7 @@ def window_means(x: Float[np.ndarray, "d n *c"], mask: Bool[np.ndarray, "d n"],
     device's samples; a small one by numpy."""
     x = np.asarray(x)
     rows = np.ascontiguousarray(rows, np.int64)
-    if _compiled(len(rows) * x.shape[1]):
+    if compiled(len(rows) * x.shape[1]):
         from ._window_pass import compiled_means
 
         out = compiled_means(x.reshape(x.shape[:2] + (-1,)), np.asarray(mask, bool), rows, h, k)
@@ -180,7 +180,7 @@ def _held(x: np.ndarray, has: Bool[np.ndarray, "r m"]) -> np.ndarray:
     return np.take_along_axis(x, at.reshape(at.shape + (1,) * (x.ndim - 2)), axis=1)
 
 
-def _compiled(samples: int) -> bool:
+def compiled(samples: int) -> bool:
     """Whether a batch of ``samples`` (devices × samples) is read by the compiled pass
     (which then reads every batch of this process)."""
     global _loaded
@@ -188,5 +188,5 @@ def _compiled(samples: int) -> bool:
     return _loaded
 
 
-__all__ = ["window_stats", "window_means", "windowed_sums", "spread_quantile",
+__all__ = ["window_stats", "window_means", "windowed_sums", "spread_quantile", "compiled",
            "COMPILED_SAMPLES"]

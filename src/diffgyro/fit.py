@@ -202,7 +202,6 @@ def fit(
     batch = imu
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
     if static_only:  # the fit needs the check's static samples
         motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
@@ -215,6 +214,8 @@ def fit(
         motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
+    # (counted after the fit: while the check's first look, beside it, may still be reading)
+    recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
     return judge_motion(result, batch, motion, recorded, static_only,
                         ahead=None if static_only else ahead)
 

@@ -155,8 +155,15 @@ def _device_intervals(batch, dt: float | None) -> np.ndarray:
 def _spans(mask) -> np.ndarray:
     """Each device's samples up to its last valid one (the padding of a batch is not its)."""
     mask = np.asarray(mask, bool)
-    last = mask.shape[1] - np.argmax(mask[:, ::-1], axis=1)
-    return np.where(mask.any(axis=1), last, 0)
+    out = np.full(mask.shape[0], mask.shape[1])
+    if not mask.shape[1]:
+        return out
+    short = ~mask[:, -1]  # (most devices hold the batch's last sample: no search)
+    if short.any():
+        part = mask[short]
+        last = mask.shape[1] - np.argmax(part[:, ::-1], axis=1)
+        out[short] = np.where(part.any(axis=1), last, 0)
+    return out
 
 
 def _groups(dts, spans, fine: bool = False) -> dict[tuple[int, int], np.ndarray]:
@@ -271,7 +278,8 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     rows, k = lay.shape
     referenced = rate is not None
     q = noise_quantiles()
-    stats, acc, todo, at = read or (*_read_group(gyro, accel, mask, rate, idx, lay), None, None)
+    stats, acc, todo, at, held = read or (*_read_group(gyro, accel, mask, rate, idx, lay), None,
+                                          None, None)
 
     def judged(stats):
         return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
@@ -281,7 +289,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     if explain is None:
         todo = np.zeros(rows, bool)
     elif todo is None:  # what the model leaves is judged, where a bias can hold the rate
-        todo = _explained_rows(stats, d)
+        todo, held = _explained_rows(stats, d)
     if explain is not None:  # and where the fit stands
         todo = todo & np.r_[trusted, np.zeros(rows - d, bool)]
     if todo.any():
@@ -295,23 +303,23 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         raw = _numpy_out(judged(recorded_stats), d)
         keep = moved & (verdicts(_with_resolution(raw, window_s)) == AT_REST)
         for key, value in out.items():
+            value = out[key] = np.array(value)  # (writable)
             value[keep] = raw[key][keep]
         todo[:d] &= ~keep
     num = {k: out[k] for k in NUMBERS if k != "resolution"}
     # the rate held at rest is the recording's (the residual's is about 0)
     recorded_rate = recorded_stats[0][:d, :, 0]
     if todo.any():
-        num["rest_rate"][todo[:d]] = _held_rate(
-            recorded_rate, out["window_valid"] & ~out["window_moving"])[todo[:d]]
-    recorded = mask[idx]
+        _recorded_rest_rate(num["rest_rate"], np.flatnonzero(todo[:d]), held, out, recorded_rate)
+    recorded = mask if len(idx) == len(mask) and (idx == np.arange(len(idx))).all() else mask[idx]
     samples = min(k * w, n)
 
     def per_sample(flags):  # window flags (d, k) to the samples (d, n)
-        full = np.zeros((flags.shape[0], n), bool)
-        full[:, :samples] = np.repeat(flags, w, axis=1)[:, :samples]
-        return full
+        return _to_samples(flags, n, w, samples)
 
-    static = ~per_sample(out["window_near"]) & recorded
+    static = per_sample(out["window_near"])
+    np.logical_not(static, out=static)
+    static &= recorded
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
@@ -341,6 +349,28 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
     return num, static, np.full(d, w), out["loud"]
 
 
+def _recorded_rest_rate(rest_rate: Float[np.ndarray, " d"], rows, held: Float[np.ndarray, " d"],
+                        out: dict, recorded: Float[np.ndarray, "d k 3"]) -> None:
+    """The rest rate of devices ``rows`` judged by a model's residual (whose own is about 0):
+    the recording's over the windows at rest, into ``rest_rate``. Where no window moved
+    that is its rate ``held`` over the valid windows, as read; else it is formed again."""
+    rest_rate[rows] = held[rows]
+    moved = rows[out["window_moving"][rows].any(axis=1)]
+    rest_rate[moved] = _held_rate(recorded[moved],
+                                  (out["window_valid"] & ~out["window_moving"])[moved])
+
+
+def _to_samples(flags: Bool[np.ndarray, "d k"], n: int, w: int, samples: int
+                ) -> Bool[np.ndarray, "d n"]:
+    """Window flags to the samples (``n`` per device, the first ``samples`` in windows of
+    ``w``), by broadcasting in place."""
+    full = np.zeros((flags.shape[0], n), bool)
+    whole = samples // w
+    full[:, :whole * w].reshape(-1, whole, w)[...] = flags[:, :whole, None]
+    full[:, whole * w:samples] = flags[:, whole:whole + 1]
+    return full
+
+
 def _read_group(gyro, accel, mask, rate, idx, lay: Layout) -> tuple:
     """The window statistics (:func:`~diffgyro._window_stats.window_stats`) of devices
     ``idx`` in ``lay``'s windows: the gyro's (less ``rate``), and the accelerometer's
@@ -358,18 +388,22 @@ def _pad(idx, rows: int):
     return idx[np.minimum(np.arange(rows), len(idx) - 1)]
 
 
-def _explained_rows(stats, d: int) -> Bool[np.ndarray, " r"]:
+def _explained_rows(stats, d: int) -> tuple[Bool[np.ndarray, " r"], Float[np.ndarray, " d"]]:
     """Rows of a layout (``stats``' leading axis, ``d`` devices then padding) judged by a
-    fitted model's residual: those whose mean rate a bias can hold (:func:`_bias_like`)."""
+    fitted model's residual: those whose mean rate a bias can hold (:func:`_bias_like`);
+    and each device's rate held over its valid windows (:func:`_held_rate`)."""
     todo = np.zeros(stats[0].shape[0], bool)
-    todo[:d] = _bias_like(stats[0][:d, :, 0], stats[2][:d])
-    return todo
+    mean, valid = stats[0][:d, :, 0], stats[2][:d]
+    held = _held_rate(mean, valid)
+    todo[:d] = _bias_like(mean, valid, held)
+    return todo, held
 
 
 def _numpy_out(out: dict, d: int) -> dict:
-    """A judgement's outputs on the host, its first ``d`` rows (numpy, writable: no
-    program per shape)."""
-    return {k: np.array(v)[:d] for k, v in out.items()}
+    """A judgement's outputs on the host, its first ``d`` rows (numpy: no program per
+    shape): the numbers per device writable copies, the windows' arrays read-only views
+    where the backend allows (no copy of 10⁶ windows)."""
+    return {k: (np.array(v) if np.ndim(v) < 2 else np.asarray(v))[:d] for k, v in out.items()}
 
 
 def _with_resolution(out: dict, window_s) -> dict:
@@ -378,12 +412,13 @@ def _with_resolution(out: dict, window_s) -> dict:
     return out | {"resolution": out["threshold"] * window_s}
 
 
-def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"]
-               ) -> Bool[np.ndarray, " d"]:
-    """Devices whose mean rate over their valid windows a bias can hold (at most
-    :data:`MAX_BIAS`): a fitted model's residual judges them. A rate beyond it is a spin,
-    which a bias term would absorb: its recording is judged as it is."""
-    return valid.any(axis=1) & (_held_rate(mean, valid) <= MAX_BIAS)
+def _bias_like(mean: Float[np.ndarray, "d k 3"], valid: Bool[np.ndarray, "d k"],
+               held: Float[np.ndarray, " d"] | None = None) -> Bool[np.ndarray, " d"]:
+    """Devices whose mean rate over their valid windows (``held``, where already formed) a
+    bias can hold (at most :data:`MAX_BIAS`): a fitted model's residual judges them. A rate
+    beyond it is a spin, which a bias term would absorb: its recording is judged as it is."""
+    held = _held_rate(mean, valid) if held is None else held
+    return valid.any(axis=1) & (held <= MAX_BIAS)
 
 
 def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
@@ -436,13 +471,13 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
         try:
             for key, idx in groups.items():
                 stats, acc = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
-                todo = at = None
+                todo = at = held = None
                 if reads is not None:
-                    todo = _explained_rows(stats, len(idx))
+                    todo, held = _explained_rows(stats, len(idx))
                     rows = _pad(idx, lays[key].shape[0])
                     at = half_windows(batch, rows, key[0], stats[0], todo, reads) \
                         if todo.any() else None
-                out[key] = (stats, acc, todo, at)
+                out[key] = (stats, acc, todo, at, held)
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
 
