@@ -69,6 +69,7 @@ from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
 from ._jit import filter_jit, release_compiled_if_crowded
+from ._xla_options import FAST_COMPILE
 from ._jsonio import number
 from .errors import DataError
 from .signals import prefix_sums
@@ -168,7 +169,10 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     return jnp.where(good, adev, jnp.nan), count
 
 
-@filter_jit  # (diffgyro's: kept traced on disk under the command line)
+#: XLA's loop emitters (:data:`~diffgyro._xla_options.FAST_COMPILE`): the same sums bit for
+#: bit, compiled in 0.62 s of CPU instead of 0.90 (10 × 3 series of 2^16 samples; 0.28 s
+#: instead of 0.42 for 3 of 12 000) and run as fast (93 ms instead of 100 for 2 × 3 of 2^20).
+@filter_jit(compiler_options=FAST_COMPILE)  # (kept traced on disk under the command line)
 def oadev(
     y: Float[Array, "... n"],
     dt: Float[Array, "..."] | float,
