@@ -225,3 +225,4 @@ def test_entry_points_check_the_mappings_first(monkeypatch, module, call):
     batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=60.0)
     with pytest.raises(Checked):
         call(mod, batch)
+
