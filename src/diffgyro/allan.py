@@ -69,8 +69,8 @@ from jax.scipy.special import gammainc, gammaln
 from jaxtyping import Array, Float, Int
 
 from ._jit import filter_jit, release_compiled_if_crowded
-from ._xla_options import FAST_COMPILE
 from ._jsonio import number
+from ._xla_options import FAST_COMPILE
 from .errors import DataError
 from .signals import prefix_sums
 
