@@ -68,14 +68,16 @@ def test_oadev_padded_batch_equals_allantools_per_device():
 
 
 @pytest.mark.parametrize(("block_terms", "chunk", "n"),
-                         [(None, None, 150_001), (4096, 1, 60_007), ("accel", "accel", 30_011)])
+                         [(None, None, 150_001), (4096, 1, 60_007), ("accel", "accel", 30_011),
+                          (None, 80_018, 40_009)])
 def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n):
     """The sums run block by block of samples, all τ of a block at once. Series longer than a
     block, lengths that are not a multiple of it, padding that ends inside a block and τ past
     the stop ratio (NaN) all give allantools' values. The second case forces blocks of 256
     samples and one series per loop step (the path of 1M-sample series), the third the sizes
-    used on an accelerator (all series and samples in one step); the different n keep a
-    version compiled with other sizes from being reused."""
+    used on an accelerator (all series and samples in one step), the fourth two series a
+    step (the second step's other series a copy of the first, dropped); the different n
+    keep a version compiled with other sizes from being reused."""
     from diffgyro import allan as allan_mod
 
     block_terms = allan_mod._ACCEL_BLOCK_TERMS if block_terms == "accel" else block_terms

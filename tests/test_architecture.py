@@ -494,6 +494,7 @@ TESTS = Path(__file__).resolve().parent
 PRIVATE_UNDER_TEST = {
     "test_architecture.py": {"diffgyro._fit_sums"},  # the sums path's signal probe
     "test_jit.py": {"diffgyro._jit"},
+    "test_xla_options.py": {"diffgyro._xla_options"},
     "test_compile.py": {"diffgyro._jit"},
     "test_program_cache.py": {"diffgyro._program_cache", "diffgyro._jit"},
     "test_plain_csv.py": {"diffgyro.io._plain_csv"},

@@ -84,6 +84,10 @@ def test_compiler_options_reach_xla_and_eval_shape_reuses_the_trace():
     bad = filter_jit(compiler_options={"xla_no_such_option": True})(body)
     with pytest.raises(Exception, match="xla_no_such_option"):
         bad(x, 4)
+    # called inside another program it is part of that one (JAX refuses options on a
+    # nested jit): the outer program's options hold, the unknown option never reaches XLA
+    outer = jax.jit(lambda v: bad(v, 4)["s"] * 2.0)
+    np.testing.assert_allclose(outer(x), 2.0 * a["s"], rtol=1e-12)
 
 
 def test_compile_ahead_leaves_the_call_nothing_to_compile():
@@ -221,3 +225,4 @@ def test_entry_points_check_the_mappings_first(monkeypatch, module, call):
     batch, _ = demo_batch(n_devices=2, effects="bias_poly(1)", duration=60.0)
     with pytest.raises(Checked):
         call(mod, batch)
+

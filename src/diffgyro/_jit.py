@@ -53,7 +53,8 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
         return _unsplit(fun, treedef, static, dynamic)
 
     # the options are XLA:CPU's (diffgyro._xla_options): another backend
-    # refuses an option it does not know, so there the program compiles with defaults
+    # refuses an option it does not know, so there the program compiles with defaults (and
+    # so does a call inside another trace)
     on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
     elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu
 
@@ -71,7 +72,9 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
                                options=compiler_options if cpu else None)
             if kept is not None:
                 return kept, (dynamic,)
-        return (on_cpu if cpu else elsewhere), (treedef, static, dynamic)
+        # inside another trace the program is part of that one, whose options hold (JAX
+        # refuses options on a nested jit)
+        return (on_cpu if cpu and not inside else elsewhere), (treedef, static, dynamic)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):

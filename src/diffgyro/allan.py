@@ -70,6 +70,7 @@ from jaxtyping import Array, Float, Int
 
 from ._jit import filter_jit, release_compiled_if_crowded
 from ._jsonio import number
+from ._xla_options import FAST_COMPILE
 from .errors import DataError
 from .signals import prefix_sums
 
@@ -168,7 +169,10 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     return jnp.where(good, adev, jnp.nan), count
 
 
-@filter_jit  # (diffgyro's: kept traced on disk under the command line)
+#: XLA's loop emitters (:data:`~diffgyro._xla_options.FAST_COMPILE`): the same sums bit for
+#: bit, compiled in 0.62 s of CPU instead of 0.90 (10 × 3 series of 2^16 samples; 0.28 s
+#: instead of 0.42 for 3 of 12 000) and run as fast (93 ms instead of 100 for 2 × 3 of 2^20).
+@filter_jit(compiler_options=FAST_COMPILE)  # (kept traced on disk under the command line)
 def oadev(
     y: Float[Array, "... n"],
     dt: Float[Array, "..."] | float,
@@ -201,12 +205,22 @@ def oadev(
     cpu = jax.default_backend() == "cpu"
     chunk, terms = ((_CHUNK_SAMPLES, _BLOCK_TERMS) if cpu
                     else (_ACCEL_CHUNK_SAMPLES, _ACCEL_BLOCK_TERMS))
-    batch = max(1, min(flat[0].shape[0], chunk // max(n, 1)))
+    series = flat[0].shape[0]
+    batch = max(1, min(series, chunk // max(n, 1)))
     f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch, terms,  # noqa: E731
                                       n_valid is not None)
+    # the same steps in batches of one size: a remainder would be a second copy of the loop
+    # in the program (30 series of 2^16 samples in 16 + 14 compiled in 0.38 s of CPU, in
+    # 15 + 15 in 0.26 s). The blocks stay those of ``batch``, so every series' sums are the
+    # same bit for bit; the last batch is filled with copies of the first series, dropped
+    steps = -(-series // batch)
+    even = -(-series // steps)
+    fill = steps * even - series
+    if fill:
+        flat = tuple(jnp.concatenate([a, jnp.repeat(a[:1], fill, axis=0)]) for a in flat)
     # batch_size=1 would copy the whole input into the loop state; a plain map does not
-    adev, count = jax.lax.map(lambda a: f(*a), flat, batch_size=batch if batch > 1 else None)
-    return adev.reshape(*lead, -1), count.reshape(*lead, -1)
+    adev, count = jax.lax.map(lambda a: f(*a), flat, batch_size=even if even > 1 else None)
+    return adev[:series].reshape(*lead, -1), count[:series].reshape(*lead, -1)
 
 
 # --- non-overlapping and modified deviations (NIST SP 1065 §5.2.2, §5.2.5) ------------
