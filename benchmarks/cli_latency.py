@@ -15,15 +15,23 @@ the median of each command's cold and warm times (on a shared machine one run is
 ``--trees main=../main/src,branch=src`` runs each walkthrough of each repeat on every source
 tree in turn (a change of the machine's load touches both alike), one table per tree, to
 compare a change with the tree before it.
+
+The package's bytecode is compiled first (as ``pip install`` does for the files it
+installs, and as Python does on a first import): a machine that sets
+``PYTHONDONTWRITEBYTECODE`` would otherwise compile every module of the package from its
+source in every command, which a user's installation never does.
 """
 
 from __future__ import annotations
 
 import argparse
+import compileall
+import importlib.util
 import json
 import os
 import platform
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -94,7 +102,18 @@ def _walkthrough(only: list[str], src: str | None = None
         cold, code, cold_cpu = _run(cmd, work, env)
         warm, _, warm_cpu = _run(cmd, work, env)
         out.append((cold, warm, code, cold_cpu, warm_cpu))
+    shutil.rmtree(work, ignore_errors=True)
     return out
+
+
+def _compile_bytecode(src: str | None) -> None:
+    """The bytecode of the package a tree runs (``src``, or the installed one), as an
+    installation has it."""
+    if src is not None:
+        pkg = Path(src) / "diffgyro"
+    else:
+        pkg = Path(importlib.util.find_spec("diffgyro").submodule_search_locations[0])
+    compileall.compile_dir(str(pkg), quiet=1)
 
 
 def _rows(only: list[str], runs: list) -> list[dict]:
@@ -144,6 +163,8 @@ def main() -> None:
     trees = dict(t.split("=", 1) for t in args.trees.split(",")) if args.trees else {None: None}
     runs: dict = {name: [] for name in trees}
     loads = []
+    for src in trees.values():
+        _compile_bytecode(src)
     for _ in range(max(args.repeat, 1)):
         for name, src in trees.items():  # in turn: a change of load touches every tree alike
             loads.append(round(os.getloadavg()[0], 2))
