@@ -32,9 +32,8 @@ REASSOCIATE = dict(xla_cpu_enable_fast_math=True, xla_cpu_fast_math_honor_nans=T
 FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: XLA options of a large program whose run is small beside its compile (noise
 #: identification of devices × axes, run once per batch): the loop emitters
-#: (:data:`FAST_COMPILE`) and LLVM's lighter pipeline (level 1). Identify's program for
-#: 8 series of 2^16 samples compiled in 2.8 s of CPU instead of 3.8 s and ran 10 % slower
-#: (36 ms a chunk against 33 ms).
+#: (:data:`FAST_COMPILE`) and LLVM's lighter pipeline (level 1): identify's program
+#: compiles in about three quarters of the time and runs about 10 % slower.
 #: An optimisation level set in ``XLA_FLAGS`` (the test suite's 0) is kept: a program's
 #: options would override it.
 LIGHT_COMPILE = dict(FAST_COMPILE) if _in_xla_flags("xla_backend_optimization_level") \

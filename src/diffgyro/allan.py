@@ -170,8 +170,8 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
 
 
 #: XLA's loop emitters (:data:`~diffgyro._xla_options.FAST_COMPILE`): the same sums bit for
-#: bit, compiled in 0.62 s of CPU instead of 0.90 (10 × 3 series of 2^16 samples; 0.28 s
-#: instead of 0.42 for 3 of 12 000) and run as fast (93 ms instead of 100 for 2 × 3 of 2^20).
+#: bit, run as fast, and compiled in about two thirds of the fusion emitters' time
+#: (benchmarks/README.md, noise identification).
 @filter_jit(compiler_options=FAST_COMPILE)  # (kept traced on disk under the command line)
 def oadev(
     y: Float[Array, "... n"],
@@ -210,9 +210,9 @@ def oadev(
     f = lambda yy, nn, dd: _oadev_one(yy, nn, dd, m, stop_ratio, batch, terms,  # noqa: E731
                                       n_valid is not None)
     # the same steps in batches of one size: a remainder would be a second copy of the loop
-    # in the program (30 series of 2^16 samples in 16 + 14 compiled in 0.38 s of CPU, in
-    # 15 + 15 in 0.26 s). The blocks stay those of ``batch``, so every series' sums are the
-    # same bit for bit; the last batch is filled with copies of the first series, dropped
+    # in the program, compiled again. The blocks stay those of ``batch``, so every series'
+    # sums are the same bit for bit; the last batch is filled with copies of the first
+    # series, dropped
     steps = -(-series // batch)
     even = -(-series // steps)
     fill = steps * even - series

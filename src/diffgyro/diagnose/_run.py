@@ -238,7 +238,7 @@ _engine = by_work(_scores, persistent=True, small_options=ONE_PART)
 
 #: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`) compiled for a batch's
 #: size (:func:`~diffgyro._jit.by_work`): a small batch's without optimisation compiles in
-#: a fifth of the time (0.08 against 0.39 CPU-s on the walkthrough's), with the same bits
+#: about a fifth of the time, with the same bits
 #: (its differences and sums run in the program's order either way).
 _oadev = by_work(allan_mod.oadev.__wrapped__)
 
