@@ -34,6 +34,7 @@ module. This is the one module that may import another package's private modules
 
 from __future__ import annotations
 
+from ._fit_sums import groups as fit_groups
 from ._fit_sums import pack, unpack_results
 from ._jit import filter_jit
 from ._motion_windows import _check as check_windows
@@ -59,7 +60,11 @@ from .diagnose._synthesis import describe, library, propose_all
 from .diagnose._unsupported import reason
 from .effects._base import _NOISE_FITS as NOISE_FITS
 from .effects._base import _REGISTRY as REGISTRY
-from .effects._common import per_axis
+from .effects._common import LOG_TAU_RANGE, per_axis, time_constant
+from .effects._thermal_lag import _jet_parallel as jet_parallel
+from .effects._thermal_lag import _jet_sequential as jet_sequential
+from .effects._thermal_lag import _lag_parallel as lag_parallel
+from .effects._thermal_lag import _lag_sequential as lag_sequential
 from .io._headers import header_units, merge_units, split_header
 from .limits._units import unit_scale
 from .pipeline._chunk import calibration_entries
@@ -81,7 +86,7 @@ from .stochastic._wavelet_variance import dyadic_m, haar_wv
 
 __all__ = [
     "batch_signals", "stacked_signals", "BUILT_IN", "present", "REGISTRY", "NOISE_FITS",
-    "per_axis",
+    "per_axis", "fit_groups", "LOG_TAU_RANGE", "time_constant", "jet_parallel", "jet_sequential", "lag_parallel", "lag_sequential",
     "filter_jit", "device_noise_floor", "masked_median", "temperature_quantum",
     "suggest_dtemp_window", "window_stats", "check_windows", "pack", "unpack_results",
     "attitude_from_accel_mag", "heading_error", "integrate_gyro", "quat_conj", "quat_mul",

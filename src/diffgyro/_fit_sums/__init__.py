@@ -134,11 +134,11 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     layout, need = layout_of(model, present)
     d, n = batch.n_devices, batch.length
     fused = layout.pointwise and all(layout.shared)
-    g = groups.devices_per_call(d, n, bool(model.n_nonlinear), fused)
-    arrays = host_arrays(model, batch, norm, need, theta0, dtype, aux)
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
+    g = groups.devices_per_call(d, n, bool(model.n_nonlinear), fused, devices[0].platform)
+    arrays = host_arrays(model, batch, norm, need, theta0, dtype, aux)
     group = group_for(model, fused, d * n)
     # a program compiled for compile time finishes in a program of its own, compiled
     # without optimisation beside it; a fused linear model's finishes inline

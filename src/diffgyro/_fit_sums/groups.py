@@ -29,6 +29,12 @@ NONLINEAR_GROUP_DIVISOR = 4
 #: by side on two CPU devices), all threads idle; groups of 128 run at every length from
 #: 200 to 10 000 samples. Short recordings would otherwise ask for such groups.
 MAX_GROUP_DEVICES = 128
+#: On an accelerator a compiled call runs its devices side by side and costs a launch and
+#: a transfer whatever its size, and no slowest device holds the others back by more than
+#: its own steps: a group there holds about this many samples (a few hundred MB of
+#: float64 inputs), at most ACCELERATOR_MAX_GROUP_DEVICES devices.
+ACCELERATOR_GROUP_SAMPLES = 1 << 24
+ACCELERATOR_MAX_GROUP_DEVICES = 1 << 14
 
 
 def pow2_floor(x: int) -> int:
@@ -36,19 +42,26 @@ def pow2_floor(x: int) -> int:
     return 1 << (max(int(x), 1).bit_length() - 1)
 
 
-def group_size(n_devices: int, length: int, samples: int | None = None) -> int:
+def group_size(n_devices: int, length: int, samples: int | None = None,
+               most: int | None = None) -> int:
     """Devices per compiled call: a power of two, about ``samples`` (GROUP_SAMPLES)
-    samples, ≥ 8 devices only when the batch has them (5 and 7 devices share a group
-    size of 8). Independent of the device count beyond one group: no recompilation."""
+    samples, at most ``most`` (MAX_GROUP_DEVICES), ≥ 8 devices only when the batch has
+    them (5 and 7 devices share a group size of 8). Independent of the device count
+    beyond one group: no recompilation."""
     samples = GROUP_SAMPLES if samples is None else samples
     cap = pow2_floor(max(samples // max(length, 1), 1))
     want = 1 << max(int(n_devices) - 1, 7).bit_length()  # next power of two ≥ n, at least 8
-    return max(1, min(cap, want, MAX_GROUP_DEVICES))
+    return max(1, min(cap, want, MAX_GROUP_DEVICES if most is None else most))
 
 
-def devices_per_call(n_devices: int, length: int, nonlinear: bool, fused: bool) -> int:
-    """The group size of a model: smaller with time constants (at least 2 devices),
-    larger for a fused linear model (the constants are read here, at the call)."""
+def devices_per_call(n_devices: int, length: int, nonlinear: bool, fused: bool,
+                     platform: str = "cpu") -> int:
+    """The group size of a model on ``platform``: on a CPU smaller with time constants (at
+    least 2 devices) and larger for a fused linear model; on an accelerator as large as
+    ACCELERATOR_GROUP_SAMPLES allows (the constants are read here, at the call)."""
+    if platform != "cpu":
+        return group_size(n_devices, length, ACCELERATOR_GROUP_SAMPLES,
+                          ACCELERATOR_MAX_GROUP_DEVICES)
     if nonlinear:
         return max(group_size(n_devices, length, GROUP_SAMPLES // NONLINEAR_GROUP_DIVISOR),
                    min(2, n_devices))

@@ -32,7 +32,20 @@ def first_order_lag(t: Float[Array, " n"], x: Float[Array, " n"],
     - ``x``: the input (n,).
     - ``tau``: the time constant τ, s.
     """
-    alpha = -jnp.expm1(-jnp.diff(t) / tau)
+    u = jnp.diff(t) / tau
+    return _recursion(_lag_sequential, _lag_parallel, u, x)
+
+
+def _recursion(sequential, parallel, *args):
+    """One of two forms of a linear recursion over the samples, by the platform it is
+    compiled for: a CPU runs the sequential loop fastest, while an accelerator runs each
+    of its steps as a kernel launch, so there the recursion is a parallel prefix
+    (log₂ n levels of the composed affine maps). The two agree to rounding."""
+    return jax.lax.platform_dependent(*args, cpu=sequential, default=parallel)
+
+
+def _lag_sequential(u, x):
+    alpha = -jnp.expm1(-u)
 
     def step(y, ax):
         a, xk = ax
@@ -41,6 +54,16 @@ def first_order_lag(t: Float[Array, " n"], x: Float[Array, " n"],
 
     _, ys = jax.lax.scan(step, x[0], (alpha, x[1:]))
     return jnp.concatenate([x[:1], ys])
+
+
+def _lag_parallel(u, x):
+    # y_k = e_k·y_(k−1) + a_k·x_k: the affine maps (e, c) compose as (e₂e₁, e₂c₁ + c₂)
+    def compose(first, then):
+        return first[0] * then[0], then[0] * first[1] + then[1]
+
+    e = jnp.concatenate([jnp.zeros_like(x[:1]), jnp.exp(-u)])
+    c = jnp.concatenate([x[:1], -jnp.expm1(-u) * x[1:]])
+    return jax.lax.associative_scan(compose, (e, c))[1]
 
 
 def first_order_lag_jet(t, x, log_tau):
@@ -63,6 +86,11 @@ def first_order_lag_jet(t, x, log_tau):
     a, a1 = -jnp.expm1(-u), -u * e * inside
     a2 = -a1 * (1.0 - u)
 
+    ys = _recursion(_jet_sequential, _jet_parallel, a, a1, a2, e, x)
+    return ys[:, 0], ys[:, 1], ys[:, 2]
+
+
+def _jet_sequential(a, a1, a2, e, x):
     # the update as one expression over the state vector (no stack of three results:
     # XLA emits a concatenation element by element, 3× the code of the body)
     decays = jnp.asarray([0.0, 1.0, 1.0], x.dtype)  # y′ and y″ decay by (1 − a_k)
@@ -74,8 +102,25 @@ def first_order_lag_jet(t, x, log_tau):
 
     first = x[0] * jnp.asarray([1.0, 0.0, 0.0], x.dtype)
     _, ys = jax.lax.scan(step, first, jnp.stack([a, a1, a2, x[1:]], axis=-1))
-    ys = jnp.concatenate([first[None], ys])
-    return ys[:, 0], ys[:, 1], ys[:, 2]
+    return jnp.concatenate([first[None], ys])
+
+
+def _jet_parallel(a, a1, a2, e, x):
+    # s_k = M_k s_(k−1) + x_k (a, a′, a″)_k, M_k = [[e, 0, 0], [p, e, 0], [q, r, e]] with
+    # p = −a′, q = −a″, r = −2a′: such maps compose into the same shape, elementwise
+    def compose(first, then):
+        d1, p1, q1, r1, c0, c1, c2 = first
+        d2, p2, q2, r2, v0, v1, v2 = then
+        return (d2 * d1, p2 * d1 + d2 * p1, q2 * d1 + r2 * p1 + d2 * q1, r2 * d1 + d2 * r1,
+                d2 * c0 + v0, p2 * c0 + d2 * c1 + v1, q2 * c0 + r2 * c1 + d2 * c2 + v2)
+
+    def start(v, at_first):
+        return jnp.concatenate([jnp.full_like(x[:1], at_first), v])
+
+    out = jax.lax.associative_scan(compose, (
+        start(e, 0.0), start(-a1, 0.0), start(-a2, 0.0), start(-2.0 * a1, 0.0),
+        jnp.concatenate([x[:1], a * x[1:]]), start(a1 * x[1:], 0.0), start(a2 * x[1:], 0.0)))
+    return jnp.stack(out[4:], axis=-1)
 
 
 @register
