@@ -696,7 +696,7 @@ NATIVE_LADDER = {720_000: ((1, 100_000), (1, 360_000), (1, 720_000), (1, 1_350_0
                            (3, 1_350_000))}
 
 
-def case_diagnose_native(devices, samples, subset, repeats, bw):
+def case_diagnose_native(devices, samples, subset, repeats, bw, kinds=("native", "command")):
     """diagnose and fit on the same raw-rate record (200 Hz), each in a child process: time of
     the call and the process's peak RSS (compiled programs from the persistent cache, filled
     by a first process of each). Full size: every record of :data:`NATIVE_LADDER`."""
@@ -713,6 +713,8 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
             table = Path(tmp) / "native.parquet"
             native_table(path, table)
             for kind, run_one, where in (("native", native_run, path), ("command", command_run, table)):
+                if kind not in kinds:
+                    continue
                 pair = []
                 for command in ("fit", "diagnose"):
                     run_one(command, where, cache)  # fills the compile cache
@@ -728,7 +730,7 @@ def case_diagnose_native(devices, samples, subset, repeats, bw):
                 pair[1]["time_vs_fit"] = pair[1]["diffgyro_s"] / pair[0]["diffgyro_s"]
                 rows += pair
     own_cache.cleanup()
-    for kind in ("native", "command"):
+    for kind in kinds:
         first = next(r for r in rows if r["case"] == f"diagnose:{kind}")
         for r in rows:
             if r["case"] == f"diagnose:{kind}":
@@ -896,6 +898,8 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=5, help="timed runs per case (median)")
     p.add_argument("--direct-lag", action="store_true",
                    help="thermal_lag: also time fit(path='direct') (optimistix LM; slow at full size)")
+    p.add_argument("--native-kinds", default="native,command",
+                   help="diagnose_native: the call in a process (native), the command, or both")
     p.add_argument("--host-devices", type=int, default=1,
                    help="XLA CPU devices: 1 = JAX's default, 0 = one per core "
                         "(diffgyro.use_cpu_cores; fit() still runs on the first, Kalman and "
@@ -924,7 +928,8 @@ def main(argv=None) -> int:
         t0 = now()
         kw = {"also_direct": args.direct_lag} if name == "thermal_lag" else \
             {"host_devices": args.host_devices, "processes": 1 if args.quick else 3} \
-            if name == "compile" else {}
+            if name == "compile" else \
+            {"kinds": tuple(args.native_kinds.split(","))} if name == "diagnose_native" else {}
         new = CASES[name](d, n, sub, args.repeats, bw["bytes_per_s"], **kw)
         for r in new:
             r.update(mode="quick" if args.quick else "full", backend=info["backend"],

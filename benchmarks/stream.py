@@ -26,6 +26,7 @@ compiles its own program).
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import os
 import platform
@@ -57,11 +58,25 @@ def limits(h2d_gb: float = 2.0, hbm_gb: float = 4.0, repeats: int = 5) -> dict:
     host = np.ones(int(h2d_gb * 1e9) // 8)
     h2d = None if dev.platform == "cpu" else host.nbytes / _median_time(
         lambda: jax.device_put(host, dev).block_until_ready(), repeats)
+    threaded = {}
+    if h2d is not None:  # the same bytes sent by k host threads at once, 1/k each
+        from concurrent.futures import ThreadPoolExecutor
+
+        def send_all(pool, parts):
+            for a in list(pool.map(lambda p: jax.device_put(p, dev), parts)):
+                a.block_until_ready()
+
+        for k in (2, 4, 8):
+            with ThreadPoolExecutor(k) as pool:
+                parts = np.array_split(host, k)
+                threaded[k] = host.nbytes / _median_time(
+                    functools.partial(send_all, pool, parts), repeats)
     held = [jax.device_put(np.ones(int(hbm_gb * 1e9) // 8), dev)]
     total = jax.jit(jnp.sum)
     hbm = held[0].nbytes / _median_time(lambda: total(held[0]).block_until_ready(), repeats)
     held.clear()
-    out = {"h2d_pageable_Bps": h2d, "device_read_Bps": hbm, "h2d_pinned_Bps": None}
+    out = {"h2d_pageable_Bps": h2d, "device_read_Bps": hbm, "h2d_pinned_Bps": None,
+           **{f"h2d_pageable_{k}_threads_Bps": v for k, v in threaded.items()}}
     try:  # the link's own limit, from pinned memory (where PyTorch with CUDA is installed)
         import torch
 
@@ -175,6 +190,9 @@ def main(argv=None) -> int:
     ap.add_argument("--group-samples", default="",
                     help="comma-separated samples per compiled group to sweep (sums path); "
                          "default: the package's own choice only")
+    ap.add_argument("--transfer-threads", default="",
+                    help="comma-separated host threads sending groups to an accelerator to "
+                         "sweep (sums path, the package's group size); default: its own only")
     ap.add_argument("--no-defaults", action="store_true", help="skip fit with its defaults")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
@@ -182,7 +200,7 @@ def main(argv=None) -> int:
     import jax
 
     import diffgyro
-    from diffgyro._fit_sums import groups
+    from diffgyro._fit_sums import groups, transfer
 
     diffgyro.enable_x64()
     dev = jax.devices()[0]
@@ -207,18 +225,24 @@ def main(argv=None) -> int:
     attr = "GROUP_SAMPLES" if platform_name == "cpu" else "ACCELERATOR_GROUP_SAMPLES"
     own = getattr(groups, attr)
     sweep = [int(x) for x in args.group_samples.split(",") if x.strip()] or [own]
-    runs = [("sums", g) for g in sweep] + ([] if args.no_defaults else [("defaults", own)])
+    own_threads = transfer.TRANSFER_THREADS
+    threads = [int(x) for x in args.transfer_threads.split(",") if x.strip()]
+    runs = [("sums", g, own_threads) for g in sweep] + [("sums", own, k) for k in threads
+                                                         if (own, k) != (sweep[0], own_threads)]
+    runs += [] if args.no_defaults else [("defaults", own, own_threads)]
     rows = []
     m = min(50, args.devices)
     ref = lstsq(temp[:m], gyro[:m])
-    for mode, g in runs:
+    for mode, g, k in runs:
         setattr(groups, attr, g)
+        transfer.TRANSFER_THREADS = k
         try:
             per_group = groups.devices_per_call(min(args.chunk, args.devices), args.samples,
                                                 False, True, platform_name)
             r = fit_pass(parts, mode == "defaults")
         finally:
             setattr(groups, attr, own)
+            transfer.TRANSFER_THREADS = own_threads
         beta = r.pop("beta_first_chunk")[:m]
         rel = float(np.max(np.abs(beta - ref) / np.abs(ref).max(axis=-1, keepdims=True)))
         # on a CPU the fit reads the host's arrays in place: no transfer limit
@@ -226,12 +250,14 @@ def main(argv=None) -> int:
         limit_h2d = nbytes / link if link else 0.0
         limit_hbm = nbytes / lim["device_read_Bps"]
         row = {"mode": mode, "group_samples": g, "devices_per_group": per_group,
+               "transfer_threads": k,
                **r, "GBps": nbytes / r["s"] / 1e9,
                "fraction_of_h2d": limit_h2d / r["s"] if link else None, "fraction_of_hbm": limit_hbm / r["s"],
                "fraction_of_binding": max(limit_h2d, limit_hbm) / r["s"],
                "max_rel_diff_vs_lstsq": rel}
         rows.append(row)
-        print(f"  {mode:8s} group {g:>9d} samples ({row['devices_per_group']} devices): "
+        print(f"  {mode:8s} group {g:>9d} samples ({row['devices_per_group']} devices), "
+              f"{k} sending threads: "
               f"{r['s']:.2f} s ({row['GBps']:.1f} GB/s, CPU {r['cpu_s']:.1f} s, first call "
               f"{r['first_call_s']:.1f} s), {row['fraction_of_binding']:.0%} of the binding limit, "
               f"ok {r['ok']}/{args.devices}, against lstsq {rel:.1e}", flush=True)

@@ -32,7 +32,7 @@ import jax
 
 from . import _jax_setup
 from ._program_cache import program
-from ._xla_options import ONCE, SMALL_WORK
+from ._xla_options import ONCE, SMALL_WORK, accepted, refuse
 
 
 def filter_jit(fun: Callable[..., Any] | None = None, *,
@@ -54,9 +54,18 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
 
     # the options are XLA:CPU's (diffgyro._xla_options): another backend
     # refuses an option it does not know, so there the program compiles with defaults (and
-    # so does a call inside another trace)
-    on_cpu = jax.jit(body, static_argnums=(0, 1), compiler_options=compiler_options)
-    elsewhere = jax.jit(body, static_argnums=(0, 1)) if compiler_options else on_cpu
+    # so does a call inside another trace); on the CPU, without those this XLA refused
+    elsewhere = jax.jit(body, static_argnums=(0, 1))
+    by_options: dict = {}
+
+    def on_cpu():
+        options = accepted(compiler_options)
+        if options is None:
+            return elsewhere
+        key = tuple(sorted(options.items()))
+        if key not in by_options:
+            by_options[key] = jax.jit(body, static_argnums=(0, 1), compiler_options=options)
+        return by_options[key]
 
     def program_for(args, kwargs):
         """(program, its arguments) for this call: the one kept on disk
@@ -69,17 +78,22 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
             with collector_paused():  # a new program is traced and exported here
                 kept = program(fun, treedef, static, dynamic,
                                functools.partial(_unsplit, fun, treedef, static),
-                               options=compiler_options if cpu else None)
+                               options=accepted(compiler_options) if cpu else None)
             if kept is not None:
                 return kept, (dynamic,)
         # inside another trace the program is part of that one, whose options hold (JAX
         # refuses options on a nested jit)
-        return (on_cpu if cpu and not inside else elsewhere), (treedef, static, dynamic)
+        return (on_cpu() if cpu and not inside else elsewhere), (treedef, static, dynamic)
 
     @functools.wraps(fun)
     def call(*args, **kwargs):
-        jitted, parts = program_for(args, kwargs)
-        return jitted(*parts)
+        while True:
+            jitted, parts = program_for(args, kwargs)
+            try:
+                return jitted(*parts)
+            except jax.errors.JaxRuntimeError as error:
+                if not refuse(error):  # an option this XLA does not know: again without it
+                    raise
 
     def lower(*args, **kwargs):
         jitted, parts = program_for(args, kwargs)

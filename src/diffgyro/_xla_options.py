@@ -4,6 +4,7 @@ the noise identification's and the Allan deviation's)."""
 from __future__ import annotations
 
 import os
+import re
 
 
 def _in_xla_flags(name: str) -> bool:
@@ -52,3 +53,23 @@ ONE_PART = dict(xla_cpu_parallel_codegen_split_count=1)
 #: milliseconds either way, and the first call of a new model is what a person waits for:
 #: unoptimised programs compile in a third to a seventh of the time and run 3-5× slower.
 SMALL_WORK = 1 << 16
+
+#: Options this process's XLA refused (a newer or older XLA drops or renames its flags:
+#: jaxlib 0.11 knows no ``xla_cpu_use_fusion_emitters``); the programs compile without them.
+REFUSED: set[str] = set()
+
+
+def accepted(options: dict | None) -> dict | None:
+    """``options`` without those this XLA refused (None where none is left)."""
+    kept = {k: v for k, v in (options or {}).items() if k not in REFUSED}
+    return kept or None
+
+
+def refuse(error: Exception) -> bool:
+    """Note the option that ``error`` (XLA's "No such compile option") names; whether it is
+    one not refused before, so that compiling again without it can succeed."""
+    found = re.search(r"No such compile option: '([^']+)'", str(error))
+    if found is None or found.group(1) in REFUSED:
+        return False
+    REFUSED.add(found.group(1))
+    return True

@@ -34,6 +34,7 @@ module. This is the one module that may import another package's private modules
 
 from __future__ import annotations
 
+from . import _xla_options as xla_options
 from ._fit_sums import groups as fit_groups
 from ._fit_sums import pack, unpack_results
 from ._jit import filter_jit
@@ -87,7 +88,7 @@ from .stochastic._wavelet_variance import dyadic_m, haar_wv
 __all__ = [
     "batch_signals", "stacked_signals", "BUILT_IN", "present", "REGISTRY", "NOISE_FITS",
     "per_axis", "fit_groups", "LOG_TAU_RANGE", "time_constant", "jet_parallel", "jet_sequential", "lag_parallel", "lag_sequential",
-    "filter_jit", "device_noise_floor", "masked_median", "temperature_quantum",
+    "filter_jit", "xla_options", "device_noise_floor", "masked_median", "temperature_quantum",
     "suggest_dtemp_window", "window_stats", "check_windows", "pack", "unpack_results",
     "attitude_from_accel_mag", "heading_error", "integrate_gyro", "quat_conj", "quat_mul",
     "rates_from_quaternions", "rotvec_from_quat",

@@ -56,8 +56,8 @@ time constants), :mod:`.separable` (a device's sums with time constants),
 :mod:`.device` (the per-device program), :mod:`.finish` (solves, covariance, rank
 check, status), :mod:`.programs` (the compiled group programs and their packed
 results), :mod:`.inputs` (their per-device inputs on the host), :mod:`.groups`
-(group and chunk sizes), :mod:`diffgyro._xla_options` (XLA options); :func:`solve_sums`
-here runs them over a batch.
+(group and chunk sizes), :mod:`.transfer` (groups sent to an accelerator ahead),
+:mod:`diffgyro._xla_options` (XLA options); :func:`solve_sums` here runs them over a batch.
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE
 from ..data import Batch, aux_key
 from ..model import ErrorModel
 from ..signals import TempNorm
-from . import groups
+from . import groups, transfer
 from .groups import (
     CHUNK,
     FUSED_GROUP_FACTOR,
@@ -146,9 +146,13 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     finish = (model, layout, opts)
     counts = valid_counts(batch.mask)
 
-    def run(j: int):
+    def send(j: int):
         m, prefix, c, inputs, shared = group_inputs(arrays, counts, opts.n_blocks, j, g, dtype)
         put = jax.device_put(inputs, devices[j % len(devices)])  # one call for the whole group
+        return m, prefix, c, put, shared
+
+    def run(j: int, sent):
+        m, prefix, c, put, shared = sent
         args = (model, layout, opts, c, prefix, *put.program_args(),
                 shared if put.pos is None else put.pos, apart)
         if j == 0:  # the first group traces and compiles every program
@@ -162,9 +166,11 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     noise = (host_noise(batch.gyro, batch.rate, batch.mask, dtype) if opts.noise_floor
              else None)
     # dispatch every group, then collect (concurrent calls from several Python threads
-    # deadlocked XLA's CPU client: keep to one caller)
+    # deadlocked XLA's CPU client: keep to one caller); an accelerator's groups are sent
+    # ahead from host threads (:mod:`.transfer`)
     specs: list = []
-    outs = [run(j) for j in range(-(-d // g))]
+    outs = [run(j, sent) for j, sent in
+            enumerate(transfer.in_order(send, -(-d // g), devices[0].platform))]
     got = jax.device_get([o for _, o in outs])  # one transfer call for every group
     got = [unpack_results(o, specs[0]) for o in got]
     out = {k: np.concatenate([o[k][:m] for (m, _), o in zip(outs, got)], axis=0)
