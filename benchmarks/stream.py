@@ -238,7 +238,7 @@ def main(argv=None) -> int:
         transfer.TRANSFER_THREADS = k
         try:
             per_group = groups.devices_per_call(min(args.chunk, args.devices), args.samples,
-                                                False, True, platform_name)
+                                                False, True, platform_name, k)
             r = fit_pass(parts, mode == "defaults")
         finally:
             setattr(groups, attr, own)

@@ -77,3 +77,6 @@ def test_accelerator_groups_are_large():
     assert cpu == 2
     assert gpu == groups.pow2_floor(groups.ACCELERATOR_GROUP_SAMPLES // 10_000) > 1000
     assert groups.devices_per_call(5, 10_000, True, False, "gpu") == 8  # the batch's own size
+    # a linear model's transfers spread over the sending threads, two groups each
+    assert groups.devices_per_call(1000, 10_000, False, True, "gpu", senders=4) == 128
+    assert groups.devices_per_call(10_000, 10_000, False, True, "gpu", senders=4) == 1024

@@ -137,7 +137,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     # groups take turns on the accelerators; on a CPU one device runs every group, the
     # host preparing the next group while XLA runs the last
     devices = parallel_devices()
-    g = groups.devices_per_call(d, n, bool(model.n_nonlinear), fused, devices[0].platform)
+    g = groups.devices_per_call(d, n, bool(model.n_nonlinear), fused, devices[0].platform,
+                                transfer.TRANSFER_THREADS)
     arrays = host_arrays(model, batch, norm, need, theta0, dtype, aux)
     group = group_for(model, fused, d * n)
     # a program compiled for compile time finishes in a program of its own, compiled

@@ -55,13 +55,16 @@ def group_size(n_devices: int, length: int, samples: int | None = None,
 
 
 def devices_per_call(n_devices: int, length: int, nonlinear: bool, fused: bool,
-                     platform: str = "cpu") -> int:
+                     platform: str = "cpu", senders: int = 4) -> int:
     """The group size of a model on ``platform``: on a CPU smaller with time constants (at
     least 2 devices) and larger for a fused linear model; on an accelerator as large as
-    ACCELERATOR_GROUP_SAMPLES allows (the constants are read here, at the call)."""
+    ACCELERATOR_GROUP_SAMPLES allows, a linear model's batch spread over two groups per
+    sending thread (``senders``, :mod:`.transfer`: its transfers are what it waits for), a
+    model with time constants in as few calls as can be (its Newton loop is a sequence of
+    launches, whatever the group's size). The constants are read here, at the call."""
     if platform != "cpu":
-        return group_size(n_devices, length, ACCELERATOR_GROUP_SAMPLES,
-                          ACCELERATOR_MAX_GROUP_DEVICES)
+        spread = n_devices if nonlinear else -(-n_devices // (2 * max(senders, 1)))
+        return group_size(spread, length, ACCELERATOR_GROUP_SAMPLES, ACCELERATOR_MAX_GROUP_DEVICES)
     if nonlinear:
         return max(group_size(n_devices, length, GROUP_SAMPLES // NONLINEAR_GROUP_DIVISOR),
                    min(2, n_devices))
