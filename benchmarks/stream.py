@@ -194,6 +194,8 @@ def main(argv=None) -> int:
                     help="comma-separated host threads sending groups to an accelerator to "
                          "sweep (sums path, the package's group size); default: its own only")
     ap.add_argument("--no-defaults", action="store_true", help="skip fit with its defaults")
+    ap.add_argument("--limit-gb", type=float, default=4.0,
+                    help="size of the device-memory read (the transfers: half of it), GB")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
 
@@ -209,7 +211,7 @@ def main(argv=None) -> int:
             "devices": args.devices, "samples": args.samples, "chunk": args.chunk}
     print(f"{info['backend']} ({info['device']}), {args.devices} devices × {args.samples} samples, "
           f"{args.chunk} per call", flush=True)
-    lim = limits()
+    lim = limits(args.limit_gb / 2, args.limit_gb)
     info.update(lim)
     print("limits: " + ", ".join(f"{k} {v / 1e9:.1f} GB/s" for k, v in lim.items() if v), flush=True)
     t0 = time.perf_counter()
@@ -231,7 +233,7 @@ def main(argv=None) -> int:
                                                          if (own, k) != (sweep[0], own_threads)]
     runs += [] if args.no_defaults else [("defaults", own, own_threads)]
     rows = []
-    m = min(50, args.devices)
+    m = min(50, args.chunk, args.devices)
     ref = lstsq(temp[:m], gyro[:m])
     for mode, g, k in runs:
         setattr(groups, attr, g)

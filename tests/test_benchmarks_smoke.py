@@ -44,3 +44,21 @@ def test_compile_case_runs_in_fresh_processes(bench):
     assert r["compile_s"] > 0 and r["compile_cached_s"] >= 0 and r["diffgyro_s"] > 0
     assert r["compile_after_other_spec_s"] >= 0 and len(r["compile_s_all"]) == 1
     assert "compile:bias_poly(1)" in bench.table([r])
+
+
+def test_stream_fits_every_chunk_and_agrees_with_lstsq(tmp_path):
+    """benchmarks/stream.py at a toy size: every device of every chunk fitted, the first
+    chunk's coefficients equal to numpy's lstsq, the limits and fractions reported."""
+    import json
+
+    spec = importlib.util.spec_from_file_location("bench_stream", ROOT / "benchmarks" / "stream.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = tmp_path / "stream.json"
+    assert mod.main(["--devices", "12", "--samples", "2000", "--chunk", "8", "--no-defaults",
+                     "--limit-gb", "0.05", "--json", str(out)]) == 0
+    got = json.loads(out.read_text())
+    assert got["machine"]["bytes"] == 12 * 2000 * (3 * 8 + 8 + 1)
+    (row,) = got["rows"]
+    assert row["ok"] == 12 and row["max_rel_diff_vs_lstsq"] < 1e-9
+    assert row["s"] > 0 and row["fraction_of_binding"] > 0
