@@ -503,7 +503,8 @@ PRIVATE_UNDER_TEST = {
     "test_demo.py": {"diffgyro._demo"},
     "test_cli_progress.py": {"diffgyro.cli._progress"},
     # the noise command's text table; the identification's program loaded ahead
-    "test_stochastic.py": {"diffgyro.cli.noise", "diffgyro.stochastic._identify"},
+    "test_stochastic.py": {"diffgyro.cli.noise", "diffgyro.stochastic._identify",
+                           "diffgyro.stochastic._wavelet_variance"},
     "test_report.py": {"diffgyro.report"},  # the report's private text helpers
     "test_diagnose_scoring.py": {"diffgyro.diagnose._scoring"},
     # the setting predicted before the fit, and how the programs prepared ahead served

@@ -115,3 +115,48 @@ def test_every_program_is_kept_while_the_command_line_runs(store, monkeypatch):
     out = cubed_sum(x + 2.0)
     assert traces == ["cubed"] * 2  # none of them traced the function again
     assert float(out["sum"]) == float(np.sum((x + 2.0) ** 3))
+
+
+def test_a_new_programs_trace_is_frozen_out_of_the_collector_only_when_asked(store, monkeypatch):
+    """With ``_jax_setup.freeze_after_trace`` (the command line), the objects alive after a new
+    program is traced and stored are frozen (``gc.freeze``), so that later collections do
+    not walk them again; a library call freezes nothing, nor does a program read back."""
+    import gc
+
+    assert gc.get_freeze_count() == 0
+    x = np.arange(3.0)
+    scaled(x, 1.0, power=2, name="a")  # stored, not frozen: the flag is off
+    assert len(list(store.glob("*.bin"))) == 1 and gc.get_freeze_count() == 0
+    monkeypatch.setattr(program_cache._jax_setup, "freeze_after_trace", True)
+    try:
+        program_cache.forget()
+        scaled(x, 1.0, power=2, name="a")  # read back from disk: nothing traced, nothing frozen
+        assert gc.get_freeze_count() == 0
+        scaled(x, 1.0, power=3, name="b")  # a new program: traced, stored, frozen
+        assert len(list(store.glob("*.bin"))) == 2 and gc.get_freeze_count() > 0
+    finally:
+        gc.unfreeze()
+
+
+def test_the_command_line_unfreezes_what_its_command_froze(tmp_path, monkeypatch):
+    """A command run in-process (``diffgyro.cli.main``) runs with ``freeze_after_trace`` on
+    and leaves nothing frozen behind it: its objects are collected as usual afterwards."""
+    import gc
+
+    import diffgyro.io
+    from diffgyro.cli import main
+
+    _jax_setup = program_cache._jax_setup
+    seen = []
+    save = diffgyro.io.save
+
+    def saving(*a, **k):  # inside the command: freeze as a new program's export would
+        seen.append(_jax_setup.freeze_after_trace)
+        gc.freeze()
+        return save(*a, **k)
+
+    monkeypatch.setattr(diffgyro.io, "save", saving)
+    monkeypatch.setenv("DIFFGYRO_CACHE_DIR", str(tmp_path / "cache"))
+    assert main(["simulate", "--plan", "static", "--devices", "1", "--duration", "60",
+                 "--rate", "10", "--out", str(tmp_path / "s.csv")]) in (0, None)
+    assert seen == [True] and gc.get_freeze_count() == 0 and not _jax_setup.freeze_after_trace

@@ -510,3 +510,39 @@ def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series,
     specs = _identify.chunk_specs(series, n, catalogue(max_gm))
     assert seen == [[(s.shape, np.dtype(s.dtype), s.weak_type) for s in specs]
                     + [len(dyadic_m(n))]]
+
+
+@pytest.mark.parametrize("devices,n", [(1, 12000), (3, 700)])
+def test_the_wavelet_variances_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, devices,
+                                                                              n):
+    """``noise`` also starts the wavelet variances' program ahead (:func:`~diffgyro.stochastic.
+    identify_ahead`): for the shapes, dtypes and weak types that :func:`identify` then calls
+    it with for devices × 3 axes (else a second program would compile)."""
+    from diffgyro.stochastic import _identify, _wavelet_variance
+
+    started, called = [], []
+
+    def signature(*args):
+        return [(a.shape, np.dtype(a.dtype), bool(getattr(a, "weak_type", False)))
+                if hasattr(a, "shape") else a for a in args]
+
+    class Done:
+        def join(self):
+            pass
+
+    def spy(*a):
+        called.append(signature(*a))
+        raise _Called
+
+    def ahead(*a):
+        started.append(signature(*a))
+        return Done()
+
+    spy.compile_ahead = ahead
+    monkeypatch.setattr(_wavelet_variance, "oadev", spy)
+    monkeypatch.setattr(_identify, "_identify_batch", lambda samples: spy)
+    _identify.load_ahead(3 * devices, n, catalogue(2), lead=(devices, 3))
+    y = np.random.default_rng(2).standard_normal((devices, 3, n)) * 1e-3
+    with pytest.raises(_Called):
+        identify(y, np.full((devices, 3), 0.1), structures=catalogue(2))
+    assert len(started) == 2 and started[1:] == called

@@ -32,6 +32,13 @@ on_new_program: Callable[[], None] | None = None
 #: elsewhere: a process that runs a program once gains nothing and pays the export.
 store_programs: bool = False
 
+#: Whether the objects alive after a new program is traced and stored are moved out of the
+#: cyclic collector's reach (``gc.freeze``): the trace leaves hundreds of thousands of
+#: them (jaxprs, lowered modules, caches), which the next young and middle collections
+#: would each walk again. The command line turns this on for one command and unfreezes
+#: after it; off elsewhere (a long-lived process would keep the trace's cyclic garbage).
+freeze_after_trace: bool = False
+
 
 def cache_dir(path: str | None = None) -> str:
     """The persistent cache's folder: ``path``, else ``$DIFFGYRO_CACHE_DIR``, else

@@ -26,6 +26,7 @@ arrays) is marked so, and traced as usual from then on.
 from __future__ import annotations
 
 import functools
+import gc
 import hashlib
 import io
 import logging
@@ -185,6 +186,8 @@ def _export(fun, body, dynamic, path: Path, failed: Path, options=None) -> Calla
         _write(failed, b"")
         return None
     _write(path, bytes(data))
+    if _jax_setup.freeze_after_trace:
+        gc.freeze()
     return jax.jit(exported.call, compiler_options=options)
 
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import atexit
 import functools
+import gc
 import importlib
 import inspect
 import logging
@@ -137,11 +138,16 @@ def _engine_first(command):
             _jax_setup.when_jax_imported(_jax_setup.lapack_tables_only)
             settings = _jax_setup.cache_settings()
             stored, _jax_setup.store_programs = _jax_setup.store_programs, bool(settings)
+            frozen, _jax_setup.freeze_after_trace = _jax_setup.freeze_after_trace, True
+            thawed = gc.get_freeze_count() == 0
             try:
                 with _jax_setup.when_jax_starts({**_jax_setup.FLOAT64, **settings}):
                     return callback(*args, **kwargs)
             finally:
                 _jax_setup.store_programs = stored
+                _jax_setup.freeze_after_trace = frozen
+                if not frozen and thawed:  # what the command's traces froze is collected again
+                    gc.unfreeze()
         except Exception as err:
             usage = hasattr(err, "show") and getattr(err, "exit_code", None) == 2
             if flag is not None and kwargs.get(flag) and (isinstance(err, DataError) or usage):

@@ -120,7 +120,8 @@ def identify_ahead(n_valid, max_gm: int = 2) -> Callable[[], None]:
       :func:`identify_devices`.
     """
     lengths = Counter(int(n) for n in np.asarray(n_valid) if int(n) >= MIN_SAMPLES)
-    threads = [load_ahead(len(AXES) * d, n, catalogue(max_gm)) for n, d in lengths.items()]
+    threads = [t for n, d in lengths.items()
+               for t in load_ahead(len(AXES) * d, n, catalogue(max_gm), lead=(d, len(AXES)))]
 
     def wait() -> None:
         for thread in threads:

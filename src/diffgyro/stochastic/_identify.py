@@ -45,7 +45,7 @@ from ._estimator import (
 from ._intervals import Z95, sandwich
 from ._resolution import LONG_SHARE, judge, limit_param, long_limit, merge_short, notes, short_limit
 from ._selection import PENALTY, catalogue, effective_rank, label, structure_mask
-from ._wavelet_variance import dyadic_m, haar_wv
+from ._wavelet_variance import dyadic_m, haar_wv, haar_wv_ahead
 
 #: Series per call of the compiled program. Larger batches of this program hung XLA's CPU
 #: runtime (every worker idle, the caller waiting: observed at 60 series, not at 8); a fixed
@@ -397,7 +397,8 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
         short = step - chunk[0].shape[0]
         if short:  # pad the last chunk with copies of its first series
             chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
-        res = program(*chunk, m, masks, jnp.asarray(float(penalty)), len(m))
+        # a weak-typed scalar put on the device as it is (jnp.asarray would run a program)
+        res = program(*chunk, m, masks, jax.device_put(float(penalty)), len(m))
         parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     slow = np.full((total, len(structures)), np.nan)
@@ -445,14 +446,18 @@ def chunk_specs(series: int, n: int, structures=None) -> tuple[jax.ShapeDtypeStr
             spec((), jax.dtypes.canonicalize_dtype(real), weak_type=True))
 
 
-def load_ahead(series: int, n: int, structures=None) -> threading.Thread:
+def load_ahead(series: int, n: int, structures=None, lead: tuple[int, ...] | None = None
+               ) -> list[threading.Thread]:
     """Start what :func:`identify` of ``series`` series of ``n`` samples (``structures``:
-    its candidates) will run: its program lowered here and compiled, or read from the
-    persistent cache, on a thread of its own (XLA holds no GIL meanwhile), while the
-    caller does other work (``noise`` checks that the devices are at rest). Join the
-    thread before :func:`identify`, which then finds the program loaded."""
+    its candidates; ``lead``: the series' leading shape, default ``(series,)``) will run:
+    its program lowered here and compiled, or read from the persistent cache, on a thread
+    of its own (XLA holds no GIL meanwhile), and so the wavelet variances' program
+    (:func:`~.wavelet_variance.haar_wv_ahead`), while the caller does other work
+    (``noise`` checks that the devices are at rest). Join the threads before
+    :func:`identify`, which then finds the programs loaded."""
     program = _identify_batch(series * n)
-    return program.compile_ahead(*chunk_specs(series, n, structures), len(dyadic_m(n)))
+    threads = [program.compile_ahead(*chunk_specs(series, n, structures), len(dyadic_m(n)))]
+    return threads + [haar_wv_ahead((series,) if lead is None else tuple(lead), n)]
 
 
 def _choose_slow(y, args, out, masks, m, step, penalty, slow_penalty, bootstrap=True):

@@ -12,7 +12,9 @@ terms to say anything.
 from __future__ import annotations
 
 import math
+import threading
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Array, Float, Int
@@ -41,3 +43,14 @@ def haar_wv(y: Float[Array, "... n"], dt, n_valid: Int[Array, "..."] | None = No
     adev, count = oadev(y, dt, np.asarray(m), n_valid)
     adev = np.asarray(adev)
     return 0.5 * adev**2, np.asarray(count)
+
+
+def haar_wv_ahead(lead: tuple[int, ...], n: int) -> threading.Thread:
+    """Start compiling (or reading from the persistent cache) the program :func:`haar_wv`
+    runs for float64 series of shape ``lead + (n,)`` with a float64 interval per series
+    and no ``n_valid``, on a thread of its own; join it before the call."""
+    spec = jax.ShapeDtypeStruct
+    m = dyadic_m(n)
+    return oadev.compile_ahead(
+        spec((*lead, n), np.dtype(np.float64)), spec(tuple(lead), np.dtype(np.float64)),
+        spec(m.shape, m.dtype), None)
