@@ -626,17 +626,31 @@ def allan(
     """
     if method not in ("fit", "lines"):
         raise ValueError(f"unknown read-out method {method!r} (use 'fit' or 'lines')")
-    y = jnp.asarray(y)
+    y = jnp.asarray(y) if isinstance(y, jax.Array) else jax.device_put(np.asarray(y))
     lead = y.shape[:-1]
     n = y.shape[-1]
-    nv = jnp.broadcast_to(jnp.asarray(n if n_valid is None else n_valid), lead)
+    nv = _on_device(np.int64(n) if n_valid is None else n_valid, None, lead)
     if m is None:
         m = default_m(int(np.max(np.asarray(nv))) if nv.size else n, per_decade, stop_ratio)
-    m = jnp.asarray(np.asarray(m, dtype=np.int64) if not isinstance(m, jax.Array) else m)
-    dtb = jnp.broadcast_to(jnp.asarray(dt, y.dtype), lead)
-    f = lambda v: jnp.asarray(v, y.dtype)  # noqa: E731  (arrays: changing them does not recompile)
+    m = m if isinstance(m, jax.Array) else jax.device_put(np.asarray(m, dtype=np.int64))
+    dtb = _on_device(dt, y.dtype, lead)
+    f = lambda v: _on_device(v, y.dtype)  # noqa: E731  (arrays: changing them does not recompile)
     return _allan_core(y, nv, dtb, m, f(ci), f(tol), f(tol_flat), f(tol_rrw), f(dominance),
                        f(evidence), half, stop_ratio, method)
+
+
+def _on_device(x, dtype, shape=None) -> jax.Array:
+    """``x`` as a JAX array of ``dtype`` (None: its own), broadcast to ``shape``.
+
+    Host values are cast and broadcast by numpy and sent as they are: the same operations
+    on a JAX array outside a compiled program would each compile a small program of
+    their own (a cold command pays its trace, compilation and cache write). JAX arrays
+    and tracers go through ``jax.numpy``."""
+    if isinstance(x, jax.Array):
+        x = jnp.asarray(x, dtype)
+        return x if shape is None else jnp.broadcast_to(x, shape)
+    x = np.asarray(x, dtype)
+    return jax.device_put(x if shape is None else np.broadcast_to(x, shape))
 
 
 def sample_interval(t: np.ndarray, n_valid: int | None = None) -> float:
@@ -758,6 +772,7 @@ def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
     tau = np.asarray(result.tau)
     adev = np.asarray(result.adev)
     ro = result.readouts
+    arw, bi, rrw = (np.asarray(v) for v in (ro.arw, ro.bias_instability, ro.rrw))
     out = []
     for d, dev in enumerate(devices):
         ax = {}
@@ -766,9 +781,9 @@ def to_json(result: AllanResult, devices, axes=("gx", "gy", "gz")) -> dict:
             ax[name] = {
                 "tau": [float(v) for v in tau[d, a][keep]],
                 "adev": [float(v) for v in adev[d, a][keep]],
-                "arw": number(ro.arw[d, a]),
-                "bias_instability": number(ro.bias_instability[d, a]),
-                "rrw": number(ro.rrw[d, a]),
+                "arw": number(arw[d, a]),
+                "bias_instability": number(bi[d, a]),
+                "rrw": number(rrw[d, a]),
             }
             missing = {k: _MISSING[k] if keep.any() else "no τ with a defined Allan deviation "
                        "(too few valid samples)" for k in _MISSING if ax[name][k] is None}

@@ -105,13 +105,13 @@ def model_error(model: ErrorModel, params: Params, norm: TempNorm, t, rate, temp
     chunk = max(1, min(d, CHUNK_SAMPLES // max(n, 1)))
     tt = np.broadcast_to(t, (chunk, n))
     out = np.empty((d, n, 3))
+    put = lambda x: jax.device_put(np.asarray(x))  # noqa: E731  (jnp.asarray compiles a copy)
     for lo in range(0, d, chunk):
         idx = np.minimum(np.arange(lo, lo + chunk), d - 1)  # pad the last chunk by repetition
         res = _error_chunk(
-            model, norm, Params(beta=jnp.asarray(params.beta[idx]), theta=jnp.asarray(params.theta[idx])),
-            jnp.asarray(tt), jnp.asarray(rate[idx]), jnp.asarray(temp[idx]), jnp.asarray(dtemp[idx]),
-            jnp.asarray(temp_ext[idx]), jnp.asarray(accel[idx]),
-            {k: jnp.asarray(v[idx]) for k, v in aux_s.items()})
+            model, norm, Params(beta=put(params.beta[idx]), theta=put(params.theta[idx])),
+            put(tt), put(rate[idx]), put(temp[idx]), put(dtemp[idx]), put(temp_ext[idx]),
+            put(accel[idx]), {k: put(v[idx]) for k, v in aux_s.items()})
         hi = min(lo + chunk, d)
         out[lo:hi] = np.asarray(res)[: hi - lo]
     return out
