@@ -197,14 +197,18 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
     noise, at most 0.4 % over the diagnose catalogue (heavy tails put more mass at the
     edge), held under 1 % by ``tests/test_diagnose.py`` and ``tests/test_noise.py``.
     """
-    if compiled:
-        from ._noise_passes import deviations, window_sums
-    else:
-        deviations, window_sums = _deviations, _window_sums
     m, k = r.shape[1], sub.shape[1]
-    centre = _middle(sub, k)
-    dev, ties = deviations(sub, centre)
-    half_width = 4.0 * 1.4826 * _middle(dev, k, bits=True)
+    if compiled and k % 2:  # the window's two order statistics without a branch per value
+        from ._noise_passes import place, window_sums
+
+        centre, half_width, ties = place(sub)
+    else:
+        window_sums = _window_sums
+        if compiled:
+            from ._noise_passes import window_sums
+        centre = _middle(sub, k)
+        dev, ties = _deviations(sub, centre)
+        half_width = 4.0 * 1.4826 * _middle(dev, k, bits=True)
     count, s1, s2 = window_sums(r, centre, half_width).T
     inside = np.maximum(count, 1)
     mean = s1 / inside
@@ -215,7 +219,7 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
 
 def _deviations(sub: Float[np.ndarray, "r k"], centre: Float[np.ndarray, " r"]
                 ) -> tuple[Float[np.ndarray, "r k"], np.ndarray]:
-    """:func:`diffgyro._noise_passes.deviations` with numpy."""
+    """``|sub − centre|`` per row, and how many of them are 0."""
     dev = np.abs(sub - centre[:, None])
     return dev, np.count_nonzero(dev == 0, axis=1)
 
