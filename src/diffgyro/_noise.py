@@ -38,12 +38,11 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from jaxtyping import Bool, Float
 
-from ._jit import available_cores
+from ._jit import host_pool
 
 #: Most differences of a row its window is placed from (:func:`subsample_ranks`); odd,
 #: so that the subsample's median is one order statistic.
@@ -332,11 +331,10 @@ def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | N
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
     compiled = d * n >= COMPILED_SAMPLES  # the whole batch's choice, whatever its chunks
-    # a thread per core this process may run on
-    pool = ThreadPoolExecutor(threads or available_cores(), thread_name_prefix="diffgyro-noise")
+    # a thread per core this process may run on (kept for the process)
+    pool = host_pool("noise", threads)
     jobs = [pool.submit(noise_axes, gyro[a:a + step], None if rate is None else rate[a:a + step],
                         mask[a:a + step], dtype, compiled) for a in range(0, d, step)]
-    pool.shutdown(wait=False)  # the threads end with the last chunk
 
     def result() -> tuple[np.ndarray, np.ndarray]:
         axes = (np.concatenate([job.result() for job in jobs]) if jobs

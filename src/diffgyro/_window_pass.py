@@ -11,12 +11,11 @@ runs.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
-from ._jit import available_cores
+from ._jit import available_cores, host_pool
 from ._select import select
 from .data import aligned_empty
 
@@ -213,9 +212,9 @@ def _on_threads(rows: int, samples: int, run) -> None:
     if parts <= 1:
         run(0, rows)
         return
-    with ThreadPoolExecutor(parts, thread_name_prefix="diffgyro-windows") as pool:
-        for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
-            job.result()
+    pool = host_pool("windows")
+    for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
+        job.result()
 
 
 @njit(cache=True, nogil=True)

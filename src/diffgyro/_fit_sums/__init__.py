@@ -123,11 +123,14 @@ def _compile_first(group, apart: bool, args, finish: tuple, device):
 
 
 def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, theta0=None,
-               dtype=np.float64, aux: dict | None = None):
+               dtype=np.float64, aux: dict | None = None, floor: list | None = None):
     """Fit every device of ``batch`` with the sums path; numpy arrays with a device axis.
 
     ``theta0`` (devices × time constants, log s) replaces the grid start; ``aux`` holds
-    the extra columns the model reads, centred and scaled ((devices, n) each).
+    the extra columns the model reads, centred and scaled ((devices, n) each). ``floor``:
+    where given, the model-free noise floor (computed on the host's threads) is not waited
+    for; the function that waits and gives it (``noise_floor``, ``noise_axes``) is appended
+    to ``floor``, and the results leave both out (the caller's motion check runs meanwhile).
     """
     aux = dict(aux or {})
     present = frozenset(batch.signals) | {aux_key(k) for k in aux}
@@ -172,6 +175,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     if noise is None:
         out["noise_floor"] = np.full(d, np.nan, dtype)
         out["noise_axes"] = np.full((d, 3), np.nan, dtype)
+    elif floor is not None:
+        floor.append(noise)
     else:
         out["noise_floor"], out["noise_axes"] = noise()
     return out
