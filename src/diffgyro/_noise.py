@@ -37,7 +37,9 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Callable
+from concurrent.futures import Future
 
 import numpy as np
 from jaxtyping import Bool, Float
@@ -320,23 +322,37 @@ def noise_floor(axes: Float[np.ndarray, "d 3"]) -> Float[np.ndarray, " d"]:
 
 
 def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
-          mask: Bool[np.ndarray, "d n"], dtype=np.float64,
-          threads: int | None = None) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+          mask: Bool[np.ndarray, "d n"], dtype=np.float64, threads: int | None = None,
+          after: Future | None = None) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
     """Start the noise floor of every device on threads (chunks of devices); the
     returned function waits and gives ``(noise_floor (d,), noise_axes (d, 3))``.
 
     numpy releases the GIL while it partitions and subtracts, so the chunks run
-    beside each other and beside compiled programs.
+    beside each other and beside compiled programs. ``after``: the chunks are handed to
+    the threads once this work is done (work the caller waits for first, such as a motion
+    check's read beside a fit: on two cores the floor would take a core from it).
     """
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
     compiled = d * n >= COMPILED_SAMPLES  # the whole batch's choice, whatever its chunks
     # a thread per core this process may run on (kept for the process)
     pool = host_pool("noise", threads)
-    jobs = [pool.submit(noise_axes, gyro[a:a + step], None if rate is None else rate[a:a + step],
-                        mask[a:a + step], dtype, compiled) for a in range(0, d, step)]
+    jobs: list = []
+    handed = threading.Event()
+
+    def hand_out(_=None) -> None:
+        jobs.extend(pool.submit(noise_axes, gyro[a:a + step],
+                                None if rate is None else rate[a:a + step], mask[a:a + step],
+                                dtype, compiled) for a in range(0, d, step))
+        handed.set()
+
+    if after is None:
+        hand_out()
+    else:  # (at once where it is done already)
+        after.add_done_callback(hand_out)
 
     def result() -> tuple[np.ndarray, np.ndarray]:
+        handed.wait()
         axes = (np.concatenate([job.result() for job in jobs]) if jobs
                 else np.zeros((0, 3), dtype))
         return noise_floor(axes), axes

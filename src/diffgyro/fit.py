@@ -212,7 +212,9 @@ def fit(
         # the sums path's noise floor is still formed on the host's threads
         ahead = check_ahead(imu, reads=model.requires()
                             if model.noise is None and imu.rate is None else None)
-        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides, floor)
+        # (on two cores the floor waits for the check's read: the judgement needs it first)
+        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides, floor,
+                      ahead.reading)
         motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
@@ -238,10 +240,11 @@ def _fit_random_walk(model: ErrorModel, batch: Batch, **kwargs):
 
 
 def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, option_overrides,
-         floor: list | None = None):
+         floor: list | None = None, floor_after=None):
     """:func:`fit` without the motion check; ``floor``: the sums path's noise floor is not
     waited for but its waiter appended there (:func:`~diffgyro._fit_sums.solve_sums`), and
-    the result holds NaN in its place until the caller replaces it."""
+    the result holds NaN in its place until the caller replaces it; ``floor_after``: the
+    work the floor starts after."""
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
@@ -268,7 +271,7 @@ def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, optio
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
     extra = aux_cols.norms(batch, names, aux_norm), aux_cols.ranges(batch, names)
     if opts.solver != "lm" and opts.path in ("sums", "auto"):
-        return _fit_sums(model, batch, norm, opts, theta0, extra, floor)
+        return _fit_sums(model, batch, norm, opts, theta0, extra, floor, floor_after)
     if opts.path == "sums":
         raise ValueError("path='sums' needs solver='closed'")
     n_dev = batch.n_devices
@@ -310,12 +313,13 @@ def _aux_fields(extra) -> dict:
 
 
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
-              theta0=None, extra=({}, {}), floor: list | None = None) -> FitResult:
+              theta0=None, extra=({}, {}), floor: list | None = None,
+              floor_after=None) -> FitResult:
     """The sums path (:mod:`diffgyro._fit_sums`): one blocked pass per trial of the time
-    constants; ``floor``: see :func:`_fit`."""
+    constants; ``floor``, ``floor_after``: see :func:`_fit`."""
 
     out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]),
-                     floor=floor)
+                     floor=floor, floor_after=floor_after)
     d = batch.n_devices
     if floor:  # (NaN until the caller has waited for the floor)
         out["noise_floor"], out["noise_axes"] = np.full(d, np.nan), np.full((d, 3), np.nan)

@@ -446,7 +446,8 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     and, for a model that reads ``reads``, the half windows it is evaluated at
     (:func:`~diffgyro._window_explain.half_windows`), on threads of their own (XLA, the
     compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
-    waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``.
+    waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``; its
+    ``reading`` is the read's future (other work may start after it).
 
     **Arguments:**
 
@@ -496,6 +497,7 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
         reading.result()
         return out
 
+    wait.reading = reading  # type: ignore[attr-defined]
     return wait
 
 
