@@ -326,8 +326,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         return _to_samples(flags, n, w, samples)
 
     static = per_sample(out["window_near"])
-    np.logical_not(static, out=static)
-    static &= recorded
+    np.greater(recorded, static, out=static)  # recorded and not near a move: one pass
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
