@@ -26,7 +26,9 @@ Why on the host: the exact statistic needs two order statistics per device and
 axis (three where the MAD collapses). XLA has no selection primitive, so a
 compiled version sorts every axis of every device, and its program costs half
 a second of compile per group shape. numpy's introselect
-(``ndarray.partition``) selects in linear time without a sort. A block of a
+(``ndarray.partition``) selects in linear time without a sort; the compiled passes
+select a long row's subsample without a branch per value (:func:`diffgyro._select.select`,
+the same order statistics in about a third of the time). A block of a
 few devices' differences, small enough to stay in a core's cache, is
 differenced, its subsamples selected, and passed over once. Threads take
 chunks of devices side by side while the compiled fits run; numpy and the
@@ -185,7 +187,9 @@ def _sigma_rows(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"] | Non
 def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"],
                       compiled: bool = False) -> Float[np.ndarray, " r"]:
     """The floor of long rows (every difference valid) with the window placed from the
-    subsample: its median and MAD (numpy's introselect); then one compiled pass over
+    subsample: its median and MAD (numpy's introselect, or with ``compiled`` and an odd
+    subsample the compiled selection, :func:`diffgyro._noise_passes.place`: the same
+    values); then one compiled pass over
     every difference (:func:`diffgyro._noise_passes.window_sums` when ``compiled``, else
     numpy's operations, the same numbers to rounding) for the standard
     deviation of those inside the window, truncation-corrected, over √2. NaN where the
