@@ -344,7 +344,7 @@ LAYERS = (
      "_jax_setup", "_vocabulary"),
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux", "_term_info"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
-     "_noise_passes", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
+     "_noise_passes", "_select", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
      "_window_stats", "_window_explain", "_motion_constants", "_motion_windows", "_rest_stretches",
      "_motion_result"),
     ("fit", "kalman", "_fit_sums", "_direct"),
@@ -518,7 +518,7 @@ PRIVATE_UNDER_TEST = {
     "test_cli_conventions.py": {"diffgyro.cli._tables"},  # the tables' width rule
     "test_term_info.py": {"diffgyro._term_info"},
     "test_synthesis.py": {"diffgyro.diagnose._synthesis"},  # its claims table
-    "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax"},
+    "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax", "diffgyro._noise_passes"},
     "test_block_likelihood.py": {"diffgyro.stochastic._toeplitz"},  # the O(M²) deviance
     "test_slow_bootstrap.py": {"diffgyro.stochastic._slow_bootstrap"},  # the drawn law
     # open elsewhere when diffgyro.internal came

@@ -148,6 +148,26 @@ def test_the_subsample_keeps_the_floor_of_quantised_output(lsb):
         np.testing.assert_allclose(got, want, rtol=1e-13)
 
 
+def test_the_compiled_window_is_numpys_order_statistics():
+    # the subsample's median and MAD selected without a branch per value are numpy's
+    # partition's values: noise, output quantised to ties, heavy tails, zeros, infinities
+    from diffgyro import _noise_passes
+
+    rng = np.random.default_rng(29)
+    k = noise.SUBSAMPLE
+    sub = np.concatenate([rng.normal(size=(8, k)), np.round(rng.normal(size=(8, k)) / 2.0) * 2.0,
+                          rng.standard_cauchy(size=(8, k)), np.zeros((2, k)),
+                          rng.integers(-3, 4, size=(4, k)).astype(float)])
+    sub[-1, :10] = np.inf
+    sub[-2, -20:] = -np.inf
+    centre, half_width, ties = _noise_passes.place(sub.copy())
+    want = noise._middle(sub.copy(), k)
+    dev = np.abs(sub - want[:, None])
+    np.testing.assert_array_equal(centre, want)
+    np.testing.assert_array_equal(ties, np.count_nonzero(dev == 0, axis=1))
+    np.testing.assert_array_equal(half_width, 4.0 * 1.4826 * noise._middle(dev, k, bits=True))
+
+
 def test_a_device_has_one_floor_alone_or_in_a_ragged_batch():
     # the shorter device of a batch ends masked: its valid differences are packed and get
     # the window of the same subsample as when it is fitted alone (fit and diagnose agree

@@ -25,6 +25,7 @@ import os
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import equinox as eqx
@@ -111,6 +112,17 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     return call
 
 
+@functools.cache
+def _finished() -> threading.Thread:
+    """A thread that has run (nothing): what :func:`filter_jit`'s ``compile_ahead`` returns
+    for a signature compiled before, to be joined at once (one thread for the process, not
+    one started per call)."""
+    done = threading.Thread(target=lambda: None, daemon=True)
+    done.start()
+    done.join()
+    return done
+
+
 def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None = None,
             persistent: bool | None = None, small_options: dict[str, Any] | None = None
             ) -> Callable[[int], Callable[..., Any]]:
@@ -162,9 +174,7 @@ def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread
         log = logging.getLogger("diffgyro")
         key = (signature(*a, **k), jax.default_backend())
         if key in ahead:
-            done = threading.Thread(target=lambda: None, daemon=True)
-            done.start()
-            return done
+            return _finished()
         ahead.add(key)
         try:
             lowered = lower(*a, **k)
@@ -222,6 +232,44 @@ def available_cores() -> int:
     """The CPU cores this process may run on (its affinity where the OS tells it)."""
     cores = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
     return max(1, len(cores) if cores else (os.cpu_count() or 1))
+
+
+#: The host's worker threads kept for the process, by (name, size): :func:`host_pool`.
+_POOLS: dict[tuple[str, int], ThreadPoolExecutor] = {}
+_POOLS_LOCK = threading.Lock()
+
+
+def host_pool(name: str, workers: int | None = None) -> ThreadPoolExecutor:
+    """Worker threads for the host's compiled passes (numba, numpy: they hold no GIL), kept
+    for the process: one pool per ``name`` and size (default: a thread per core this
+    process may run on). A fit reads its samples in several passes, each split over the
+    cores; a pool started for each one cost its start-up, and on busy cores the caller
+    waited for every new thread to be scheduled before it could hand out work. A forked
+    child starts its own pools.
+
+    **Arguments:**
+
+    - ``name``: what the pool runs (its threads are named ``diffgyro-NAME``); work of
+      different names never waits behind each other's.
+    - ``workers``: the number of threads (default: :func:`available_cores`).
+    """
+    key = (name, workers or available_cores())
+    with _POOLS_LOCK:
+        pool = _POOLS.get(key)
+        if pool is None:
+            pool = _POOLS[key] = ThreadPoolExecutor(key[1], thread_name_prefix=f"diffgyro-{name}")
+    return pool
+
+
+def _forget_pools() -> None:
+    """In a forked child: the parent's threads are not there (nor may its lock be free)."""
+    global _POOLS_LOCK
+    _POOLS.clear()
+    _POOLS_LOCK = threading.Lock()
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pools)
 
 
 #: How often each compiled batch function was traced (tests check that a new batch

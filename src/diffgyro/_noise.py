@@ -26,7 +26,9 @@ Why on the host: the exact statistic needs two order statistics per device and
 axis (three where the MAD collapses). XLA has no selection primitive, so a
 compiled version sorts every axis of every device, and its program costs half
 a second of compile per group shape. numpy's introselect
-(``ndarray.partition``) selects in linear time without a sort. A block of a
+(``ndarray.partition``) selects in linear time without a sort; the compiled passes
+select a long row's subsample without a branch per value (:func:`diffgyro._select.select`,
+the same order statistics in about a third of the time). A block of a
 few devices' differences, small enough to stay in a core's cache, is
 differenced, its subsamples selected, and passed over once. Threads take
 chunks of devices side by side while the compiled fits run; numpy and the
@@ -37,13 +39,14 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future
 
 import numpy as np
 from jaxtyping import Bool, Float
 
-from ._jit import available_cores
+from ._jit import host_pool
 
 #: Most differences of a row its window is placed from (:func:`subsample_ranks`); odd,
 #: so that the subsample's median is one order statistic.
@@ -184,7 +187,9 @@ def _sigma_rows(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"] | Non
 def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"],
                       compiled: bool = False) -> Float[np.ndarray, " r"]:
     """The floor of long rows (every difference valid) with the window placed from the
-    subsample: its median and MAD (numpy's introselect); then one compiled pass over
+    subsample: its median and MAD (numpy's introselect, or with ``compiled`` and an odd
+    subsample the compiled selection, :func:`diffgyro._noise_passes.place`: the same
+    values); then one compiled pass over
     every difference (:func:`diffgyro._noise_passes.window_sums` when ``compiled``, else
     numpy's operations, the same numbers to rounding) for the standard
     deviation of those inside the window, truncation-corrected, over √2. NaN where the
@@ -197,14 +202,18 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
     noise, at most 0.4 % over the diagnose catalogue (heavy tails put more mass at the
     edge), held under 1 % by ``tests/test_diagnose.py`` and ``tests/test_noise.py``.
     """
-    if compiled:
-        from ._noise_passes import deviations, window_sums
-    else:
-        deviations, window_sums = _deviations, _window_sums
     m, k = r.shape[1], sub.shape[1]
-    centre = _middle(sub, k)
-    dev, ties = deviations(sub, centre)
-    half_width = 4.0 * 1.4826 * _middle(dev, k, bits=True)
+    if compiled and k % 2:  # the window's two order statistics without a branch per value
+        from ._noise_passes import place, window_sums
+
+        centre, half_width, ties = place(sub)
+    else:
+        window_sums = _window_sums
+        if compiled:
+            from ._noise_passes import window_sums
+        centre = _middle(sub, k)
+        dev, ties = _deviations(sub, centre)
+        half_width = 4.0 * 1.4826 * _middle(dev, k, bits=True)
     count, s1, s2 = window_sums(r, centre, half_width).T
     inside = np.maximum(count, 1)
     mean = s1 / inside
@@ -215,7 +224,7 @@ def _sigma_subsampled(r: Float[np.ndarray, "r m"], sub: Float[np.ndarray, "r k"]
 
 def _deviations(sub: Float[np.ndarray, "r k"], centre: Float[np.ndarray, " r"]
                 ) -> tuple[Float[np.ndarray, "r k"], np.ndarray]:
-    """:func:`diffgyro._noise_passes.deviations` with numpy."""
+    """``|sub − centre|`` per row, and how many of them are 0."""
     dev = np.abs(sub - centre[:, None])
     return dev, np.count_nonzero(dev == 0, axis=1)
 
@@ -317,24 +326,37 @@ def noise_floor(axes: Float[np.ndarray, "d 3"]) -> Float[np.ndarray, " d"]:
 
 
 def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | None,
-          mask: Bool[np.ndarray, "d n"], dtype=np.float64,
-          threads: int | None = None) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
+          mask: Bool[np.ndarray, "d n"], dtype=np.float64, threads: int | None = None,
+          after: Future | None = None) -> Callable[[], tuple[np.ndarray, np.ndarray]]:
     """Start the noise floor of every device on threads (chunks of devices); the
     returned function waits and gives ``(noise_floor (d,), noise_axes (d, 3))``.
 
     numpy releases the GIL while it partitions and subtracts, so the chunks run
-    beside each other and beside compiled programs.
+    beside each other and beside compiled programs. ``after``: the chunks are handed to
+    the threads once this work is done (work the caller waits for first, such as a motion
+    check's read beside a fit: on two cores the floor would take a core from it).
     """
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
     compiled = d * n >= COMPILED_SAMPLES  # the whole batch's choice, whatever its chunks
-    # a thread per core this process may run on
-    pool = ThreadPoolExecutor(threads or available_cores(), thread_name_prefix="diffgyro-noise")
-    jobs = [pool.submit(noise_axes, gyro[a:a + step], None if rate is None else rate[a:a + step],
-                        mask[a:a + step], dtype, compiled) for a in range(0, d, step)]
-    pool.shutdown(wait=False)  # the threads end with the last chunk
+    # a thread per core this process may run on (kept for the process)
+    pool = host_pool("noise", threads)
+    jobs: list = []
+    handed = threading.Event()
+
+    def hand_out(_=None) -> None:
+        jobs.extend(pool.submit(noise_axes, gyro[a:a + step],
+                                None if rate is None else rate[a:a + step], mask[a:a + step],
+                                dtype, compiled) for a in range(0, d, step))
+        handed.set()
+
+    if after is None:
+        hand_out()
+    else:  # (at once where it is done already)
+        after.add_done_callback(hand_out)
 
     def result() -> tuple[np.ndarray, np.ndarray]:
+        handed.wait()
         axes = (np.concatenate([job.result() for job in jobs]) if jobs
                 else np.zeros((0, 3), dtype))
         return noise_floor(axes), axes

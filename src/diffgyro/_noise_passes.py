@@ -4,9 +4,11 @@ The floor of a long row reads every difference a few times: to form it from
 the samples, to place the window (a subsample) and to count and sum those
 inside. numpy would pass over a row once per operation (transpose and
 subtract, subtract, compare, sum, dot), each with its own temporary; here
-each pass reads the row once. The order statistics stay numpy's
-(``ndarray.partition``, vectorised). The sums are reassociated into vector
-lanes: their rounding differs from a sequential sum's by a few ulps.
+each pass reads the row once. The window's two order statistics (the subsample's
+median and MAD) are selected without a branch per value (:mod:`diffgyro._select`):
+numpy's ``ndarray.partition`` took about three times as long on the same rows. The
+sums are reassociated into vector lanes: their rounding differs from a sequential
+sum's by a few ulps.
 
 Compiled on first use and cached on disk (``cache=True``); imported only when a
 floor is computed (numba's import takes about half a second). ``nogil``: the
@@ -18,6 +20,8 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Float, Int
 from numba import njit
+
+from ._select import select
 
 
 @njit(cache=True, nogil=True)
@@ -49,24 +53,34 @@ def differences(y: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] 
 
 
 @njit(cache=True, nogil=True)
-def _deviations(sub, centre, dev, ties):  # pragma: no cover - compiled
+def _place(sub, centre, half_width, ties):  # pragma: no cover - compiled
+    k = sub.shape[1]
+    mid = k // 2
+    low, high, dev = np.empty(k, sub.dtype), np.empty(k, sub.dtype), np.empty(k, sub.dtype)
     for i in range(sub.shape[0]):
-        c = centre[i]
+        c = select(sub[i], k, mid, low, high)
         t = 0
-        for j in range(sub.shape[1]):
+        for j in range(k):  # (the numbers numpy's ``|sub − centre|`` gives)
             v = abs(sub[i, j] - c)
-            dev[i, j] = v
+            dev[j] = v
             t += v == 0
+        centre[i] = c
         ties[i] = t
+        half_width[i] = 4.0 * 1.4826 * select(dev, k, mid, low, high)
 
 
-def deviations(sub: Float[np.ndarray, "r k"], centre: Float[np.ndarray, " r"]
-               ) -> tuple[Float[np.ndarray, "r k"], Int[np.ndarray, " r"]]:
-    """``|sub − centre|`` per row, and how many of them are 0."""
-    dev = np.empty_like(sub)
-    ties = np.empty(sub.shape[0], np.int64)
-    _deviations(sub, np.ascontiguousarray(centre, sub.dtype), dev, ties)
-    return dev, ties
+def place(sub: Float[np.ndarray, "r k"]
+          ) -> tuple[Float[np.ndarray, " r"], Float[np.ndarray, " r"], Int[np.ndarray, " r"]]:
+    """Each row's window from its subsample of an odd count ``k``: the median, the half
+    width 4 × 1.4826 × the median of the deviations from it (MAD), and how many of the
+    deviations are 0. The order statistics numpy's partition gives (:func:`diffgyro._noise._middle`:
+    the same values), selected without a branch per value (:func:`diffgyro._select.select`)."""
+    sub = np.ascontiguousarray(sub)
+    r = sub.shape[0]
+    centre, half_width = np.empty(r, sub.dtype), np.empty(r, sub.dtype)
+    ties = np.empty(r, np.int64)
+    _place(sub, centre, half_width, ties)
+    return centre, half_width, ties
 
 
 @njit(cache=True, nogil=True, fastmath={"reassoc"})

@@ -11,39 +11,13 @@ runs.
 from __future__ import annotations
 
 import math
-from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from numba import njit
 
-from ._jit import available_cores
+from ._jit import available_cores, host_pool
+from ._select import select
 from .data import aligned_empty
-
-
-@njit(cache=True, nogil=True)
-def _select(v, n, k, low, high):  # pragma: no cover - compiled
-    """The ``k``-th smallest of ``v[:n]`` (quickselect about a median of three), ``v``
-    unchanged: each round copies the values below the pivot to ``low`` and those above it
-    to ``high`` (scratch of ``n`` each) without a branch per value, since a comparison of
-    noise values mispredicts half the time."""
-    src = v
-    m = n
-    while True:
-        a, b, c = src[0], src[m // 2], src[m - 1]
-        pivot = max(min(a, b), min(max(a, b), c))
-        below = above = 0
-        for i in range(m):  # (a write never passes the read: the pass may run in place)
-            x = src[i]
-            low[below] = x
-            below += x < pivot
-            high[above] = x
-            above += x > pivot
-        if k < below:
-            src, m = low, below
-        elif k < m - above:
-            return pivot
-        else:
-            src, m, k = high, above, k - (m - above)
 
 
 @njit(cache=True, nogil=True)
@@ -55,7 +29,7 @@ def _quantile(values, n, q):  # pragma: no cover - compiled
     lo = int(math.floor(h))
     hi = min(lo + 1, n - 1)
     low, high = np.empty_like(values[:n]), np.empty_like(values[:n])
-    a = _select(values, n, lo, low, high)
+    a = select(values, n, lo, low, high)
     b = a
     if hi > lo:  # the next order statistic: a again where it repeats, else the smallest above it
         ties = 0
@@ -238,9 +212,9 @@ def _on_threads(rows: int, samples: int, run) -> None:
     if parts <= 1:
         run(0, rows)
         return
-    with ThreadPoolExecutor(parts, thread_name_prefix="diffgyro-windows") as pool:
-        for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
-            job.result()
+    pool = host_pool("windows")
+    for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
+        job.result()
 
 
 @njit(cache=True, nogil=True)

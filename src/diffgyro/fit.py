@@ -202,22 +202,31 @@ def fit(
     batch = imu
     if not (check_motion or static_only):
         return _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+    floor: list = []  # (the noise floor's waiter, where the fit does not wait for it)
     if static_only:  # the fit needs the check's static samples
         motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
     else:  # the check's program compiles, and its first look reads the samples, while the
-        # fit runs; the check then judges what the fitted model leaves (judge_motion)
+        # fit runs; the check then judges what the fitted model leaves (judge_motion), while
+        # the sums path's noise floor is still formed on the host's threads
         ahead = check_ahead(imu, reads=model.requires()
                             if model.noise is None and imu.rate is None else None)
-        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
+        # (on two cores the floor waits for the check's read: the judgement needs it first)
+        result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides, floor,
+                      ahead.reading)
         motion = None
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
     # (counted after the fit: while the check's first look, beside it, may still be reading)
     recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
-    return judge_motion(result, batch, motion, recorded, static_only,
-                        ahead=None if static_only else ahead)
+    result = judge_motion(result, batch, motion, recorded, static_only,
+                          ahead=None if static_only else ahead)
+    if not floor:
+        return result
+    noise_floor, noise_axes = floor[0]()
+    return dataclasses.replace(result, noise_floor=jax.device_put(noise_floor),
+                               noise_axes=jax.device_put(noise_axes))
 
 
 @register_noise_fit(RandomWalk)
@@ -230,8 +239,12 @@ def _fit_random_walk(model: ErrorModel, batch: Batch, **kwargs):
     return fit_random_walk(model, batch, **kwargs)
 
 
-def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, option_overrides):
-    """:func:`fit` without the motion check."""
+def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, option_overrides,
+         floor: list | None = None, floor_after=None):
+    """:func:`fit` without the motion check; ``floor``: the sums path's noise floor is not
+    waited for but its waiter appended there (:func:`~diffgyro._fit_sums.solve_sums`), and
+    the result holds NaN in its place until the caller replaces it; ``floor_after``: the
+    work the floor starts after."""
     if not jax.config.read("jax_enable_x64"):
         warnings.warn("diffgyro.fit runs in float32 because JAX float64 is off; "
                       "call diffgyro.enable_x64() first", stacklevel=2)
@@ -258,7 +271,7 @@ def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, optio
         raise ValueError(f"unknown fit path {opts.path!r}; use 'auto', 'direct' or 'sums'")
     extra = aux_cols.norms(batch, names, aux_norm), aux_cols.ranges(batch, names)
     if opts.solver != "lm" and opts.path in ("sums", "auto"):
-        return _fit_sums(model, batch, norm, opts, theta0, extra)
+        return _fit_sums(model, batch, norm, opts, theta0, extra, floor, floor_after)
     if opts.path == "sums":
         raise ValueError("path='sums' needs solver='closed'")
     n_dev = batch.n_devices
@@ -300,11 +313,16 @@ def _aux_fields(extra) -> dict:
 
 
 def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitOptions,
-              theta0=None, extra=({}, {})) -> FitResult:
-    """The sums path (:mod:`diffgyro._fit_sums`): one blocked pass per trial of the time constants."""
+              theta0=None, extra=({}, {}), floor: list | None = None,
+              floor_after=None) -> FitResult:
+    """The sums path (:mod:`diffgyro._fit_sums`): one blocked pass per trial of the time
+    constants; ``floor``, ``floor_after``: see :func:`_fit`."""
 
-    out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]))
+    out = solve_sums(model, batch, norm, opts, theta0, aux=aux_cols.scaled(batch, extra[0]),
+                     floor=floor, floor_after=floor_after)
     d = batch.n_devices
+    if floor:  # (NaN until the caller has waited for the floor)
+        out["noise_floor"], out["noise_axes"] = np.full(d, np.nan), np.full((d, 3), np.nan)
     if "norm_centre" in out:
         norm_out = TempNorm(centre=jax.device_put(out.pop("norm_centre")),
                             scale=jax.device_put(out.pop("norm_scale")))

@@ -50,13 +50,13 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
 from collections.abc import Callable
 
 import jax
 import numpy as np
 from jaxtyping import Bool, Float
 
+from ._jit import host_pool
 from ._motion_constants import (
     ACCEL_FLOOR,
     BLOCK_S,
@@ -219,22 +219,29 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
     accel = np.asarray(batch.accel) if use_accel else None
     mask = np.asarray(batch.mask)
     d, n = mask.shape
-    dts = _device_intervals(batch, dt)
-    spans = _spans(mask)
+    read = ahead() if ahead is not None else {}
+    # (the intervals and spans the first look was read in, where it was read ahead)
+    dts, spans = read.get("intervals") or (_device_intervals(batch, dt), _spans(mask))
     num = {k: np.zeros(d, dtype) for k in NUMBERS}
-    static, window = np.zeros((d, n), bool), np.zeros(d, np.int64)
+    static = None  # (the first group's own mask where it holds every device, in order)
+    window = np.zeros(d, np.int64)
     loud = np.zeros(d, bool)
     trusted = np.zeros(d, bool) if explain is None else np.asarray(explain.trusted, bool)
     if explain is not None:
         explain = functools.partial(explain_windows, batch, explain)
-    read = ahead() if ahead is not None else {}
 
     def check(groups, final):
+        nonlocal static
         for (w, b), idx in groups.items():
-            pn, static[idx], window[idx], loud[idx] = _check_group(
+            pn, group_static, window[idx], loud[idx] = _check_group(
                 gyro, accel, mask, rate, idx, w, b, dts[idx], spans[idx], use_accel,
                 final=final | (w <= own[idx]), explain=explain, trusted=trusted[idx],
                 read=None if final else read.get((w, b)))
+            if static is None and len(idx) == d:  # (idx: sorted, so every device in order)
+                static = group_static
+            else:
+                static = np.zeros((d, n), bool) if static is None else static
+                static[idx] = group_static
             for k in NUMBERS:
                 num[k][idx] = pn[k]
 
@@ -258,6 +265,7 @@ def motion_check(batch, dt: float | None = None, explain: Explanation | None = N
         idx = np.flatnonzero(again)
         check({k: idx[v] for k, v in _groups(dts[idx], spans[idx], fine=True).items()}, final=True)
     t = getattr(batch, "t", None)
+    static = np.zeros((d, n), bool) if static is None else static
     return Motion(**num, verdict=verdicts(num), static=static,
                   t=None if t is None else np.asarray(t), window=window, window_s=window * dts)
 
@@ -318,8 +326,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
         return _to_samples(flags, n, w, samples)
 
     static = per_sample(out["window_near"])
-    np.logical_not(static, out=static)
-    static &= recorded
+    np.greater(recorded, static, out=static)  # recorded and not near a move: one pass
     num["turn_peak"] = num["turn_peak"] * window_s  # rate × windows to rad
     num["resolution"] = num["threshold"] * window_s
     # stretches of rest either side of a motion at rates no bias change explains: the
@@ -438,7 +445,8 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     and, for a model that reads ``reads``, the half windows it is evaluated at
     (:func:`~diffgyro._window_explain.half_windows`), on threads of their own (XLA, the
     compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
-    waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``.
+    waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``; its
+    ``reading`` is the read's future (other work may start after it).
 
     **Arguments:**
 
@@ -463,7 +471,7 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     rows, k = lay.shape
     stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
     compiled = lay.check.compile_ahead(stats, stats if lay.accel else None, w, b)
-    out: dict = {}
+    out: dict = {"intervals": (dts, spans)}
     rate = None if batch.rate is None else np.asarray(batch.rate)
     accel = np.asarray(batch.accel) if use_accel else None
 
@@ -481,14 +489,14 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
 
-    thread = threading.Thread(target=read, name="diffgyro-motion-ahead", daemon=True)
-    thread.start()
+    reading = host_pool("motion-ahead", 1).submit(read)
 
     def wait() -> dict:
         compiled.join()
-        thread.join()
+        reading.result()
         return out
 
+    wait.reading = reading  # type: ignore[attr-defined]
     return wait
 
 

@@ -123,11 +123,17 @@ def _compile_first(group, apart: bool, args, finish: tuple, device):
 
 
 def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, theta0=None,
-               dtype=np.float64, aux: dict | None = None):
+               dtype=np.float64, aux: dict | None = None, floor: list | None = None,
+               floor_after=None):
     """Fit every device of ``batch`` with the sums path; numpy arrays with a device axis.
 
     ``theta0`` (devices × time constants, log s) replaces the grid start; ``aux`` holds
-    the extra columns the model reads, centred and scaled ((devices, n) each).
+    the extra columns the model reads, centred and scaled ((devices, n) each). ``floor``:
+    where given, the model-free noise floor (computed on the host's threads) is not waited
+    for; the function that waits and gives it (``noise_floor``, ``noise_axes``) is appended
+    to ``floor``, and the results leave both out (the caller's motion check runs meanwhile).
+    ``floor_after``: a future whose work the floor's threads wait for before they start
+    (:func:`diffgyro._noise.start`).
     """
     aux = dict(aux or {})
     present = frozenset(batch.signals) | {aux_key(k) for k in aux}
@@ -164,8 +170,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
         return m, out[0]  # the packed results (:func:`.programs.pack`)
 
     # the model-free noise floor on threads of the host, beside the compiled programs
-    noise = (host_noise(batch.gyro, batch.rate, batch.mask, dtype) if opts.noise_floor
-             else None)
+    noise = (host_noise(batch.gyro, batch.rate, batch.mask, dtype, after=floor_after)
+             if opts.noise_floor else None)
     # dispatch every group, then collect (concurrent calls from several Python threads
     # deadlocked XLA's CPU client: keep to one caller); an accelerator's groups are sent
     # ahead from host threads (:mod:`.transfer`)
@@ -179,6 +185,8 @@ def solve_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts, the
     if noise is None:
         out["noise_floor"] = np.full(d, np.nan, dtype)
         out["noise_axes"] = np.full((d, 3), np.nan, dtype)
+    elif floor is not None:
+        floor.append(noise)
     else:
         out["noise_floor"], out["noise_axes"] = noise()
     return out
