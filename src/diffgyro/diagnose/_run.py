@@ -28,6 +28,7 @@ import numpy as np
 from .. import _aux as aux_cols
 from .. import _noise as noise
 from .. import allan as allan_mod
+from .. import motion as motion_mod
 from .._jit import by_work, release_compiled_if_crowded, signature
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
@@ -492,6 +493,23 @@ def _ahead_programs(model: ErrorModel, batch: Batch, plan: _Plan) -> tuple:
     return signature(*args), _engine(n_dev * length).compile_ahead(*args), allan
 
 
+def _first_programs(batch: Batch, fit_options: dict) -> None:
+    """Start compiling (or reading from the caches) the programs whose shapes follow from
+    the batch alone, before the plan: the base fit's motion check
+    (:func:`diffgyro.motion.program_ahead`; the fit's own ``check_ahead`` then waits for
+    this compilation) and the residuals' Allan deviation (:func:`_ahead_programs` asks
+    for it again and gets this thread). XLA compiles them beside the plan's Python work
+    (the candidates' ranges and the scoring program's trace), where the second core
+    had nothing to do."""
+    try:
+        if fit_options.get("check_motion", True) and not fit_options.get("static_only", False):
+            motion_mod.program_ahead(batch)
+        _allan_program(batch).compile_ahead(*_allan_args(None, batch, put=_spec)[0])
+    except Exception:  # noqa: BLE001 - the fit and the scoring compile what they need
+        logging.getLogger("diffgyro").debug("diagnose: no programs before the plan",
+                                            exc_info=True)
+
+
 def _planned_ahead(model, batch: Batch, names, fit_options: dict, say) -> _Plan | None:
     """The plan formed before the base fit from the setting it will hold (:mod:`._ahead`),
     its programs started (:func:`_ahead_programs`); None where the setting is not foreseen
@@ -650,6 +668,8 @@ def diagnose(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     channel = check_channel(channel)
     # on the gyro the batch scored is the one fitted: the plan can be formed before the fit
+    if base_fit is None and channel == "gyro":
+        _first_programs(batch, fit_options)
     plan = _planned_ahead(model, batch, candidates, fit_options, say) \
         if base_fit is None and channel == "gyro" else None
     if base_fit is None:
