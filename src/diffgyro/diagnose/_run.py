@@ -154,8 +154,10 @@ def _ranges_of(cands, inputs, dtemp_window):
     return jax.lax.map(one, inputs)
 
 
-#: :func:`_ranges_of` compiled for a batch's size (:func:`~diffgyro._jit.by_work`).
-_ranges = by_work(_ranges_of, persistent=True)
+#: :func:`_ranges_of` compiled for a batch's size (:func:`~diffgyro._jit.by_work`); a
+#: small batch's as one part (:data:`~diffgyro._xla_options.ONE_PART`): the plan waits for
+#: its compilation.
+_ranges = by_work(_ranges_of, persistent=True, small_options=ONE_PART)
 
 
 def _white_noise(batch: Batch) -> np.ndarray:
@@ -237,11 +239,12 @@ def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
 _engine = by_work(_scores, persistent=True, small_options=ONE_PART)
 
 
-#: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`) compiled for a batch's
-#: size (:func:`~diffgyro._jit.by_work`): a small batch's without optimisation compiles in
-#: about a fifth of the time, with the same bits
+#: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`, with its options)
+#: compiled for a batch's size (:func:`~diffgyro._jit.by_work`): a small batch's without
+#: optimisation, as one part, compiles in about a fifth of the time, with the same bits
 #: (its differences and sums run in the program's order either way).
-_oadev = by_work(allan_mod.oadev.__wrapped__)
+_oadev = by_work(allan_mod.oadev.__wrapped__, compiler_options=allan_mod.OADEV_OPTIONS,
+                 small_options=ONE_PART)
 
 
 def _median_steps(t: np.ndarray) -> np.ndarray:
