@@ -7,8 +7,8 @@ Checked here: the prediction is the fit's setting bit for bit (a temperature mod
 model reading an extra column), the program prepared ahead is the one the scoring calls,
 a diagnosis so prepared equals one given the base fit (which prepares nothing ahead),
 a prediction the fit contradicts is replaced by the fit's, with the same scores, and the
-base fit's motion check starts compiling before the plan, its fit waiting for that
-compilation instead of starting another.
+base fit's motion check starts compiling before the scoring program is traced, its fit
+waiting for that compilation instead of starting another.
 
 Data: two thermal runs made apart from the project's simulator (``hidden_effects.py``),
 the hidden bias following dT/dt, one with an extra logged column ``vdd`` (the supply).
@@ -95,10 +95,10 @@ def test_prepared_ahead_equals_given_the_fit_and_a_missed_prediction_is_replaced
     _same_diagnosis(replaced, given)
 
 
-def test_the_motion_checks_program_starts_before_the_plan_and_the_fit_waits_for_it(
+def test_the_motion_checks_program_starts_before_the_scoring_and_the_fit_waits_for_it(
         batch, monkeypatch):
     events, threads = [], []
-    real_program, real_plan = motion._program_ahead, run._planned_ahead
+    real_program, real_scoring = motion._program_ahead, run._ahead_programs
 
     def program(*a, **k):
         out = real_program(*a, **k)
@@ -106,13 +106,14 @@ def test_the_motion_checks_program_starts_before_the_plan_and_the_fit_waits_for_
         threads.append(out[2])
         return out
 
-    def plan(*a, **k):
-        events.append("plan")
-        return real_plan(*a, **k)
+    def scoring(*a, **k):
+        events.append("scoring")
+        return real_scoring(*a, **k)
 
     monkeypatch.setattr(motion, "_program_ahead", program)
-    monkeypatch.setattr(run, "_planned_ahead", plan)
+    monkeypatch.setattr(run, "_ahead_programs", scoring)
     diagnose(BASE, batch, dtemp_window=60.0, **KW)
-    # diagnose's start, its plan, then the base fit's check_ahead: the same compilation
-    assert events[:3] == ["motion", "plan", "motion"]
+    # started while the ranges' program compiles, before the scoring program is traced;
+    # the base fit's check_ahead then gets the same compilation
+    assert events[:3] == ["motion", "scoring", "motion"]
     assert threads[0] is threads[1]

@@ -270,12 +270,20 @@ def _gather(chunks: list[dict], n_dev: int) -> dict:
     return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
 
 
-def _prepare(batch: Batch, st: Setting, every: list[CandidateSpec], aux: dict):
-    """Ranges of every candidate and floors, streamed per chunk of devices."""
+def _prepare(batch: Batch, st: Setting, every: list[CandidateSpec], aux: dict,
+             meanwhile=None):
+    """Ranges of every candidate and floors, streamed per chunk of devices (``meanwhile``:
+    called while the ranges' program compiles, or is read from the caches, on a thread)."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
     window_s = _windows(st.dtemp_window)[1]
     program = _ranges(n_dev * length)
+    if meanwhile is not None:
+        _, idx = next(_chunks(n_dev, size))
+        compiling = program.compile_ahead(tuple(every), _inputs(batch, st, idx, aux, _spec),
+                                          _windows(st.dtemp_window, _spec)[1])
+        meanwhile()
+        compiling.join()
     ranges = [np.asarray(program(tuple(every), _inputs(batch, st, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
@@ -461,12 +469,13 @@ class _Plan(NamedTuple):
     ahead: tuple | None = None
 
 
-def _plan(model: ErrorModel, batch: Batch, st: Setting, names, say) -> _Plan:
+def _plan(model: ErrorModel, batch: Batch, st: Setting, names, say, meanwhile=None) -> _Plan:
     """The :class:`_Plan` of ``model`` on ``batch`` with the base fit's setting ``st``: the
-    candidates, their ranges (a compiled program per chunk of devices) and the floors."""
+    candidates, their ranges (a compiled program per chunk of devices) and the floors
+    (``meanwhile``: :func:`_prepare`'s)."""
     every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, st, names)
     say(f"checking which of {len(every)} candidate(s) the data support")
-    all_ranges, floors = _prepare(batch, st, every, aux)
+    all_ranges, floors = _prepare(batch, st, every, aux, meanwhile)
     skips = _skips(every, all_ranges, problems, batch, dead, unscored, unnamed)
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
@@ -496,33 +505,44 @@ def _ahead_programs(model: ErrorModel, batch: Batch, plan: _Plan) -> tuple:
     return signature(*args), _engine(n_dev * length).compile_ahead(*args), allan
 
 
-def _first_programs(batch: Batch, fit_options: dict) -> None:
-    """Start compiling (or reading from the caches) the programs whose shapes follow from
-    the batch alone, before the plan: the base fit's motion check
+def _first_programs(batch: Batch, fit_options: dict):
+    """A function that starts compiling (or reading from the caches), once, the programs
+    whose shapes follow from the batch alone: the base fit's motion check
     (:func:`diffgyro.motion.program_ahead`; the fit's own ``check_ahead`` then waits for
     this compilation) and the residuals' Allan deviation (:func:`_ahead_programs` asks
-    for it again and gets this thread). XLA compiles them beside the plan's Python work
-    (the candidates' ranges and the scoring program's trace), where the second core
-    had nothing to do."""
-    try:
-        if fit_options.get("check_motion", True) and not fit_options.get("static_only", False):
-            motion_mod.program_ahead(batch)
-        _allan_program(batch).compile_ahead(*_allan_args(None, batch, put=_spec)[0])
-    except Exception:  # noqa: BLE001 - the fit and the scoring compile what they need
-        logging.getLogger("diffgyro").debug("diagnose: no programs before the plan",
-                                            exc_info=True)
+    for it again and gets this thread). The plan calls it while the ranges' program
+    compiles (:func:`_prepare`): their traces fill that wait, and XLA compiles them
+    while the plan traces the scoring program, whose compilation, the longest, still
+    starts as early."""
+    done = []
+
+    def start() -> None:
+        if done:
+            return
+        done.append(True)
+        try:
+            if fit_options.get("check_motion", True) and not fit_options.get("static_only"):
+                motion_mod.program_ahead(batch)
+            _allan_program(batch).compile_ahead(*_allan_args(None, batch, put=_spec)[0])
+        except Exception:  # noqa: BLE001 - the fit and the scoring compile what they need
+            logging.getLogger("diffgyro").debug("diagnose: no programs before the plan",
+                                                exc_info=True)
+
+    return start
 
 
-def _planned_ahead(model, batch: Batch, names, fit_options: dict, say) -> _Plan | None:
+def _planned_ahead(model, batch: Batch, names, fit_options: dict, say,
+                   meanwhile=None) -> _Plan | None:
     """The plan formed before the base fit from the setting it will hold (:mod:`._ahead`),
     its programs started (:func:`_ahead_programs`); None where the setting is not foreseen
     or forming the plan fails (the fit then raises its own error, or the plan is formed
-    after it)."""
+    after it). ``meanwhile``: called while the ranges' program compiles
+    (:func:`_first_programs`)."""
     try:
         st = predicted(model, batch, fit_options)
         if st is None:
             return None
-        plan = _plan(model, batch, st, names, say)
+        plan = _plan(model, batch, st, names, say, meanwhile)
         return plan._replace(ahead=_ahead_programs(model, batch, plan))
     except Exception:  # noqa: BLE001 - formed again after the fit, which raises what is wrong
         logging.getLogger("diffgyro").debug("diagnose: no plan before the fit", exc_info=True)
@@ -671,10 +691,11 @@ def diagnose(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     channel = check_channel(channel)
     # on the gyro the batch scored is the one fitted: the plan can be formed before the fit
+    plan = None
     if base_fit is None and channel == "gyro":
-        _first_programs(batch, fit_options)
-    plan = _planned_ahead(model, batch, candidates, fit_options, say) \
-        if base_fit is None and channel == "gyro" else None
+        first = _first_programs(batch, fit_options)
+        plan = _planned_ahead(model, batch, candidates, fit_options, say, first)
+        first()  # (where no plan was formed ahead)
     if base_fit is None:
         say(f"fitting {model.spec} on {batch.n_devices} device(s)")
     res, batch = _base_fit(model, batch, base_fit, channel, fit_options)
