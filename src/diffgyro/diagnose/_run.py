@@ -29,7 +29,7 @@ from .. import _aux as aux_cols
 from .. import _noise as noise
 from .. import allan as allan_mod
 from .. import motion as motion_mod
-from .._jit import by_work, release_compiled_if_crowded, signature
+from .._jit import by_work, filter_jit, release_compiled_if_crowded, signature
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
 from .._xla_options import ONE_PART
@@ -366,12 +366,19 @@ def _allan(resid: np.ndarray, batch: Batch, ahead=None) -> AllanCurves:
     return AllanCurves(tau=tau, adev=adev)
 
 
+@filter_jit
+def _nonlinear_values(term, theta):
+    """``term.nonlinear_values(theta)`` as one program (run eagerly, its clip and exp were
+    two, each compiled, or read from the cache, in every process; the same bits)."""
+    return term.nonlinear_values(theta)
+
+
 def _taus(cands, theta_row) -> list:
     """The chosen time constant (s) of every candidate with one, else None."""
     taus = []
     for c, th in zip(cands, theta_row):
         if c.old is None and c.term.n_nonlinear == 1 and np.isfinite(th).all():
-            taus.append(float(np.asarray(c.term.nonlinear_values(_put(th)))[0]))
+            taus.append(float(np.asarray(_nonlinear_values(c.term, _put(th)))[0]))
         else:
             taus.append(None)
     return taus
