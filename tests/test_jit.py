@@ -105,6 +105,12 @@ def test_compile_ahead_leaves_the_call_nothing_to_compile():
         assert len(compiles) == 1  # compiled on the other thread
         np.testing.assert_allclose(f(x, 3.0), np.cumsum(3.0 * x) - np.sort(x), rtol=1e-12)
         assert len(compiles) == 1  # the call found it compiled
+        # asked again (a second caller, while or after the first compiles): the first
+        # thread, nothing lowered or compiled again
+        again = f.compile_ahead(x, 3.0)
+        assert again is f.compile_ahead(x, 3.0)
+        again.join()
+        assert len(compiles) == 1
         # an argument the program cannot take: the thread swallows the error, the call raises it
         f.compile_ahead(x, "three").join()
         with pytest.raises(TypeError):

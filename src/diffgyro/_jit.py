@@ -112,17 +112,6 @@ def filter_jit(fun: Callable[..., Any] | None = None, *,
     return call
 
 
-@functools.cache
-def _finished() -> threading.Thread:
-    """A thread that has run (nothing): what :func:`filter_jit`'s ``compile_ahead`` returns
-    for a signature compiled before, to be joined at once (one thread for the process, not
-    one started per call)."""
-    done = threading.Thread(target=lambda: None, daemon=True)
-    done.start()
-    done.join()
-    return done
-
-
 def by_work(fun: Callable[..., Any], *, compiler_options: dict[str, Any] | None = None,
             persistent: bool | None = None, small_options: dict[str, Any] | None = None
             ) -> Callable[[int], Callable[..., Any]]:
@@ -162,20 +151,21 @@ def signature(*args, **kwargs) -> tuple:
 
 def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread]:
     """A program's ``compile_ahead`` (``lower``: its arguments to a lowered program)."""
-    ahead: set = set()  # the signatures compiled ahead in this process
+    ahead: dict = {}  # signature -> the thread that compiled (or compiles) it, this process
 
     def compile_ahead(*a, **k) -> threading.Thread:
         """Lower the call for these arguments here and compile it on a thread of its own;
         join the thread before the call (which then finds the program compiled). XLA
         compiles without the GIL, so this overlaps with Python tracing another program
         (lowering is Python: done on the thread it would hold the GIL the other needs).
-        A signature compiled ahead before is not lowered again. An error is left for the
-        call itself to raise."""
+        A signature compiled ahead before is not lowered again: its thread is returned,
+        so a second caller waits for the compilation the first started instead of
+        compiling the program a second time. An error is left for the call itself to
+        raise."""
         log = logging.getLogger("diffgyro")
         key = (signature(*a, **k), jax.default_backend())
         if key in ahead:
-            return _finished()
-        ahead.add(key)
+            return ahead[key]
         try:
             lowered = lower(*a, **k)
         except Exception:  # noqa: BLE001 - the call lowers again and raises it
@@ -190,6 +180,7 @@ def _compile_ahead(name: str, lower: Callable) -> Callable[..., threading.Thread
                 log.debug("compile_ahead of %s failed", name, exc_info=True)
 
         thread = threading.Thread(target=work, name=f"compile {name}", daemon=True)
+        ahead[key] = thread
         thread.start()
         return thread
 

@@ -30,7 +30,7 @@ from ._motion_constants import (
     STRETCH_CHUNK,
     TILT_FLOOR,
 )
-from ._xla_options import FAST_COMPILE
+from ._xla_options import FAST_COMPILE, ONE_PART
 from .data import device_bucket
 
 
@@ -359,9 +359,10 @@ def _vmapped_small(gyro, accel, w: int, b: int):
 
 #: The check of a large batch, and of a small (padded) one for its size
 #: (:func:`~diffgyro._jit.by_work`): a small batch's check runs in milliseconds, and
-#: compiles in about 60 % of the time with XLA's loop emitters.
+#: compiles in about 60 % of the time with XLA's loop emitters, and without optimisation
+#: as one part (:data:`~diffgyro._xla_options.ONE_PART`: it compiles beside other work).
 _check = filter_jit(_vmapped)
-_check_small = by_work(_vmapped_small, compiler_options=FAST_COMPILE)
+_check_small = by_work(_vmapped_small, compiler_options=FAST_COMPILE, small_options=ONE_PART)
 
 
 class Layout(NamedTuple):

@@ -39,8 +39,16 @@ FAST_COMPILE = dict(xla_cpu_use_fusion_emitters=False)
 #: options would override it.
 LIGHT_COMPILE = dict(FAST_COMPILE) if _in_xla_flags("xla_backend_optimization_level") \
     else dict(FAST_COMPILE, xla_backend_optimization_level=1)
-#: XLA options of a tiny program run once (LLVM without optimisation passes).
-ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False)
+#: XLA options that skip the HLO verifier, which XLA runs after every pass of its
+#: pipeline to check the module's invariants: it reads the module and changes nothing (the
+#: optimised HLO of every program of a ``diagnose`` is the same text without it), and it
+#: took 8-9 % of the diagnosis's scoring program's compile time without optimisation.
+#: Passes disabled in ``XLA_FLAGS`` are kept: a program's options would override them.
+NO_VERIFIER = {} if _in_xla_flags("xla_disable_hlo_passes") \
+    else dict(xla_disable_hlo_passes="hlo-verifier")
+#: XLA options of a tiny program run once (LLVM without optimisation passes, no HLO
+#: verifier: :data:`NO_VERIFIER`).
+ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False, **NO_VERIFIER)
 #: XLA options of an unoptimised program compiled on a thread beside other work: LLVM
 #: compiles its module as one part instead of splitting it over XLA's threads. The
 #: diagnosis's scoring program of the walkthrough compiles in 15 % less CPU time so, with

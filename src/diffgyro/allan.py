@@ -169,10 +169,14 @@ def _oadev_one(y, n_valid, dt, m, stop_ratio, batch, block_terms, padded=True):
     return jnp.where(good, adev, jnp.nan), count
 
 
-#: XLA's loop emitters (:data:`~diffgyro._xla_options.FAST_COMPILE`): the same sums bit for
-#: bit, run as fast, and compiled in about two thirds of the fusion emitters' time
-#: (benchmarks/README.md, noise identification).
-@filter_jit(compiler_options=FAST_COMPILE)  # (kept traced on disk under the command line)
+#: :func:`oadev`'s XLA options, here and where its body is compiled for a batch's size
+#: (``diagnose``): XLA's loop emitters (:data:`~diffgyro._xla_options.FAST_COMPILE`): the
+#: same sums bit for bit, run as fast, and compiled in about two thirds of the fusion
+#: emitters' time (benchmarks/README.md, noise identification).
+OADEV_OPTIONS = FAST_COMPILE
+
+
+@filter_jit(compiler_options=OADEV_OPTIONS)  # (kept traced on disk under the command line)
 def oadev(
     y: Float[Array, "... n"],
     dt: Float[Array, "..."] | float,

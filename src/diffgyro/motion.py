@@ -50,6 +50,7 @@ from __future__ import annotations
 
 import functools
 import math
+import threading
 from collections.abc import Callable
 
 import jax
@@ -438,6 +439,47 @@ def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
     return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 
 
+def _program_ahead(batch, dt: float | None = None
+                   ) -> tuple[dict, dict, threading.Thread, tuple[np.ndarray, np.ndarray]]:
+    """The device groups of ``batch``'s check, their layouts, the thread compiling the
+    check's program for the largest group (its compilation asked again returns that
+    thread: :func:`~diffgyro._jit.filter_jit`'s ``compile_ahead``), and the devices'
+    sampling intervals and spans the groups were formed from."""
+    mask = np.asarray(batch.mask)
+    spans = _spans(mask)
+    dts = _device_intervals(batch, dt)
+    groups = _groups(dts, spans)
+    _, use_accel = _reads(batch)
+    lays = {key: layout(len(idx), int(max(spans[idx].max(initial=0), 1)), *key, use_accel)
+            for key, idx in groups.items()}
+    (w, b), _ = max(groups.items(), key=lambda kv: len(kv[1]))
+    lay = lays[(w, b)]
+
+    def spec(*shape, dtype=np.float32):
+        return jax.ShapeDtypeStruct(shape, dtype)
+
+    rows, k = lay.shape
+    stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
+    return groups, lays, lay.check.compile_ahead(stats, stats if lay.accel else None, w, b), \
+        (dts, spans)
+
+
+def program_ahead(batch, dt: float | None = None) -> threading.Thread:
+    """Start compiling (or reading from the caches) the program :func:`motion_check` of
+    ``batch`` runs, on a thread of its own, and return that thread. A later
+    :func:`check_ahead` of the same batch (a fit's) waits for it instead of compiling
+    again; a caller with Python work of its own to do before its fit (``diagnose``: its
+    candidates' ranges and scoring program) starts it first, so that XLA compiles the
+    check beside that work.
+
+    **Arguments:**
+
+    - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
+    - ``dt``: the sampling interval, s (default: each device's own).
+    """
+    return _program_ahead(batch, dt)[2]
+
+
 def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = None
                 ) -> Callable[[], dict]:
     """Start what :func:`motion_check` of ``batch`` needs before a fit's model: its program
@@ -456,22 +498,9 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
       residual judges the recording; None where none will.
     """
     mask = np.asarray(batch.mask)
-    dts = _device_intervals(batch, dt)
-    spans = _spans(mask)
-    groups = _groups(dts, spans)
+    groups, lays, compiled, intervals = _program_ahead(batch, dt)
     _, use_accel = _reads(batch)
-    lays = {key: layout(len(idx), int(max(spans[idx].max(initial=0), 1)), *key, use_accel)
-            for key, idx in groups.items()}
-    (w, b), idx = max(groups.items(), key=lambda kv: len(kv[1]))
-    lay = lays[(w, b)]
-
-    def spec(*shape, dtype=np.float32):
-        return jax.ShapeDtypeStruct(shape, dtype)
-
-    rows, k = lay.shape
-    stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
-    compiled = lay.check.compile_ahead(stats, stats if lay.accel else None, w, b)
-    out: dict = {"intervals": (dts, spans)}
+    out: dict = {"intervals": intervals}
     rate = None if batch.rate is None else np.asarray(batch.rate)
     accel = np.asarray(batch.accel) if use_accel else None
 
@@ -501,5 +530,6 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
 
 
 __all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "check_ahead",
-           "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES", "ACCEL_FLOOR",
-           "EARTH_RATE", "K_SIGMA", "MAX_RESOLUTION", "MIN_PEAK_RATIO", "MIN_TILT", "MIN_WINDOWS"]
+           "program_ahead", "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES",
+           "ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_RESOLUTION", "MIN_PEAK_RATIO", "MIN_TILT",
+           "MIN_WINDOWS"]

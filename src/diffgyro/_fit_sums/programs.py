@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import TRACE_COUNTS, filter_jit
-from .._xla_options import FAST_COMPILE, ONCE, REASSOCIATE, SMALL_WORK
+from .._xla_options import FAST_COMPILE, ONCE, ONE_PART, REASSOCIATE, SMALL_WORK
 from ..model import ErrorModel
 from .device import device
 from .finish import finish
@@ -46,8 +46,9 @@ group_compact = filter_jit(compiler_options={**REASSOCIATE, **FAST_COMPILE})(gro
 group_finish = filter_jit(compiler_options=ONCE)(finished)
 
 
-#: A small batch's group program, its finish inline: compiled without optimisation.
-group_small = filter_jit(compiler_options={**REASSOCIATE, **ONCE})(group_program)
+#: A small batch's group program, its finish inline: compiled without optimisation, as one
+#: part (:data:`ONE_PART`: a first fit compiles it beside the motion check's program).
+group_small = filter_jit(compiler_options={**REASSOCIATE, **ONCE, **ONE_PART})(group_program)
 
 
 def group_for(model: ErrorModel, fused: bool, samples: int):

@@ -28,7 +28,8 @@ import numpy as np
 from .. import _aux as aux_cols
 from .. import _noise as noise
 from .. import allan as allan_mod
-from .._jit import by_work, release_compiled_if_crowded, signature
+from .. import motion as motion_mod
+from .._jit import by_work, filter_jit, release_compiled_if_crowded, signature
 from .._signal_builder import batch_inputs, input_signals
 from .._temperature import suggest_dtemp_window
 from .._xla_options import ONE_PART
@@ -153,8 +154,10 @@ def _ranges_of(cands, inputs, dtemp_window):
     return jax.lax.map(one, inputs)
 
 
-#: :func:`_ranges_of` compiled for a batch's size (:func:`~diffgyro._jit.by_work`).
-_ranges = by_work(_ranges_of, persistent=True)
+#: :func:`_ranges_of` compiled for a batch's size (:func:`~diffgyro._jit.by_work`); a
+#: small batch's as one part (:data:`~diffgyro._xla_options.ONE_PART`): the plan waits for
+#: its compilation.
+_ranges = by_work(_ranges_of, persistent=True, small_options=ONE_PART)
 
 
 def _white_noise(batch: Batch) -> np.ndarray:
@@ -236,11 +239,12 @@ def _scores(base, cands, n_blocks, n_folds, log_min_lag, rw_m, search_m, dtemp_w
 _engine = by_work(_scores, persistent=True, small_options=ONE_PART)
 
 
-#: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`) compiled for a batch's
-#: size (:func:`~diffgyro._jit.by_work`): a small batch's without optimisation compiles in
-#: about a fifth of the time, with the same bits
+#: The residuals' Allan deviation (:func:`diffgyro.allan.oadev`, with its options)
+#: compiled for a batch's size (:func:`~diffgyro._jit.by_work`): a small batch's without
+#: optimisation, as one part, compiles in about a fifth of the time, with the same bits
 #: (its differences and sums run in the program's order either way).
-_oadev = by_work(allan_mod.oadev.__wrapped__)
+_oadev = by_work(allan_mod.oadev.__wrapped__, compiler_options=allan_mod.OADEV_OPTIONS,
+                 small_options=ONE_PART)
 
 
 def _median_steps(t: np.ndarray) -> np.ndarray:
@@ -266,12 +270,20 @@ def _gather(chunks: list[dict], n_dev: int) -> dict:
     return {k: np.concatenate([np.asarray(c[k]) for c in chunks])[:n_dev] for k in chunks[0]}
 
 
-def _prepare(batch: Batch, st: Setting, every: list[CandidateSpec], aux: dict):
-    """Ranges of every candidate and floors, streamed per chunk of devices."""
+def _prepare(batch: Batch, st: Setting, every: list[CandidateSpec], aux: dict,
+             meanwhile=None):
+    """Ranges of every candidate and floors, streamed per chunk of devices (``meanwhile``:
+    called while the ranges' program compiles, or is read from the caches, on a thread)."""
     n_dev, length = batch.n_devices, batch.t.shape[1]
     size = chunk_size(n_dev, length)
     window_s = _windows(st.dtemp_window)[1]
     program = _ranges(n_dev * length)
+    if meanwhile is not None:
+        _, idx = next(_chunks(n_dev, size))
+        compiling = program.compile_ahead(tuple(every), _inputs(batch, st, idx, aux, _spec),
+                                          _windows(st.dtemp_window, _spec)[1])
+        meanwhile()
+        compiling.join()
     ranges = [np.asarray(program(tuple(every), _inputs(batch, st, idx, aux), window_s))
               for _, idx in _chunks(n_dev, size)]
     return np.concatenate(ranges)[:n_dev], _white_noise(batch)
@@ -354,12 +366,19 @@ def _allan(resid: np.ndarray, batch: Batch, ahead=None) -> AllanCurves:
     return AllanCurves(tau=tau, adev=adev)
 
 
+@filter_jit
+def _nonlinear_values(term, theta):
+    """``term.nonlinear_values(theta)`` as one program (run eagerly, its clip and exp were
+    two, each compiled, or read from the cache, in every process; the same bits)."""
+    return term.nonlinear_values(theta)
+
+
 def _taus(cands, theta_row) -> list:
     """The chosen time constant (s) of every candidate with one, else None."""
     taus = []
     for c, th in zip(cands, theta_row):
         if c.old is None and c.term.n_nonlinear == 1 and np.isfinite(th).all():
-            taus.append(float(np.asarray(c.term.nonlinear_values(_put(th)))[0]))
+            taus.append(float(np.asarray(_nonlinear_values(c.term, _put(th)))[0]))
         else:
             taus.append(None)
     return taus
@@ -457,12 +476,13 @@ class _Plan(NamedTuple):
     ahead: tuple | None = None
 
 
-def _plan(model: ErrorModel, batch: Batch, st: Setting, names, say) -> _Plan:
+def _plan(model: ErrorModel, batch: Batch, st: Setting, names, say, meanwhile=None) -> _Plan:
     """The :class:`_Plan` of ``model`` on ``batch`` with the base fit's setting ``st``: the
-    candidates, their ranges (a compiled program per chunk of devices) and the floors."""
+    candidates, their ranges (a compiled program per chunk of devices) and the floors
+    (``meanwhile``: :func:`_prepare`'s)."""
     every, rw_spec, aux, problems, dead, unscored, unnamed = _candidates(model, batch, st, names)
     say(f"checking which of {len(every)} candidate(s) the data support")
-    all_ranges, floors = _prepare(batch, st, every, aux)
+    all_ranges, floors = _prepare(batch, st, every, aux, meanwhile)
     skips = _skips(every, all_ranges, problems, batch, dead, unscored, unnamed)
     # drop candidates no device can support (e.g. scale terms on a static run) before compiling
     usable = [j for j in range(len(every)) if np.any(all_ranges[:, j] <= 0)]
@@ -492,16 +512,44 @@ def _ahead_programs(model: ErrorModel, batch: Batch, plan: _Plan) -> tuple:
     return signature(*args), _engine(n_dev * length).compile_ahead(*args), allan
 
 
-def _planned_ahead(model, batch: Batch, names, fit_options: dict, say) -> _Plan | None:
+def _first_programs(batch: Batch, fit_options: dict):
+    """A function that starts compiling (or reading from the caches), once, the programs
+    whose shapes follow from the batch alone: the base fit's motion check
+    (:func:`diffgyro.motion.program_ahead`; the fit's own ``check_ahead`` then waits for
+    this compilation) and the residuals' Allan deviation (:func:`_ahead_programs` asks
+    for it again and gets this thread). The plan calls it while the ranges' program
+    compiles (:func:`_prepare`): their traces fill that wait, and XLA compiles them
+    while the plan traces the scoring program, whose compilation, the longest, still
+    starts as early."""
+    done = []
+
+    def start() -> None:
+        if done:
+            return
+        done.append(True)
+        try:
+            if fit_options.get("check_motion", True) and not fit_options.get("static_only"):
+                motion_mod.program_ahead(batch)
+            _allan_program(batch).compile_ahead(*_allan_args(None, batch, put=_spec)[0])
+        except Exception:  # noqa: BLE001 - the fit and the scoring compile what they need
+            logging.getLogger("diffgyro").debug("diagnose: no programs before the plan",
+                                                exc_info=True)
+
+    return start
+
+
+def _planned_ahead(model, batch: Batch, names, fit_options: dict, say,
+                   meanwhile=None) -> _Plan | None:
     """The plan formed before the base fit from the setting it will hold (:mod:`._ahead`),
     its programs started (:func:`_ahead_programs`); None where the setting is not foreseen
     or forming the plan fails (the fit then raises its own error, or the plan is formed
-    after it)."""
+    after it). ``meanwhile``: called while the ranges' program compiles
+    (:func:`_first_programs`)."""
     try:
         st = predicted(model, batch, fit_options)
         if st is None:
             return None
-        plan = _plan(model, batch, st, names, say)
+        plan = _plan(model, batch, st, names, say, meanwhile)
         return plan._replace(ahead=_ahead_programs(model, batch, plan))
     except Exception:  # noqa: BLE001 - formed again after the fit, which raises what is wrong
         logging.getLogger("diffgyro").debug("diagnose: no plan before the fit", exc_info=True)
@@ -650,8 +698,11 @@ def diagnose(
         fit_options["dtemp_window"] = suggest_dtemp_window(batch)
     channel = check_channel(channel)
     # on the gyro the batch scored is the one fitted: the plan can be formed before the fit
-    plan = _planned_ahead(model, batch, candidates, fit_options, say) \
-        if base_fit is None and channel == "gyro" else None
+    plan = None
+    if base_fit is None and channel == "gyro":
+        first = _first_programs(batch, fit_options)
+        plan = _planned_ahead(model, batch, candidates, fit_options, say, first)
+        first()  # (where no plan was formed ahead)
     if base_fit is None:
         say(f"fitting {model.spec} on {batch.n_devices} device(s)")
     res, batch = _base_fit(model, batch, base_fit, channel, fit_options)
