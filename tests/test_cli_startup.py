@@ -215,6 +215,18 @@ def test_the_program_ends_at_once_with_its_output_and_exit_code(tmp_path):
     assert run.returncode == 0 and "bias_poly" in run.stdout and run.stdout.endswith("\n")
 
 
+def test_a_command_that_fitted_ends(tmp_path):
+    """A fit starts the host's kept worker pools (``_jit.host_pool``), whose idle threads
+    never end by themselves: the program still ends once its output is out."""
+    for args in (["simulate", "--plan", "thermal", "--devices", "1", "--duration", "1200",
+                  "--rate", "1", "--out", "x.csv"],
+                 ["fit", "x.csv", "--model", "bias_poly(1)", "--out", "cal.json"]):
+        run = subprocess.run([sys.executable, "-m", "diffgyro", *args], capture_output=True,
+                             text=True, cwd=tmp_path, timeout=120, check=False)
+        assert run.returncode == 0, run.stderr
+    assert json.loads((tmp_path / "cal.json").read_text())
+
+
 LAPACK_PROBE = """
 import json, sys
 import numpy as np

@@ -252,6 +252,16 @@ def host_pool(name: str, workers: int | None = None) -> ThreadPoolExecutor:
     return pool
 
 
+def shutdown_pools() -> None:
+    """End the kept pools' threads (each waits for its work): a process that ends without
+    the interpreter's teardown joins its threads first, and an idle pool's never end."""
+    with _POOLS_LOCK:
+        pools = list(_POOLS.values())
+        _POOLS.clear()
+    for pool in pools:
+        pool.shutdown(wait=True)
+
+
 def _forget_pools() -> None:
     """In a forked child: the parent's threads are not there (nor may its lock be free)."""
     global _POOLS_LOCK
