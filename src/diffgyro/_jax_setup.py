@@ -39,6 +39,12 @@ store_programs: bool = False
 #: after it; off elsewhere (a long-lived process would keep the trace's cyclic garbage).
 freeze_after_trace: bool = False
 
+#: What a process that ends without the interpreter's teardown (the command line's exit)
+#: runs first, before it joins its threads: the package's kept worker pools register
+#: their shutdown here (:func:`diffgyro._jit.shutdown_pools`), since their idle threads
+#: never end by themselves.
+before_exit: list[Callable[[], None]] = []
+
 
 def cache_dir(path: str | None = None) -> str:
     """The persistent cache's folder: ``path``, else ``$DIFFGYRO_CACHE_DIR``, else

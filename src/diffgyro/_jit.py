@@ -262,6 +262,9 @@ def shutdown_pools() -> None:
         pool.shutdown(wait=True)
 
 
+_jax_setup.before_exit.append(shutdown_pools)
+
+
 def _forget_pools() -> None:
     """In a forked child: the parent's threads are not there (nor may its lock be free)."""
     global _POOLS_LOCK

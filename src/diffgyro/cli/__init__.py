@@ -233,9 +233,8 @@ def _exit_now(code: int) -> None:
     of a warm ``fit`` after its result was printed. Other threads that are not daemons
     are joined and the exit handlers run first (what a normal exit does before the
     teardown); a write that fails (a closed pipe) ends with the normal exit instead."""
-    jit = sys.modules.get("diffgyro._jit")  # loaded where a command compiled anything
-    if jit is not None:
-        jit.shutdown_pools()  # its kept pools' idle threads would never end
+    for end in _jax_setup.before_exit:  # e.g. the kept worker pools, whose threads idle
+        end()
     for thread in threading.enumerate():
         if thread is not threading.current_thread() and not thread.daemon:
             thread.join()
