@@ -37,11 +37,13 @@ def first_order_lag(t: Float[Array, " n"], x: Float[Array, " n"],
 
 
 def _recursion(sequential, parallel, *args):
-    """One of two forms of a linear recursion over the samples, by the platform it is
-    compiled for: a CPU runs the sequential loop fastest, while an accelerator runs each
+    """One of two forms of a linear recursion over the samples, by the platform diffgyro
+    computes on: a CPU runs the sequential loop fastest, while an accelerator runs each
     of its steps as a kernel launch, so there the recursion is a parallel prefix
-    (log₂ n levels of the composed affine maps). The two agree to rounding."""
-    return jax.lax.platform_dependent(*args, cpu=sequential, default=parallel)
+    (log₂ n levels of the composed affine maps). The two agree to rounding. Chosen while
+    tracing (``jax.lax.platform_dependent`` would trace and lower both forms, and their
+    derivatives, into every program: a third more compile time on a CPU)."""
+    return (sequential if jax.default_backend() == "cpu" else parallel)(*args)
 
 
 def _lag_sequential(u, x):
