@@ -16,23 +16,14 @@ import contextlib
 import io
 import json
 import platform
+import sys
 import tempfile
-import time
 from pathlib import Path
-
-import numpy as np
 
 import diffgyro
 
-
-def _median(f, repeats: int) -> float:
-    f()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times))
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared timing
+from _timing import median_time  # noqa: E402
 
 
 def _command(args: list[str]) -> None:
@@ -68,9 +59,9 @@ def main() -> None:
             ("diagnose", ["diagnose", str(thermal), "--model", "bias_poly(2)", "--json"], thermal),
             ("noise", ["noise", str(static), "--json"], static),
             ("allan", ["allan", str(static), "--json"], static)):
-        whole = _median(lambda c=command: _command(c), args.repeats)
+        whole = median_time(lambda c=command: _command(c), args.repeats)
         batch = load_batch([path])
-        check = _median(lambda b=batch: motion_check(b), args.repeats)
+        check = median_time(lambda b=batch: motion_check(b), args.repeats)
         rows.append({"command": name, "command_s": whole, "check_s": check,
                      "check_share": check / whole})
         print(f"{name:10s} {whole:7.3f} s, of which the check {check:7.4f} s "

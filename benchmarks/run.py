@@ -30,7 +30,6 @@ import functools
 import json
 import os
 import platform
-import statistics
 import sys
 import time
 from pathlib import Path
@@ -43,6 +42,8 @@ import numpy as np
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # the shared timing, also when loaded by path
+from _timing import measure, median_time  # noqa: E402
 
 # --------------------------------------------------------------------------- sizes
 
@@ -100,28 +101,6 @@ def block(x):
     return jax.block_until_ready(x)
 
 
-def measure(candidate, baselines: dict, repeats: int):
-    """Warm up, then time the candidate and each baseline in turn, ``repeats`` times.
-
-    Returns (first-call time, median candidate time, {name: median baseline time}, outputs).
-    """
-    t0 = now()
-    out_c = candidate()
-    first = now() - t0
-    out_b = {k: f() for k, f in baselines.items()}
-    tc, tb = [], {k: [] for k in baselines}
-    for _ in range(repeats):
-        t0 = now()
-        candidate()
-        tc.append(now() - t0)
-        for k, f in baselines.items():
-            t0 = now()
-            f()
-            tb[k].append(now() - t0)
-    return first, statistics.median(tc), {k: statistics.median(v) for k, v in tb.items()}, \
-        (out_c, out_b)
-
-
 def row(case, devices, samples, dg_s, first_s, baseline, base_s, diff, rel, nbytes, bw, **extra):
     limit = nbytes / bw if nbytes else None
     out = {
@@ -168,13 +147,7 @@ def bandwidth(gigabytes: float = 1.0, repeats: int = 5) -> dict:
     f = jax.jit(jnp.sum)
 
     def rate(read):  # bytes/s: median of ``repeats`` after a warm-up
-        block(read())
-        times = []
-        for _ in range(repeats):
-            t0 = now()
-            block(read())
-            times.append(now() - t0)
-        return a.nbytes / statistics.median(times)
+        return a.nbytes / median_time(lambda: block(read()), repeats)
 
     bw_np = rate(a.sum)
     bw_jx = rate(functools.partial(f, jax.device_put(a)))  # the copy is freed on return

@@ -37,16 +37,8 @@ import time
 import numpy as np
 
 os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
-
-
-def _median_time(f, repeats: int) -> float:
-    f()
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        f()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))  # the shared timing, also when loaded by path
+from _timing import median_time  # noqa: E402
 
 
 def limits(h2d_gb: float = 2.0, hbm_gb: float = 4.0, repeats: int = 5) -> dict:
@@ -56,7 +48,7 @@ def limits(h2d_gb: float = 2.0, hbm_gb: float = 4.0, repeats: int = 5) -> dict:
 
     dev = jax.devices()[0]
     host = np.ones(int(h2d_gb * 1e9) // 8)
-    h2d = None if dev.platform == "cpu" else host.nbytes / _median_time(
+    h2d = None if dev.platform == "cpu" else host.nbytes / median_time(
         lambda: jax.device_put(host, dev).block_until_ready(), repeats)
     threaded = {}
     if h2d is not None:  # the same bytes sent by k host threads at once, 1/k each
@@ -69,11 +61,11 @@ def limits(h2d_gb: float = 2.0, hbm_gb: float = 4.0, repeats: int = 5) -> dict:
         for k in (2, 4, 8):
             with ThreadPoolExecutor(k) as pool:
                 parts = np.array_split(host, k)
-                threaded[k] = host.nbytes / _median_time(
+                threaded[k] = host.nbytes / median_time(
                     functools.partial(send_all, pool, parts), repeats)
     held = [jax.device_put(np.ones(int(hbm_gb * 1e9) // 8), dev)]
     total = jax.jit(jnp.sum)
-    hbm = held[0].nbytes / _median_time(lambda: total(held[0]).block_until_ready(), repeats)
+    hbm = held[0].nbytes / median_time(lambda: total(held[0]).block_until_ready(), repeats)
     held.clear()
     out = {"h2d_pageable_Bps": h2d, "device_read_Bps": hbm, "h2d_pinned_Bps": None,
            **{f"h2d_pageable_{k}_threads_Bps": v for k, v in threaded.items()}}
@@ -88,7 +80,7 @@ def limits(h2d_gb: float = 2.0, hbm_gb: float = 4.0, repeats: int = 5) -> dict:
                 dst.copy_(src, non_blocking=True)
                 torch.cuda.synchronize()
 
-            out["h2d_pinned_Bps"] = src.numel() * 8 / _median_time(copy, repeats)
+            out["h2d_pinned_Bps"] = src.numel() * 8 / median_time(copy, repeats)
             del src, dst
             torch.cuda.empty_cache()
     except ImportError:

@@ -78,7 +78,7 @@ def test_oadev_blocked_sums_equal_allantools(monkeypatch, block_terms, chunk, n)
     used on an accelerator (all series and samples in one step), the fourth two series a
     step (the second step's other series a copy of the first, dropped); the different n
     keep a version compiled with other sizes from being reused."""
-    from diffgyro import allan as allan_mod
+    from diffgyro.allan import _oadev as allan_mod  # the sums' private sizes live there
 
     block_terms = allan_mod._ACCEL_BLOCK_TERMS if block_terms == "accel" else block_terms
     chunk = allan_mod._ACCEL_CHUNK_SAMPLES if chunk == "accel" else chunk

@@ -62,3 +62,23 @@ def test_stream_fits_every_chunk_and_agrees_with_lstsq(tmp_path):
     (row,) = got["rows"]
     assert row["ok"] == 12 and row["max_rel_diff_vs_lstsq"] < 1e-9
     assert row["s"] > 0 and row["fraction_of_binding"] > 0
+
+
+def test_timing_medians_interleave_and_take_the_median(monkeypatch):
+    """benchmarks/_timing.py: the candidate's first call is timed apart, then candidate and
+    baselines run in turn each round, and each reports the median of its own rounds."""
+    spec = importlib.util.spec_from_file_location("bench_timing", ROOT / "benchmarks" / "_timing.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    clock = iter(range(1000))
+    monkeypatch.setattr(mod.time, "perf_counter", lambda: next(clock) ** 2)
+    order = []
+    first, dg, base, (out_c, out_b) = mod.measure(
+        lambda: order.append("c") or "C", {"b": lambda: order.append("b") or "B"}, 3)
+    assert order == ["c", "b"] + ["c", "b"] * 3
+    assert (out_c, out_b) == ("C", {"b": "B"})
+    # the clock reads t² at its t-th read: the first call (0, 1), then c (2, 3), b (4, 5),
+    # c (6, 7), b (8, 9), c (10, 11), b (12, 13): c took 5, 13, 21 and b 9, 17, 25
+    assert first == 1
+    assert dg == 13 and base == {"b": 17}
+    assert mod.median_time(lambda: None, 1) == 15 ** 2 - 14 ** 2

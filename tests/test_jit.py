@@ -204,7 +204,7 @@ def test_fit_checks_the_mappings_before_it_compiles(monkeypatch):
 
 @pytest.mark.parametrize("module, call", [
     ("diagnose._run", lambda m, b: m.diagnose("bias_poly(1)", b)),
-    ("allan", lambda m, b: m.allan_batch(b)),
+    ("allan._curves", lambda m, b: m.allan_batch(b)),
     ("kalman", lambda m, b: m.fit_random_walk("bias_poly(1)", b)),
     ("sensitivity", lambda m, b: m.hac_covariance(None, b)),
     ("sensitivity", lambda m, b: m.block_bootstrap(None, b)),
