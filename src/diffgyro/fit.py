@@ -31,7 +31,7 @@ from ._motion_judge import judge_motion
 from ._options import FitOptions
 from ._signal_builder import batch_signals, stacked_signals
 from .channel import GRAVITY, as_channel, check_channel, check_model, reads_gravity
-from .data import Batch, Recording, as_batch, pad_devices
+from .data import Batch, Recording, as_batch, pad_devices, valid_samples
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
@@ -196,7 +196,7 @@ def fit(
                                      gravity=float(gravity) if oriented else None)
         if not (check_motion or oriented):
             return result
-        recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
+        recorded = jax.device_put(valid_samples(imu.mask).astype(float))
         return judge_motion(result, dataclasses.replace(batch, rate=None), motion, recorded,
                             oriented)
     batch = imu
@@ -219,7 +219,7 @@ def fit(
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
     # (counted after the fit: while the check's first look, beside it, may still be reading)
-    recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
+    recorded = jax.device_put(valid_samples(imu.mask).astype(float))
     result = judge_motion(result, batch, motion, recorded, static_only,
                           ahead=None if static_only else ahead)
     if not floor:
