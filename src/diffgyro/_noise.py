@@ -30,8 +30,9 @@ a second of compile per group shape. numpy's introselect
 select a long row's subsample without a branch per value (:func:`diffgyro._select.select`,
 the same order statistics in about a third of the time). A block of a
 few devices' differences, small enough to stay in a core's cache, is
-differenced, its subsamples selected, and passed over once. Threads take
-chunks of devices side by side while the compiled fits run; numpy and the
+differenced, its subsamples selected, and passed over once. Threads claim
+chunks of devices in turn while the compiled fits run (one core's worth is left to the
+caller until it asks for the floor, then its thread claims chunks too); numpy and the
 compiled pass release the GIL.
 """
 
