@@ -18,6 +18,7 @@ from conftest import registered
 
 import diffgyro._fit_sums as fs
 from diffgyro import Batch, Recording
+from diffgyro.data import valid_samples
 from diffgyro.effects import AbstractEffect
 from diffgyro.fit import fit
 from diffgyro.internal import per_axis
@@ -326,10 +327,15 @@ def test_valid_counts(n):
     mask = np.arange(n)[None, :] < nv[:, None]
     holes = rng.random((d, n)) < 0.2
     mask[d // 2:] &= ~holes[d // 2:]
-    for m in (mask, np.asfortranarray(mask), mask[:, ::-1]):
+    spare = np.zeros(d * n + 1, bool)  # a copy one byte off an 8-byte boundary
+    offset = spare[1:].reshape(d, n)
+    offset[...] = mask
+    for m in (mask, np.asfortranarray(mask), mask[:, ::-1], offset):
         count, prefix = fs.valid_counts(m)
         want = np.count_nonzero(m, axis=1)
         np.testing.assert_array_equal(count, want)
+        np.testing.assert_array_equal(valid_samples(m), m.sum(axis=1))
+        assert valid_samples(m).dtype == np.int64
         np.testing.assert_array_equal(prefix, [np.array_equal(r, np.arange(n) < k)
                                                for r, k in zip(m, want)])
 

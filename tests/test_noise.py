@@ -213,6 +213,23 @@ def test_chunks_on_threads_give_the_one_call_answer(monkeypatch, threads):
     np.testing.assert_array_equal(axes, noise.noise_axes(g, None, mask))
 
 
+def test_the_floor_waits_for_its_work_and_claims_each_chunk_once(monkeypatch):
+    from concurrent.futures import Future
+
+    rng = np.random.default_rng(4)
+    g, mask = rng.normal(size=(23, 64, 3)), np.ones((23, 64), bool)
+    monkeypatch.setattr(noise, "CHUNK_SAMPLES", 4 * 64)  # 6 chunks, the last of 3 devices
+    real, chunks = noise.noise_axes, []
+    monkeypatch.setattr(noise, "noise_axes", lambda g, *a: chunks.append(len(g)) or real(g, *a))
+    first = Future()
+    result = noise.start(g, None, mask, threads=2, after=first)
+    assert chunks == []  # nothing before the work it waits for
+    first.set_result(None)
+    floor, axes = result()  # one worker and the caller claim the chunks
+    assert sorted(chunks) == [3, 4, 4, 4, 4, 4]
+    np.testing.assert_array_equal(axes, real(g, None, mask))
+
+
 def test_both_fit_paths_report_the_same_floor():
     # the sums path computes the floor on the host, the direct path inside its compiled fit
     rng = np.random.default_rng(5)

@@ -154,13 +154,15 @@ class AbstractFitResult(eqx.Module):
         extra columns' centring)."""
         return stacked_signals(*self._signal_inputs(batch), self.options.dtemp_window)
 
-    def _signal_inputs(self, batch: Batch) -> tuple:
+    def _signal_inputs(self, batch: Batch, intervals: bool = True) -> tuple:
         """What :func:`~diffgyro._signal_builder.stacked_signals` reads of ``batch``, with
-        this fit's centring of the temperature and the extra columns."""
+        this fit's centring of the temperature and the extra columns (``intervals``: see
+        :func:`~diffgyro._signal_builder.signal_inputs`)."""
         names = aux_cols.aux_names(self.model.requires())
         aux_cols.check_columns(batch, names, vary=False)
         return signal_inputs(batch, norm=self.norm if self.model.requires() & {"temp"} else None,
-                             aux=aux_cols.scaled(batch, self.aux_norm) if names else None)
+                             aux=aux_cols.scaled(batch, self.aux_norm) if names else None,
+                             intervals=intervals)
 
     def _axis_noise(self, i: int, axis: int) -> dict:
         """A noise process' levels on gyro axis ``axis`` of device ``i``, by label."""

@@ -21,7 +21,7 @@ from jaxtyping import Array, Float
 
 from ._fit_result import AbstractFitResult
 from ._window_explain import Explanation
-from .data import Batch
+from .data import Batch, valid_samples
 from .motion import Motion, motion_check, rest_kept
 from .status import IN_MOTION, OK, REST_UNVERIFIED
 
@@ -44,7 +44,7 @@ def judge_motion(result: AbstractFitResult, batch: Batch, motion: Motion | None 
         motion = motion_check(batch, explain=None if static_only else _explanation(result, batch),
                               ahead=ahead)
     if recorded is None:
-        recorded = jax.device_put(np.asarray(batch.mask).sum(axis=1).astype(float))
+        recorded = jax.device_put(valid_samples(batch.mask).astype(float))
     status = result.status
     if batch.rate is None:  # a fit with a rate reference subtracts it
         if static_only:

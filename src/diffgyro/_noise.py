@@ -30,14 +30,16 @@ a second of compile per group shape. numpy's introselect
 select a long row's subsample without a branch per value (:func:`diffgyro._select.select`,
 the same order statistics in about a third of the time). A block of a
 few devices' differences, small enough to stay in a core's cache, is
-differenced, its subsamples selected, and passed over once. Threads take
-chunks of devices side by side while the compiled fits run; numpy and the
+differenced, its subsamples selected, and passed over once. Threads claim
+chunks of devices in turn while the compiled fits run (one core's worth is left to the
+caller until it asks for the floor, then its thread claims chunks too); numpy and the
 compiled pass release the GIL.
 """
 
 from __future__ import annotations
 
 import functools
+import itertools
 import math
 import threading
 from collections.abc import Callable
@@ -46,7 +48,7 @@ from concurrent.futures import Future
 import numpy as np
 from jaxtyping import Bool, Float
 
-from ._jit import host_pool
+from ._jit import available_cores, host_pool
 
 #: Most differences of a row its window is placed from (:func:`subsample_ranks`); odd,
 #: so that the subsample's median is one order statistic.
@@ -88,10 +90,11 @@ def noise_axes(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"
     step = max(1, (PASS_SAMPLES if compiled and n - 1 > SUBSAMPLE else BLOCK_SAMPLES) // n)
     for a in range(0, d, step):
         b = min(a + step, d)
-        pair = np.asarray(mask[a:b], bool)
-        pair = pair[:, 1:] & pair[:, :-1]
-        sigma = _sigma_every_pair(gyro, rate, a, b, dtype, compiled) if pair.all() else None
+        valid = np.asarray(mask[a:b], bool)
+        # (every pair is valid where every sample is: no mask of the pairs)
+        sigma = _sigma_every_pair(gyro, rate, a, b, dtype, compiled) if valid.all() else None
         if sigma is None or np.isnan(sigma).any():  # pairs left out, or NaN differences
+            pair = valid[:, 1:] & valid[:, :-1]
             sigma = sigma_from_differences(_differences(gyro, rate, a, b, dtype), pair, compiled)
         out[a:b] = sigma.reshape(-1, 3)
     return out
@@ -332,22 +335,35 @@ def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | N
     returned function waits and gives ``(noise_floor (d,), noise_axes (d, 3))``.
 
     numpy releases the GIL while it partitions and subtracts, so the chunks run
-    beside each other and beside compiled programs. ``after``: the chunks are handed to
-    the threads once this work is done (work the caller waits for first, such as a motion
-    check's read beside a fit: on two cores the floor would take a core from it).
+    beside each other and beside compiled programs. The chunks are claimed in turn by
+    one worker fewer than ``threads`` (default: the cores), and by the caller once it
+    asks for the result: a caller with work of its own first (a fit's motion check, on
+    one core at a time) keeps a core for it, and its core joins the floor when it is done.
+    ``after``: the chunks are handed to the threads once this work is done (work the
+    caller waits for first, such as a motion check's read beside a fit: on two cores the
+    floor would take a core from it).
     """
     d, n = np.shape(mask)
     step = max(1, CHUNK_SAMPLES // max(n, 1))
     compiled = d * n >= COMPILED_SAMPLES  # the whole batch's choice, whatever its chunks
-    # a thread per core this process may run on (kept for the process)
+    threads = threads or available_cores()
+    # a thread per core this process may run on (kept for the process), one of them the caller's
     pool = host_pool("noise", threads)
+    starts = range(0, d, step)
+    axes = np.full((d, 3), np.nan, dtype)
+    claims = itertools.count()  # (next() on a count is atomic: each chunk is claimed once)
     jobs: list = []
     handed = threading.Event()
 
+    def work() -> None:
+        while (c := next(claims)) < len(starts):
+            a = starts[c]
+            axes[a:a + step] = noise_axes(gyro[a:a + step],
+                                          None if rate is None else rate[a:a + step],
+                                          mask[a:a + step], dtype, compiled)
+
     def hand_out(_=None) -> None:
-        jobs.extend(pool.submit(noise_axes, gyro[a:a + step],
-                                None if rate is None else rate[a:a + step], mask[a:a + step],
-                                dtype, compiled) for a in range(0, d, step))
+        jobs.extend(pool.submit(work) for _ in range(min(max(threads - 1, 1), len(starts))))
         handed.set()
 
     if after is None:
@@ -357,8 +373,9 @@ def start(gyro: Float[np.ndarray, "d n 3"], rate: Float[np.ndarray, "d n 3"] | N
 
     def result() -> tuple[np.ndarray, np.ndarray]:
         handed.wait()
-        axes = (np.concatenate([job.result() for job in jobs]) if jobs
-                else np.zeros((0, 3), dtype))
+        work()  # the chunks no worker has claimed yet
+        for job in jobs:
+            job.result()
         return noise_floor(axes), axes
 
     return result

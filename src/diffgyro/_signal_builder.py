@@ -40,15 +40,17 @@ def batch_signals(
 
 
 def signal_inputs(batch: Batch, norm: TempNorm | None = None, dtype=jnp.float64,
-                  aux: dict | None = None) -> tuple:
+                  aux: dict | None = None, intervals: bool = True) -> tuple:
     """What :func:`stacked_signals` reads of ``batch`` (after ``dtemp_window``, its last
     argument), as :func:`batch_signals` describes them: a program that derives the
-    signals inside (a prediction, a residual) takes the same inputs."""
+    signals inside (a prediction, a residual) takes the same inputs. ``intervals``: False
+    leaves the sampling intervals out (None), for a program whose outputs do not read
+    dT/dt (its trace then drops them): no median of every device's intervals."""
 
     def arr(x):
         return None if x is None else jnp.asarray(x, dtype)
 
-    dt = jnp.asarray(sampling_intervals(batch), dtype)
+    dt = jnp.asarray(sampling_intervals(batch), dtype) if intervals else None
     if norm is not None:
         norm = TempNorm(centre=jnp.broadcast_to(jnp.asarray(norm.centre, dtype), (batch.n_devices,)),
                         scale=jnp.broadcast_to(jnp.asarray(norm.scale, dtype), (batch.n_devices,)))

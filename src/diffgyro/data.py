@@ -30,7 +30,7 @@ from ._vocabulary import AUX_PREFIX
 from .errors import DataError
 
 __all__ = ["Batch", "Recording", "as_batch", "pad_devices", "device_bucket", "bucket_length",
-           "sampling_intervals", "as_slice", "aux_key", "STANDARD_COLUMNS", "SIGNALS",
+           "sampling_intervals", "valid_samples", "as_slice", "aux_key", "STANDARD_COLUMNS", "SIGNALS",
            "OPTIONAL_SIGNALS", "COLUMN_TO_SIGNAL", "AUX_PREFIX"]
 
 # Signal name -> standard column names (the standard schema, contract).
@@ -391,6 +391,22 @@ def pad_devices(batch: Batch) -> Batch:
     if m == n:
         return batch
     return batch.select(np.minimum(np.arange(m), n - 1))
+
+
+def valid_samples(mask: Bool[np.ndarray, "d n"]) -> Int[np.ndarray, " d"]:
+    """Valid samples of every device (int64): the mask's bytes read as 64-bit words and
+    counted by popcount where its layout allows (numpy ≥ 2.0), a count of the flags
+    otherwise; the numbers ``mask.sum(axis=1)`` gives, in a fraction of its time.
+
+    **Arguments:**
+
+    - ``mask``: the devices' valid samples (devices × samples).
+    """
+    mask = np.asarray(mask, bool)
+    if (hasattr(np, "bitwise_count") and mask.ndim == 2 and mask.shape[1] % 8 == 0
+            and mask.flags.c_contiguous and mask.ctypes.data % 8 == 0):
+        return np.bitwise_count(mask.view(np.uint64)).sum(axis=1, dtype=np.int64)
+    return np.count_nonzero(mask, axis=1).astype(np.int64)
 
 
 def sampling_intervals(batch: Batch) -> np.ndarray:

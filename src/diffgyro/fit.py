@@ -25,13 +25,13 @@ from jaxtyping import Array, Bool, Float, Int
 from . import _aux as aux_cols
 from ._direct import solve_batch, solve_device
 from ._fit_result import AbstractFitResult
-from ._fit_sums import solve_sums
+from ._fit_sums import layout_of, solve_sums
 from ._jit import release_compiled_if_crowded
 from ._motion_judge import judge_motion
 from ._options import FitOptions
 from ._signal_builder import batch_signals, stacked_signals
 from .channel import GRAVITY, as_channel, check_channel, check_model, reads_gravity
-from .data import Batch, Recording, as_batch, pad_devices
+from .data import Batch, Recording, as_batch, aux_key, pad_devices, valid_samples
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
@@ -103,7 +103,10 @@ class FitResult(AbstractFitResult):
 
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
-        return _residual_batch(self.model, self.params, self._signal_inputs(batch),
+        # the sampling intervals only for a model that reads dT/dt (the sums path's rule)
+        present = frozenset(batch.signals) | {aux_key(k) for k in batch.aux}
+        intervals = "dt" in layout_of(self.model, present)[1]
+        return _residual_batch(self.model, self.params, self._signal_inputs(batch, intervals),
                                self.options.dtemp_window)
 
     def _verdict(self, i: int) -> dict:
@@ -196,7 +199,7 @@ def fit(
                                      gravity=float(gravity) if oriented else None)
         if not (check_motion or oriented):
             return result
-        recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
+        recorded = jax.device_put(valid_samples(imu.mask).astype(float))
         return judge_motion(result, dataclasses.replace(batch, rate=None), motion, recorded,
                             oriented)
     batch = imu
@@ -219,7 +222,7 @@ def fit(
     if not isinstance(result, AbstractFitResult):  # a user's noise fit with a result of its own
         return result
     # (counted after the fit: while the check's first look, beside it, may still be reading)
-    recorded = jax.device_put(np.asarray(imu.mask).sum(axis=1).astype(float))
+    recorded = jax.device_put(valid_samples(imu.mask).astype(float))
     result = judge_motion(result, batch, motion, recorded, static_only,
                           ahead=None if static_only else ahead)
     if not floor:

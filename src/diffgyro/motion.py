@@ -433,8 +433,10 @@ def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
                ) -> Float[np.ndarray, " d"]:
     """The rate (norm) of the mean of each device's window means over its windows ``use``
     (0 where none; NaN elsewhere left out): one contraction, not a sum per window."""
+    picked = np.array(mean, order="C")  # (a copy of the strided means, the unused then
+    picked[~use] = 0.0  # zeroed: np.where(use, mean, 0)'s numbers in one pass less)
     with np.errstate(invalid="ignore"):
-        total = np.einsum("dk,dkc->dc", use.astype(mean.dtype), np.where(use[..., None], mean, 0.0))
+        total = np.einsum("dk,dkc->dc", use.astype(mean.dtype), picked)
         held = total / np.maximum(use.sum(axis=1), 1)[:, None]
     return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 

@@ -6,6 +6,8 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Bool
 
+from ..data import valid_samples
+
 #: Longest sample chunk of the variadic reduction (shortened to the shortest fold block).
 CHUNK = 32
 #: About this many samples (devices × samples) go into one compiled call.
@@ -87,10 +89,6 @@ def valid_counts(mask: Bool[np.ndarray, "d n"]) -> tuple[np.ndarray, np.ndarray]
     """
     mask = np.asarray(mask, bool)
     d, n = mask.shape
-    if (hasattr(np, "bitwise_count") and n % 8 == 0 and mask.flags.c_contiguous
-            and mask.ctypes.data % 8 == 0):  # numpy ≥ 2.0
-        nv = np.bitwise_count(mask.view(np.uint64)).sum(axis=1, dtype=np.int64)
-    else:
-        nv = np.count_nonzero(mask, axis=1).astype(np.int64)
+    nv = valid_samples(mask)
     first_invalid = np.argmin(mask, axis=1) if n else np.zeros(d, np.int64)
     return nv, (nv == n) | (first_invalid == nv)
