@@ -383,14 +383,19 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     nv = np.broadcast_to(np.asarray(n if n_valid is None else n_valid, np.int64), lead)
     dtb = np.broadcast_to(np.asarray(dt, np.float64), lead)
     m = dyadic_m(n)
+    total = math.prod(lead)
+    program = _identify_batch(total * n)
+    # the identification's program traced here and compiled on a thread of its own (XLA
+    # holds no GIL) while the wavelet variances' program compiles and runs; one compiled
+    # ahead before (``noise``'s :func:`load_ahead`) is not compiled again
+    compiled = program.compile_ahead(*chunk_specs(total, n, structures), len(m))
     # numpy in and out around the compiled programs: an eager operation on a JAX array is a
     # program of its own (lowered and read from the cache: milliseconds each)
     wv, count = haar_wv(y, dtb, None if n_valid is None else nv, m)
     flat = lambda a: np.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
     args = [flat(a) for a in (wv, count, nv.astype(np.float64), dtb)]
-    total = args[0].shape[0]
     step = _chunk(total)
-    program = _identify_batch(total * n)
+    compiled.join()
     parts = []
     for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
