@@ -14,6 +14,14 @@ Per series (vmapped over devices × axes, one compiled program):
    part chosen again by the exact likelihood of the record's block means
    (:mod:`.block_likelihood`; its close calls by a parametric bootstrap,
    :mod:`.slow_bootstrap`), the intervals recomputed (step 4) where the choice moved.
+
+The functions the program calls at several places (:func:`.components.avar_gauss_markov`,
+:func:`.covariance.wv_covariance`,
+:func:`.estimator.log_moments`, :func:`.estimator.scaled_chol`) are ``jax.jit`` functions:
+in the trace each is a call, traced once per shape and batched once per pattern of
+batched arguments, instead of again at every place and in every pass of a ``scan``'s
+batching. XLA inlines the calls, so the compiled program is the same; its first call
+traces in less time.
 """
 
 from __future__ import annotations
