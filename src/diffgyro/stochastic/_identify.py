@@ -16,12 +16,12 @@ Per series (vmapped over devices × axes, one compiled program):
    :mod:`.slow_bootstrap`), the intervals recomputed (step 4) where the choice moved.
 
 The functions the program calls at several places (:func:`.components.avar_gauss_markov`,
-:func:`.covariance.wv_covariance`,
-:func:`.estimator.log_moments`, :func:`.estimator.scaled_chol`) are ``jax.jit`` functions:
-in the trace each is a call, traced once per shape and batched once per pattern of
-batched arguments, instead of again at every place and in every pass of a ``scan``'s
-batching. XLA inlines the calls, so the compiled program is the same; its first call
-traces in less time.
+:func:`.covariance.wv_covariance`, :func:`.estimator.log_moments`,
+:func:`.estimator.scaled_chol`) are ``jax.jit`` functions: in the trace each is a call,
+traced once per shape and batched once per pattern of batched arguments, instead of again
+at every place and in every pass of a ``scan``'s batching. XLA inlines the calls and
+compiles the same program, which traces in less time. (As a call,
+:func:`.components.model_wv_jac` moved the program's last bits: it is not one.)
 """
 
 from __future__ import annotations
