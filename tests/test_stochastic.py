@@ -494,13 +494,24 @@ def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series,
     it would load a second program), for a chunk under the batch and one over it."""
     from diffgyro.stochastic import _identify, catalogue
 
-    seen = []
+    seen, ahead = [], []
+
+    class Done:
+        def join(self):
+            pass
 
     def spy(samples):
         def call(*args):
             seen.append([(a.shape, np.dtype(a.dtype), bool(getattr(a, "weak_type", False)))
                          for a in args[:-1]] + [args[-1]])
             raise _Called
+
+        def compile_ahead(*args):
+            ahead.append([(a.shape, np.dtype(a.dtype), bool(a.weak_type)) for a in args[:-1]]
+                         + [args[-1]])
+            return Done()
+
+        call.compile_ahead = compile_ahead
         return call
 
     monkeypatch.setattr(_identify, "_identify_batch", spy)
@@ -510,6 +521,7 @@ def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series,
     specs = _identify.chunk_specs(series, n, catalogue(max_gm))
     assert seen == [[(s.shape, np.dtype(s.dtype), s.weak_type) for s in specs]
                     + [len(dyadic_m(n))]]
+    assert ahead == seen  # identify's own compilation ahead is of that program too
 
 
 @pytest.mark.parametrize("devices,n", [(1, 12000), (3, 700)])
@@ -545,4 +557,6 @@ def test_the_wavelet_variances_program_loaded_ahead_is_the_one_identify_calls(mo
     y = np.random.default_rng(2).standard_normal((devices, 3, n)) * 1e-3
     with pytest.raises(_Called):
         identify(y, np.full((devices, 3), 0.1), structures=catalogue(2))
-    assert len(started) == 2 and started[1:] == called
+    # load_ahead's two programs, then identify's own start of the first (the same
+    # signature: compile_ahead returns the thread load_ahead started)
+    assert len(started) == 3 and started[0] == started[2] and started[1:2] == called

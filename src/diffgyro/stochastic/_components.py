@@ -65,9 +65,11 @@ def avar_rate_ramp(r2, tau):
     return 0.5 * r2 * tau**2
 
 
+@jax.jit
 def avar_gauss_markov(s2, t_corr, tau, dt):
     """First-order Gauss–Markov rate of stationary variance σ² and correlation time T (module
-    docstring); written with expm1 so that T ≫ dt keeps its digits."""
+    docstring); written with expm1 so that T ≫ dt keeps its digits. Traced once per
+    shape (:mod:`.identify`'s note)."""
     m = tau / dt
     a = dt / t_corr
     one_phi = -jnp.expm1(-a)  # 1 − φ

@@ -23,6 +23,7 @@ few per cent while the grid stays a thousand points for any record length.
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Bool, Float
 
@@ -49,10 +50,12 @@ def psd(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], f: Float[Array, " G"
     return out
 
 
+@jax.jit
 def wv_covariance(theta: Float[Array, " 8"], mask: Bool[Array, " 8"], m: Float[Array, " J"],
                   count: Float[Array, " J"], n, dt) -> Float[Array, "J J"]:
     """Covariance of the empirical Haar wavelet variances at cluster sizes ``m`` (each averaged
-    over ``count`` terms) of an n-sample series of the model (module docstring)."""
+    over ``count`` terms) of an n-sample series of the model (module docstring). Traced once
+    per shape (:mod:`.identify`'s note)."""
     m = jnp.asarray(m, jnp.float64)
     lf = jnp.linspace(jnp.log(0.02 / n), jnp.log(0.5), GRID)
     f = jnp.exp(lf)

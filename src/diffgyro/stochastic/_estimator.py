@@ -51,21 +51,24 @@ ITERATIONS = 20
 _LOG_FLOOR = -150.0
 
 
+@jax.jit
 def scaled_chol(cov_scaled: Float[Array, "J J"], valid: Bool[Array, " J"]) -> Float[Array, "J J"]:
-    """Cholesky factor of a covariance of relative wavelet variances, identity on invalid scales."""
+    """Cholesky factor of a covariance of relative wavelet variances, identity on invalid scales
+    (traced once per shape: :mod:`.identify`'s note)."""
     vv = valid[:, None] & valid[None, :]
     c = jnp.where(vv, cov_scaled, jnp.eye(cov_scaled.shape[0]))
     jitter = 1e-10 * jnp.trace(c) / c.shape[0]
     return jnp.linalg.cholesky(c + jitter * jnp.eye(c.shape[0]))
 
 
+@jax.jit
 def log_moments(rel_cov: Float[Array, "J J"]) -> tuple[Float[Array, "J J"], Float[Array, " J"]]:
     """Covariance and bias of log ν̂ from the relative covariance of ν̂ (Σ/(ν νᵀ)).
 
     A wavelet variance averaged over few independent terms is skewed (χ² with e = 2/Σ̃_jj
     equivalent degrees of freedom: at the longest scales e is a few); its logarithm is
     nearly symmetric, with mean log ν + ψ(e/2) − log(e/2) and variance ψ′(e/2). The
-    correlations of Σ̃ are kept."""
+    correlations of Σ̃ are kept. Traced once per shape (:mod:`.identify`'s note)."""
 
     d = jnp.maximum(jnp.diag(rel_cov), 1e-12)
     e = 2.0 / d

@@ -14,6 +14,14 @@ Per series (vmapped over devices × axes, one compiled program):
    part chosen again by the exact likelihood of the record's block means
    (:mod:`.block_likelihood`; its close calls by a parametric bootstrap,
    :mod:`.slow_bootstrap`), the intervals recomputed (step 4) where the choice moved.
+
+The functions the program calls at several places (:func:`.components.avar_gauss_markov`,
+:func:`.covariance.wv_covariance`, :func:`.estimator.log_moments`,
+:func:`.estimator.scaled_chol`) are ``jax.jit`` functions: in the trace each is a call,
+traced once per shape and batched once per pattern of batched arguments, instead of again
+at every place and in every pass of a ``scan``'s batching. XLA inlines the calls and
+compiles the same program, which traces in less time. (As a call,
+:func:`.components.model_wv_jac` moved the program's last bits: it is not one.)
 """
 
 from __future__ import annotations
@@ -383,14 +391,19 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     nv = np.broadcast_to(np.asarray(n if n_valid is None else n_valid, np.int64), lead)
     dtb = np.broadcast_to(np.asarray(dt, np.float64), lead)
     m = dyadic_m(n)
+    total = math.prod(lead)
+    program = _identify_batch(total * n)
+    # the identification's program traced here and compiled on a thread of its own (XLA
+    # holds no GIL) while the wavelet variances' program compiles and runs; one compiled
+    # ahead before (``noise``'s :func:`load_ahead`) is not compiled again
+    compiled = program.compile_ahead(*chunk_specs(total, n, structures), len(m))
     # numpy in and out around the compiled programs: an eager operation on a JAX array is a
     # program of its own (lowered and read from the cache: milliseconds each)
     wv, count = haar_wv(y, dtb, None if n_valid is None else nv, m)
     flat = lambda a: np.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
     args = [flat(a) for a in (wv, count, nv.astype(np.float64), dtb)]
-    total = args[0].shape[0]
     step = _chunk(total)
-    program = _identify_batch(total * n)
+    compiled.join()
     parts = []
     for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
