@@ -607,7 +607,10 @@ def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, 
 
 
 def _nested(*args, **kwargs) -> Diagnosis:
-    """The greedy pair's nested diagnosis: its residual's noise is not reported."""
+    """The greedy pair's nested diagnosis: its residual's noise is not reported, and its
+    fit does not check the recordings for motion again: a pair is formed only for a device
+    the base fit's check found fit to judge, and the check's programs (compiled for the
+    sub-batch's size) were most of a nested diagnosis's compile time after the scoring's."""
     return diagnose(*args, noise=False, **kwargs)
 
 
@@ -729,6 +732,8 @@ def diagnose(
     if greedy:
         nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
                        "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
+        if not fit_options.get("static_only"):
+            nested_opts["check_motion"] = False  # (judged by the base fit: see _nested)
         say("trying the best term followed by a second")
         pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
         for i, pair in pairs.items():
