@@ -606,6 +606,16 @@ def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, 
     return rescore
 
 
+def _nested_options(opts, fit_options: dict) -> dict:
+    """The nested diagnosis's options: the base fit's folds and dT/dt window (``opts``), the
+    caller's fit options, no synthesis, and no second motion check (:func:`_nested`)."""
+    nested = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+              "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
+    if not fit_options.get("static_only"):  # (static_only fits the check's rests)
+        nested["check_motion"] = False
+    return nested
+
+
 def _nested(*args, **kwargs) -> Diagnosis:
     """The greedy pair's nested diagnosis: its residual's noise is not reported, and its
     fit does not check the recordings for motion again: a pair is formed only for a device
@@ -730,12 +740,9 @@ def diagnose(
         floor_allans.append(fa)
     opts = res.options
     if greedy:
-        nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
-                       "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
-        if not fit_options.get("static_only"):
-            nested_opts["check_motion"] = False  # (judged by the base fit: see _nested)
         say("trying the best term followed by a second")
-        pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
+        pairs = greedy_pairs(devices, batch, candidates, th, _nested_options(opts, fit_options),
+                             _nested)
         for i, pair in pairs.items():
             devices[i] = _device(i, batch, host, out, cands, ranges, floors, al, rw_spec, th,
                                  model, unsupported, skips[i], pair)[0]
