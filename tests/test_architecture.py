@@ -519,6 +519,7 @@ PRIVATE_UNDER_TEST = {
     "test_term_info.py": {"diffgyro._term_info"},
     "test_allan.py": {"diffgyro.allan._oadev"},  # the Allan sums' block and chunk sizes
     "test_synthesis.py": {"diffgyro.diagnose._synthesis"},  # its claims table
+    "test_diagnose_greedy.py": {"diffgyro.diagnose._run"},  # the base fits a pair's runs
     "test_noise.py": {"diffgyro._noise", "diffgyro._noise_jax", "diffgyro._noise_passes"},
     "test_block_likelihood.py": {"diffgyro.stochastic._toeplitz"},  # the O(M²) deviance
     "test_slow_bootstrap.py": {"diffgyro.stochastic._slow_bootstrap"},  # the drawn law

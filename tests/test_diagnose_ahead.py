@@ -59,7 +59,9 @@ def test_the_prediction_is_the_fits_setting_bit_for_bit(batch, spec):
     assert (st.n_folds, st.dtemp_window) == (4, 45.0)
     assert st.norm is not None and set(st.aux_norm) == ({"vdd"} if "aux" in spec else set())
     # options it does not follow: no prediction; a different norm is told apart
-    assert ahead.predicted(model, batch, {"check_motion": False}) is None
+    assert ahead.predicted(model, batch, {"static_only": True}) is None
+    # (the motion check sets the status, not the setting)
+    assert ahead.same(ahead.predicted(model, batch, {**options, "check_motion": False}), st)
     off = st._replace(norm=TempNorm(centre=st.norm.centre, scale=np.nextafter(st.norm.scale, 99)))
     assert not ahead.same(off, ahead.of_fit(res))
 

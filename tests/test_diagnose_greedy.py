@@ -9,12 +9,15 @@ follows T·dT/dt, which no built-in term is linear in.
 
 from __future__ import annotations
 
+from unittest import mock
+
 import hidden_effects as H
 import pytest
 from rich.console import Console
 
 from diffgyro.cli.diagnose import print_diagnosis
 from diffgyro.data import Batch
+from diffgyro.diagnose import _run as run_module
 from diffgyro.diagnose import diagnose, diagnose_auto
 
 BASE = "bias_poly(2)"
@@ -29,15 +32,26 @@ def _thermal(effect: str, seed: int, size: float) -> H.Hidden:
 
 @pytest.fixture(scope="module")
 def two_effects():
+    """The ladder of one device missing both effects, and every base fit its diagnoses ran
+    (model spec, devices, the fit options they were given)."""
     hs = [_thermal(TWO, 500, 1.5)]
     batch = Batch.from_recordings([h.recording for h in hs])
-    return hs, diagnose_auto(BASE, batch, max_steps=2)
+    fits = []
+
+    def recorded(model, data, **options):
+        fits.append((model.spec, data.n_devices, options))
+        return real(model, data, **options)
+
+    real = run_module.fit_fn
+    with mock.patch.object(run_module, "fit_fn", recorded):
+        ladder = diagnose_auto(BASE, batch, max_steps=2)
+    return hs, ladder, fits
 
 
 def test_a_deterministic_term_first_and_the_next_one_named(two_effects):
     """The walk would close the gap, but so does the best term followed by the best second
     term: the verdict names the first, ``next`` (and the explanation) the second."""
-    _, ladder = two_effects
+    _, ladder, _ = two_effects
     for d, rec in zip(ladder.first.devices, ladder.first.records()):
         assert d.verdict == "missing_effect" and d.best is not None, d.explanation
         assert not d.best.stochastic and d.random_walk is not None and not d.random_walk.significant
@@ -52,12 +66,24 @@ def test_a_deterministic_term_first_and_the_next_one_named(two_effects):
 
 
 def test_two_rounds_of_auto_reach_the_noise(two_effects):
-    hs, ladder = two_effects
+    hs, ladder, _ = two_effects
     added = [s.added for s in ladder.steps[1:]]
     assert len(added) == 2 and "random_walk" not in added, added
     for h, got, v in zip(hs, ladder.steps[-1].heldout_rms, ladder.steps[-1].verdicts):
         assert v == "adequate"
         assert abs(got / h.noise_rms - 1.0) <= 0.10, (got / h.noise_rms, added)
+
+
+def test_the_pair_is_fitted_without_a_second_motion_check(two_effects):
+    """The pair's nested diagnosis fits base + first term on the devices whose walk won
+    without checking their recordings for motion again (the base fit's check judged them
+    fit to judge); every rung of the ladder checks its own fit, as diagnose does."""
+    _, ladder, fits = two_effects
+    first = ladder.first.devices[0]
+    nested = [(spec, n) for spec, n, o in fits if o.get("check_motion") is False]
+    assert nested[0] == (first.best.spec, 1), fits
+    rungs = [spec for spec, _, o in fits if "check_motion" not in o]
+    assert rungs == [s.spec for s in ladder.steps], fits
 
 
 def test_an_effect_outside_the_vocabulary_names_the_signal_not_a_term():

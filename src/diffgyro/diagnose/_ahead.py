@@ -55,9 +55,11 @@ def predicted(model: ErrorModel, batch: Batch, fit_options: dict) -> Setting | N
     """The :class:`Setting` a fit of ``model`` on ``batch`` with ``fit_options`` will hold,
     formed as the fit forms it (the device's own temperature range: centre its middle,
     scale its half-width, at least 0.5 °C); None where the options hold more than
-    :class:`~diffgyro.fit.FitOptions` fields (a norm given, a motion setting), which the
-    prediction does not follow."""
-    if not set(fit_options) <= _OPTIONS:
+    :class:`~diffgyro.fit.FitOptions` fields and ``check_motion`` (a norm given,
+    ``static_only``), which the prediction does not follow. Whether the recordings are
+    checked for motion sets the fit's status, not its setting (a greedy pair's nested
+    diagnosis fits without the check: :func:`._run._nested`)."""
+    if not set(fit_options) - {"check_motion"} <= _OPTIONS:
         return None
     opts = {**_DEFAULTS, **{k: v for k, v in fit_options.items() if k in _DEFAULTS}}
     norm = None

@@ -606,8 +606,21 @@ def _rescorer(devices, batch, res, out, cands, ranges, floors, al, rw_spec, th, 
     return rescore
 
 
+def _nested_options(opts, fit_options: dict) -> dict:
+    """The nested diagnosis's options: the base fit's folds and dT/dt window (``opts``), the
+    caller's fit options, no synthesis, and no second motion check (:func:`_nested`)."""
+    nested = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
+              "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
+    if not fit_options.get("static_only"):  # (static_only fits the check's rests)
+        nested["check_motion"] = False
+    return nested
+
+
 def _nested(*args, **kwargs) -> Diagnosis:
-    """The greedy pair's nested diagnosis: its residual's noise is not reported."""
+    """The greedy pair's nested diagnosis: its residual's noise is not reported, and its
+    fit does not check the recordings for motion again: a pair is formed only for a device
+    the base fit's check found fit to judge, and the check's programs (compiled for the
+    sub-batch's size) were most of a nested diagnosis's compile time after the scoring's."""
     return diagnose(*args, noise=False, **kwargs)
 
 
@@ -727,10 +740,9 @@ def diagnose(
         floor_allans.append(fa)
     opts = res.options
     if greedy:
-        nested_opts = {"n_blocks": opts.n_blocks, "n_folds": opts.n_folds,
-                       "dtemp_window": opts.dtemp_window, "synthesis": False, **fit_options}
         say("trying the best term followed by a second")
-        pairs = greedy_pairs(devices, batch, candidates, th, nested_opts, _nested)
+        pairs = greedy_pairs(devices, batch, candidates, th, _nested_options(opts, fit_options),
+                             _nested)
         for i, pair in pairs.items():
             devices[i] = _device(i, batch, host, out, cands, ranges, floors, al, rw_spec, th,
                                  model, unsupported, skips[i], pair)[0]
