@@ -451,6 +451,7 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     A signal added to the catalogue that one of them lacks fails here."""
     import re
 
+    import equinox as eqx
     import jax.numpy as jnp
     import numpy as np
 
@@ -472,13 +473,15 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     temp = 20.0 + 0.5 * t
     rate = np.stack([np.sin(t / 5), np.cos(t / 7), np.sin(t / 3)], 1)
     accel = np.tile([0.0, 0.0, 9.81], (n, 1))
+    # (each compiled as one program: run op by op, they compiled a hundred small ones)
     made = {
-        "signals.make_signals": make_signals(
+        "signals.make_signals": eqx.filter_jit(make_signals)(
             jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), rate=jnp.asarray(rate),
             temp=jnp.asarray(temp), temp_ext=jnp.asarray(temp - 2), accel=jnp.asarray(accel)),
-        "plan_design.operating_signals": operating_signals(
+        "plan_design.operating_signals": eqx.filter_jit(operating_signals)(
             [20.0, 30.0], [0.1, 0.2, 0.3], TempNorm(centre=25.0, scale=10.0)),
-        "_fit_sums.layout._random_signals": _random_signals(frozenset(INPUTS), n, 0),
+        "_fit_sums.layout._random_signals": eqx.filter_jit(_random_signals)(
+            frozenset(INPUTS), n, 0),
     }
     for place, sig in made.items():
         assert [s for s in CATALOGUE if not present(sig, s)] == [], place
