@@ -10,6 +10,7 @@ batches split over many compiled groups.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -214,7 +215,9 @@ def test_thermal_lag_jet_equals_forward_mode(order):
     n = 400
     t = np.cumsum(rng.uniform(0.2, 3.0, n))
     temp = 20.0 + np.cumsum(rng.normal(size=n))
-    sig = make_signals(jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), temp=jnp.asarray(temp))
+    # (one compiled program: op by op, make_signals compiled some seventy small ones)
+    sig = eqx.filter_jit(make_signals)(jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool),
+                                       temp=jnp.asarray(temp))
     term = ThermalLag(order=order)
 
     @jax.jit  # one program per order for the five time constants
