@@ -92,11 +92,12 @@ def test_loglik_gradient_matches_finite_differences():
     t, obs, x, y = _small_problem(seed=5, n=200)
     args = (jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t))
 
+    @jax.jit  # (compiled whole: op by op it compiled a hundred small programs)
     def f(p):
         return loglik(*args, jnp.exp(p[0]), jnp.exp(p[1]), jnp.exp(p[2]), True)[0]
 
     p = jnp.array([math.log(0.3), math.log(0.5), math.log(0.1)])
-    g = np.asarray(jax.grad(f)(p))
+    g = np.asarray(jax.jit(jax.grad(f))(p))
     h = 1e-5
     fd = np.array([(f(p.at[i].add(h)) - f(p.at[i].add(-h))) / (2 * h) for i in range(3)])
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
@@ -114,6 +115,7 @@ def test_gradient_through_a_time_constant_matches_finite_differences():
     model = ErrorModel.from_spec("bias_poly(0)+warmup+random_walk")
     obs = jnp.ones(n, bool)
 
+    @jax.jit  # (compiled whole: op by op it compiled 150 small programs)
     def nll(p):
         x = model.design(sig, p[6:])
         ll = jax.vmap(lambda yi, xi, qi, ri: loglik(yi, xi, obs, sig.t, qi, ri)[0],
@@ -121,7 +123,7 @@ def test_gradient_through_a_time_constant_matches_finite_differences():
         return -jnp.sum(ll)
 
     p = jnp.concatenate([jnp.full(3, math.log(1e-8)), jnp.full(3, math.log(1e-6)), jnp.log(jnp.array([50.0]))])
-    g = np.asarray(jax.grad(nll)(p))
+    g = np.asarray(jax.jit(jax.grad(nll))(p))
     h = 1e-5
     fd = np.array([(nll(p.at[i].add(h)) - nll(p.at[i].add(-h))) / (2 * h) for i in range(7)])
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
