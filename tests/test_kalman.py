@@ -63,11 +63,14 @@ def test_filter_and_smoother_equal_dense_gp(p0, reml):
     t, obs, x, y = _small_problem()
     q, r = 0.3, 0.5
     ll_ref, beta_ref, mean_ref, var_ref = _dense(t, obs, x, y, q, r, p0, reml)
-    ll, beta = loglik(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t), q, r, p0, reml)
+    # (each compiled whole, eqx.filter_jit: op by op they compiled dozens of small programs)
+    ll, beta = eqx.filter_jit(loglik)(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs),
+                                      jnp.asarray(t), q, r, p0, reml)
     assert float(ll) == pytest.approx(ll_ref, rel=1e-10)
     np.testing.assert_allclose(np.asarray(beta), beta_ref, rtol=0, atol=1e-8)
-    fp = rw_filter(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t), q, r, p0)
-    mean, var = rts_smoother(fp, beta)
+    fp = eqx.filter_jit(rw_filter)(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs),
+                                   jnp.asarray(t), q, r, p0)
+    mean, var = eqx.filter_jit(rts_smoother)(fp, beta)
     np.testing.assert_allclose(np.asarray(mean), mean_ref, rtol=0, atol=1e-8)
     np.testing.assert_allclose(np.asarray(var), var_ref, rtol=0, atol=1e-8)
 
@@ -79,7 +82,8 @@ def test_smooth_bias_three_axes_equals_dense():
     x3 = np.repeat(x[:, None, :], 3, axis=1)
     q = np.array([0.3, 0.05, 1.0])
     r = np.array([0.5, 0.2, 2.0])
-    sb = smooth_bias(jnp.asarray(y3), jnp.asarray(x3), jnp.asarray(obs), jnp.asarray(t), q, r)
+    sb = eqx.filter_jit(smooth_bias)(jnp.asarray(y3), jnp.asarray(x3), jnp.asarray(obs),
+                                     jnp.asarray(t), jnp.asarray(q), jnp.asarray(r))
     for i in range(3):
         ll, beta, mean, var = _dense(t, obs, x, y3[:, i], q[i], r[i], 0.0, False)
         assert float(sb.loglik[i]) == pytest.approx(ll, rel=1e-10)
