@@ -76,7 +76,7 @@ def test_prediction_matches_closed_form_information():
     plan = s2_plan()
     model = ErrorModel.from_spec("bias_poly(0)")
     pred = predict_plan(plan, cfg, model, ARW, OP)
-    env = plan_environment(plan, cfg)
+    env = eqx.filter_jit(plan_environment)(plan, cfg)  # (one program, not eighty)
     want = ARW / math.sqrt(float(env.dt) * cfg.n_samples)
     np.testing.assert_allclose(np.asarray(pred.sigma), want, rtol=1e-10)
     # a scale factor: its error grows with the rate and vanishes at rest
