@@ -20,6 +20,7 @@ but no private name of another module.
 from __future__ import annotations
 
 import ast
+import functools
 import json
 import os
 import random
@@ -35,8 +36,10 @@ def _is_private(name: str) -> bool:
     return name.startswith("_") and not name.startswith("__")
 
 
+@functools.cache
 def _modules() -> dict[str, tuple[Path, bool]]:
-    """Dotted name -> (file, is a package) of every module under src/diffgyro."""
+    """Dotted name -> (file, is a package) of every module under src/diffgyro (read once
+    per session, as are the trees below: a dozen checks walk the same files)."""
     out = {}
     for path in PACKAGE.rglob("*.py"):
         parts = list(path.relative_to(SRC).with_suffix("").parts)
@@ -45,11 +48,23 @@ def _modules() -> dict[str, tuple[Path, bool]]:
     return out
 
 
+@functools.cache
+def _tree(path: Path) -> ast.Module:
+    """The parsed source of ``path`` (the checks only read it)."""
+    return ast.parse(path.read_text(), str(path))
+
+
+@functools.cache
+def _nodes(path: Path) -> tuple[ast.AST, ...]:
+    """Every node of :func:`_tree` in ``ast.walk`` order."""
+    return tuple(ast.walk(_tree(path)))
+
+
 def _imports(modules) -> list[tuple[str, str, str | None]]:
     """Every (importer, imported module, imported name or None) inside diffgyro."""
     edges = []
     for mod, (path, is_pkg) in modules.items():
-        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        for node in _nodes(path):
             if isinstance(node, ast.Import):
                 edges += [(mod, a.name, None) for a in node.names if a.name.startswith("diffgyro")]
             elif isinstance(node, ast.ImportFrom):
@@ -182,7 +197,7 @@ def test_no_long_function_without_a_reason():
     for path in sorted(PACKAGE.rglob("*.py")):
         text = path.read_text()
         lines = text.splitlines()
-        for node in ast.walk(ast.parse(text)):
+        for node in _nodes(path):
             if not isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
             length = node.end_lineno - node.lineno + 1
@@ -242,7 +257,7 @@ def _function_imports(modules) -> list[tuple[str, str, int]]:
     """(module, imported module, line) of every import inside a function."""
     out = []
     for mod, (path, is_pkg) in modules.items():
-        for fn in ast.walk(ast.parse(path.read_text(), str(path))):
+        for fn in _nodes(path):
             if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 continue
             for node in ast.walk(fn):
@@ -386,7 +401,7 @@ def test_fit_is_the_front_door_only():
 
     assert front.__all__ == FIT_API
     path, _ = _modules()["diffgyro.fit"]
-    defined = {n.name for n in ast.parse(path.read_text()).body
+    defined = {n.name for n in _tree(path).body
                if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
     assert defined <= {"fit", "FitResult", "_fit", "_fit_sums", "_aux_fields", "_residual_batch",
                        "_fit_random_walk"}, defined
@@ -411,11 +426,10 @@ def test_no_string_imports():
     modules = _modules()
     calls, names = [], []
     for mod, (path, _) in modules.items():
-        tree = ast.parse(path.read_text())
-        docs = {id(n.body[0].value) for n in ast.walk(tree)
+        docs = {id(n.body[0].value) for n in _nodes(path)
                 if isinstance(n, (ast.Module, ast.ClassDef, ast.FunctionDef)) and n.body
                 and isinstance(n.body[0], ast.Expr) and isinstance(n.body[0].value, ast.Constant)}
-        for node in ast.walk(tree):
+        for node in _nodes(path):
             if isinstance(node, ast.Call):
                 fn = node.func
                 called = fn.attr if isinstance(fn, ast.Attribute) else getattr(fn, "id", "")
@@ -437,6 +451,7 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     A signal added to the catalogue that one of them lacks fails here."""
     import re
 
+    import equinox as eqx
     import jax.numpy as jnp
     import numpy as np
 
@@ -458,13 +473,15 @@ def test_every_catalogue_signal_in_each_place_that_derives_signals():
     temp = 20.0 + 0.5 * t
     rate = np.stack([np.sin(t / 5), np.cos(t / 7), np.sin(t / 3)], 1)
     accel = np.tile([0.0, 0.0, 9.81], (n, 1))
+    # (each compiled as one program: run op by op, they compiled a hundred small ones)
     made = {
-        "signals.make_signals": make_signals(
+        "signals.make_signals": eqx.filter_jit(make_signals)(
             jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), rate=jnp.asarray(rate),
             temp=jnp.asarray(temp), temp_ext=jnp.asarray(temp - 2), accel=jnp.asarray(accel)),
-        "plan_design.operating_signals": operating_signals(
+        "plan_design.operating_signals": eqx.filter_jit(operating_signals)(
             [20.0, 30.0], [0.1, 0.2, 0.3], TempNorm(centre=25.0, scale=10.0)),
-        "_fit_sums.layout._random_signals": _random_signals(frozenset(INPUTS), n, 0),
+        "_fit_sums.layout._random_signals": eqx.filter_jit(_random_signals)(
+            frozenset(INPUTS), n, 0),
     }
     for place, sig in made.items():
         assert [s for s in CATALOGUE if not present(sig, s)] == [], place

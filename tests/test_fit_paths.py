@@ -10,6 +10,7 @@ batches split over many compiled groups.
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,7 +216,9 @@ def test_thermal_lag_jet_equals_forward_mode(order):
     n = 400
     t = np.cumsum(rng.uniform(0.2, 3.0, n))
     temp = 20.0 + np.cumsum(rng.normal(size=n))
-    sig = make_signals(jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool), temp=jnp.asarray(temp))
+    # (one compiled program: op by op, make_signals compiled some seventy small ones)
+    sig = eqx.filter_jit(make_signals)(jnp.asarray(t), jnp.zeros((n, 3)), jnp.ones(n, bool),
+                                       temp=jnp.asarray(temp))
     term = ThermalLag(order=order)
 
     @jax.jit  # one program per order for the five time constants
@@ -255,6 +258,7 @@ def test_masked_median_equals_nanmedian(k):
     # subnormals and NaN included (the noise floor's order statistics: tests/test_noise.py)
     from diffgyro.internal import masked_median
 
+    masked_median = jax.jit(masked_median)  # as the noise floor runs it: one program a length
     x = np.array([-3.0, -0.0, 0.0, 2.0, -1e300, np.inf, -np.inf, np.nan, 5e-324, -5e-324, 7.0])
     got = float(masked_median(jnp.asarray(x[:k]), jnp.ones(k, bool)))
     want = float(np.nanmedian(x[:k]))

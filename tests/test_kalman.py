@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -62,11 +63,14 @@ def test_filter_and_smoother_equal_dense_gp(p0, reml):
     t, obs, x, y = _small_problem()
     q, r = 0.3, 0.5
     ll_ref, beta_ref, mean_ref, var_ref = _dense(t, obs, x, y, q, r, p0, reml)
-    ll, beta = loglik(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t), q, r, p0, reml)
+    # (each compiled whole, eqx.filter_jit: op by op they compiled dozens of small programs)
+    ll, beta = eqx.filter_jit(loglik)(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs),
+                                      jnp.asarray(t), q, r, p0, reml)
     assert float(ll) == pytest.approx(ll_ref, rel=1e-10)
     np.testing.assert_allclose(np.asarray(beta), beta_ref, rtol=0, atol=1e-8)
-    fp = rw_filter(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t), q, r, p0)
-    mean, var = rts_smoother(fp, beta)
+    fp = eqx.filter_jit(rw_filter)(jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs),
+                                   jnp.asarray(t), q, r, p0)
+    mean, var = eqx.filter_jit(rts_smoother)(fp, beta)
     np.testing.assert_allclose(np.asarray(mean), mean_ref, rtol=0, atol=1e-8)
     np.testing.assert_allclose(np.asarray(var), var_ref, rtol=0, atol=1e-8)
 
@@ -78,7 +82,8 @@ def test_smooth_bias_three_axes_equals_dense():
     x3 = np.repeat(x[:, None, :], 3, axis=1)
     q = np.array([0.3, 0.05, 1.0])
     r = np.array([0.5, 0.2, 2.0])
-    sb = smooth_bias(jnp.asarray(y3), jnp.asarray(x3), jnp.asarray(obs), jnp.asarray(t), q, r)
+    sb = eqx.filter_jit(smooth_bias)(jnp.asarray(y3), jnp.asarray(x3), jnp.asarray(obs),
+                                     jnp.asarray(t), jnp.asarray(q), jnp.asarray(r))
     for i in range(3):
         ll, beta, mean, var = _dense(t, obs, x, y3[:, i], q[i], r[i], 0.0, False)
         assert float(sb.loglik[i]) == pytest.approx(ll, rel=1e-10)
@@ -91,11 +96,12 @@ def test_loglik_gradient_matches_finite_differences():
     t, obs, x, y = _small_problem(seed=5, n=200)
     args = (jnp.asarray(y), jnp.asarray(x), jnp.asarray(obs), jnp.asarray(t))
 
+    @jax.jit  # (compiled whole: op by op it compiled a hundred small programs)
     def f(p):
         return loglik(*args, jnp.exp(p[0]), jnp.exp(p[1]), jnp.exp(p[2]), True)[0]
 
     p = jnp.array([math.log(0.3), math.log(0.5), math.log(0.1)])
-    g = np.asarray(jax.grad(f)(p))
+    g = np.asarray(jax.jit(jax.grad(f))(p))
     h = 1e-5
     fd = np.array([(f(p.at[i].add(h)) - f(p.at[i].add(-h))) / (2 * h) for i in range(3)])
     np.testing.assert_allclose(g, fd, rtol=1e-6, atol=1e-8)
@@ -113,6 +119,7 @@ def test_gradient_through_a_time_constant_matches_finite_differences():
     model = ErrorModel.from_spec("bias_poly(0)+warmup+random_walk")
     obs = jnp.ones(n, bool)
 
+    @jax.jit  # (compiled whole: op by op it compiled 150 small programs)
     def nll(p):
         x = model.design(sig, p[6:])
         ll = jax.vmap(lambda yi, xi, qi, ri: loglik(yi, xi, obs, sig.t, qi, ri)[0],
@@ -120,7 +127,7 @@ def test_gradient_through_a_time_constant_matches_finite_differences():
         return -jnp.sum(ll)
 
     p = jnp.concatenate([jnp.full(3, math.log(1e-8)), jnp.full(3, math.log(1e-6)), jnp.log(jnp.array([50.0]))])
-    g = np.asarray(jax.grad(nll)(p))
+    g = np.asarray(jax.jit(jax.grad(nll))(p))
     h = 1e-5
     fd = np.array([(nll(p.at[i].add(h)) - nll(p.at[i].add(-h))) / (2 * h) for i in range(7)])
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-6)
@@ -290,8 +297,9 @@ def test_learn_noise_on_observed_subset_is_exact():
     sig = jax.tree.map(lambda a: a[0], batch_signals(batch))
     obs = jnp.asarray((np.arange(n) // 100) % 3 == 0)
     model = ErrorModel.from_spec("bias_poly(0)+random_walk")
-    full = learn_noise(model, sig, obs, jnp.asarray(0.0))
+    learn = eqx.filter_jit(learn_noise)  # as fit() runs it: compiled whole, not op by op
+    full = learn(model, sig, obs, jnp.asarray(0.0))
     idx = jnp.asarray(np.flatnonzero(np.asarray(obs)))
-    part = learn_noise(model, sig, obs, jnp.asarray(0.0), (idx, jnp.ones(idx.shape, bool)))
+    part = learn(model, sig, obs, jnp.asarray(0.0), (idx, jnp.ones(idx.shape, bool)))
     np.testing.assert_allclose(np.asarray(part.q), np.asarray(full.q), rtol=1e-4)
     np.testing.assert_allclose(float(part.loglik), float(full.loglik), rtol=1e-9)

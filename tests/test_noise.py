@@ -14,6 +14,10 @@ from diffgyro import _noise as noise
 from diffgyro._noise_jax import device_noise_floor
 from diffgyro.fit import fit
 
+#: The JAX floor of every device, compiled whole as the fit runs it (vmapped op by op it
+#: compiled some sixty small programs per shape).
+jax_floor = jax.jit(jax.vmap(device_noise_floor))
+
 
 def exact(d):
     """The floor of one row of valid differences, written out with numpy's median and
@@ -95,7 +99,7 @@ def test_equals_the_definition_and_the_jax_version(case):
     np.testing.assert_allclose(noise.noise_axes(g, rate, mask, compiled=True), got, rtol=1e-13,
                                atol=0, equal_nan=True)  # numba's passes, numpy's numbers
     y = jnp.asarray(g if rate is None else g - rate)
-    jaxed = np.asarray(jax.vmap(device_noise_floor)(y, jnp.asarray(mask)))
+    jaxed = np.asarray(jax_floor(y, jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     no_pair = ~(mask[:, 1:] & mask[:, :-1]).any(axis=1)
     assert np.isnan(got[no_pair]).all() and np.isfinite(got[~no_pair]).all()
@@ -124,7 +128,7 @@ def test_every_pair_valid_equals_the_definition(n):
                                equal_nan=True)
     np.testing.assert_allclose(noise.noise_axes(g, None, mask, compiled=True), got, rtol=1e-13,
                                atol=0, equal_nan=True)
-    jaxed = np.asarray(jax.vmap(device_noise_floor)(jnp.asarray(g), jnp.asarray(mask)))
+    jaxed = np.asarray(jax_floor(jnp.asarray(g), jnp.asarray(mask)))
     np.testing.assert_allclose(got, jaxed, rtol=1e-13, atol=0, equal_nan=True)
     g[4, n // 2, 0] = g[5, n - 1, 2] = 0.0
     g[2, n // 2, 0] = np.nan  # the only NaN now on the axis whose MAD collapsed

@@ -42,7 +42,10 @@ def test_s2_timeline_and_physics():
     cfg = PlanConfig(n_samples=8192, n_headings=2)
     minutes = (65 + 11 * 10) / 1.5 + 12 * 30
     assert abs(float(plan_duration(plan, cfg)) / 60 - minutes) < 1e-3
-    env = plan_environment(plan, cfg)
+    # (one compiled program per config, as inside the predictions: op by op it compiled
+    # some eighty small ones)
+    environment = eqx.filter_jit(plan_environment)
+    env = environment(plan, cfg)
     t, chamber, temp = map(np.asarray, (env.t, env.chamber, env.temp))
     ramp_end = np.cumsum(np.r_[65, np.full(11, 10)] / 1.5 * 60 + np.r_[0, np.full(11, 1800)])
     for k, start in enumerate(ramp_end):
@@ -54,7 +57,7 @@ def test_s2_timeline_and_physics():
         lag = (temp[end] - (-40 + 10 * k)) * (1 if k == 0 else -1)
         assert 0 < lag < 1.5 / 60 * 600 * math.exp(-(1790 - 60) / 600)
     # table: ±10 °/s along the tilted mount, equal time each way (net angle zero)
-    table = np.asarray(plan_environment(plan, PlanConfig(n_samples=8192, earth_rate="none")).rate_true)
+    table = np.asarray(environment(plan, PlanConfig(n_samples=8192, earth_rate="none")).rate_true)
     omega = table @ np.ones(3) / math.sqrt(3)
     np.testing.assert_allclose(table, omega[:, None] * np.ones(3) / math.sqrt(3), atol=1e-15)
     # (segment edges are logistic, 5 s wide: a one-minute spin peaks within 1 % of its rate)
@@ -73,7 +76,7 @@ def test_prediction_matches_closed_form_information():
     plan = s2_plan()
     model = ErrorModel.from_spec("bias_poly(0)")
     pred = predict_plan(plan, cfg, model, ARW, OP)
-    env = plan_environment(plan, cfg)
+    env = eqx.filter_jit(plan_environment)(plan, cfg)  # (one program, not eighty)
     want = ARW / math.sqrt(float(env.dt) * cfg.n_samples)
     np.testing.assert_allclose(np.asarray(pred.sigma), want, rtol=1e-10)
     # a scale factor: its error grows with the rate and vanishes at rest

@@ -88,7 +88,7 @@ class AbstractFitResult(eqx.Module):
 
     def status_name(self, i: int) -> str:
         """Device ``i``'s status by name (``ok``, ``in_motion``, ...)."""
-        return STATUS_NAMES[int(self.status[i])]
+        return STATUS_NAMES[int(np.asarray(self.status)[i])]  # (the host copy: see records)
 
     @abc.abstractmethod
     def status_detail(self, i: int) -> str:

@@ -88,18 +88,20 @@ class FitResult(AbstractFitResult):
 
     def status_detail(self, i: int) -> str:
         """Status and, when not ok, why in plain words (:func:`diffgyro.status.explain`)."""
-        return explain(self.status_name(i), self.model, range_flags=self.range_flags[i],
-                       collinear=self.collinear[i],
-                       temp_range=None if self.temp_range is None else self.temp_range[i],
-                       n_samples=self.n_samples[i], steps=self.steps[i],
+        def row(a):  # device i of the host copy (indexing a JAX array compiles, per shape)
+            return None if a is None else np.asarray(a)[i]
+
+        return explain(self.status_name(i), self.model, range_flags=row(self.range_flags),
+                       collinear=row(self.collinear), temp_range=row(self.temp_range),
+                       n_samples=row(self.n_samples), steps=row(self.steps),
                        motion=None if self.motion is None else self.motion.record(i),
                        channel=self.channel)
 
     def stderr(self, i: int) -> Params:
         """Standard errors of device ``i``'s parameters, shaped like its Params."""
         p, q = self.model.n_params, self.model.n_nonlinear
-        sd = jnp.sqrt(jnp.diagonal(self.cov[i]))
-        return Params(beta=sd[:3 * p].reshape(3, p), theta=sd[3 * p:3 * p + q])
+        sd = np.sqrt(np.diagonal(np.asarray(self.cov)[i]))  # on the host: no program per shape
+        return Params(beta=jnp.asarray(sd[:3 * p].reshape(3, p)), theta=jnp.asarray(sd[3 * p:3 * p + q]))
 
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""

@@ -549,9 +549,10 @@ class RandomWalkFit(AbstractFitResult):
         name = self.status_name(i)
         if name == "insufficient_data":
             need = max(20, 4 * (self.model.n_params + self.model.n_nonlinear + 2))
-            return (f"{name}: {int(self.n_samples[i])} observed samples; the state-space fit "
+            return (f"{name}: {int(np.asarray(self.n_samples)[i])} observed samples; the state-space fit "
                     f"of {self.model.spec} needs at least {need}")
-        return explain(name, self.model, n_samples=self.n_samples[i], steps=self.steps[i],
+        return explain(name, self.model, n_samples=np.asarray(self.n_samples)[i],
+                       steps=np.asarray(self.steps)[i],
                        motion=None if self.motion is None else self.motion.record(i))
 
     def _axis_noise(self, i: int, axis: int) -> dict:

@@ -40,6 +40,12 @@ def jsonable(x):
     return to_json_safe(x)
 
 
+#: :func:`~diffgyro.signals.make_signals` compiled as one program per length: run op by op
+#: it compiled each of its few dozen operations apart, again for every new length (a
+#: recipe's bins, its poses, its static stretches).
+_make_signals = eqx.filter_jit(make_signals)
+
+
 def signals_for(
     gyro: np.ndarray,
     *,
@@ -58,8 +64,19 @@ def signals_for(
     def arr(x):
         return None if x is None else jnp.asarray(x, gyro.dtype)
 
-    return make_signals(t, gyro, jnp.ones(n, bool), rate=arr(rate), temp=arr(temp),
+    sig = _make_signals(t, gyro, jnp.ones(n, bool), rate=arr(rate), temp=arr(temp),
                         temp_ext=arr(temp_ext), accel=arr(accel), dtemp_window=dtemp_window)
+    if sig.temp is None:
+        return sig
+    # the centred temperature as make_signals gives it run op by op: compiled with the
+    # rest, its quotient can differ in the last bit, and the recipes' numbers with it
+    return eqx.tree_at(lambda s: s.temp_s, sig, (sig.temp - sig.norm.centre) / sig.norm.scale)
+
+
+@eqx.filter_jit
+def _design(model: ErrorModel, sig: Signals, theta):
+    """``model.design`` as one compiled program per model and length (as above)."""
+    return model.design(sig, theta)
 
 
 def least_squares_params(model: ErrorModel, sig: Signals, y: np.ndarray,
@@ -71,7 +88,7 @@ def least_squares_params(model: ErrorModel, sig: Signals, y: np.ndarray,
     """
     if not model.is_linear:
         raise ValueError(f"{model.spec} has time constants; use diffgyro.fit.fit")
-    x = np.asarray(model.design(sig, jnp.zeros((0,))))  # (n, 3, p)
+    x = np.asarray(_design(model, sig, jnp.zeros((0,))))  # (n, 3, p)
     y = np.asarray(y, float)
     w = np.ones(x.shape[0]) if weights is None else np.asarray(weights, float)
     sw = np.sqrt(w)
