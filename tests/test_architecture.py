@@ -525,7 +525,7 @@ PRIVATE_UNDER_TEST = {
     "test_report.py": {"diffgyro.report"},  # the report's private text helpers
     "test_diagnose_scoring.py": {"diffgyro.diagnose._scoring"},
     # the setting predicted before the fit, and how the programs prepared ahead served
-    "test_diagnose_ahead.py": {"diffgyro.diagnose._ahead", "diffgyro.diagnose._run"},
+    "test_diagnose_ahead.py": {"diffgyro.diagnose._ahead", "diffgyro.diagnose._plan"},
     "test_fit_sums.py": {"diffgyro._fit_sums"},
     "test_fit_paths.py": {"diffgyro._fit_sums"},
     "test_window_stats.py": {"diffgyro._window_pass", "diffgyro._window_stats",

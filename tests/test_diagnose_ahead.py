@@ -23,7 +23,7 @@ import pytest
 from diffgyro import motion
 from diffgyro.data import Batch, Recording
 from diffgyro.diagnose import _ahead as ahead
-from diffgyro.diagnose import _run as run
+from diffgyro.diagnose import _plan as plan
 from diffgyro.diagnose import diagnose
 from diffgyro.fit import fit
 from diffgyro.signals import TempNorm
@@ -77,30 +77,30 @@ def _same_diagnosis(a, b) -> None:
 
 def test_prepared_ahead_equals_given_the_fit_and_a_missed_prediction_is_replaced(batch,
                                                                                   monkeypatch):
-    before = dict(run.AHEAD)
+    before = dict(ahead.AHEAD)
     prepared = diagnose(BASE, batch, dtemp_window=60.0, **KW)
-    assert run.AHEAD["hit"] == before.get("hit", 0) + 1  # the scoring ran what was compiled
-    assert run.AHEAD["miss"] == before.get("miss", 0)
-    assert run.AHEAD["refit"] == before.get("refit", 0)
+    assert ahead.AHEAD["hit"] == before.get("hit", 0) + 1  # the scoring ran what was compiled
+    assert ahead.AHEAD["miss"] == before.get("miss", 0)
+    assert ahead.AHEAD["refit"] == before.get("refit", 0)
     given = diagnose(BASE, batch, base_fit=fit(BASE, batch, dtemp_window=60.0), **KW)
-    assert run.AHEAD["hit"] == before.get("hit", 0) + 1  # nothing prepared: the fit was given
+    assert ahead.AHEAD["hit"] == before.get("hit", 0) + 1  # nothing prepared: the fit was given
     _same_diagnosis(prepared, given)
 
     def wrong(model, b, options):  # a norm the fit will not hold
         st = ahead.predicted(model, b, options)
         return st._replace(norm=TempNorm(centre=st.norm.centre + 1.0, scale=st.norm.scale))
 
-    monkeypatch.setattr(run, "predicted", wrong)
+    monkeypatch.setattr(plan, "predicted", wrong)
     replaced = diagnose(BASE, batch, dtemp_window=60.0, **KW)
-    assert run.AHEAD["refit"] == before.get("refit", 0) + 1
-    assert run.AHEAD["hit"] == before.get("hit", 0) + 2  # the same shapes: the program serves
+    assert ahead.AHEAD["refit"] == before.get("refit", 0) + 1
+    assert ahead.AHEAD["hit"] == before.get("hit", 0) + 2  # the same shapes: the program serves
     _same_diagnosis(replaced, given)
 
 
 def test_the_motion_checks_program_starts_before_the_scoring_and_the_fit_waits_for_it(
         batch, monkeypatch):
     events, threads = [], []
-    real_program, real_scoring = motion._program_ahead, run._ahead_programs
+    real_program, real_scoring = motion._program_ahead, plan._ahead_programs
 
     def program(*a, **k):
         out = real_program(*a, **k)
@@ -113,7 +113,7 @@ def test_the_motion_checks_program_starts_before_the_scoring_and_the_fit_waits_f
         return real_scoring(*a, **k)
 
     monkeypatch.setattr(motion, "_program_ahead", program)
-    monkeypatch.setattr(run, "_ahead_programs", scoring)
+    monkeypatch.setattr(plan, "_ahead_programs", scoring)
     diagnose(BASE, batch, dtemp_window=60.0, **KW)
     # started while the ranges' program compiles, before the scoring program is traced;
     # the base fit's check_ahead then gets the same compilation

@@ -18,6 +18,7 @@ the scores never depend on the prediction, only the time they take.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import warnings
 from typing import NamedTuple
@@ -29,6 +30,12 @@ from .._options import FitOptions
 from ..data import Batch
 from ..model import ErrorModel
 from ..signals import TempNorm
+
+#: How the programs prepared before the fit served (``"hit"``: the scoring's call ran the
+#: program compiled ahead; ``"miss"``: its arguments' shapes differed from those foreseen;
+#: ``"refit"``: the fit's setting differed from the prediction, so the ranges and the
+#: candidates were formed again from the fit). Tests read it; nothing else does.
+AHEAD: collections.Counter = collections.Counter()
 
 
 class Setting(NamedTuple):
