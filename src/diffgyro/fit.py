@@ -31,7 +31,7 @@ from ._motion_judge import judge_motion
 from ._options import FitOptions
 from ._signal_builder import batch_signals, stacked_signals
 from .channel import GRAVITY, as_channel, check_channel, check_model, reads_gravity
-from .data import Batch, Recording, as_batch, aux_key, pad_devices, valid_samples
+from .data import Batch, Recording, as_batch, inputs_of, pad_devices, valid_samples
 from .effects import RandomWalk, noise_fit, register_noise_fit
 from .errors import DataError, SpecError
 from .model import ErrorModel, Params
@@ -106,8 +106,7 @@ class FitResult(AbstractFitResult):
     def residuals(self, batch: Batch) -> Float[Array, "d n 3"]:
         """Measured minus predicted rate for every sample of ``batch`` (padding zeroed)."""
         # the sampling intervals only for a model that reads dT/dt (the sums path's rule)
-        present = frozenset(batch.signals) | {aux_key(k) for k in batch.aux}
-        intervals = "dt" in layout_of(self.model, present)[1]
+        intervals = "dt" in layout_of(self.model, inputs_of(batch))[1]
         return _residual_batch(self.model, self.params, self._signal_inputs(batch, intervals),
                                self.options.dtemp_window)
 

@@ -20,7 +20,7 @@ import numpy as np
 from .. import _aux as aux_cols
 from .. import motion as motion_mod
 from .._jit import signature
-from ..data import Batch, aux_key
+from ..data import Batch, inputs_of
 from ..effects import AbstractNoise, RandomWalk, is_column_name
 from ..model import ErrorModel
 from ..signals import TempNorm
@@ -79,8 +79,8 @@ def _candidates(model: ErrorModel, batch: Batch, st: Setting, names):
     random walk's); the column terms that cannot be written (:func:`.unnamed_columns`)."""
     aux, problems = _extra_columns(batch, model, st)
     unnamed = unnamed_columns(problems, names)
-    specs = candidate_specs(model, frozenset(batch.signals) | {aux_key(k) for k in batch.aux},
-                            names, columns=tuple(k for k in problems if is_column_name(k)))
+    specs = candidate_specs(model, inputs_of(batch), names,
+                            columns=tuple(k for k in problems if is_column_name(k)))
     dead = [c for c in specs if term_column(c.term) is not None and term_column(c.term) not in aux]
     every = [c for c in specs if not isinstance(c.term, AbstractNoise) and c not in dead]
     noise = [c for c in specs if isinstance(c.term, AbstractNoise)]
