@@ -55,8 +55,10 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     m = min(n, k * w)
     read = np.asarray(rows)[fill]
     batch_mask = np.asarray(batch.mask)
-    # (every sample of the batch valid, the usual case: no copy of the devices' masks)
-    every = bool(batch_mask[:, :m].all()) or bool(batch_mask[read, :m].all())
+    # (every sample of the batch valid, the usual case: no copy of the devices' masks; a
+    # few devices of a large batch, a second look, read their own)
+    every = (bool(batch_mask[read, :m].all()) if 2 * len(read) < n_dev else
+             bool(batch_mask[:, :m].all()) or bool(batch_mask[read, :m].all()))
     counts = (windowed_sums(batch_mask[read, :m], w, k) if not every else
               np.broadcast_to(windowed_sums(np.ones((1, m), bool), w, k), (len(read), k)))
     mask = np.zeros((len(rows), k), bool)
