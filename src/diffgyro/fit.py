@@ -299,9 +299,15 @@ def _fit(model: ErrorModel, batch: Batch, norm, options, theta0, aux_norm, optio
                                 jnp.asarray(np.nanmax(tmask, axis=1))], axis=1)
     norm_out = sig_norm if sig_norm is not None else TempNorm(
         centre=jnp.zeros(batch.n_devices), scale=jnp.ones(batch.n_devices))
+    return _result(model, batch, out, norm_out, temp_range, opts, extra)
+
+
+def _result(model: ErrorModel, batch: Batch, out: dict, norm: TempNorm, temp_range, opts: FitOptions,
+            extra) -> FitResult:
+    """The :class:`FitResult` of either path's per-device outputs ``out``."""
     return FitResult(
         model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
-        norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
+        norm=norm, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
         heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
         noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
         status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
@@ -335,10 +341,4 @@ def _fit_sums(model: ErrorModel, batch: Batch, norm: TempNorm | None, opts: FitO
     # device_put, not jnp.asarray: that compiles a copy for every new shape (~10 ms each)
     temp_range = jax.device_put(out.pop("temp_range")) if "temp_range" in out else None
     out = jax.device_put(out)
-    return FitResult(
-        model=model, devices=batch.devices, params=Params(beta=out["beta"], theta=out["theta"]),
-        norm=norm_out, temp_range=temp_range, cov=out["cov"], rms=out["rms"],
-        heldout_rms=out["heldout_rms"], fold_mse=out["fold_mse"], noise_floor=out["noise_floor"],
-        noise_axes=out["noise_axes"], sigma=out["sigma"], steps=out["steps"],
-        status=out["status"], range_flags=out["range_flags"], collinear=out["collinear"],
-        n_samples=out["n_samples"], options=opts, **_aux_fields(extra))
+    return _result(model, batch, out, norm_out, temp_range, opts, extra)
