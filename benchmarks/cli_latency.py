@@ -160,7 +160,10 @@ def main() -> None:
     unknown = set(only) - {c[0] for c in COMMANDS}
     if unknown:
         ap.error(f"unknown command(s) {sorted(unknown)}; one of {[c[0] for c in COMMANDS]}")
-    trees = dict(t.split("=", 1) for t in args.trees.split(",")) if args.trees else {None: None}
+    # (absolute: the commands run in a fresh folder, where a relative tree is not found and
+    # the installed package would run instead)
+    trees = ({name: str(Path(src).resolve()) for name, src in
+              (t.split("=", 1) for t in args.trees.split(","))} if args.trees else {None: None})
     runs: dict = {name: [] for name in trees}
     loads = []
     for src in trees.values():

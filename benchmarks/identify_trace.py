@@ -1,9 +1,11 @@
-"""Trace and lowering time of the noise identification's program (the cold part of a first
-``noise`` call that runs on one core before XLA can compile).
+"""Trace and lowering time of the noise identification's programs (the cold part of a first
+``noise`` call that runs on one core: XLA compiles the fits' program while the choice's
+is traced, and the choice's after that).
 
 Each source tree runs in a fresh process, in turn (a change of the machine's load touches
-every tree alike): the program :func:`diffgyro.stochastic.identify` compiles for SERIES
-series of N samples is traced and lowered ``--repeat`` times, JAX's caches cleared before
+every tree alike): the programs :func:`diffgyro.stochastic.identify` compiles for SERIES
+series of N samples (a tree with one program: that one) are traced and lowered
+``--repeat`` times, JAX's caches cleared before
 each (``jax.clear_caches``: every trace as in a fresh process), and the thread CPU time of
 each step is reported (median and minimum of the repeats after the first; the machine's
 other work disturbs thread time less than wall time).
@@ -28,17 +30,27 @@ jax.config.update("jax_enable_x64", True)
 from diffgyro.stochastic import _identify, catalogue
 from diffgyro.stochastic._wavelet_variance import dyadic_m
 series, n, repeat = (int(a) for a in sys.argv[1:4])
-specs = _identify.chunk_specs(series, n, catalogue(2))
-body = functools.partial(_identify._identify_series, n_scales=len(dyadic_m(n)))
+scales = len(dyadic_m(n))
+if hasattr(_identify, "program_specs"):  # the fits' and the choice's programs
+    fits, choice = _identify.program_specs(series, n, catalogue(2))
+    bodies = [(functools.partial(_identify._fits_series, n_scales=scales), fits[:-1]),
+              (_identify._choice_series, choice)]
+else:  # one program
+    bodies = [(functools.partial(_identify._identify_series, n_scales=scales),
+               _identify.chunk_specs(series, n, catalogue(2)))]
 trace, lower = [], []
 for _ in range(repeat):
     jax.clear_caches()
-    c0 = time.thread_time()
-    traced = jax.jit(body).trace(*specs)
-    c1 = time.thread_time()
-    traced.lower()
-    trace.append(c1 - c0)
-    lower.append(time.thread_time() - c1)
+    took = [0.0, 0.0]
+    for body, specs in bodies:
+        c0 = time.thread_time()
+        traced = jax.jit(body).trace(*specs)
+        c1 = time.thread_time()
+        traced.lower()
+        took[0] += c1 - c0
+        took[1] += time.thread_time() - c1
+    trace.append(took[0])
+    lower.append(took[1])
 print(json.dumps({"trace": trace, "lower": lower}))
 """
 

@@ -360,7 +360,7 @@ LAYERS = (
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux", "_term_info"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
      "_noise_passes", "_select", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
-     "_window_stats", "_window_explain", "_motion_constants", "_motion_windows", "_rest_stretches",
+     "_window_stats", "_window_explain", "_motion_constants", "_motion_windows", "_motion_host", "_rest_stretches",
      "_motion_result"),
     ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),

@@ -486,12 +486,21 @@ class _Called(Exception):
     """Raised by the spy below once it has seen the program's arguments."""
 
 
+def _signature(args) -> list:
+    """Shapes, dtypes, weak types and whether placed on a device (a committed JAX array
+    compiles a program of its own) of array arguments; other arguments as they are."""
+    return [(a.shape, np.dtype(a.dtype), bool(getattr(a, "weak_type", False)),
+             bool(getattr(a, "committed", False)))
+            if hasattr(a, "shape") else a for a in args]
+
+
 @pytest.mark.parametrize("series,n,max_gm", [(3, 12000, 2), (11, 700, 1)])
-def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series, n, max_gm):
-    """``noise`` loads the identification's program on a thread while it checks the devices
-    for motion (:func:`diffgyro.stochastic.identify_ahead`): the arguments it loads it for
-    have the shapes, dtypes and weak types of those :func:`identify` then calls it with (else
-    it would load a second program), for a chunk under the batch and one over it."""
+def test_the_programs_loaded_ahead_are_the_ones_identify_calls(monkeypatch, series, n, max_gm):
+    """``noise`` loads the identification's two programs (the fits, the choice) on threads
+    while it checks the devices for motion (:func:`diffgyro.stochastic.identify_ahead`): the
+    arguments it loads them for have the shapes, dtypes and weak types of those
+    :func:`identify` then calls them with (else it would load second programs), for a chunk
+    under the batch and one over it."""
     from diffgyro.stochastic import _identify, catalogue
 
     seen, ahead = [], []
@@ -500,28 +509,31 @@ def test_the_program_loaded_ahead_is_the_one_identify_calls(monkeypatch, series,
         def join(self):
             pass
 
-    def spy(samples):
+    def spy(name, result=None):
         def call(*args):
-            seen.append([(a.shape, np.dtype(a.dtype), bool(getattr(a, "weak_type", False)))
-                         for a in args[:-1]] + [args[-1]])
-            raise _Called
+            seen.append((name, _signature(args)))
+            if result is None:
+                raise _Called
+            # (placed on the device, as a compiled program's results are)
+            return tuple(jax.device_put(np.zeros(s.shape, s.dtype), jax.devices()[0])
+                         for s in result)
 
         def compile_ahead(*args):
-            ahead.append([(a.shape, np.dtype(a.dtype), bool(a.weak_type)) for a in args[:-1]]
-                         + [args[-1]])
+            ahead.append((name, _signature(args)))
             return Done()
 
         call.compile_ahead = compile_ahead
         return call
 
-    monkeypatch.setattr(_identify, "_identify_batch", spy)
+    fits_args, choice_args = _identify.program_specs(series, n, catalogue(max_gm))
+    monkeypatch.setattr(_identify, "_programs", lambda samples: (
+        spy("fits", choice_args[-3:]), spy("choice")))
     y = np.random.default_rng(1).standard_normal((series, n)) * 1e-3
     with pytest.raises(_Called):
         identify(y, 0.1, structures=catalogue(max_gm))
-    specs = _identify.chunk_specs(series, n, catalogue(max_gm))
-    assert seen == [[(s.shape, np.dtype(s.dtype), s.weak_type) for s in specs]
-                    + [len(dyadic_m(n))]]
-    assert ahead == seen  # identify's own compilation ahead is of that program too
+    assert seen == [("fits", _signature(fits_args)), ("choice", _signature(choice_args))]
+    assert fits_args[-1] == len(dyadic_m(n))
+    assert ahead == seen  # identify's own compilation ahead is of those programs too
 
 
 @pytest.mark.parametrize("devices,n", [(1, 12000), (3, 700)])
@@ -552,11 +564,11 @@ def test_the_wavelet_variances_program_loaded_ahead_is_the_one_identify_calls(mo
 
     spy.compile_ahead = ahead
     monkeypatch.setattr(_wavelet_variance, "oadev", spy)
-    monkeypatch.setattr(_identify, "_identify_batch", lambda samples: spy)
+    monkeypatch.setattr(_identify, "_programs", lambda samples: (spy, spy))
     _identify.load_ahead(3 * devices, n, catalogue(2), lead=(devices, 3))
     y = np.random.default_rng(2).standard_normal((devices, 3, n)) * 1e-3
     with pytest.raises(_Called):
         identify(y, np.full((devices, 3), 0.1), structures=catalogue(2))
-    # load_ahead's two programs, then identify's own start of the first (the same
-    # signature: compile_ahead returns the thread load_ahead started)
-    assert len(started) == 3 and started[0] == started[2] and started[1:2] == called
+    # load_ahead's three programs, then identify's own start of the first two (the same
+    # signatures: compile_ahead returns the threads load_ahead started)
+    assert len(started) == 5 and started[:2] == started[3:] and started[2:3] == called

@@ -4,7 +4,8 @@ it, the rule on runs, the angle turned and gravity's tilt, and the numbers the h
 (:func:`diffgyro.motion.motion_check` says what they mean). JAX, compiled once per shape
 and window sizes: a large batch is judged as at rest vmapped over all its devices, then
 again, chunk by chunk of :data:`CHECK_CHUNK` devices, where some window moved (the rule on
-runs); a small one chunk by chunk.
+runs). A small batch is judged by the same rules on the host
+(:mod:`diffgyro._motion_host`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import Bool, Float
 
-from ._jit import by_work, filter_jit
+from ._jit import filter_jit
 from ._motion_constants import (
     ACCEL_FLOOR,
     BLOCK_WINDOWS,
@@ -30,7 +31,7 @@ from ._motion_constants import (
     STRETCH_CHUNK,
     TILT_FLOOR,
 )
-from ._xla_options import FAST_COMPILE, ONE_PART
+from ._motion_host import HostCheck
 from .data import device_bucket
 
 
@@ -324,18 +325,10 @@ def _vmapped(gyro, accel, w: int, b: int):
     return _chunks(gyro, accel, w, b, rest, again)
 
 
-def _chunks(gyro, accel, w: int, b: int, out=None, again=None):
+def _chunks(gyro, accel, w: int, b: int, out, again):
     """The check chunk by chunk (devices first, a multiple of :data:`CHECK_CHUNK`): the
-    chunks where ``again`` holds for some device, the others as in ``out``; every chunk
-    where there is no ``out``."""
+    chunks where ``again`` holds for some device, the others as in ``out``."""
     d = gyro[0].shape[0]
-    if out is None:
-        def split(x):
-            return None if x is None else jax.tree.map(
-                lambda y: y.reshape((d // CHECK_CHUNK, CHECK_CHUNK) + y.shape[1:]), x)
-
-        out = jax.lax.map(lambda ga: _chunk(*ga, w, b), (split(gyro), split(accel)))
-        return jax.tree.map(lambda y: y.reshape((d,) + y.shape[2:]), out)
     chunks = d // CHECK_CHUNK
     again = jnp.any(again.reshape(chunks, CHECK_CHUNK), axis=1)
     order = jnp.nonzero(again, size=chunks, fill_value=0)[0]
@@ -350,19 +343,10 @@ def _chunks(gyro, accel, w: int, b: int, out=None, again=None):
     return jax.lax.fori_loop(0, jnp.sum(again), judge, out)
 
 
-def _vmapped_small(gyro, accel, w: int, b: int):
-    """The check of a small (padded) batch: chunk by chunk, every chunk (it runs in
-    milliseconds either way)."""
-    d = gyro[0].shape[0]
-    return _chunk(gyro, accel, w, b) if d <= CHECK_CHUNK else _chunks(gyro, accel, w, b)
-
-
-#: The check of a large batch, and of a small (padded) one for its size
-#: (:func:`~diffgyro._jit.by_work`): a small batch's check runs in milliseconds, and
-#: compiles in about 60 % of the time with XLA's loop emitters, and without optimisation
-#: as one part (:data:`~diffgyro._xla_options.ONE_PART`: it compiles beside other work).
+#: The check of a large batch; a small (padded) one is judged on the host
+#: (:mod:`diffgyro._motion_host`).
 _check = filter_jit(_vmapped)
-_check_small = by_work(_vmapped_small, compiler_options=FAST_COMPILE, small_options=ONE_PART)
+_HOST = HostCheck()
 
 
 class Layout(NamedTuple):
@@ -378,7 +362,9 @@ class Layout(NamedTuple):
 
     @property
     def check(self):
-        return _check_small(self.shape[0] * self.shape[1] * self.w) if self.padded else _check
+        """The judgement: on the host for a small batch (:mod:`diffgyro._motion_host`: the
+        same numbers, no program to compile), else the compiled program."""
+        return _HOST if self.padded else _check
 
 
 def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:
@@ -396,8 +382,7 @@ def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:
     if devices * samples > PAD_SAMPLES:  # devices in whole chunks
         rows = devices if devices <= CHECK_CHUNK else -(-devices // CHECK_CHUNK) * CHECK_CHUNK
         return Layout(w, b, (rows, k), accel, False)
-    # small batches share a compiled check: devices to a bucket, windows to a power of
-    # two of blocks
+    # small batches share a shape: devices to a bucket, windows to a power of two of blocks
     blocks = 1 << (-(-k // b) - 1).bit_length()
     rows = device_bucket(devices, minimum=1)
     rows = rows if rows <= CHECK_CHUNK else -(-rows // CHECK_CHUNK) * CHECK_CHUNK

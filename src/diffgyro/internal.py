@@ -14,7 +14,9 @@ module. This is the one module that may import another package's private modules
 - the fit's engines: ``filter_jit``, the JAX noise floor (``device_noise_floor``,
   ``masked_median``), the temperature read-out step and dT/dt window
   (``temperature_quantum``, ``suggest_dtemp_window``), ``window_stats`` and
-  ``check_windows`` (the motion check's statistics, and its compiled judgement of them), the sums path's ``pack`` and ``unpack_results``;
+  ``check_windows`` (the motion check's statistics, and its compiled judgement of them),
+  ``judge_on_host`` (a small batch's judgement in numpy), the sums path's ``pack`` and
+  ``unpack_results``;
 - attitude references: quaternion helpers and gyro integration (``_reference``);
 - diagnose: ``candidate_grid``, ``residual_floor``, term synthesis (``describe``,
   ``library``, ``propose_all``, ``synthesise``) and ``reason`` (why a candidate is skipped);
@@ -38,6 +40,7 @@ from . import _xla_options as xla_options
 from ._fit_sums import groups as fit_groups
 from ._fit_sums import pack, unpack_results
 from ._jit import filter_jit
+from ._motion_host import judge as judge_on_host
 from ._motion_windows import _check as check_windows
 from ._noise_jax import device_noise_floor, masked_median
 from ._reference import (
@@ -89,7 +92,7 @@ __all__ = [
     "batch_signals", "stacked_signals", "BUILT_IN", "present", "REGISTRY", "NOISE_FITS",
     "per_axis", "fit_groups", "LOG_TAU_RANGE", "time_constant", "jet_parallel", "jet_sequential", "lag_parallel", "lag_sequential",
     "filter_jit", "xla_options", "device_noise_floor", "masked_median", "temperature_quantum",
-    "suggest_dtemp_window", "window_stats", "check_windows", "pack", "unpack_results",
+    "suggest_dtemp_window", "window_stats", "check_windows", "judge_on_host", "pack", "unpack_results",
     "attitude_from_accel_mag", "heading_error", "integrate_gyro", "quat_conj", "quat_mul",
     "rates_from_quaternions", "rotvec_from_quat",
     "candidate_grid", "residual_floor", "describe", "library", "propose_all", "synthesise",

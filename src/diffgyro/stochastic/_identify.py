@@ -1,6 +1,7 @@
 """Identify the stochastic model of every series: fit the catalogue, choose, give intervals.
 
-Per series (vmapped over devices × axes, one compiled program):
+Per series (vmapped over devices × axes; steps 2 and 3 one compiled program, the choice and
+step 4 another, :data:`_fits_batch`):
 
 1. the empirical Haar wavelet variance ν̂ on dyadic scales (:mod:`.wavelet_variance`);
 2. every candidate of the catalogue fitted with first-stage (diagonal) weights
@@ -63,13 +64,19 @@ CHUNK = 8
 ACCEL_CHUNK = 128
 
 
-def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
+def _scales(wv_hat, count, dt, m):
+    """A series' valid scales, its wavelet variances there (1 elsewhere), τ, the cluster sizes
+    and the counts as reals."""
     valid = jnp.isfinite(wv_hat) & (wv_hat > 0) & (count > 1)
-    wv_hat = jnp.where(valid, wv_hat, 1.0)
-    log_wv = jnp.log(wv_hat)
     mf = m.astype(wv_hat.dtype)
-    tau = mf * dt
-    cnt = count.astype(wv_hat.dtype)
+    return valid, jnp.where(valid, wv_hat, 1.0), mf * dt, mf, count.astype(wv_hat.dtype)
+
+
+def _fits_one(wv_hat, count, n, dt, m, masks, n_scales):
+    """Steps 2 and 3 for one series: every candidate fitted twice (first-stage weights, then
+    Ω_ref); returns (θ (candidates, 8), objective (candidates,), Ω_ref's Cholesky factor)."""
+    valid, wv_hat, tau, mf, cnt = _scales(wv_hat, count, dt, m)
+    log_wv = jnp.log(wv_hat)
     grid = tau_grid(n_scales, dt)
     pairs = start_pairs(n_scales)
     rel0 = diag_rel_cov(cnt, mf)
@@ -99,9 +106,15 @@ def _identify_one(wv_hat, count, n, dt, m, masks, penalty, n_scales):
 
     obj0 = jnp.zeros(masks.shape[0], wv_hat.dtype)
     (th2, obj), chols = jax.lax.scan(stage, (th0, obj0), jnp.arange(2))
-    chol_ref = chols[1]
-    linv_ref = whitener(chol_ref)
+    return th2, obj, chols[1]
 
+
+def _choice_one(wv_hat, count, n, dt, m, masks, penalty, th2, obj, chol_ref):
+    """Steps 3 and 4 for one series from its fits (:func:`_fits_one`): every candidate's
+    criterion and rank, the choice, and the chosen model's intervals and detection limits."""
+    valid, _, tau, mf, cnt = _scales(wv_hat, count, dt, m)
+    k_nominal = jnp.sum(masks, axis=1)
+    linv_ref = whitener(chol_ref)
     nus, ds = jax.vmap(lambda th, mask: jacobian_log(th, mask, valid, tau, dt))(th2, masks)
     rank = jax.vmap(lambda d: effective_rank(linv_ref @ d))(ds)
     crit = obj + penalty * k_nominal
@@ -165,16 +178,32 @@ def detection_limits(d, mask, valid, tau, dt, nu, chol, penalty):
     return jnp.stack([power(walk), power(ramp)])
 
 
-def _identify_series(wv_hat, count, n, dt, m, masks, penalty, n_scales):
-    f = lambda w, c, nn, d: _identify_one(w, c, nn, d, m, masks, penalty, n_scales)  # noqa: E731
+def _fits_series(wv_hat, count, n, dt, m, masks, n_scales):
+    f = lambda w, c, nn, d: _fits_one(w, c, nn, d, m, masks, n_scales)  # noqa: E731
     return jax.vmap(f)(wv_hat, count, n, dt)
 
 
-#: :func:`_identify_series` compiled for a batch's size (:func:`~diffgyro._jit.by_work`),
-#: kept on disk (a later process skips the trace and the lowering); a large batch's with
-#: XLA's loop emitters and LLVM's level-1 pipeline (:data:`~diffgyro._xla_options.LIGHT_COMPILE`:
-#: a quarter less compile time, a tenth more run time).
-_identify_batch = by_work(_identify_series, compiler_options=LIGHT_COMPILE, persistent=True)
+def _choice_series(wv_hat, count, n, dt, m, masks, penalty, th2, obj, chol_ref):
+    f = lambda w, c, nn, d, th, ob, ch: _choice_one(w, c, nn, d, m, masks, penalty,  # noqa: E731
+                                                    th, ob, ch)
+    return jax.vmap(f)(wv_hat, count, n, dt, th2, obj, chol_ref)
+
+
+#: The identification as two programs, the fits (:func:`_fits_series`) and the choice with
+#: its intervals (:func:`_choice_series`), each compiled for a batch's size
+#: (:func:`~diffgyro._jit.by_work`) and kept on disk (a later process skips the traces and
+#: the lowerings); a large batch's with XLA's loop emitters and LLVM's level-1 pipeline
+#: (:data:`~diffgyro._xla_options.LIGHT_COMPILE`: a quarter less compile time, a tenth
+#: more run time). Two programs, because a first call traces in Python (one core) and
+#: compiles in XLA (without the GIL): the choice is traced while the fits compile, and the
+#: two compile side by side.
+_fits_batch = by_work(_fits_series, compiler_options=LIGHT_COMPILE, persistent=True)
+_choice_batch = by_work(_choice_series, compiler_options=LIGHT_COMPILE, persistent=True)
+
+
+def _programs(samples: int) -> tuple:
+    """The fits' and the choice's programs for a batch of ``samples`` (series × samples)."""
+    return _fits_batch(samples), _choice_batch(samples)
 
 
 @dataclass
@@ -392,26 +421,30 @@ def identify(y, dt, n_valid=None, structures=None, penalty: float = PENALTY,
     dtb = np.broadcast_to(np.asarray(dt, np.float64), lead)
     m = dyadic_m(n)
     total = math.prod(lead)
-    program = _identify_batch(total * n)
-    # the identification's program traced here and compiled on a thread of its own (XLA
-    # holds no GIL) while the wavelet variances' program compiles and runs; one compiled
-    # ahead before (``noise``'s :func:`load_ahead`) is not compiled again
-    compiled = program.compile_ahead(*chunk_specs(total, n, structures), len(m))
+    fits, choice = _programs(total * n)
+    # the identification's programs traced here and compiled on threads of their own (XLA
+    # holds no GIL) while the wavelet variances' program compiles and runs; those compiled
+    # ahead before (``noise``'s :func:`load_ahead`) are not compiled again
+    compiled = _compile_ahead(total * n, total, n, structures)
     # numpy in and out around the compiled programs: an eager operation on a JAX array is a
     # program of its own (lowered and read from the cache: milliseconds each)
     wv, count = haar_wv(y, dtb, None if n_valid is None else nv, m)
     flat = lambda a: np.asarray(a).reshape((-1,) + a.shape[len(lead):])  # noqa: E731
     args = [flat(a) for a in (wv, count, nv.astype(np.float64), dtb)]
     step = _chunk(total)
-    compiled.join()
+    for thread in compiled:
+        thread.join()
     parts = []
     for lo in range(0, total, step):
         chunk = [a[lo:lo + step] for a in args]
         short = step - chunk[0].shape[0]
         if short:  # pad the last chunk with copies of its first series
             chunk = [np.concatenate([c, np.repeat(c[:1], short, axis=0)]) for c in chunk]
-        # a weak-typed scalar put on the device as it is (jnp.asarray would run a program)
-        res = program(*chunk, m, masks, jax.device_put(float(penalty)), len(m))
+        # the fits as host arrays (the choice was compiled ahead for arrays placed on no
+        # device in particular: JAX arrays would compile it again); a weak-typed scalar put
+        # on the device as it is (jnp.asarray would run a program)
+        fitted = [np.asarray(a) for a in fits(*chunk, m, masks, len(m))]
+        res = choice(*chunk, m, masks, jax.device_put(float(penalty)), *fitted)
         parts.append({k: np.asarray(v)[:step - short] for k, v in res.items()})
     out = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
     slow = np.full((total, len(structures)), np.nan)
@@ -446,10 +479,10 @@ def _chunk(series: int) -> int:
 
 
 def chunk_specs(series: int, n: int, structures=None) -> tuple[jax.ShapeDtypeStruct, ...]:
-    """Shapes and dtypes of the arguments :func:`identify` passes its program for
+    """Shapes and dtypes of the arguments :func:`identify` passes its programs for
     ``series`` series of ``n`` samples: the wavelet variances, their counts, the samples,
     the intervals (one row per series of a chunk), the cluster sizes, the candidates'
-    masks and the penalty."""
+    masks and the penalty (the choice's only)."""
     step, scales = _chunk(series), len(dyadic_m(n))
     masks = _ordered(structures)[1]
     real, whole = np.dtype(np.float64), np.dtype(np.int64)
@@ -459,17 +492,38 @@ def chunk_specs(series: int, n: int, structures=None) -> tuple[jax.ShapeDtypeStr
             spec((), jax.dtypes.canonicalize_dtype(real), weak_type=True))
 
 
+def program_specs(series: int, n: int, structures=None) -> tuple[tuple, tuple]:
+    """The arguments :func:`identify` passes the fits' and the choice's programs for
+    ``series`` series of ``n`` samples (shapes and dtypes, and the scales' number): the
+    choice's end with the fits' results, the candidates' log-parameters and objectives and
+    Ω_ref's Cholesky factor of every series of a chunk."""
+    *data, penalty = chunk_specs(series, n, structures)
+    (step, scales), (kinds, params) = data[0].shape, data[5].shape
+    real = np.dtype(np.float64)
+    spec = jax.ShapeDtypeStruct
+    fitted = (spec((step, kinds, params), real), spec((step, kinds), real),
+              spec((step, scales, scales), real))
+    return (*data, scales), (*data, penalty, *fitted)
+
+
+def _compile_ahead(samples: int, series: int, n: int, structures=None) -> list[threading.Thread]:
+    """The fits' program and then the choice's lowered here and compiled on threads of their
+    own (:func:`program_specs`): the choice's trace runs while the fits' program compiles."""
+    fits, choice = _programs(samples)
+    fits_args, choice_args = program_specs(series, n, structures)
+    return [fits.compile_ahead(*fits_args), choice.compile_ahead(*choice_args)]
+
+
 def load_ahead(series: int, n: int, structures=None, lead: tuple[int, ...] | None = None
                ) -> list[threading.Thread]:
     """Start what :func:`identify` of ``series`` series of ``n`` samples (``structures``:
     its candidates; ``lead``: the series' leading shape, default ``(series,)``) will run:
-    its program lowered here and compiled, or read from the persistent cache, on a thread
-    of its own (XLA holds no GIL meanwhile), and so the wavelet variances' program
+    its programs lowered here and compiled, or read from the persistent cache, on threads
+    of their own (XLA holds no GIL meanwhile), and so the wavelet variances' program
     (:func:`~.wavelet_variance.haar_wv_ahead`), while the caller does other work
     (``noise`` checks that the devices are at rest). Join the threads before
     :func:`identify`, which then finds the programs loaded."""
-    program = _identify_batch(series * n)
-    threads = [program.compile_ahead(*chunk_specs(series, n, structures), len(dyadic_m(n)))]
+    threads = _compile_ahead(series * n, series, n, structures)
     return threads + [haar_wv_ahead((series,) if lead is None else tuple(lead), n)]
 
 

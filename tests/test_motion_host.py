@@ -1,0 +1,79 @@
+"""The motion check's judgement of a small batch on the host (numpy) against the compiled
+judgement of the same window statistics: the same flags and window arrays, the same
+numbers to float32's last bits, over recordings at rest, turning, shaken, tilted, short,
+partly invalid and empty, with and without the accelerometer, in groups of one and of
+more devices than a compiled chunk holds."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from diffgyro.internal import check_windows, judge_on_host, window_stats
+from diffgyro.motion import QUANTILE_WINDOWS, noise_quantiles, window_sizes
+
+
+def _signals(kind: str, n: int, fs: float, seed: int):
+    rng = np.random.default_rng(seed)
+    t = np.arange(n) / fs
+    gyro = np.array([0.004, -0.0025, 0.0011]) + rng.normal(0.0, 0.003, (n, 3))
+    gyro[:, 0] += 2e-5 * t  # thermal drift
+    accel = np.array([0.0, 0.0, 9.81]) + rng.normal(0.0, 0.02, (n, 3))
+    if kind in ("turns", "tilt"):
+        for k, start in enumerate(np.arange(min(20.0, t[-1] / 3), t[-1] - 5.0, 40.0)):
+            on = (t >= start) & (t < start + 4.0)
+            gyro[on, 2] += 0.6 if k % 2 == 0 else -0.6
+            if kind == "tilt":  # gravity leaves z after the turn
+                accel[t >= start + 4.0, 0] += 0.4 if k % 2 == 0 else -0.4
+    if kind == "shaken":
+        gyro += 0.05 * np.sin(2 * np.pi * 37.0 * t)[:, None]
+    if kind == "knock":
+        gyro[n // 2:n // 2 + 3] += 2.0
+    return gyro, accel
+
+
+def _stats(kinds, n: int, fs: float, rows: int, windows_pad: int = 0, gaps: bool = False):
+    w, b = window_sizes(1.0 / fs)
+    sig = [_signals(k, n, fs, s) for s, k in enumerate(kinds)]
+    gyro = np.stack([g for g, _ in sig])
+    accel = np.stack([a for _, a in sig])
+    mask = np.ones((len(kinds), n), bool)
+    if gaps:
+        mask[0, n // 3:n // 3 + 5 * w] = False
+        mask[-1] = False  # a device without a valid sample
+    k = -(-n // w) + windows_pad
+    idx = np.minimum(np.arange(rows), len(kinds) - 1)
+    read = [window_stats(x, mask, w, idx, k, noise_quantiles(), QUANTILE_WINDOWS)
+            for x in (gyro, accel)]
+    return read, w, b
+
+
+CASES = {
+    "at rest": (["rest"], 6000, 10.0, 1, 0, False),
+    "turns and a knock": (["turns", "knock"], 6000, 10.0, 2, 64, False),
+    "tilted": (["tilt", "rest", "shaken"], 8000, 20.0, 4, 0, True),
+    "short": (["turns"], 400, 10.0, 1, 0, False),
+    "one block": (["turns"], 200, 10.0, 1, 0, False),
+    "many devices": (["rest", "turns", "shaken", "tilt", "knock"] * 2, 3000, 10.0, 16, 0, True),
+    "slow rate": (["turns", "rest"], 7200, 2.0, 2, 20, False),
+}
+
+
+@pytest.mark.parametrize("case", list(CASES))
+@pytest.mark.parametrize("with_accel", [False, True])
+def test_the_host_judges_as_the_compiled_check(case, with_accel):
+    kinds, n, fs, rows, pad, gaps = CASES[case]
+    (gyro, accel), w, b = _stats(kinds, n, fs, rows, pad, gaps)
+    accel = accel if with_accel else None
+    compiled = {k: np.asarray(v) for k, v in check_windows(gyro, accel, w, b).items()}
+    host = judge_on_host(gyro, accel, w, b)
+    assert sorted(host) == sorted(compiled)
+    for key, want in compiled.items():
+        got = np.asarray(host[key])
+        assert got.shape == want.shape and got.dtype == want.dtype, key
+        if want.dtype == bool:
+            np.testing.assert_array_equal(got, want, err_msg=key)
+        else:
+            np.testing.assert_allclose(got, want, rtol=1e-6, atol=0, equal_nan=True, err_msg=key)
+    if case != "at rest":
+        assert host["window_moving"].any()  # the cases hold the rule's work
