@@ -485,10 +485,10 @@ def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
     norm = op.norm
     env = plan_environment(plan, config)
     sig = env_signals(env, norm, dtemp_window=config.dtemp_window)
+    fitted = None  # the noiseless fit, solved once for the linearisation and the bias
     if truth_model is not None and truth_model.spec != model.spec:
-        lin = _fit_noiseless(plan, config, model, truth_model, truth, norm, fit_options)
-    else:
-        lin = truth
+        fitted = _fit_noiseless(plan, config, model, truth_model, truth, norm, fit_options)
+    lin = truth if fitted is None else fitted
     info = information(model, sig, lin, arw, env.dt)
     cov = scaled_inverse(info)
     tt, rr = op.grid()
@@ -499,8 +499,10 @@ def predict_plan(plan: ChamberPlan, config: PlanConfig, model: ErrorModel, arw,
         systematic = (truth_model is not None and truth_model.spec != model.spec) or \
             config.earth_rate == "unknown"
     if systematic:
-        sys_err = expected_fit_error(plan, config, model, truth_model or model, truth, op,
-                                     fit_options)
+        if fitted is None:
+            fitted = _fit_noiseless(plan, config, model, truth_model or model, truth, norm,
+                                    fit_options)
+        sys_err = _fit_error(model, fitted, op, truth_model or model, truth)
     else:
         sys_err = jnp.zeros_like(sigma)
     return Prediction(sigma=sigma, systematic=sys_err, cov=cov, duration=plan_duration(plan, config))
@@ -525,6 +527,11 @@ def expected_fit_error(plan: ChamberPlan, config: PlanConfig, model: ErrorModel,
     (closed form, or variable projection with optimistix's implicit adjoint).
     """
     fitted = _fit_noiseless(plan, config, model, truth_model, truth, op.norm, fit_options)
+    return _fit_error(model, fitted, op, truth_model, truth)
+
+
+def _fit_error(model, fitted, op, truth_model, truth):
+    """The compensation error, over ``op``'s grid, of ``fitted`` against the truth."""
     tt, rr = op.grid()
     ops = operating_signals(tt, rr, op.norm, op.dtemp)
     return compensation_error(model, fitted, ops, truth_model, truth)
