@@ -369,7 +369,8 @@ class Layout(NamedTuple):
 
 def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:
     """How a group of devices is judged: its window sums' shape (padded for a small batch,
-    so that batches of nearby sizes share one program) and its program.
+    which a few shapes serve: a device's numbers do not depend on the padding) and its
+    judgement (:attr:`Layout.check`: a small batch's on the host).
 
     **Arguments:**
 
