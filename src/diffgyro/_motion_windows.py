@@ -363,7 +363,8 @@ class Layout(NamedTuple):
     @property
     def check(self):
         """The judgement: on the host for a small batch (:mod:`diffgyro._motion_host`: the
-        same numbers, no program to compile), else the compiled program."""
+        same flags, numbers to float32's last bits, no program to compile), else the
+        compiled program."""
         return _HOST if self.padded else _check
 
 
@@ -385,9 +386,7 @@ def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:
         return Layout(w, b, (rows, k), accel, False)
     # small batches share a shape: devices to a bucket, windows to a power of two of blocks
     blocks = 1 << (-(-k // b) - 1).bit_length()
-    rows = device_bucket(devices, minimum=1)
-    rows = rows if rows <= CHECK_CHUNK else -(-rows // CHECK_CHUNK) * CHECK_CHUNK
-    return Layout(w, b, (rows, blocks * b), accel, True)
+    return Layout(w, b, (device_bucket(devices, minimum=1), blocks * b), accel, True)
 
 
 __all__ = ["layout", "Layout"]

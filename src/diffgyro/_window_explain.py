@@ -57,8 +57,8 @@ def windows(batch: Batch, rows: Int[np.ndarray, " r"], w: int, k: int,
     batch_mask = np.asarray(batch.mask)
     # (every sample of the batch valid, the usual case: no copy of the devices' masks; a
     # few devices of a large batch, a second look, read their own)
-    every = (bool(batch_mask[read, :m].all()) if 2 * len(read) < n_dev else
-             bool(batch_mask[:, :m].all()) or bool(batch_mask[read, :m].all()))
+    every = ((2 * len(read) >= n_dev and bool(batch_mask[:, :m].all()))
+             or bool(batch_mask[read, :m].all()))
     counts = (windowed_sums(batch_mask[read, :m], w, k) if not every else
               np.broadcast_to(windowed_sums(np.ones((1, m), bool), w, k), (len(read), k)))
     mask = np.zeros((len(rows), k), bool)

@@ -63,8 +63,8 @@ def _halves_sums(xi, lo, h, w):  # pragma: no cover - compiled
 def _differences(xi, lo, w):  # pragma: no cover - compiled
     """The sums of the squared successive differences of a window of valid samples, in
     their order, and the smallest nonzero difference per axis (a minimum: in any order;
-    ``min`` of a select, which compiles without a branch and a NaN never wins, where a
-    compare-and-keep chain cost twice the window's sums)."""
+    ``min`` of a select compiles without a branch, and a NaN never wins; a compare-and-keep
+    chain would cost as much again as the window's sums)."""
     e0 = e1 = e2 = 0.0
     r0 = r1 = r2 = math.inf
     for t in range(lo + 1, lo + w):
