@@ -44,39 +44,40 @@ def _quantile(values, n, q):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _halves_sums(xi, lo, h, w):  # pragma: no cover - compiled
-    """The sums of the two halves of a window of valid samples (``xi``: a device's (n, 3),
-    the window from ``lo``), each in its samples' order."""
-    a0 = a1 = a2 = b0 = b1 = b2 = 0.0
-    for t in range(lo, lo + h):
-        a0 += xi[t, 0]
-        a1 += xi[t, 1]
-        a2 += xi[t, 2]
-    for t in range(lo + h, lo + w):
-        b0 += xi[t, 0]
-        b1 += xi[t, 1]
-        b2 += xi[t, 2]
-    return a0, a1, a2, b0, b1, b2
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _differences(xi, lo, w):  # pragma: no cover - compiled
-    """The sums of the squared successive differences of a window of valid samples, in
-    their order, and the smallest nonzero difference per axis (a minimum: in any order;
-    ``min`` of a select compiles without a branch, and a NaN never wins; a compare-and-keep
-    chain would cost as much again as the window's sums)."""
-    e0 = e1 = e2 = 0.0
-    r0 = r1 = r2 = math.inf
-    for t in range(lo + 1, lo + w):
-        d0, d1, d2 = xi[t, 0] - xi[t - 1, 0], xi[t, 1] - xi[t - 1, 1], xi[t, 2] - xi[t - 1, 2]
+def _half(xi, lo, hi, a0, a1, a2, p0, p1, p2, e0, e1, e2, r0, r1, r2):  # pragma: no cover
+    """Samples ``lo`` to ``hi`` of a window of valid samples (``xi``: a device's (n, 3)) in
+    one read, each sum carried on in the samples' order: the sums per axis from ``a``, and
+    with ``p`` the sample before ``lo``, the squared successive differences' from ``e`` and
+    the smallest nonzero difference from ``r`` (``min`` of a select compiles without a
+    branch, and a NaN never wins)."""
+    for t in range(lo, hi):
+        v0, v1, v2 = xi[t, 0], xi[t, 1], xi[t, 2]
+        a0 += v0
+        a1 += v1
+        a2 += v2
+        d0, d1, d2 = v0 - p0, v1 - p1, v2 - p2
         e0 += d0 * d0
         e1 += d1 * d1
         e2 += d2 * d2
-        u0, u1, u2 = abs(d0), abs(d1), abs(d2)
-        r0 = min(r0, u0 if d0 != 0.0 else math.inf)
-        r1 = min(r1, u1 if d1 != 0.0 else math.inf)
-        r2 = min(r2, u2 if d2 != 0.0 else math.inf)
-    return e0, e1, e2, r0, r1, r2
+        r0 = min(r0, abs(d0) if d0 != 0.0 else math.inf)
+        r1 = min(r1, abs(d1) if d1 != 0.0 else math.inf)
+        r2 = min(r2, abs(d2) if d2 != 0.0 else math.inf)
+        p0, p1, p2 = v0, v1, v2
+    return a0, a1, a2, e0, e1, e2, r0, r1, r2
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _whole(xi, lo, h, w):  # pragma: no cover - compiled
+    """A window of valid samples from ``lo``: its halves' sums and its differences (each
+    in the samples' order), read once."""
+    p0, p1, p2 = xi[lo, 0], xi[lo, 1], xi[lo, 2]  # (the first has no difference inside)
+    inf = math.inf
+    a0, a1, a2, e0, e1, e2, r0, r1, r2 = _half(xi, lo + 1, lo + h, 0.0 + p0, 0.0 + p1, 0.0 + p2,
+                                               p0, p1, p2, 0.0, 0.0, 0.0, inf, inf, inf)
+    q0, q1, q2 = xi[lo + h - 1, 0], xi[lo + h - 1, 1], xi[lo + h - 1, 2]
+    b0, b1, b2, e0, e1, e2, r0, r1, r2 = _half(xi, lo + h, lo + w, 0.0, 0.0, 0.0, q0, q1, q2,
+                                               e0, e1, e2, r0, r1, r2)
+    return a0, a1, a2, b0, b1, b2, e0, e1, e2, r0, r1, r2
 
 
 @njit(cache=True, nogil=True)
@@ -99,8 +100,7 @@ def _pass(x, mask, full, rate, rows, w, stats, count, valid, noise, quantiles,
             # every sample valid (the device's): the same sums without a branch per sample
             whole = full[r] and not rate.shape[0] and lo + w <= n
             if whole:
-                a0, a1, a2, b0, b1, b2 = _halves_sums(xi, lo, h, w)
-                e0, e1, e2, r0, r1, r2 = _differences(xi, lo, w)
+                a0, a1, a2, b0, b1, b2, e0, e1, e2, r0, r1, r2 = _whole(xi, lo, h, w)
                 q0, q1, q2 = min(q0, r0), min(q1, r1), min(q2, r2)
                 c1, c, cp = float(h), float(w), float(w - 1)
             for s in range(0 if not whole else w, min(w, n - j * w)):
