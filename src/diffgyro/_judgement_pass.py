@@ -43,7 +43,7 @@ _NUMBERS = ("moving_fraction", "rate_peak", "rate_rms", "turn_peak", "tilt_peak"
 THREAD_WINDOWS = 1 << 15
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _max(a, b):  # pragma: no cover - compiled
     """``np.maximum`` of two scalars: NaN where either is."""
     if a != a:
@@ -53,7 +53,7 @@ def _max(a, b):  # pragma: no cover - compiled
     return a if a >= b else b
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _min(a, b):  # pragma: no cover - compiled
     """``np.minimum`` of two scalars: NaN where either is."""
     if a != a:
@@ -63,7 +63,7 @@ def _min(a, b):  # pragma: no cover - compiled
     return a if a <= b else b
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _flag(d0, d1, d2, v0, v1, v2, floor):  # pragma: no cover - compiled
     """Whether a deviation stands out of the noise its mean can have (float32 throughout)."""
     k = np.float32(K_SIGMA)
