@@ -106,50 +106,45 @@ def _signal(st, count, valid, noise, w, floor, sigma, thr, var, jump):  # pragma
 
 
 @njit(cache=True, nogil=True)
-def _block_median(st, use, valid, start, b, med, at, buf):  # pragma: no cover - compiled
-    """The median of block ``start``'s windows in ``use`` (at most BLOCK_WINDOWS of them
-    spread over the windows it holds) per axis into ``med`` (NaN where none); returns
-    whether the block holds a valid window."""
+def _block_median(st, use, valid, blk, b, med, buf):  # pragma: no cover - compiled
+    """The median of block ``blk``'s windows in ``use`` (at most BLOCK_WINDOWS of them
+    spread over the windows it holds) per axis into ``med[blk]`` (NaN where none), by the
+    host's sorting network (the windows not in use as infinities: no branch per value);
+    returns whether the block holds a valid window."""
     k = valid.shape[0]
+    start = blk * b
     stop = min(start + b, k)
     span = 0
     for j in range(start, stop):
         if valid[j]:
             span = j - start + 1
+    cols = min(b, BLOCK_WINDOWS)
+    inf = np.float32(np.inf)
     n = 0
-    if b > BLOCK_WINDOWS:
-        for j in range(BLOCK_WINDOWS):
-            pick = (j * span) // BLOCK_WINDOWS if span > BLOCK_WINDOWS else j
-            if j < span and start + pick < k and use[start + pick]:
-                at[n] = start + pick
-                n += 1
-    else:
-        for j in range(start, stop):
-            if use[j]:
-                at[n] = j
-                n += 1
+    for j in range(cols):
+        pick = (j * span) // BLOCK_WINDOWS if b > BLOCK_WINDOWS and span > BLOCK_WINDOWS else j
+        i = min(start + pick, k - 1)  # (a window past the end is not in use)
+        ok = (j < span or b <= BLOCK_WINDOWS) and start + pick < k and use[i]
+        n += ok
+        for a in range(3):
+            buf[j, a] = st[i, 0, a] if ok else inf
+    for r in range(cols):  # odd-even transposition: cols rounds sort
+        for j in range(r % 2, cols - 1, 2):
+            for a in range(3):
+                x, y = buf[j, a], buf[j + 1, a]
+                buf[j, a], buf[j + 1, a] = min(x, y), max(x, y)
     h = np.float32(0.5) * np.float32(max(n, 1) - 1)
     lo = int(math.floor(h))
     hi = min(lo + 1, max(n - 1, 0))
     frac = h - np.float32(lo)
     for a in range(3):
-        if n == 0:
-            med[a] = np.float32(np.nan)
-            continue
-        for i in range(n):  # insertion sort of a few values
-            x = st[at[i], 0, a]
-            p = i
-            while p > 0 and buf[p - 1] > x:
-                buf[p] = buf[p - 1]
-                p -= 1
-            buf[p] = x
-        lo_v, hi_v = buf[lo], buf[hi]
-        med[a] = lo_v + (hi_v - lo_v) * frac
+        lo_v, hi_v = buf[lo, a], buf[hi, a]
+        med[blk, a] = lo_v + (hi_v - lo_v) * frac if n else np.float32(np.nan)
     return span > 0
 
 
 @njit(cache=True, nogil=True)
-def _blocks(st, use, valid, b, med, at, buf):  # pragma: no cover - compiled
+def _blocks(st, use, valid, b, med, buf):  # pragma: no cover - compiled
     """Every block's median (``med``: blocks × 3), held over blocks without windows in
     use and extrapolated past the last block with a valid window along the line through
     its last two."""
@@ -158,16 +153,16 @@ def _blocks(st, use, valid, b, med, at, buf):  # pragma: no cover - compiled
     last = -1
     first = -1
     for blk in range(kb):
-        if _block_median(st, use, valid, blk * b, b, med[blk], at, buf):
+        if _block_median(st, use, valid, blk, b, med, buf):
             end = blk
         if med[blk, 0] == med[blk, 0]:
             last = blk
             first = blk if first < 0 else first
         elif last >= 0:
-            med[blk] = med[last]
+            med[blk, 0], med[blk, 1], med[blk, 2] = med[last, 0], med[last, 1], med[last, 2]
     if first > 0:  # blocks before the first with windows in use hold it
         for blk in range(first):
-            med[blk] = med[first]
+            med[blk, 0], med[blk, 1], med[blk, 2] = med[first, 0], med[first, 1], med[first, 2]
     prev = max(end - 1, 0)
     two = np.float32(2.0)
     l0 = two * med[end, 0] - med[prev, 0]
@@ -178,27 +173,37 @@ def _blocks(st, use, valid, b, med, at, buf):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _baseline(st, use, valid, b, out, med, at, buf):  # pragma: no cover - compiled
-    """The baseline of a device's window means (``st[:, 0]``) into ``out``: the medians
-    of its blocks (:func:`_blocks`), linear between block centres and extrapolated from
-    the nearest two at the ends."""
-    k = valid.shape[0]
-    kb = med.shape[0]
-    _blocks(st, use, valid, b, med, at, buf)
-    if kb == 1:
-        for j in range(k):
-            out[j, 0], out[j, 1], out[j, 2] = med[0, 0], med[0, 1], med[0, 2]
-        return
+def _between(k, b, frac, left):  # pragma: no cover - compiled
+    """Where each of ``k`` windows lies between block centres (the same for every device):
+    the block ``left`` of it whose median it starts from (B − 1 in its block B's first
+    half, B in the second, clipped) and how far towards the next one's (``frac``)."""
+    kb = -(-k // b)
     half, bf = np.float32(0.5), np.float32(b)
     for i in range(k):
         pos = (np.float32(i) + half) / bf - half
         j = min(max(int(math.floor(pos)), 0), kb - 2)
-        frac = pos - np.float32(j)
+        frac[i] = pos - np.float32(j)
         blk = i // b
-        jj = min(max(blk if i % b >= b // 2 else blk - 1, 0), kb - 2)
+        left[i] = min(max(blk if i % b >= b // 2 else blk - 1, 0), kb - 2)
+
+
+@njit(cache=True, nogil=True)
+def _baseline(st, use, valid, b, out, med, buf, frac, left):  # pragma: no cover - compiled
+    """The baseline of a device's window means (``st[:, 0]``) into ``out``: the medians
+    of its blocks (:func:`_blocks`), linear between block centres (:func:`_between`) and
+    extrapolated from the nearest two at the ends."""
+    k = valid.shape[0]
+    kb = med.shape[0]
+    _blocks(st, use, valid, b, med, buf)
+    if kb == 1:
+        for j in range(k):
+            out[j, 0], out[j, 1], out[j, 2] = med[0, 0], med[0, 1], med[0, 2]
+        return
+    for i in range(k):
+        jj, f = left[i], frac[i]
         for a in range(3):
             lo = med[jj, a]
-            out[i, a] = lo + frac * (med[jj + 1, a] - lo)
+            out[i, a] = lo + f * (med[jj + 1, a] - lo)
 
 
 @njit(cache=True, nogil=True)
@@ -240,14 +245,15 @@ def _deviations(st, base, var, valid, floor, dev, flags, replace):  # pragma: no
 
 
 @njit(cache=True, nogil=True)
-def _moving(st, valid, var, jump, b, floor, moving, dev, base, marks, med, at,
-            buf):  # pragma: no cover - compiled
+def _moving(st, valid, var, jump, b, floor, moving, dev, base, marks, med, buf, frac,
+            left):  # pragma: no cover - compiled
     """A device's moving windows (into ``moving``) and deviations from the baseline (into
     ``dev``): the first pass, and where some window left it, the rule on runs and the
-    second baseline without the moving windows (``base``, ``marks``: scratch)."""
+    second baseline without the moving windows (``base``, ``marks``, ``med``, ``buf``:
+    scratch; ``frac``, ``left``: :func:`_between`)."""
     k = valid.shape[0]
     flags, mark, use = marks[0], marks[1], marks[2]
-    _baseline(st, valid, valid, b, base, med, at, buf)
+    _baseline(st, valid, valid, b, base, med, buf, frac, left)
     if not _deviations(st, base, var, valid, np.float32(floor), dev, flags, False):
         return
     for j in range(k):
@@ -255,7 +261,7 @@ def _moving(st, valid, var, jump, b, floor, moving, dev, base, marks, med, at,
     _runs_with(flags, mark, moving)
     for j in range(k):
         use[j] = valid[j] and not moving[j]
-    _baseline(st, use, valid, b, base, med, at, buf)
+    _baseline(st, use, valid, b, base, med, buf, frac, left)
     _deviations(st, base, var, valid, np.float32(floor), dev, flags, True)
     _runs_with(flags, mark, moving)
 
@@ -365,8 +371,9 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
     k = gv.shape[1]
     kb = -(-k // b)
     med = np.empty((kb, 3), np.float32)
-    at = np.empty(max(b, BLOCK_WINDOWS), np.int64)
-    buf = np.empty(max(b, BLOCK_WINDOWS), np.float32)
+    buf = np.empty((min(b, BLOCK_WINDOWS), 3), np.float32)
+    frac, left = np.empty(k, np.float32), np.empty(k, np.int64)
+    _between(k, b, frac, left)
     dev = np.empty((k, 3), np.float32)
     var = np.empty((k, 3), np.float32)
     base = np.empty((k, 3), np.float32)
@@ -379,7 +386,8 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
     gfloor, afloor = np.float32(2.0 * EARTH_RATE), np.float32(ACCEL_FLOOR)
     for r in range(gv.shape[0]):
         loud[r] = _signal(gs[r], gc[r], gv[r], gn[r], w, gfloor, sigma, thr[r], var, jump)
-        _moving(gs[r], gv[r], var, jump, b, gfloor, moving[r], dev, base, marks, med, at, buf)
+        _moving(gs[r], gv[r], var, jump, b, gfloor, moving[r], dev, base, marks, med, buf,
+                frac, left)
         tilt = np.float32(0.0)
         if acs.shape[0]:
             _signal(acs[r], acc[r], acv[r], acn[r], w, afloor, asigma, athr[r], avar, jump)
