@@ -144,10 +144,27 @@ def _block_median(st, use, valid, blk, b, med, buf):  # pragma: no cover - compi
 
 
 @njit(cache=True, nogil=True)
-def _blocks(st, use, valid, b, med, buf):  # pragma: no cover - compiled
-    """Every block's median (``med``: blocks × 3), held over blocks without windows in
-    use and extrapolated past the last block with a valid window along the line through
-    its last two."""
+def _between(k, b, frac, left):  # pragma: no cover - compiled
+    """Where each of ``k`` windows lies between block centres (the same for every device):
+    the block ``left`` of it whose median it starts from (B − 1 in its block B's first
+    half, B in the second, clipped) and how far towards the next one's (``frac``)."""
+    kb = -(-k // b)
+    half, bf = np.float32(0.5), np.float32(b)
+    for i in range(k):
+        pos = (np.float32(i) + half) / bf - half
+        j = min(max(int(math.floor(pos)), 0), kb - 2)
+        frac[i] = pos - np.float32(j)
+        blk = i // b
+        left[i] = min(max(blk if i % b >= b // 2 else blk - 1, 0), kb - 2)
+
+
+@njit(cache=True, nogil=True)
+def _baseline(st, use, valid, b, out, med, buf, frac, left):  # pragma: no cover - compiled
+    """The baseline of a device's window means (``st[:, 0]``) into ``out``: the medians
+    of its blocks (``med``: blocks × 3), held over blocks without windows in use,
+    extrapolated past the last block with a valid window along the line through its last
+    two, and linear between block centres (:func:`_between`)."""
+    k = valid.shape[0]
     kb = med.shape[0]
     end = 0
     last = -1
@@ -170,31 +187,6 @@ def _blocks(st, use, valid, b, med, buf):  # pragma: no cover - compiled
     l2 = two * med[end, 2] - med[prev, 2]
     for blk in range(end + 1, kb):
         med[blk, 0], med[blk, 1], med[blk, 2] = l0, l1, l2
-
-
-@njit(cache=True, nogil=True)
-def _between(k, b, frac, left):  # pragma: no cover - compiled
-    """Where each of ``k`` windows lies between block centres (the same for every device):
-    the block ``left`` of it whose median it starts from (B − 1 in its block B's first
-    half, B in the second, clipped) and how far towards the next one's (``frac``)."""
-    kb = -(-k // b)
-    half, bf = np.float32(0.5), np.float32(b)
-    for i in range(k):
-        pos = (np.float32(i) + half) / bf - half
-        j = min(max(int(math.floor(pos)), 0), kb - 2)
-        frac[i] = pos - np.float32(j)
-        blk = i // b
-        left[i] = min(max(blk if i % b >= b // 2 else blk - 1, 0), kb - 2)
-
-
-@njit(cache=True, nogil=True)
-def _baseline(st, use, valid, b, out, med, buf, frac, left):  # pragma: no cover - compiled
-    """The baseline of a device's window means (``st[:, 0]``) into ``out``: the medians
-    of its blocks (:func:`_blocks`), linear between block centres (:func:`_between`) and
-    extrapolated from the nearest two at the ends."""
-    k = valid.shape[0]
-    kb = med.shape[0]
-    _blocks(st, use, valid, b, med, buf)
     if kb == 1:
         for j in range(k):
             out[j, 0], out[j, 1], out[j, 2] = med[0, 0], med[0, 1], med[0, 2]
@@ -242,28 +234,6 @@ def _deviations(st, base, var, valid, floor, dev, flags, replace):  # pragma: no
                                       var[j, 2], floor)
         anyone = anyone or flags[j]
     return anyone
-
-
-@njit(cache=True, nogil=True)
-def _moving(st, valid, var, jump, b, floor, moving, dev, base, marks, med, buf, frac,
-            left):  # pragma: no cover - compiled
-    """A device's moving windows (into ``moving``) and deviations from the baseline (into
-    ``dev``): the first pass, and where some window left it, the rule on runs and the
-    second baseline without the moving windows (``base``, ``marks``, ``med``, ``buf``:
-    scratch; ``frac``, ``left``: :func:`_between`)."""
-    k = valid.shape[0]
-    flags, mark, use = marks[0], marks[1], marks[2]
-    _baseline(st, valid, valid, b, base, med, buf, frac, left)
-    if not _deviations(st, base, var, valid, np.float32(floor), dev, flags, False):
-        return
-    for j in range(k):
-        mark[j] = jump[j] or (j + 1 < k and jump[j + 1])
-    _runs_with(flags, mark, moving)
-    for j in range(k):
-        use[j] = valid[j] and not moving[j]
-    _baseline(st, use, valid, b, base, med, buf, frac, left)
-    _deviations(st, base, var, valid, np.float32(floor), dev, flags, True)
-    _runs_with(flags, mark, moving)
 
 
 @njit(cache=True, nogil=True)
@@ -378,7 +348,7 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
     var = np.empty((k, 3), np.float32)
     base = np.empty((k, 3), np.float32)
     avar = np.empty((k, 3), np.float32)
-    marks = np.empty((3, k), np.bool_)
+    flags, mark, use = np.empty(k, np.bool_), np.empty(k, np.bool_), np.empty(k, np.bool_)
     jump = np.empty(k, np.bool_)
     tflag = np.empty(k, np.bool_)
     sigma = np.empty(3, np.float32)
@@ -386,8 +356,18 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
     gfloor, afloor = np.float32(2.0 * EARTH_RATE), np.float32(ACCEL_FLOOR)
     for r in range(gv.shape[0]):
         loud[r] = _signal(gs[r], gc[r], gv[r], gn[r], w, gfloor, sigma, thr[r], var, jump)
-        _moving(gs[r], gv[r], var, jump, b, gfloor, moving[r], dev, base, marks, med, buf,
-                frac, left)
+        # the first pass; where some window left its baseline, the rule on runs (a run
+        # moves where it starts or holds a jump) and the baseline without the moving windows
+        _baseline(gs[r], gv[r], gv[r], b, base, med, buf, frac, left)
+        if _deviations(gs[r], base, var, gv[r], gfloor, dev, flags, False):
+            for j in range(k):
+                mark[j] = jump[j] or (j + 1 < k and jump[j + 1])
+            _runs_with(flags, mark, moving[r])
+            for j in range(k):
+                use[j] = gv[r, j] and not moving[r, j]
+            _baseline(gs[r], use, gv[r], b, base, med, buf, frac, left)
+            _deviations(gs[r], base, var, gv[r], gfloor, dev, flags, True)
+            _runs_with(flags, mark, moving[r])
         tilt = np.float32(0.0)
         if acs.shape[0]:
             _signal(acs[r], acc[r], acv[r], acn[r], w, afloor, asigma, athr[r], avar, jump)
