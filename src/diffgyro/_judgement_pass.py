@@ -75,10 +75,10 @@ def _flag(d0, d1, d2, v0, v1, v2, floor):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True)
-def _signal(st, count, valid, noise, w, floor, sigma, thr, var, jump):  # pragma: no cover
+def _signal(st, count, valid, noise, w, floor, sigma, thr, var):  # pragma: no cover
     """One device's signal as the judgement reads it: its rest noise per axis (``sigma``),
-    threshold (``thr``), the variance each window mean has at rest (``var``) and the jumps
-    between neighbouring windows (``jump``); returns whether a window was too loud."""
+    threshold (``thr``) and the variance each window mean has at rest (``var``); returns
+    whether a window was too loud."""
     k = valid.shape[0]
     one, cap, inf = np.float32(1.0), np.float32(LOUDER_CAP), np.float32(np.inf)
     wf = np.float32(w)
@@ -97,13 +97,19 @@ def _signal(st, count, valid, noise, w, floor, sigma, thr, var, jump):  # pragma
             v = mean_noise[a] * louder
             var[j, a] = v * v * scale
             loud = loud or (valid[j] and local > cap * sigma[a])
+    return loud
+
+
+@njit(cache=True, nogil=True)
+def _jumps(st, valid, var, floor, jump):  # pragma: no cover - compiled
+    """The jumps between neighbouring valid windows of one device's signal (``jump``): the
+    change of their means stands out of the noise both can have."""
     jump[0] = False
-    for j in range(1, k):
+    for j in range(1, valid.shape[0]):
         jump[j] = valid[j] and valid[j - 1] and _flag(
             st[j, 0, 0] - st[j - 1, 0, 0], st[j, 0, 1] - st[j - 1, 0, 1],
             st[j, 0, 2] - st[j - 1, 0, 2], var[j, 0] + var[j - 1, 0],
             var[j, 1] + var[j - 1, 1], var[j, 2] + var[j - 1, 2], floor)
-    return loud
 
 
 @njit(cache=True, nogil=True)
@@ -356,11 +362,12 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
     asigma = np.empty(3, np.float32)
     gfloor, afloor = np.float32(2.0 * EARTH_RATE), np.float32(ACCEL_FLOOR)
     for r in range(gv.shape[0]):
-        loud[r] = _signal(gs[r], gc[r], gv[r], gn[r], w, gfloor, sigma, thr[r], var, jump)
+        loud[r] = _signal(gs[r], gc[r], gv[r], gn[r], w, gfloor, sigma, thr[r], var)
         # the first pass; where some window left its baseline, the rule on runs (a run
         # moves where it starts or holds a jump) and the baseline without the moving windows
         _baseline(gs[r], gv[r], gv[r], b, base, med, buf, frac, left)
         if _deviations(gs[r], base, var, gv[r], gfloor, dev, flags, False):
+            _jumps(gs[r], gv[r], var, gfloor, jump)  # (read by the rule on runs alone)
             for j in range(k):
                 mark[j] = jump[j] or (j + 1 < k and jump[j + 1])
             _runs_with(flags, mark, moving[r])
@@ -371,7 +378,8 @@ def _judge(gs, gc, gv, gn, acs, acc, acv, acn, w, b, thr, athr, moving, near, lo
             _runs_with(flags, mark, moving[r])
         tilt = np.float32(0.0)
         if acs.shape[0]:
-            _signal(acs[r], acc[r], acv[r], acn[r], w, afloor, asigma, athr[r], avar, jump)
+            _signal(acs[r], acc[r], acv[r], acn[r], w, afloor, asigma, athr[r], avar)
+            _jumps(acs[r], acv[r], avar, afloor, jump)
             for j in range(k):
                 moving[r, j] = moving[r, j] or jump[j]
             tilt = _tilted(acs[r], gv[r], moving[r], athr[r], tflag)
