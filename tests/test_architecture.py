@@ -228,6 +228,7 @@ DEFERRED = {
     "diffgyro._noise": {"diffgyro._noise_passes"},  # numba
     "diffgyro._window_stats": {"diffgyro._window_pass"},  # numba, for a large batch
     "diffgyro._window_explain": {"diffgyro._window_pass"},  # numba, once the pass is loaded
+    "diffgyro._motion_windows": {"diffgyro._judgement_pass"},  # numba, once the pass is loaded
     "diffgyro.stochastic._block_likelihood": {"diffgyro.stochastic._toeplitz"},  # numba
     "diffgyro.fit": {"diffgyro.kalman"},  # the stochastic model: 0.15 s of import
     # the solvers' libraries load when a solve is traced, not in a process whose programs
@@ -360,8 +361,8 @@ LAYERS = (
     ("signals", "effects", "model", "_signal_catalogue", "_signal_builder", "_aux", "_term_info"),
     ("status", "motion", "_options", "_folds", "_temperature", "_linalg", "_noise",
      "_noise_passes", "_select", "_noise_jax", "_motion_judge", "_fit_result", "_window_pass",
-     "_window_stats", "_window_explain", "_motion_constants", "_motion_windows", "_motion_host", "_rest_stretches",
-     "_motion_result"),
+     "_window_stats", "_window_explain", "_motion_constants", "_motion_windows", "_motion_host",
+     "_judgement_pass", "_rest_stretches", "_motion_result"),
     ("fit", "kalman", "_fit_sums", "_direct"),
     ("diagnose", "sensitivity", "plan_design", "allan", "stochastic", "detect", "_reference"),
     ("io", "logs", "calibration", "carry", "apply", "export", "report", "limits", "_compensate"),

@@ -6,9 +6,7 @@ batch before the fit, so the scoring program compiles on a thread while the fit 
 Checked here: the prediction is the fit's setting bit for bit (a temperature model and a
 model reading an extra column), the program prepared ahead is the one the scoring calls,
 a diagnosis so prepared equals one given the base fit (which prepares nothing ahead),
-a prediction the fit contradicts is replaced by the fit's, with the same scores, and the
-base fit's motion check starts compiling before the scoring program is traced, its fit
-waiting for that compilation instead of starting another.
+and a prediction the fit contradicts is replaced by the fit's, with the same scores.
 
 Data: two thermal runs made apart from the project's simulator (``hidden_effects.py``),
 the hidden bias following dT/dt, one with an extra logged column ``vdd`` (the supply).
@@ -20,7 +18,6 @@ import hidden_effects as H
 import numpy as np
 import pytest
 
-from diffgyro import motion
 from diffgyro.data import Batch, Recording
 from diffgyro.diagnose import _ahead as ahead
 from diffgyro.diagnose import _plan as plan
@@ -95,27 +92,3 @@ def test_prepared_ahead_equals_given_the_fit_and_a_missed_prediction_is_replaced
     assert ahead.AHEAD["refit"] == before.get("refit", 0) + 1
     assert ahead.AHEAD["hit"] == before.get("hit", 0) + 2  # the same shapes: the program serves
     _same_diagnosis(replaced, given)
-
-
-def test_the_motion_checks_program_starts_before_the_scoring_and_the_fit_waits_for_it(
-        batch, monkeypatch):
-    events, threads = [], []
-    real_program, real_scoring = motion._program_ahead, plan._ahead_programs
-
-    def program(*a, **k):
-        out = real_program(*a, **k)
-        events.append("motion")
-        threads.append(out[2])
-        return out
-
-    def scoring(*a, **k):
-        events.append("scoring")
-        return real_scoring(*a, **k)
-
-    monkeypatch.setattr(motion, "_program_ahead", program)
-    monkeypatch.setattr(plan, "_ahead_programs", scoring)
-    diagnose(BASE, batch, dtemp_window=60.0, **KW)
-    # started while the ranges' program compiles, before the scoring program is traced;
-    # the base fit's check_ahead then gets the same compilation
-    assert events[:3] == ["motion", "scoring", "motion"]
-    assert threads[0] is threads[1]

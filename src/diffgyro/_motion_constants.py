@@ -1,7 +1,8 @@
 """The numbers of the judgement of rest (:mod:`diffgyro.motion`, docs/rest.md): each rule's
 threshold, window and cap, with why it has its value. One place for the rule book: the
-check, its compiled judgement of the windows (:mod:`diffgyro._motion_windows`) and the
-host's search for stretches of rest (:mod:`diffgyro._rest_stretches`) read them here."""
+check, its judgement of the windows (:mod:`diffgyro._motion_host`,
+:mod:`diffgyro._judgement_pass`) and the host's search for stretches of rest
+(:mod:`diffgyro._rest_stretches`) read them here."""
 
 from __future__ import annotations
 
@@ -60,11 +61,7 @@ REST_SHARE = 0.5
 #: The largest rate a gyro's bias reaches (rad/s, about 29 °/s: beyond the zero-rate
 #: offsets that consumer MEMS datasheets allow); a level above it is a turn.
 MAX_BIAS = 0.5
-#: Devices checked side by side (vmapped) in one step of the compiled loop over a batch's
-#: devices: on a 2-core CPU the window statistics with their consumers run about twice as
-#: fast in chunks of 8 as vmapped over a batch of 1000.
-CHECK_CHUNK = 8
 #: Groups of at most this many samples (devices × samples) are checked at a bucketed
 #: shape (devices to :func:`~diffgyro.data.device_bucket`, windows to a power of two of
-#: baseline blocks), so that batches of nearby sizes share one program.
+#: baseline blocks).
 PAD_SAMPLES = 1 << 21

@@ -1,19 +1,17 @@
-"""The motion check's judgement of a small batch on the host: numpy, no compiled program.
-
-The same rules as the compiled judgement (:mod:`diffgyro._motion_windows`, which says what
-each step does), written over a leading axis of devices. A small batch's windows number a
-few thousand, which numpy judges in milliseconds, where the compiled program costs a
-command without its cache half a second of CPU to trace, lower and compile, on the
-command's critical path (``noise`` judges before it identifies; ``diagnose`` and ``fit``
-while their other programs trace). Elementwise steps are the program's in the same order
-(IEEE arithmetic: the same bits); sums over many windows are accumulated in float64, so
-the numbers formed from them (the rest rate, the rms rate, the tilt) match the compiled
-judgement's to float32's last bits.
+"""The motion check's judgement of a group of devices from their window statistics
+(:mod:`diffgyro._window_stats`) on the host in numpy, written over a leading axis of
+devices: the baseline of the window means, the windows that leave it, the rule on runs,
+the angle turned and gravity's tilt, and the numbers the host reads
+(:func:`diffgyro.motion.motion_check` says what they mean). A small batch's windows number
+a few thousand, which numpy judges in milliseconds with no compiled code to load; a large
+batch is judged by the same rules in one compiled loop over its devices
+(:mod:`diffgyro._judgement_pass`, numba), which this module's numbers check: the same
+flags and windows (elementwise steps in the same order, IEEE float32 arithmetic: the same
+bits), and the numbers formed from sums over many windows (accumulated in float64, in
+numpy's order here and window order there) to float32's last bits.
 """
 
 from __future__ import annotations
-
-import threading
 
 import numpy as np
 
@@ -31,14 +29,13 @@ F32 = np.float32
 
 
 def _sum3(x):
-    """The sum over the last axis of three components, as the compiled judgement adds them
-    (explicit adds, in order)."""
+    """The sum over the last axis of three components (explicit adds, in order)."""
     return (x[..., 0] + x[..., 1]) + x[..., 2]
 
 
 def _reduce3(x):
-    """The sum over the last axis of three components in the order XLA's CPU reduction
-    adds them (the compiled judgement's ``jnp.sum`` and ``jnp.mean`` over an axis of 3)."""
+    """The sum over the last axis of three components, the first and last added first (the
+    order of the rest rate, the rest noise and the threshold over their axes)."""
     return (x[..., 0] + x[..., 2]) + x[..., 1]
 
 
@@ -47,8 +44,8 @@ def _norm(x):
 
 
 def _sum(x, axis: int):
-    """A float32 sum along ``axis`` of many terms, accumulated in float64 (XLA's order of
-    the compiled sums is its own: the two agree to float32's last bits)."""
+    """A float32 sum along ``axis`` of many terms, accumulated in float64 (numpy's pairwise
+    order; the compiled loop's is the windows': the two agree to float32's last bits)."""
     return np.sum(x, axis=axis, dtype=np.float64).astype(x.dtype)
 
 
@@ -68,8 +65,8 @@ def _cummin_back(x):
 
 def _median_few(x, valid):
     """The median (linear between order statistics) of the ``valid`` entries of ``x`` along
-    axis 2 (at most :data:`BLOCK_WINDOWS`), NaN where none: the compiled judgement's
-    sorting network."""
+    axis 2 (at most :data:`BLOCK_WINDOWS`), NaN where none: a sorting network of
+    elementwise min/max."""
     n = np.sum(valid, axis=2, keepdims=True)
     h = (0.5 * (np.maximum(n, 1) - 1).astype(x.dtype)).astype(x.dtype)
     lo = np.floor(h).astype(np.int32)
@@ -88,6 +85,9 @@ def _median_few(x, valid):
 
 
 def _spread(has, limit: int):
+    """At most ``limit`` window indices spread evenly from the first window to the last one
+    ``has`` (along its last axis): those the windows hold, not the padded batch's; and
+    which of them lie in that span (all, unless it holds fewer windows)."""
     k = has.shape[-1]
     span = np.max(np.where(has, np.arange(k), -1), axis=-1, keepdims=True) + 1
     j = np.arange(limit)
@@ -95,7 +95,16 @@ def _spread(has, limit: int):
 
 
 def _baseline(mean, use, valid, b: int):
-    """The compiled judgement's baseline of the window means (devices, windows, 3)."""
+    """Slow baseline of the window means (devices, windows, 3): the median over blocks of
+    ``b`` windows of the windows in ``use`` (of the ``valid`` ones; at most
+    :data:`BLOCK_WINDOWS` of them spread evenly over the block). A block without windows
+    in use (all moving) holds the last block before it that has some (the first such block
+    before any). Past the recording's end (padding) the blocks follow the line through its
+    last two, so that its last block's second half is extrapolated as without the padding
+    (a device's baseline does not depend on the length of the batch it is checked in).
+    Between block centres it is linear, and extrapolated from the nearest two at the ends
+    (a warm-up's drift is fastest in the first half block): window i of block B lies
+    between the centres of blocks B − 1 (first half) or B (second half), clipped."""
     d, k, c = mean.shape
     kb = -(-k // b)
     pad = kb * b - k
@@ -134,10 +143,14 @@ def _baseline(mean, use, valid, b: int):
 
 
 def _run_start(flag):
+    """Per window, the index of the last window at or before it that is not ``flag`` (−1
+    where none): the window before the run of ``flag`` it belongs to."""
     return _cummax(np.where(flag, -1, np.arange(flag.shape[1])))
 
 
 def _runs_with(flag, mark):
+    """``flag`` with every run of True that holds no ``mark`` cleared (running maxima
+    forwards and minima backwards)."""
     k = flag.shape[1]
     idx = np.arange(k)
     ahead = _cummax(np.where(flag & mark, idx, -1)) > _run_start(flag)
@@ -147,13 +160,19 @@ def _runs_with(flag, mark):
 
 
 def _flag(dev, var, ok, floor: float):
+    """Windows whose deviation ``dev`` stands out of the noise ``var`` its mean can have."""
     thr = np.maximum(F32(K_SIGMA) * np.sqrt(var), F32(floor))
     r = dev / thr
     return (_sum3(r * r) > 1.0) & ok
 
 
 def _windows(stats, w: int, floor: float) -> dict:
-    """A signal's windows as the judgement reads them (the compiled ``_Windows``)."""
+    """A signal's windows as the judgement reads them: means and validity, the rest noise
+    and threshold per axis, the variance a window mean has at rest (raised by its own
+    noise: vibration raises the local noise, and with it what a window mean may scatter,
+    but at most :data:`LOUDER_CAP` times, so that a window cannot hide a turn), the jumps
+    between neighbouring windows, whether a window was louder than the cap allows
+    (shaken or knocked, though its mean may not show it), and the floor."""
     wins, c, valid, noise = (np.asarray(x) for x in stats)
     mean, local = wins[:, :, 0], wins[:, :, 1]
     sigma = np.where(np.isnan(noise[:, 0]), F32(0), noise[:, 0])
@@ -173,8 +192,11 @@ def _windows(stats, w: int, floor: float) -> dict:
 
 
 def _moving(win: dict, b: int):
-    """The moving windows and each window's deviation from the baseline (the first pass,
-    and where some window left it, the rule on runs and the second baseline)."""
+    """The moving windows and each window's deviation from the baseline: the first pass
+    (the baseline of all valid windows), and where some window left it, the rule on runs
+    (a run of such windows is motion when it starts or holds a jump: a turn starts within
+    a window or two, thermal drift creeps) and then again with the baseline of the windows
+    the first pass left static (where it left none, its own baseline stands)."""
     mean, valid, var, floor = win["mean"], win["valid"], win["var"], win["floor"]
     dev = mean - _baseline(mean, valid, valid, b)
     dev = np.where(np.isnan(dev), F32(0), dev)
@@ -189,6 +211,9 @@ def _moving(win: dict, b: int):
 
 
 def _turned(moving, dev):
+    """The largest angle turned within one run of moving windows (in window-mean rate ×
+    windows; the host scales it by the window's length): the rate less the baseline,
+    summed from the run's start."""
     turned = np.cumsum(np.where(moving[..., None], dev, F32(0)), axis=1, dtype=np.float64).astype(F32)
     before = _run_start(moving)
     start = np.take_along_axis(turned, np.maximum(before, 0)[..., None], axis=1)
@@ -197,6 +222,10 @@ def _turned(moving, dev):
 
 
 def _tilted(accel, valid, moving, thr):
+    """Windows whose specific force leaves the mean of its chunk of :data:`STRETCH_CHUNK`
+    windows by more than a tilt of :data:`TILT_FLOOR` (or the accelerometer's threshold),
+    in chunks where nothing else moved (a chunk with a move in it is left to
+    :mod:`diffgyro._rest_stretches`, which splits it there), and the largest such tilt (rad)."""
     d, k, _ = accel.shape
     c = STRETCH_CHUNK
     kc = -(-k // c)
@@ -216,6 +245,9 @@ def _tilted(accel, valid, moving, thr):
 
 
 def _numbers(win: dict, moving, dev, turn, tilt, count) -> dict:
+    """The devices' numbers (:data:`~diffgyro._motion_result.NUMBERS`, but the resolution
+    the host forms) and their windows not at rest (moving, or next to a moving one: the
+    transitions)."""
     mean, valid = win["mean"], win["valid"]
     rate = _norm(dev)
     n_mov = np.sum(moving, axis=1)
@@ -229,7 +261,7 @@ def _numbers(win: dict, moving, dev, turn, tilt, count) -> dict:
     some = np.any(valid, axis=1)
     frac = _sum(np.where(moving, count, F32(0)), 1) / np.maximum(_sum(count, 1), F32(1))
     nan = F32(np.nan)
-    # (XLA divides the mean's sum by multiplying with 1/3)
+    # (the mean of three: their sum times 1/3)
     root_mean = lambda x: np.sqrt(_reduce3(x * x) * F32(1 / 3))  # noqa: E731
     return dict(moving_fraction=np.where(some, frac, nan), rate_peak=np.where(some, peak, nan),
                 rate_rms=np.where(some, rms, nan), turn_peak=np.where(some, turn, nan),
@@ -241,8 +273,8 @@ def _numbers(win: dict, moving, dev, turn, tilt, count) -> dict:
 
 def judge(gyro, accel, w: int, b: int) -> dict:
     """The judgement of a (small) group of devices from their window statistics (gyro, and
-    accelerometer or None; :mod:`diffgyro._window_stats`, float32): the compiled
-    judgement's outputs (``_motion_windows._chunk``), as numpy arrays.
+    accelerometer or None; :mod:`diffgyro._window_stats`, float32): per device the
+    numbers, and per window the flags and means the host reads, as numpy arrays.
 
     **Arguments:**
 
@@ -268,23 +300,4 @@ def judge(gyro, accel, w: int, b: int) -> dict:
         return out | _numbers(win, moving, dev, turn, tilt, count) | dict(window_moving=moving)
 
 
-class HostCheck:
-    """:func:`judge` with the compiled judgement's interface: called as the program is, and
-    ``compile_ahead`` (nothing to compile) returns one finished thread, as a compilation
-    asked for again returns the thread of the first."""
-
-    def __init__(self) -> None:
-        self._done: threading.Thread | None = None
-
-    def __call__(self, gyro, accel, w: int, b: int) -> dict:
-        return judge(gyro, accel, w, b)
-
-    def compile_ahead(self, *args, **kwargs) -> threading.Thread:
-        if self._done is None:
-            done = threading.Thread(target=lambda: None, name="motion check (host)", daemon=True)
-            done.start()
-            self._done = done
-        return self._done
-
-
-__all__ = ["judge", "HostCheck"]
+__all__ = ["judge"]

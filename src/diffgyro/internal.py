@@ -14,8 +14,8 @@ module. This is the one module that may import another package's private modules
 - the fit's engines: ``filter_jit``, the JAX noise floor (``device_noise_floor``,
   ``masked_median``), the temperature read-out step and dT/dt window
   (``temperature_quantum``, ``suggest_dtemp_window``), ``window_stats`` and
-  ``check_windows`` (the motion check's statistics, and its compiled judgement of them),
-  ``judge_on_host`` (a small batch's judgement in numpy), the sums path's ``pack`` and
+  ``check_windows`` (the motion check's statistics, and its compiled judgement of them:
+  numba), ``judge_on_host`` (a small batch's judgement in numpy), the sums path's ``pack`` and
   ``unpack_results``;
 - attitude references: quaternion helpers and gyro integration (``_reference``);
 - diagnose: ``candidate_grid``, ``residual_floor``, term synthesis (``describe``,
@@ -40,8 +40,8 @@ from . import _xla_options as xla_options
 from ._fit_sums import groups as fit_groups
 from ._fit_sums import pack, unpack_results
 from ._jit import filter_jit
+from ._judgement_pass import judge as check_windows
 from ._motion_host import judge as judge_on_host
-from ._motion_windows import _check as check_windows
 from ._noise_jax import device_noise_floor, masked_median
 from ._reference import (
     attitude_from_accel_mag,

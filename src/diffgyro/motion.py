@@ -38,8 +38,8 @@ as moving; :attr:`Motion.static` is the rest, what ``--static-only`` fits.
 
 The samples are read once (:mod:`diffgyro._window_stats`: every window statistic and
 the rest noise; numpy for a small batch, a compiled pass on the host's cores for a large
-one); the judgement on the windows is JAX (:mod:`diffgyro._motion_windows`), and where a
-recording moved, its stretches of rest are sought on the host
+one); the judgement on the windows likewise (:mod:`diffgyro._motion_windows`: numpy, or a
+compiled loop over the devices where the pass was compiled), and where a recording moved, its stretches of rest are sought on the host
 (:mod:`diffgyro._rest_stretches`). The rules' numbers are in
 :mod:`diffgyro._motion_constants`. A long recording is first judged in longer windows (at most
 :data:`MAX_WINDOWS`), and again in its rate's where anything moved or shook, or the long
@@ -53,7 +53,6 @@ import math
 import threading
 from collections.abc import Callable
 
-import jax
 import numpy as np
 from jaxtyping import Bool, Float
 
@@ -291,8 +290,7 @@ def _check_group(gyro, accel, mask, rate, idx, w: int, b: int, dts, spans, use_a
                                           None, None)
 
     def judged(stats):
-        return lay.check(*(None if x is None else tuple(jax.device_put(y) for y in x)
-                           for x in (stats, acc)), w, b)
+        return lay.check(stats, acc, w, b)
 
     recorded_stats = stats
     if explain is None:
@@ -441,12 +439,10 @@ def _held_rate(mean: Float[np.ndarray, "d k 3"], use: Bool[np.ndarray, "d k"]
     return np.sqrt(np.sum(held**2, axis=1)).astype(mean.dtype)
 
 
-def _program_ahead(batch, dt: float | None = None
-                   ) -> tuple[dict, dict, threading.Thread, tuple[np.ndarray, np.ndarray]]:
-    """The device groups of ``batch``'s check, their layouts, the thread compiling the
-    check's program for the largest group (its compilation asked again returns that
-    thread: :func:`~diffgyro._jit.filter_jit`'s ``compile_ahead``), and the devices'
-    sampling intervals and spans the groups were formed from."""
+def _ahead_groups(batch, dt: float | None = None
+                  ) -> tuple[dict, dict, tuple[np.ndarray, np.ndarray]]:
+    """The device groups of ``batch``'s check, their layouts, and the devices' sampling
+    intervals and spans the groups were formed from."""
     mask = np.asarray(batch.mask)
     spans = _spans(mask)
     dts = _device_intervals(batch, dt)
@@ -454,41 +450,31 @@ def _program_ahead(batch, dt: float | None = None
     _, use_accel = _reads(batch)
     lays = {key: layout(len(idx), int(max(spans[idx].max(initial=0), 1)), *key, use_accel)
             for key, idx in groups.items()}
-    (w, b), _ = max(groups.items(), key=lambda kv: len(kv[1]))
-    lay = lays[(w, b)]
-
-    def spec(*shape, dtype=np.float32):
-        return jax.ShapeDtypeStruct(shape, dtype)
-
-    rows, k = lay.shape
-    stats = (spec(rows, k, 3, 3), spec(rows, k), spec(rows, k, dtype=bool), spec(rows, 2, 3))
-    return groups, lays, lay.check.compile_ahead(stats, stats if lay.accel else None, w, b), \
-        (dts, spans)
+    return groups, lays, (dts, spans)
 
 
 def program_ahead(batch, dt: float | None = None) -> threading.Thread:
-    """Start compiling (or reading from the caches) the program :func:`motion_check` of
-    ``batch`` runs, on a thread of its own, and return that thread. A later
-    :func:`check_ahead` of the same batch (a fit's) waits for it instead of compiling
-    again; a caller with Python work of its own to do before its fit (``diagnose``: its
-    candidates' ranges and scoring program) starts it first, so that XLA compiles the
-    check beside that work.
+    """A finished thread: the check of ``batch`` compiles no program (its judgement is numpy,
+    or a compiled loop cached on disk, :attr:`~diffgyro._motion_windows.Layout.check`).
+    Kept for callers that start the check's preparation before other work; a fit's
+    :func:`check_ahead` reads its window statistics beside the fit.
 
     **Arguments:**
 
     - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
     - ``dt``: the sampling interval, s (default: each device's own).
     """
-    return _program_ahead(batch, dt)[2]
+    done = threading.Thread(target=lambda: None, name="motion check", daemon=True)
+    done.start()
+    return done
 
 
 def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = None
                 ) -> Callable[[], dict]:
-    """Start what :func:`motion_check` of ``batch`` needs before a fit's model: its program
-    compiled (for the largest group of devices), the first look's window statistics read
-    and, for a model that reads ``reads``, the half windows it is evaluated at
-    (:func:`~diffgyro._window_explain.half_windows`), on threads of their own (XLA, the
-    compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
+    """Start what :func:`motion_check` of ``batch`` needs before a fit's model: the first
+    look's window statistics read and, for a model that reads ``reads``, the half windows
+    it is evaluated at (:func:`~diffgyro._window_explain.half_windows`), on a thread of its
+    own (the compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
     waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``; its
     ``reading`` is the read's future (other work may start after it).
 
@@ -500,7 +486,7 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
       residual judges the recording; None where none will.
     """
     mask = np.asarray(batch.mask)
-    groups, lays, compiled, intervals = _program_ahead(batch, dt)
+    groups, lays, intervals = _ahead_groups(batch, dt)
     _, use_accel = _reads(batch)
     out: dict = {"intervals": intervals}
     rate = None if batch.rate is None else np.asarray(batch.rate)
@@ -523,7 +509,6 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     reading = host_pool("motion-ahead", 1).submit(read)
 
     def wait() -> dict:
-        compiled.join()
         reading.result()
         return out
 

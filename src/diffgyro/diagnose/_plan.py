@@ -18,7 +18,6 @@ import jax
 import numpy as np
 
 from .. import _aux as aux_cols
-from .. import motion as motion_mod
 from .._jit import signature
 from ..data import Batch, inputs_of
 from ..effects import AbstractNoise, RandomWalk, is_column_name
@@ -148,15 +147,13 @@ def _ahead_programs(model: ErrorModel, batch: Batch, plan: _Plan) -> tuple:
     return signature(*args), engine(n_dev * length).compile_ahead(*args), allan
 
 
-def first_programs(batch: Batch, fit_options: dict):
-    """A function that starts compiling (or reading from the caches), once, the programs
-    whose shapes follow from the batch alone: the base fit's motion check
-    (:func:`diffgyro.motion.program_ahead`; the fit's own ``check_ahead`` then waits for
-    this compilation) and the residuals' Allan deviation (:func:`_ahead_programs` asks
-    for it again and gets this thread). The plan calls it while the ranges' program
-    compiles (:func:`._chunks.prepare`): their traces fill that wait, and XLA compiles them
-    while the plan traces the scoring program, whose compilation, the longest, still
-    starts as early."""
+def first_programs(batch: Batch):
+    """A function that starts compiling (or reading from the caches), once, the program
+    whose shape follows from the batch alone: the residuals' Allan deviation
+    (:func:`_ahead_programs` asks for it again and gets this thread). The plan calls it
+    while the ranges' program compiles (:func:`._chunks.prepare`): its trace fills that
+    wait, and XLA compiles it while the plan traces the scoring program, whose
+    compilation, the longest, still starts as early."""
     done = []
 
     def start() -> None:
@@ -164,8 +161,6 @@ def first_programs(batch: Batch, fit_options: dict):
             return
         done.append(True)
         try:
-            if fit_options.get("check_motion", True) and not fit_options.get("static_only"):
-                motion_mod.program_ahead(batch)
             allan_program(batch).compile_ahead(*allan_args(None, batch, put=spec)[0])
         except Exception:  # noqa: BLE001 - the fit and the scoring compile what they need
             logging.getLogger("diffgyro").debug("diagnose: no programs before the plan",

@@ -234,7 +234,7 @@ def diagnose(
     # on the gyro the batch scored is the one fitted: the plan can be formed before the fit
     plan = None
     if base_fit is None and channel == "gyro":
-        first = first_programs(batch, fit_options)
+        first = first_programs(batch)
         plan = planned_ahead(model, batch, candidates, fit_options, say, first)
         first()  # (where no plan was formed ahead)
     if base_fit is None:
