@@ -252,6 +252,31 @@ def host_pool(name: str, workers: int | None = None) -> ThreadPoolExecutor:
     return pool
 
 
+def on_threads(rows: int, work: int, run: Callable[[int, int], Any], name: str,
+               minimum: int) -> None:
+    """``run(a, b)`` over chunks of ``rows`` side by side on the threads of
+    :func:`host_pool` ``name`` (a compiled pass that holds no GIL), one chunk per core, or
+    on the caller's thread where ``rows × work`` is below ``minimum`` (starting threads
+    costs about what that much work does).
+
+    **Arguments:**
+
+    - ``rows``: the devices (or rows) to split.
+    - ``work``: the work per row, in the unit of ``minimum`` (samples, windows).
+    - ``run``: the pass over rows ``a`` to ``b``.
+    - ``name``: the pool's name.
+    - ``minimum``: the work below which no thread is started.
+    """
+    parts = min(available_cores(), rows) if rows * work >= minimum else 1
+    if parts <= 1:
+        run(0, rows)
+        return
+    cuts = [rows * i // parts for i in range(parts + 1)]
+    pool = host_pool(name)
+    for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
+        job.result()
+
+
 def shutdown_pools() -> None:
     """End the kept pools' threads (each waits for its work): a process that ends without
     the interpreter's teardown joins its threads first, and an idle pool's never end."""

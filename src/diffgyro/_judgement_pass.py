@@ -24,7 +24,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._jit import available_cores, host_pool
+from ._jit import on_threads
 from ._motion_constants import (
     ACCEL_FLOOR,
     BLOCK_WINDOWS,
@@ -419,7 +419,7 @@ def judge(gyro, accel, w: int, b: int) -> dict:
                acv[accel_part], acn[accel_part], int(w), int(b), thr[part], athr[part],
                moving[part], near[part], loud[part], out[part])
 
-    _on_threads(rows, k, run)
+    on_threads(rows, k, run, "judgement", THREAD_WINDOWS)
     result = dict(window_rate=np.asarray(gyro[0])[:, :, 0], window_valid=np.asarray(gyro[2]),
                   threshold_axes=thr)
     if has_accel:
@@ -433,19 +433,6 @@ def _inputs(stats) -> tuple:
     wins, count, valid, noise = stats
     return (np.ascontiguousarray(wins, np.float32), np.ascontiguousarray(count, np.float32),
             np.ascontiguousarray(valid, bool), np.ascontiguousarray(noise, np.float32))
-
-
-def _on_threads(rows: int, windows: int, run) -> None:
-    """``run(a, b)`` over chunks of ``rows`` devices (of ``windows`` each) side by side on
-    threads, one per core (the compiled loop holds no GIL)."""
-    parts = min(available_cores(), rows) if rows * windows >= THREAD_WINDOWS else 1
-    if parts <= 1:
-        run(0, rows)
-        return
-    cuts = np.linspace(0, rows, parts + 1).astype(int)
-    pool = host_pool("judgement")
-    for job in [pool.submit(run, a, z) for a, z in zip(cuts[:-1], cuts[1:])]:
-        job.result()
 
 
 __all__ = ["judge", "THREAD_WINDOWS"]

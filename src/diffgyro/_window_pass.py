@@ -15,7 +15,7 @@ import math
 import numpy as np
 from numba import njit
 
-from ._jit import available_cores, host_pool
+from ._jit import on_threads
 from ._select import select
 from .data import aligned_empty
 
@@ -189,9 +189,9 @@ def compiled_pass(x, mask, rate, rows, w: int, stats, count, valid, noise, quant
     (``rate`` of shape (0, 1, 3) where there is none): chunks of devices side by side on
     threads, one per core (the pass holds no GIL)."""
     full = _full(mask, rows)
-    _on_threads(len(rows), x.shape[1], lambda a, b: _pass(
+    on_threads(len(rows), x.shape[1], lambda a, b: _pass(
         x, mask, full[a:b], rate, rows[a:b], w, stats[a:b], count[a:b], valid[a:b], noise[a:b],
-        quantiles, limit))
+        quantiles, limit), "windows", THREAD_SAMPLES)
 
 
 def _full(mask, rows):
@@ -206,19 +206,6 @@ def _full(mask, rows):
 #: Device-samples below which a pass runs on the caller's thread (starting threads costs
 #: about a millisecond, what the pass of this many samples takes).
 THREAD_SAMPLES = 1 << 18
-
-
-def _on_threads(rows: int, samples: int, run) -> None:
-    """``run(a, b)`` over chunks of ``rows`` (of ``samples`` each) side by side on threads,
-    one per core (the compiled passes hold no GIL)."""
-    parts = min(available_cores(), rows) if rows * samples >= THREAD_SAMPLES else 1
-    cuts = np.linspace(0, rows, parts + 1).astype(int)
-    if parts <= 1:
-        run(0, rows)
-        return
-    pool = host_pool("windows")
-    for job in [pool.submit(run, a, b) for a, b in zip(cuts[:-1], cuts[1:])]:
-        job.result()
 
 
 @njit(cache=True, nogil=True)
@@ -259,8 +246,8 @@ def compiled_means(x, mask, rows, h: int, k: int):
     samples (``x`` with its channels last, a view)."""
     out = np.zeros((len(rows), k, x.shape[2]))
     full = _full(mask, rows)
-    _on_threads(len(rows), x.shape[1], lambda a, b: _means(x, mask, full[a:b], rows[a:b], int(h),
-                                                         out[a:b]))
+    on_threads(len(rows), x.shape[1], lambda a, b: _means(x, mask, full[a:b], rows[a:b], int(h),
+                                                         out[a:b]), "windows", THREAD_SAMPLES)
     return out
 
 
@@ -321,9 +308,9 @@ def compiled_explained(stats, noise, valid, residual, rows, w: int, quantiles, l
     stats, noise = stats.copy(), noise.copy()
     valid, rows = np.ascontiguousarray(valid, bool), np.ascontiguousarray(rows, bool)
     residual = np.ascontiguousarray(residual, np.float64)
-    _on_threads(len(rows), stats.shape[1] * w, lambda a, b: _explained(
+    on_threads(len(rows), stats.shape[1] * w, lambda a, b: _explained(
         stats[a:b], noise[a:b], valid[a:b], residual[a:b], rows[a:b], int(w),
-        float(quantiles[1]), float(quantiles[3]), int(limit)))
+        float(quantiles[1]), float(quantiles[3]), int(limit)), "windows", THREAD_SAMPLES)
     return stats, noise
 
 
