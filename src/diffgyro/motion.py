@@ -52,6 +52,7 @@ import functools
 import math
 import threading
 from collections.abc import Callable
+from concurrent.futures import Future
 
 import numpy as np
 from jaxtyping import Bool, Float
@@ -476,7 +477,8 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     it is evaluated at (:func:`~diffgyro._window_explain.half_windows`), on a thread of its
     own (the compiled pass and numpy hold no GIL), while the caller fits. Returns a function that
     waits and gives what was read, for ``motion_check(batch, dt, ahead=...)``; its
-    ``reading`` is the read's future (other work may start after it).
+    ``reading`` is a future done once the window statistics are read (other work may
+    start after it, beside the half windows).
 
     **Arguments:**
 
@@ -492,27 +494,34 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
     rate = None if batch.rate is None else np.asarray(batch.rate)
     accel = np.asarray(batch.accel) if use_accel else None
 
+    read_done: Future = Future()  # (the window statistics read: the floor may start)
+
     def read():
         try:
+            stats = {key: _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
+                     for key, idx in groups.items()}
+            read_done.set_result(None)
             for key, idx in groups.items():
-                stats, acc = _read_group(np.asarray(batch.gyro), accel, mask, rate, idx, lays[key])
                 todo = at = held = None
                 if reads is not None:
-                    todo, held = _explained_rows(stats, len(idx))
+                    todo, held = _explained_rows(stats[key][0], len(idx))
                     rows = _pad(idx, lays[key].shape[0])
-                    at = half_windows(batch, rows, key[0], stats[0], todo, reads) \
+                    at = half_windows(batch, rows, key[0], stats[key][0][0], todo, reads) \
                         if todo.any() else None
-                out[key] = (stats, acc, todo, at, held)
+                out[key] = (*stats[key], todo, at, held)
         except Exception:  # noqa: BLE001 - motion_check reads what is missing, and raises there
             pass
+        finally:
+            if not read_done.done():
+                read_done.set_result(None)
 
-    reading = host_pool("motion-ahead", 1).submit(read)
+    whole = host_pool("motion-ahead", 1).submit(read)
 
     def wait() -> dict:
-        reading.result()
+        whole.result()
         return out
 
-    wait.reading = reading  # type: ignore[attr-defined]
+    wait.reading = read_done  # type: ignore[attr-defined]
     return wait
 
 
