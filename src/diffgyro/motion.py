@@ -50,7 +50,6 @@ from __future__ import annotations
 
 import functools
 import math
-import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 
@@ -454,22 +453,6 @@ def _ahead_groups(batch, dt: float | None = None
     return groups, lays, (dts, spans)
 
 
-def program_ahead(batch, dt: float | None = None) -> threading.Thread:
-    """A finished thread: the check of ``batch`` compiles no program (its judgement is numpy,
-    or a compiled loop cached on disk, :attr:`~diffgyro._motion_windows.Layout.check`).
-    Kept for callers that start the check's preparation before other work; a fit's
-    :func:`check_ahead` reads its window statistics beside the fit.
-
-    **Arguments:**
-
-    - ``batch``: the :class:`~diffgyro.data.Batch` to judge.
-    - ``dt``: the sampling interval, s (default: each device's own).
-    """
-    done = threading.Thread(target=lambda: None, name="motion check", daemon=True)
-    done.start()
-    return done
-
-
 def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = None
                 ) -> Callable[[], dict]:
     """Start what :func:`motion_check` of ``batch`` needs before a fit's model: the first
@@ -526,6 +509,6 @@ def check_ahead(batch, dt: float | None = None, reads: frozenset[str] | None = N
 
 
 __all__ = ["motion_check", "Motion", "rest_kept", "describe", "reason", "check_ahead",
-           "program_ahead", "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES",
+           "window_sizes", "AT_REST", "IN_MOTION", "UNVERIFIED", "VERDICT_NAMES",
            "ACCEL_FLOOR", "EARTH_RATE", "K_SIGMA", "MAX_RESOLUTION", "MIN_PEAK_RATIO", "MIN_TILT",
            "MIN_WINDOWS"]
