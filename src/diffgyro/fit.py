@@ -211,9 +211,9 @@ def fit(
         motion = motion_check(batch)  # of gyro − rate where the data hold a rate reference
         batch = eqx.tree_at(lambda b: b.mask, batch, np.asarray(motion.static) & np.asarray(batch.mask))
         result = _fit(model, batch, norm, options, theta0, aux_norm, option_overrides)
-    else:  # the check's program compiles, and its first look reads the samples, while the
-        # fit runs; the check then judges what the fitted model leaves (judge_motion), while
-        # the sums path's noise floor is still formed on the host's threads
+    else:  # the check's first look reads the samples while the fit runs; the check then
+        # judges what the fitted model leaves (judge_motion), while the sums path's noise
+        # floor is still formed on the host's threads
         ahead = check_ahead(imu, reads=model.requires()
                             if model.noise is None and imu.rate is None else None)
         # (on two cores the floor waits for the check's read: the judgement needs it first)

@@ -47,7 +47,7 @@ group_finish = filter_jit(compiler_options=ONCE)(finished)
 
 
 #: A small batch's group program, its finish inline: compiled without optimisation, as one
-#: part (:data:`ONE_PART`: a first fit compiles it beside the motion check's program).
+#: part (:data:`ONE_PART`: a first fit compiles it beside its other programs).
 group_small = filter_jit(compiler_options={**REASSOCIATE, **ONCE, **ONE_PART})(group_program)
 
 

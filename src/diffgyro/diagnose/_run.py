@@ -140,8 +140,7 @@ def _nested_options(opts, fit_options: dict) -> dict:
 def _nested(*args, **kwargs) -> Diagnosis:
     """The greedy pair's nested diagnosis: its residual's noise is not reported, and its
     fit does not check the recordings for motion again: a pair is formed only for a device
-    the base fit's check found fit to judge, and the check's programs (compiled for the
-    sub-batch's size) were most of a nested diagnosis's compile time after the scoring's."""
+    the base fit's check found fit to judge."""
     return diagnose(*args, noise=False, **kwargs)
 
 
