@@ -27,7 +27,6 @@ class Layout(NamedTuple):
     b: int
     shape: tuple[int, int]
     accel: bool
-    padded: bool
 
     @property
     def check(self):
@@ -57,10 +56,10 @@ def layout(devices: int, samples: int, w: int, b: int, accel: bool) -> Layout:
     """
     k = -(-samples // w)
     if devices * samples > PAD_SAMPLES:
-        return Layout(w, b, (devices, k), accel, False)
+        return Layout(w, b, (devices, k), accel)
     # small batches share a shape: devices to a bucket, windows to a power of two of blocks
     blocks = 1 << (-(-k // b) - 1).bit_length()
-    return Layout(w, b, (device_bucket(devices, minimum=1), blocks * b), accel, True)
+    return Layout(w, b, (device_bucket(devices, minimum=1), blocks * b), accel)
 
 
 __all__ = ["layout", "Layout"]
