@@ -82,3 +82,39 @@ def test_timing_medians_interleave_and_take_the_median(monkeypatch):
     assert first == 1
     assert dg == 13 and base == {"b": 17}
     assert mod.median_time(lambda: None, 1) == 15 ** 2 - 14 ** 2
+
+
+def test_suite_profile_counts_a_programs_stages_for_the_running_test():
+    """benchmarks/suite_profile.py's plugin: a program built while a test runs is counted for
+    that test (trace, lowering, compilation, one program), and its rows add up per file."""
+    import jax
+    import jax.monitoring
+    import jax.numpy as jnp
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("suite_profile", ROOT / "benchmarks" / "suite_profile.py")
+    prof = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(prof)
+    prof.pytest_runtest_logstart("tests/test_x.py::test_a", None)
+    jax.monitoring.register_event_duration_secs_listener(prof._listener)
+    try:
+        # (an offset of this run's own: a new program, not one the compilation cache holds)
+        offset = float(np.random.default_rng().uniform(1.0, 2.0))
+        jax.jit(lambda x: jnp.sin(x) * 3.0 + offset)(np.arange(7.0)).block_until_ready()
+    finally:
+        jax.monitoring.unregister_event_duration_listener(prof._listener)
+    prof.pytest_runtest_logfinish("tests/test_x.py::test_a", None)
+    row = prof._times["tests/test_x.py::test_a"]
+    assert row["programs"] == 1 and row["wall"] > 0
+    assert all(row[stage] > 0 for stage in ("trace", "lower", "compile"))
+    rows = {"tests/test_x.py::test_a": dict(row),
+            "tests/test_x.py::test_b": {"wall": 2.0, "compile": 1.0, "programs": 2},
+            "tests/test_y.py::test_c": {"wall": 1.0}}
+    files = prof.by_file(rows)
+    assert files["tests/test_x.py"]["programs"] == 3
+    assert files["tests/test_x.py"]["wall"] == pytest.approx(row["wall"] + 2.0)
+    total = prof.summary(files, wall=5.0, workers=2)
+    assert total["programs"] == 3 and total["worker_s"] == pytest.approx(row["wall"] + 3.0)
+    build = row["trace"] + row["lower"] + row["compile"] + 1.0
+    assert total["build_share"] == pytest.approx(build / (row["wall"] + 3.0))
+    assert prof.table(files, 1).count("\n") == 2 and "tests/test_x.py" in prof.table(files, 1)
