@@ -122,6 +122,8 @@ def run(pytest_args: list[str], workers: int) -> tuple[dict, float]:
             raise SystemExit(f"pytest failed ({proc.returncode}):\n{proc.stdout[-3000:]}")
         rows: dict = {}
         for path in Path(out).glob("*.json"):
+            if workers and path.stem == "main":  # (xdist's controller: it relays the workers'
+                continue                         # tests and runs none, its rows hold no stage)
             rows.update(json.loads(path.read_text()))
     return rows, wall
 
