@@ -1,4 +1,5 @@
-"""Timing shared by the benchmark scripts: call a function N times, report the median.
+"""Timing shared by the benchmark scripts: call a function N times, report the median;
+and the name of the CPU the times were taken on.
 
 The median, not the mean, because the benchmarks run on shared machines where a
 single slow call (another process taking the core) is common; calls compared with
@@ -8,10 +9,23 @@ of them alike.
 
 from __future__ import annotations
 
+import platform
 import statistics
 import time
 from collections.abc import Callable
 from typing import Any
+
+
+def cpu_name() -> str:
+    """The CPU's model name (``/proc/cpuinfo``), else what :mod:`platform` knows."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def timed(f: Callable[[], Any]) -> tuple[float, Any]:

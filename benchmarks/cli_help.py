@@ -24,6 +24,10 @@ import statistics
 import subprocess
 import sys
 import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared helpers
+from _timing import cpu_name  # noqa: E402
 
 COMMANDS = [["--help"], ["fit", "--help"], ["diagnose", "--help"], ["export", "--help"],
             ["recipe", "--help"], ["allan", "--help"], ["noise", "--help"],
@@ -43,17 +47,6 @@ def _time(argv: list[str], runs: int) -> dict:
     jax = any(line.rsplit("|", 1)[-1].strip() == "jax" for line in trace.splitlines())
     return {"median_s": statistics.median(times), "min_s": min(times), "max_s": max(times),
             "runs": runs, "imports_jax": jax}
-
-
-def _cpu() -> str:
-    try:
-        with open("/proc/cpuinfo") as f:
-            for line in f:
-                if line.startswith("model name"):
-                    return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 def main() -> None:
@@ -76,7 +69,7 @@ def main() -> None:
     ok = worst <= GOAL_S and not any(r["imports_jax"] for r in rows[2:])
     print(f"slowest --help median {worst:.3f} s (goal ≤ {GOAL_S} s, no JAX): {'met' if ok else 'NOT met'}")
     if args.json:
-        meta = {"machine": _cpu(), "cores": os.cpu_count(), "python": platform.python_version(),
+        meta = {"machine": cpu_name(), "cores": os.cpu_count(), "python": platform.python_version(),
                 "goal_s": GOAL_S, "goal_met": ok}
         with open(args.json, "w") as f:
             json.dump([{**meta, **r} for r in rows], f, indent=1)

@@ -43,7 +43,7 @@ os.environ.setdefault("XLA_PYTHON_CLIENT_PREALLOCATE", "false")
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))  # the shared timing, also when loaded by path
-from _timing import measure, median_time  # noqa: E402
+from _timing import cpu_name, measure, median_time  # noqa: E402
 
 # --------------------------------------------------------------------------- sizes
 
@@ -122,16 +122,8 @@ def row(case, devices, samples, dg_s, first_s, baseline, base_s, diff, rel, nbyt
 def machine_info() -> dict:
     import jax
 
-    cpu = platform.processor() or ""
-    try:
-        for line in open("/proc/cpuinfo"):
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
     dev = jax.devices()[0]
-    return {"cpu": cpu, "cores": os.cpu_count(), "backend": jax.default_backend(),
+    return {"cpu": cpu_name(), "cores": os.cpu_count(), "backend": jax.default_backend(),
             "device": getattr(dev, "device_kind", str(dev)), "n_devices": jax.device_count(),
             "jax": jax.__version__, "numpy": np.__version__, "python": platform.python_version()}
 

@@ -18,7 +18,6 @@ import argparse
 import collections
 import json
 import os
-import platform
 import subprocess
 import sys
 import tempfile
@@ -26,6 +25,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))  # the shared helpers, also when loaded by path
+from _timing import cpu_name  # noqa: E402
+
 #: ``jax.monitoring`` duration events, by the name of the stage they time.
 STAGES = {"/jax/core/compile/jaxpr_trace_duration": "trace",
           "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower",
@@ -144,7 +146,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{total['compile_s']:.0f} s; {total['programs']} programs)")
     print(table(files, args.top))
     if args.json:
-        out = {"benchmark": "suite_profile", "machine": platform.processor() or platform.machine(),
+        out = {"benchmark": "suite_profile", "machine": cpu_name(),
                "cores": os.cpu_count(), "pytest_args": args.pytest_args, **total, "files": files}
         Path(args.json).write_text(json.dumps(out, indent=1) + "\n")
     return 0

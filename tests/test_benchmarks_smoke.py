@@ -11,12 +11,17 @@ KEYS = {"case", "devices", "samples", "diffgyro_s", "baseline", "baseline_s", "s
         "max_abs_diff", "bytes", "fraction_of_bandwidth_limit", "compile_s"}
 
 
-@pytest.fixture(scope="module")
-def bench():
-    spec = importlib.util.spec_from_file_location("bench_run", ROOT / "benchmarks" / "run.py")
+def _script(name: str, file: str):
+    """benchmarks/``file`` loaded as the module ``name``."""
+    spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / file)
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod
+
+
+@pytest.fixture(scope="module")
+def bench():
+    return _script("bench_run", "run.py")
 
 
 @pytest.mark.parametrize("case,args", [
@@ -51,9 +56,7 @@ def test_stream_fits_every_chunk_and_agrees_with_lstsq(tmp_path):
     chunk's coefficients equal to numpy's lstsq, the limits and fractions reported."""
     import json
 
-    spec = importlib.util.spec_from_file_location("bench_stream", ROOT / "benchmarks" / "stream.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("bench_stream", "stream.py")
     out = tmp_path / "stream.json"
     assert mod.main(["--devices", "12", "--samples", "2000", "--chunk", "8", "--no-defaults",
                      "--limit-gb", "0.05", "--json", str(out)]) == 0
@@ -67,9 +70,7 @@ def test_stream_fits_every_chunk_and_agrees_with_lstsq(tmp_path):
 def test_timing_medians_interleave_and_take_the_median(monkeypatch):
     """benchmarks/_timing.py: the candidate's first call is timed apart, then candidate and
     baselines run in turn each round, and each reports the median of its own rounds."""
-    spec = importlib.util.spec_from_file_location("bench_timing", ROOT / "benchmarks" / "_timing.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
+    mod = _script("bench_timing", "_timing.py")
     clock = iter(range(1000))
     monkeypatch.setattr(mod.time, "perf_counter", lambda: next(clock) ** 2)
     order = []
@@ -92,9 +93,7 @@ def test_suite_profile_counts_a_programs_stages_for_the_running_test():
     import jax.numpy as jnp
     import numpy as np
 
-    spec = importlib.util.spec_from_file_location("suite_profile", ROOT / "benchmarks" / "suite_profile.py")
-    prof = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(prof)
+    prof = _script("suite_profile", "suite_profile.py")
     prof.pytest_runtest_logstart("tests/test_x.py::test_a", None)
     jax.monitoring.register_event_duration_secs_listener(prof._listener)
     try:
