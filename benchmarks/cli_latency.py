@@ -29,7 +29,6 @@ import compileall
 import importlib.util
 import json
 import os
-import platform
 import resource
 import shutil
 import statistics
@@ -38,6 +37,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared helpers
+from _timing import cpu_name  # noqa: E402
 
 #: (name, arguments, goal warm s): the README walkthrough in order, then the small ones.
 COMMANDS = [
@@ -175,7 +177,7 @@ def main() -> None:
     rows = {name: _rows(only, r) for name, r in runs.items()}
     for name, r in rows.items():
         _print(r, name)
-    out = {"machine": platform.processor() or platform.machine(), "cores": os.cpu_count(),
+    out = {"machine": cpu_name(), "cores": os.cpu_count(),
            "repeat": max(args.repeat, 1), "load_1min": loads}
     if args.trees:
         out["trees"] = {name: {"src": src, "rows": rows[name]} for name, src in trees.items()}

@@ -31,15 +31,18 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
 import diffgyro
 from diffgyro.motion import AT_REST, IN_MOTION, UNVERIFIED, motion_check
 from diffgyro.simulate import simulate
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared helpers
+from _timing import cpu_name  # noqa: E402
 
 RATES = (5.0, 10.0, 20.0, 100.0, 200.0)
 DURATIONS = (10.0, 60.0, 3600.0)
@@ -170,7 +173,7 @@ def main() -> None:
     print(f"largest false-alarm rate: {100 * worst:.1f} % (goal ≤ 1 %)")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"rows": rows, "machine": platform.processor() or platform.machine(),
+            json.dump({"rows": rows, "machine": cpu_name(),
                        "goal": "false alarms ≤ 1 %", "largest_false_alarm": worst,
                        "judged_by": f"fit({args.fit!r})" if args.fit else "the recording"}, fh, indent=1)
 

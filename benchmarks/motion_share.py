@@ -15,7 +15,6 @@ import argparse
 import contextlib
 import io
 import json
-import platform
 import sys
 import tempfile
 from pathlib import Path
@@ -23,7 +22,7 @@ from pathlib import Path
 import diffgyro
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared timing
-from _timing import median_time  # noqa: E402
+from _timing import cpu_name, median_time  # noqa: E402
 
 
 def _command(args: list[str]) -> None:
@@ -68,7 +67,7 @@ def main() -> None:
               f"({100 * check / whole:.1f} %)")
     if args.json:
         with open(args.json, "w") as fh:
-            json.dump({"rows": rows, "machine": platform.processor() or platform.machine()}, fh,
+            json.dump({"rows": rows, "machine": cpu_name()}, fh,
                       indent=1)
 
 

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import platform
 import sys
 import time
 from pathlib import Path
@@ -39,6 +38,9 @@ from pathlib import Path
 import numpy as np
 from noise_identification import flat_components, truth_params  # the scoring is shared
 from scipy.signal import lfilter
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared helpers
+from _timing import cpu_name  # noqa: E402
 
 #: (name, rate Hz, length s, truth): arw rad/s/√Hz, q rad, gm ((σ rad/s, T s), …),
 #: rrw rad/s/√s, ramp rad/s².
@@ -158,7 +160,7 @@ def main(argv=None) -> int:
            "coverage_95": float(np.mean(cover_all)) if cover_all else None,
            "intervals": len(cover_all), "seed_base": args.seed_base, "identify_s": t_id, "identify_process_s": cpu_id,
            "slow_part": bool(args.slow_part), "bootstrap": bool(args.slow_part and not args.chi2),
-           "machine": f"{platform.machine()} {platform.processor()}".strip(),
+           "machine": cpu_name(),
            "jax_backend": jax.default_backend(), "cases": rows}
     print(f"structure right on {total_right}/{total_axes} axes ({100 * out['structure_right']:.1f} %); "
           f"95 % intervals cover {100 * (out['coverage_95'] or 0):.1f} % of {len(cover_all)}; "

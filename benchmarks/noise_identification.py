@@ -38,12 +38,14 @@ import contextlib
 import io
 import json
 import math
-import platform
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the shared helpers
+from _timing import cpu_name  # noqa: E402
 
 DT = 0.01
 #: Truth per structure (SI: arw rad/s/√Hz, q rad, gm ((σ rad/s, τ s), …), rrw rad/s/√s, ramp rad/s²).
@@ -270,7 +272,7 @@ def main(argv=None) -> int:
     out = {"benchmark": "noise_identification", "seeds": args.seeds, "samples": args.n,
            "dt": DT, "penalty": penalty, "series": int(y.shape[0] * y.shape[1]),
            "identify_first_call_s": first, "identify_warm_s": warm,
-           "machine": f"{platform.machine()} {platform.processor()}".strip(),
+           "machine": cpu_name(),
            "jax_backend": jax.default_backend(), "skipped_peers": sorted(report["skipped"]),
            "structures": rows}
     print(f"identify: {y.shape[0] * y.shape[1]} series of {args.n} samples: first call "
