@@ -36,7 +36,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._jit import by_work, filter_jit
-from .._xla_options import LIGHT_COMPILE
+from .._xla_options import LIGHT_COMPILE, ONE_PART
 from ._block_likelihood import BLOCKS, CLOSE, choose_slow_many
 from ._components import component_avar, model_wv, row_mask
 from ._covariance import wv_covariance
@@ -196,9 +196,12 @@ def _choice_series(wv_hat, count, n, dt, m, masks, penalty, th2, obj, chol_ref):
 #: (:data:`~diffgyro._xla_options.LIGHT_COMPILE`: a quarter less compile time, a tenth
 #: more run time). Two programs, because a first call traces in Python (one core) and
 #: compiles in XLA (without the GIL): the choice is traced while the fits compile, and the
-#: two compile side by side.
-_fits_batch = by_work(_fits_series, compiler_options=LIGHT_COMPILE, persistent=True)
-_choice_batch = by_work(_choice_series, compiler_options=LIGHT_COMPILE, persistent=True)
+#: two compile side by side; a small batch's each as one LLVM part
+#: (:data:`~diffgyro._xla_options.ONE_PART`), since the two already keep both cores busy.
+_fits_batch = by_work(_fits_series, compiler_options=LIGHT_COMPILE, persistent=True,
+                      small_options=ONE_PART)
+_choice_batch = by_work(_choice_series, compiler_options=LIGHT_COMPILE, persistent=True,
+                        small_options=ONE_PART)
 
 
 def _programs(samples: int) -> tuple:
