@@ -14,8 +14,9 @@ devices (GPUs; CPU devices, forced with
 see :func:`local_mesh`) the device axis is
 laid out as (blocks, shards × block), each shard's devices a contiguous slice,
 with the second axis placed on a one-axis mesh (``NamedSharding``): XLA
-partitions the vmap, so each JAX device fits its own slice. Linear models compile to a program without any
-collective operation (nothing to wait on, nothing to deadlock); models with
+partitions the vmap, so each JAX device fits its own slice. Linear models
+compile to a program without any collective operation (nothing to wait on,
+nothing to deadlock); models with
 time constants add one all-reduce per solver step, where the shards agree on
 when every device has converged. The numbers are those of the single-device
 run to rounding (tests/test_sharding.py). ``jax.shard_map`` would be the
