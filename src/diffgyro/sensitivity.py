@@ -403,7 +403,9 @@ def device_bootstrap(model: ErrorModel, sig: Signals, params: Params, key, n_boo
             b, _ = project_linear(model, sig, y, w, th)
             return b, th
 
-        beta, theta = jax.lax.map(refit, y_star, batch_size=16)
+        # one replicate at a time: a batched Levenberg–Marquardt loop runs every element to
+        # the slowest one's step count (equal to rounding, in a few times the run time)
+        beta, theta = jax.lax.map(refit, y_star)
     reps = jnp.concatenate([beta.reshape(n_boot, -1), theta], axis=1)
     centred = reps - jnp.mean(reps, axis=0)
     cov = centred.T @ centred / (n_boot - 1)
@@ -431,7 +433,8 @@ def block_bootstrap(result: FitResult, batch: Batch, n_boot: int = 200, block=No
     - ``n_boot``: bootstrap replicates.
     - ``block``: the block length, samples (default: chosen per device).
     - ``seed``: the seed.
-    - ``chunk``: devices per compiled call.
+    - ``chunk``: devices refitted side by side (a linear model's; a model with time
+      constants refits one device and one replicate at a time).
     """
     release_compiled_if_crowded(interval=1.0)  # before this call compiles its programs
     keys = jax.random.split(jax.random.PRNGKey(seed), result.n_devices)
@@ -445,7 +448,7 @@ def _bootstrap_batch(model, sig, params, keys, n_boot, block, opts, chunk):
         out = device_bootstrap(model, a[0], a[1], a[2], n_boot, block, opts)
         return dict(cov=out["cov"], block=out["block"])
 
-    return jax.lax.map(one, (sig, params, keys), batch_size=chunk)
+    return jax.lax.map(one, (sig, params, keys), batch_size=None if model.n_nonlinear else chunk)
 
 
 def z_value(level: float) -> float:
