@@ -53,8 +53,8 @@ ONCE = dict(xla_backend_optimization_level=0, xla_cpu_use_fusion_emitters=False,
 #: compiles its module as one part instead of splitting it over XLA's threads. The
 #: diagnosis's scoring program of the walkthrough compiles in 15 % less CPU time so, with
 #: the same bits on every simulated plan tried (thermal, warm-up, rate table, six faces);
-#: the noise identification's two programs in 5 % less, its chosen models unchanged and
-#: the rejected candidates' criteria within 1e-9 relative.
+#: with them the first ``noise`` call of the walkthrough takes 5 % less CPU time, its
+#: chosen models unchanged and the rejected candidates' criteria within 1e-9 relative.
 ONE_PART = dict(xla_cpu_parallel_codegen_split_count=1)
 #: Samples (devices × samples, or series × samples) of a batch at most this large: its
 #: fit, motion check, diagnosis and noise identification run programs compiled with

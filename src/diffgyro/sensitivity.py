@@ -9,8 +9,9 @@
   the bandwidth chosen from the residuals' autocorrelation (Andrews 1991
   plug-in, fed by flat-top estimates as in Politis & White 2004).
 * :func:`block_bootstrap` — circular block bootstrap of the residuals (all
-  three axes share the blocks), refitting every replicate (vmapped; linear
-  models reuse one Cholesky factor).
+  three axes share the blocks), refitting every replicate (linear models with
+  one Cholesky factor for all of them; models with time constants one replicate
+  and one device at a time).
 * :func:`uncertainty_band` / :func:`plot_uncertainty_band` — propagated
   uncertainty of the compensated rate over an operating temperature range.
 * :func:`param_sensitivity`, :func:`compensation_sensitivity` — Jacobians of

@@ -59,8 +59,7 @@ def _solve(model: ErrorModel, sig, opts: FitOptions, block: int, mesh: Mesh | No
     the per-device design matrices), vmap within a block. Each shard's devices are a
     contiguous slice of the device axis, so the blocks are laid out (blocks, shards ×
     block) with the second axis placed on ``mesh``: one vmap, each JAX device fitting its
-    own columns (a vmap over the shards as well batched every operation twice, and the
-    trace took half as long again)."""
+    own columns (a vmap over the shards as well would batch every operation twice)."""
     n = sig.t.shape[0]
     shards = 1 if mesh is None else mesh.size
     k = n // (shards * block)
